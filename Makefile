@@ -1,0 +1,38 @@
+# torchslide: set-up, demo, tests and benchmarks. Every target bootstraps .venv itself.
+PYTHON ?= python3
+TORCH ?= torch==2.13.0
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: venv demo test test-all bench bench-solver bench-inference clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q "$(TORCH)"
+	$(PY) -m pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+demo: $(STAMP)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(PY) -m experiments.demo --out demo_out
+
+test: $(STAMP)
+	$(PY) -m pytest -q -x --timeout=900
+
+test-all: $(STAMP)
+	$(PY) -m pytest -q -m "" --timeout=3600
+
+bench: bench-solver bench-inference
+
+bench-solver: $(STAMP)
+	$(PY) -m bench.bench_solver --out bench/results/solver.json
+
+bench-inference: $(STAMP)
+	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"
+	$(PY) -m bench.bench_inference --out bench/results/inference.json
+
+clean:
+	rm -rf $(VENV) demo_out .pytest_cache
