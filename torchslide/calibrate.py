@@ -1,0 +1,149 @@
+"""Entry point: ``calibrate(log_posterior, bounds, ...) -> CalibrationResult``.
+
+Runs Algorithm 1 (torchslide.active) on a user log-unnormalised posterior z = g(x) and estimates the
+posterior from the final GP emulator: grid approximation (Eq. 15) for p <= 2, adaptive Metropolis on
+the emulator mean for p > 2. This module does not import the solver.
+
+Grid convention: ``grid_axes`` are cell centres; ``posterior_grid`` is a density normalised such that
+``posterior_grid.sum() * cell_volume == 1`` with ``cell_volume = prod(axis[1] - axis[0])``.
+"""
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from .active import ActiveConfig, ActiveLearner
+from .bayes import check_bounds
+from .posterior import PosteriorSummary, adaptive_metropolis, cell_volume, log_evidence_importance
+
+
+@dataclass
+class CalibrationResult:
+    """Result of :func:`calibrate`.
+
+    Attributes:
+        names: parameter names.
+        bounds: (2, p) box.
+        x: (n, p) all evaluated points in run order; the first ``n_initial`` are the LHS design.
+        z: (n,) log-unnormalised posterior values (nan where failed).
+        failed: (n,) bool; ``reasons`` the failure reason per run ('' if fine).
+        grid_axes: list of p cell-centre axes (p <= 2), else None.
+        posterior_grid: density on the grid (sum * cell_volume = 1), or None for p > 2.
+        log_evidence: log of the integral of exp(g_hat) over the box.
+        tv_history: list of (n_runs, TV(p_i, p_{i-lag})).
+        summary: dict with mean, sd, map, hdr90 per parameter (see PosteriorSummary.to_dict).
+        samples: (N, p) MCMC samples on the emulator for p > 2, else None.
+        emulator: the final LogPosteriorEmulator.
+    """
+
+    names: list
+    bounds: np.ndarray
+    x: np.ndarray
+    z: np.ndarray
+    failed: np.ndarray
+    reasons: list
+    n_initial: int
+    grid_axes: list | None
+    posterior_grid: np.ndarray | None
+    log_evidence: float
+    tv_history: list
+    summary: dict
+    samples: np.ndarray | None = None
+    stopped_reason: str = ""
+    timings: dict = field(default_factory=dict)
+    emulator: object = None
+
+    @property
+    def n_runs(self) -> int:
+        return int(self.x.shape[0])
+
+    def to_json(self) -> dict:
+        """JSON-ready dict: mean, sd, map, hdr90, log_evidence, runs and diagnostics."""
+        runs = [{"x": dict(zip(self.names, map(float, xi))),
+                 "z": None if not np.isfinite(zi) else float(zi),
+                 "failed": bool(fi), "reason": ri, "initial": i < self.n_initial}
+                for i, (xi, zi, fi, ri) in enumerate(zip(self.x, self.z, self.failed, self.reasons))]
+        out = dict(self.summary)
+        out.update({"log_evidence": float(self.log_evidence), "n_runs": self.n_runs,
+                    "n_initial": self.n_initial, "n_failed": int(np.sum(self.failed)),
+                    "stopped_reason": self.stopped_reason,
+                    "bounds": {n: [float(self.bounds[0, i]), float(self.bounds[1, i])] for i, n in enumerate(self.names)},
+                    "tv_history": [[int(n), float(t)] for n, t in self.tv_history],
+                    "timings": self.timings, "runs": runs})
+        return out
+
+    def save(self, directory: str | os.PathLike) -> Path:
+        """Write posterior.json and posterior.npz (x, z, failed, grid axes, density, samples)."""
+        d = Path(directory)
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "posterior.json").write_text(json.dumps(self.to_json(), indent=2))
+        arrays = {"x": self.x, "z": self.z, "failed": self.failed, "bounds": self.bounds,
+                  "tv_history": np.asarray(self.tv_history, dtype=float).reshape(-1, 2)}
+        if self.posterior_grid is not None:
+            arrays["posterior_grid"] = self.posterior_grid
+            for i, a in enumerate(self.grid_axes):
+                arrays[f"axis_{i}"] = a
+        if self.samples is not None:
+            arrays["samples"] = self.samples
+        np.savez_compressed(d / "posterior.npz", **arrays)
+        return d
+
+
+def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int = 120, batch_size: int = 1,
+              seed: int = 0, grid_size: int = 100, acquisition: str = "entropy",
+              checkpoint: str | os.PathLike | None = None, log_dir: str | os.PathLike | None = None,
+              tv_threshold: float | None = None, names: Sequence[str] | None = None, progress: bool = True,
+              clip_range: float | None = 50.0, tv_lag: int = 10, tv_patience: int = 3,
+              num_restarts: int = 8, raw_samples: int = 256, mcmc_steps: int = 4000,
+              mcmc_chains: int = 8) -> CalibrationResult:
+    """Calibrate parameters in a box by Bayesian active learning (Algorithm 1).
+
+    Args:
+        log_posterior: maps an (n, p) float64 tensor of parameter points to z (n,), or to (z, failed_mask),
+            or to a torchslide.bayes.EvaluationResult. One call gets a whole batch.
+        bounds: (2, p) [lows; highs] or p pairs (low, high).
+        n_initial: b0, maximin-LHS initial runs. n_total: total run budget.
+        batch_size: q points per iteration (kriging believer).
+        seed: seeds the LHS and every iteration (resume reproduces the uninterrupted run).
+        grid_size: points per axis of the estimation grid (p <= 2).
+        acquisition: "entropy" (Eq. 16) or "expvar" (BAPE).
+        checkpoint: file to write after every batch and resume from if it exists.
+        log_dir: TensorBoard log dir (optional).
+        tv_threshold: stop when TV(p_i, p_{i-tv_lag}) < threshold for tv_patience iterations.
+        clip_range: GP training values are capped at max(z) - clip_range (None: off).
+    """
+    b = check_bounds(bounds, names)
+    p = b.shape[1]
+    names = list(names) if names is not None else [f"x{i}" for i in range(p)]
+    cfg = ActiveConfig(n_initial=n_initial, n_total=n_total, batch_size=batch_size, seed=seed,
+                       grid_size=grid_size, acquisition=acquisition, tv_threshold=tv_threshold, tv_lag=tv_lag,
+                       tv_patience=tv_patience, clip_range=clip_range, num_restarts=num_restarts,
+                       raw_samples=raw_samples)
+    learner = ActiveLearner(log_posterior, b, cfg, checkpoint=checkpoint, log_dir=log_dir, progress=progress,
+                            names=names)
+    s = learner.run()
+    em = learner.emulator
+    samples = None
+    if p <= 2:
+        post = learner.posterior
+        axes, dens, log_z = post.axes, post.density, post.log_evidence
+        summ: PosteriorSummary = post.summary(names)
+    else:
+        mc = adaptive_metropolis(em.mean, b, n_chains=mcmc_chains, n_steps=mcmc_steps, seed=seed)
+        samples = mc.samples
+        log_z = log_evidence_importance(em.mean, b, samples, seed=seed)
+        summ = mc.summary(names, log_z)
+        axes, dens = None, None
+    timings = {"fit_s_median": float(np.median(s.fit_seconds)) if s.fit_seconds else None,
+               "acquisition_s_median": float(np.median(s.acq_seconds)) if s.acq_seconds else None}
+    return CalibrationResult(names=names, bounds=b.numpy(), x=s.x.numpy(), z=s.z.numpy(), failed=s.failed.numpy(),
+                             reasons=list(s.reasons), n_initial=int(s.is_initial.sum()), grid_axes=axes,
+                             posterior_grid=dens, log_evidence=float(log_z), tv_history=list(s.tv_history),
+                             summary=summ.to_dict(), samples=samples, stopped_reason=s.stopped_reason,
+                             timings=timings, emulator=em)

@@ -1,0 +1,1 @@
+"""Subcommand implementations of the ``torchslide`` CLI (one module per command; see torchslide.cli)."""

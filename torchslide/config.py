@@ -1,0 +1,482 @@
+"""TOML run configuration: loading and validation into typed dataclasses for ``simulate``.
+
+A configuration file (paths are relative to the file)::
+
+    [terrain]
+    dem = "dem.asc"              # or: synthetic = "bondo_like" (+ cellsize = 20.0, options = {...})
+    release = "release.asc"      # or an inline table: {centre = [x, y], radii = [rx, ry], volume = 3e6}
+    erodible = "erodible.asc"    # optional erodible depth raster, m
+    fill_nodata = false          # optional: fill edge nodata cells of the DEM by nearest neighbour
+
+    [model]
+    rheology = "voellmy"         # or "coulomb" (xi = inf)
+    mu = [0.2, 0.25]             # a list runs a batch; lists must have equal lengths, scalars broadcast
+    xi = 1000.0                  # m/s^2
+    # any other field of torchslide.physics.Params (k_ap, kappa, curvature, ...)
+
+    [run]
+    t_end = 300.0                # s
+    dtype = "float64"            # or "float32"
+    device = "cpu"               # or "cuda", "cuda:1"
+    cfl = 0.4                    # optional, passed to SolverConfig
+    # any other SolverConfig field is accepted here too (output_interval, stop_ke_fraction, ...)
+
+    [[gauges]]
+    name = "G1"
+    x = 1700.0
+    y = 1331.0
+
+Every problem raises :class:`ConfigError` with a one-line message naming the file, section and key.
+
+Extending: the calibrate/diagnose configs are the same file plus more sections. Call
+``load_config(path, extra_sections={"prior": parse_prior, ...})``; each parser gets
+``(table, cfg)`` -- the raw TOML value of the section and the :class:`Config` with the base sections
+already validated -- and returns any object, stored in ``cfg.extra[name]``. Parsers raise
+:class:`ConfigError` (use :func:`check_keys` for unknown-key checks). Sections listed in
+:data:`OTHER_SECTIONS` but without a parser are accepted and left unvalidated in ``cfg.raw`` (so
+``torchslide simulate`` runs a calibrate config); any other unknown section is an error.
+"""
+from __future__ import annotations
+
+import math
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .terrain.grid import DEM, TerrainError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+__all__ = [
+    "ConfigError",
+    "TerrainConfig",
+    "ModelConfig",
+    "RunConfig",
+    "GaugeConfig",
+    "Config",
+    "load_config",
+    "parse_config",
+    "read_toml",
+    "check_keys",
+    "OTHER_SECTIONS",
+    "BASE_SECTIONS",
+]
+
+
+class ConfigError(ValueError):
+    """Bad configuration or input data; the message is one line naming the file, section and key."""
+
+
+BASE_SECTIONS = ("terrain", "model", "run", "gauges")
+OTHER_SECTIONS: set[str] = {"prior", "observations", "calibration", "diagnose", "sweep", "output"}
+"""Sections of other commands' configs that the base loader accepts without a parser."""
+
+_TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata"}
+_RELEASE_TABLE_KEYS = {"centre", "center", "radii", "volume", "thickness", "shape"}
+_RUN_KEYS = {"t_end", "dtype", "device", "cfl"}
+_GAUGE_KEYS = {"name", "x", "y"}
+RHEOLOGIES = ("voellmy", "coulomb")
+
+
+# ------------------------------------------------------------------------------------ dataclasses
+@dataclass
+class TerrainConfig:
+    """Validated terrain: DEM, release (ny, nx) m, optional erodible depth (ny, nx) m."""
+
+    dem: DEM
+    release: np.ndarray
+    erodible_depth: np.ndarray | None = None
+    source: str = ""
+    case: Any = None  # SyntheticCase for synthetic terrains (has points, thalweg)
+
+    @property
+    def release_volume(self) -> float:
+        """m^3."""
+        return float(self.release.sum() * self.dem.cellsize**2)
+
+
+@dataclass
+class ModelConfig:
+    """Rheology and per-member parameter values (name -> list of B floats)."""
+
+    rheology: str
+    values: dict[str, list[float]]
+    batch_size: int
+
+    def make_params(self, dtype=None, device="cpu"):
+        """torchslide.physics.Params for these values."""
+        import torch
+
+        from .physics import Params
+
+        return Params.make(B=self.batch_size, dtype=dtype or torch.float64, device=device, **self.values)
+
+
+@dataclass
+class RunConfig:
+    """Time and numerics: t_end (s), dtype name, device name, optional CFL number.
+
+    ``solver`` holds any other [run] keys that are fields of ``torchslide.solver.SolverConfig``
+    (e.g. output_interval, stop_ke_fraction); ``cfl`` is also passed there.
+    """
+
+    t_end: float
+    dtype: str = "float64"
+    device: str = "cpu"
+    cfl: float | None = None
+    solver: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def torch_dtype(self):
+        import torch
+
+        return {"float32": torch.float32, "float64": torch.float64}[self.dtype]
+
+
+@dataclass
+class GaugeConfig:
+    name: str
+    x: float
+    y: float
+
+
+@dataclass
+class Config:
+    """A validated configuration. ``raw`` is the parsed TOML; ``extra`` holds extra-section results."""
+
+    path: Path
+    terrain: TerrainConfig
+    model: ModelConfig
+    run: RunConfig
+    gauges: list[GaugeConfig] = field(default_factory=list)
+    raw: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def batch_size(self) -> int:
+        return self.model.batch_size
+
+    def resolve(self, p: str | Path) -> Path:
+        """A path from the config, relative to the config file's folder."""
+        p = Path(p)
+        return p if p.is_absolute() else self.path.parent / p
+
+    def make_params(self):
+        """Params on the run's dtype and device."""
+        return self.model.make_params(dtype=self.run.torch_dtype, device=self.run.device)
+
+    def solver_config(self):
+        """SolverConfig with the [run] numerics (None when nothing is set)."""
+        kw = dict(self.run.solver)
+        if self.run.cfl is not None:
+            kw["cfl"] = self.run.cfl
+        if not kw:
+            return None
+        from .solver.config import SolverConfig
+
+        return SolverConfig(**kw)
+
+    def simulate_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``torchslide.solver.simulate(**kwargs)`` (dem, release, params, ...)."""
+        return dict(
+            dem=self.terrain.dem,
+            release=self.terrain.release,
+            params=self.make_params(),
+            t_end=self.run.t_end,
+            gauges=[(g.name, g.x, g.y) for g in self.gauges],
+            config=self.solver_config(),
+            erodible_depth=self.terrain.erodible_depth,
+            dtype=self.run.torch_dtype,
+            device=self.run.device,
+        )
+
+
+# ------------------------------------------------------------------------------------ helpers
+def check_keys(table: Any, allowed, where: str, path: Path | str) -> dict:
+    """Raise ConfigError when ``table`` is not a table or has keys outside ``allowed``."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: {where} must be a table, got {type(table).__name__}")
+    unknown = [k for k in table if k not in allowed]
+    if unknown:
+        raise ConfigError(
+            f"{path}: unknown key {unknown[0]!r} in {where} (allowed: {', '.join(sorted(allowed))})"
+        )
+    return table
+
+
+def _number(v: Any, key: str, where: str, path) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ConfigError(f"{path}: {where} {key} must be a number, got {v!r}")
+    v = float(v)
+    if math.isnan(v):
+        raise ConfigError(f"{path}: {where} {key} must be a number, got nan")
+    return v
+
+
+def read_toml(path) -> dict[str, Any]:
+    """Parse a TOML file; missing file or syntax errors -> ConfigError."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML: {e}") from None
+
+
+# ------------------------------------------------------------------------------------ sections
+def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
+    from .terrain import io, synthetic
+
+    t = check_keys(t, _TERRAIN_KEYS, "[terrain]", path)
+    base = path.parent
+
+    def file(key: str) -> Path:
+        v = t[key]
+        if not isinstance(v, str) or not v:
+            raise ConfigError(f"{path}: [terrain] {key} must be a file path string, got {v!r}")
+        p = Path(v) if Path(v).is_absolute() else base / v
+        if not p.is_file():
+            raise ConfigError(f"{path}: [terrain] {key} file not found: {p}")
+        return p
+
+    has_dem, has_syn = "dem" in t, "synthetic" in t
+    if has_dem == has_syn:
+        raise ConfigError(f"{path}: [terrain] needs exactly one of 'dem' (a raster file) or 'synthetic' (a terrain name)")
+    case = None
+    try:
+        if has_dem:
+            for k in ("cellsize", "options"):
+                if k in t:
+                    raise ConfigError(f"{path}: [terrain] {k} is only used with 'synthetic', not with 'dem'")
+            dem = io.read_raster(file("dem"), fill_nodata=bool(t.get("fill_nodata", False)))
+            source = str(t["dem"])
+        else:
+            name = t["synthetic"]
+            if name not in synthetic.SYNTHETIC_TERRAINS:
+                raise ConfigError(
+                    f"{path}: [terrain] unknown synthetic terrain {name!r} "
+                    f"(known: {', '.join(sorted(synthetic.SYNTHETIC_TERRAINS))})"
+                )
+            kwargs = dict(t.get("options", {}))
+            if not isinstance(t.get("options", {}), dict):
+                raise ConfigError(f"{path}: [terrain] options must be a table")
+            if "cellsize" in t:
+                cs = _number(t["cellsize"], "cellsize", "[terrain]", path)
+                if not cs > 0:
+                    raise ConfigError(f"{path}: [terrain] cellsize must be > 0 m, got {t['cellsize']!r}")
+                kwargs["cellsize"] = cs
+            try:
+                out = synthetic.SYNTHETIC_TERRAINS[name](**kwargs)
+            except TypeError as e:
+                raise ConfigError(f"{path}: [terrain] bad options for synthetic terrain {name!r}: {e}") from None
+            if isinstance(out, synthetic.SyntheticCase):
+                case, dem = out, out.dem
+            else:
+                dem = out
+            source = f"synthetic:{name}"
+        if not np.isfinite(dem.z).all():  # DEM() already refuses this; keep the check explicit
+            raise ConfigError(f"{path}: [terrain] DEM has NaN cells")
+
+        # release
+        if "release" in t:
+            r = t["release"]
+            if isinstance(r, dict):
+                r = check_keys(r, _RELEASE_TABLE_KEYS, "[terrain] release", path)
+                centre = r.get("centre", r.get("center"))
+                if centre is None or "radii" not in r:
+                    raise ConfigError(f"{path}: [terrain] release table needs centre = [x, y] and radii = [rx, ry]")
+                radii = r["radii"]
+                release = synthetic.release_from_shape(
+                    dem, tuple(centre), radii if np.isscalar(radii) else tuple(radii),
+                    volume=r.get("volume"), thickness=r.get("thickness"), shape=r.get("shape", "ellipse"),
+                )
+            else:
+                release = synthetic.release_from_raster(file("release"), dem)
+        elif case is not None:
+            release = case.release
+        else:
+            raise ConfigError(f"{path}: [terrain] release is missing (a raster file or a table with centre, radii, volume)")
+        if not np.isfinite(release).all():
+            raise ConfigError(f"{path}: [terrain] release has non-finite values")
+        if (release < 0).any():
+            raise ConfigError(f"{path}: [terrain] release thickness is negative in {int((release < 0).sum())} cells")
+        if release.sum() <= 0:
+            raise ConfigError(f"{path}: [terrain] release is empty (zero volume)")
+
+        erod = None
+        if "erodible" in t:
+            erod = io.read_raster_like(file("erodible"), dem, what="erodible depth")
+            if (erod < 0).any():
+                raise ConfigError(f"{path}: [terrain] erodible depth is negative in {int((erod < 0).sum())} cells")
+        elif case is not None and case.erodible_depth is not None:
+            erod = case.erodible_depth
+    except TerrainError as e:
+        raise ConfigError(f"{path}: [terrain] {e}") from None
+    return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
+                         source=source, case=case)
+
+
+def _parse_model(m: Any, path: Path) -> ModelConfig:
+    from .physics import Params
+
+    names = Params.names()
+    m = check_keys(m, {"rheology", *names}, "[model]", path)
+    rheology = m.get("rheology", "voellmy")
+    if rheology not in RHEOLOGIES:
+        raise ConfigError(f"{path}: [model] unknown rheology {rheology!r} (known: {', '.join(RHEOLOGIES)})")
+    if "mu" not in m:
+        raise ConfigError(f"{path}: [model] mu is missing")
+    if rheology == "voellmy" and "xi" not in m:
+        raise ConfigError(f"{path}: [model] xi is missing (required for rheology 'voellmy'; use rheology = 'coulomb' for none)")
+    if rheology == "coulomb" and "xi" in m:
+        raise ConfigError(f"{path}: [model] xi is not used by rheology 'coulomb' (remove it or use 'voellmy')")
+    values: dict[str, list[float]] = {}
+    for k in names:
+        if k not in m:
+            continue
+        v = m[k]
+        seq = v if isinstance(v, list) else [v]
+        if not seq:
+            raise ConfigError(f"{path}: [model] {k} is an empty list")
+        vals = [_number(x, k, "[model]", path) for x in seq]
+        if k == "mu" and any(not x > 0 for x in vals):
+            raise ConfigError(f"{path}: [model] mu must be > 0, got {v!r}")
+        if k == "xi" and any(not x > 0 for x in vals):
+            raise ConfigError(f"{path}: [model] xi must be > 0 m/s^2, got {v!r}")
+        values[k] = vals
+    if rheology == "coulomb":
+        values["xi"] = [math.inf]
+    lengths = {k: len(v) for k, v in values.items() if len(v) > 1}
+    if len(set(lengths.values())) > 1:
+        raise ConfigError(
+            f"{path}: [model] parameter lists must have equal lengths (or be scalars), got "
+            + ", ".join(f"{k}: {n}" for k, n in lengths.items())
+        )
+    B = max(lengths.values()) if lengths else 1
+    mc = ModelConfig(rheology=rheology, values=values, batch_size=B)
+    try:
+        mc.make_params()
+    except ValueError as e:
+        raise ConfigError(f"{path}: [model] {e}") from None
+    return mc
+
+
+def _solver_fields() -> dict[str, Any]:
+    """name -> default of SolverConfig fields (empty when the solver is not importable)."""
+    import dataclasses
+
+    try:
+        from .solver.config import SolverConfig
+    except ImportError:
+        return {}
+    return {f.name: f.default for f in dataclasses.fields(SolverConfig)}
+
+
+def _parse_run(r: Any, path: Path) -> RunConfig:
+    sf = _solver_fields()
+    r = check_keys(r, _RUN_KEYS | set(sf), "[run]", path)
+    if "t_end" not in r:
+        raise ConfigError(f"{path}: [run] t_end (s) is missing")
+    t_end = _number(r["t_end"], "t_end", "[run]", path)
+    if not (math.isfinite(t_end) and t_end > 0):
+        raise ConfigError(f"{path}: [run] t_end must be > 0 s, got {r['t_end']!r}")
+    dtype = r.get("dtype", "float64")
+    if dtype not in ("float32", "float64"):
+        raise ConfigError(f"{path}: [run] dtype must be 'float32' or 'float64', got {dtype!r}")
+    device = r.get("device", "cpu")
+    if not isinstance(device, str) or not (device == "cpu" or device == "cuda" or device.startswith("cuda:")):
+        raise ConfigError(f"{path}: [run] device must be 'cpu' or 'cuda' (or 'cuda:N'), got {device!r}")
+    if device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ConfigError(f"{path}: [run] device {device!r} requested but CUDA is not available")
+    cfl = None
+    if "cfl" in r:
+        cfl = _number(r["cfl"], "cfl", "[run]", path)
+        if not 0 < cfl <= 1:
+            raise ConfigError(f"{path}: [run] cfl must be in (0, 1], got {r['cfl']!r}")
+    solver = {k: v for k, v in r.items() if k not in _RUN_KEYS}
+    for k, v in solver.items():
+        default = sf[k]
+        if isinstance(default, bool) and not isinstance(v, bool):
+            raise ConfigError(f"{path}: [run] {k} must be true or false, got {v!r}")
+        if isinstance(default, (int, float)) and not isinstance(default, bool):
+            _number(v, k, "[run]", path)
+    if solver:
+        from .solver.config import SolverConfig
+
+        try:
+            sc = SolverConfig(**solver)
+            if hasattr(sc, "validate"):
+                sc.validate()
+        except (TypeError, ValueError) as e:
+            raise ConfigError(f"{path}: [run] {e}") from None
+    return RunConfig(t_end=t_end, dtype=dtype, device=device, cfl=cfl, solver=solver)
+
+
+def _parse_gauges(g: Any, dem: DEM, path: Path) -> list[GaugeConfig]:
+    if not isinstance(g, list):
+        raise ConfigError(f"{path}: gauges must be an array of tables ([[gauges]])")
+    out, seen = [], set()
+    for n, item in enumerate(g):
+        where = f"[[gauges]] #{n + 1}"
+        check_keys(item, _GAUGE_KEYS, where, path)
+        for k in ("name", "x", "y"):
+            if k not in item:
+                raise ConfigError(f"{path}: {where} {k} is missing")
+        name = item["name"]
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{path}: {where} name must be a non-empty string")
+        if name in seen:
+            raise ConfigError(f"{path}: {where} duplicate gauge name {name!r}")
+        seen.add(name)
+        x, y = _number(item["x"], "x", where, path), _number(item["y"], "y", where, path)
+        if not dem.contains(x, y):
+            xmin, ymin, xmax, ymax = dem.extent
+            raise ConfigError(
+                f"{path}: gauge {name!r} at x={x:g}, y={y:g} is outside the DEM "
+                f"(x in [{xmin:g}, {xmax:g}), y in [{ymin:g}, {ymax:g}))"
+            )
+        out.append(GaugeConfig(name, x, y))
+    return out
+
+
+# ------------------------------------------------------------------------------------ entry points
+def parse_config(raw: dict[str, Any], path, extra_sections: dict[str, Callable[[Any, Config], Any]] | None = None) -> Config:
+    """Validate an already-parsed TOML dict (``path`` anchors relative file paths and messages)."""
+    path = Path(path)
+    extra_sections = dict(extra_sections or {})
+    known = set(BASE_SECTIONS) | set(OTHER_SECTIONS) | set(extra_sections)
+    for k in raw:
+        if k not in known:
+            raise ConfigError(f"{path}: unknown section [{k}] (known: {', '.join(sorted(known))})")
+    for k in ("terrain", "model", "run"):
+        if k not in raw:
+            raise ConfigError(f"{path}: section [{k}] is missing")
+    terrain = _parse_terrain(raw["terrain"], path)
+    model = _parse_model(raw["model"], path)
+    run = _parse_run(raw["run"], path)
+    gauges = _parse_gauges(raw.get("gauges", []), terrain.dem, path)
+    cfg = Config(path=path, terrain=terrain, model=model, run=run, gauges=gauges, raw=raw)
+    for name, parser in extra_sections.items():
+        if name in raw:
+            cfg.extra[name] = parser(raw[name], cfg)
+    return cfg
+
+
+def load_config(path, extra_sections: dict[str, Callable[[Any, Config], Any]] | None = None) -> Config:
+    """Read and validate a TOML config (see the module docstring); raises :class:`ConfigError`.
+
+    ``extra_sections`` maps section names to parsers ``(table, cfg) -> object`` (stored in ``cfg.extra``).
+    """
+    path = Path(path)
+    return parse_config(read_toml(path), path, extra_sections)

@@ -1,0 +1,213 @@
+"""One time step for all members: SSP-RK2 (Heun) of flux + bed source + sources + friction stages.
+
+``make_step(flags)`` returns a pure function ``step(S, P) -> S`` on dicts of tensors, free of
+data-dependent Python branching (all switches are Python constants fixed per call), so that
+torch.compile can fuse it. Each member b has its own dt_b (a (B, 1, 1) tensor); an ended member
+gets dt_b = 0, which leaves its state bitwise unchanged.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from ..physics import FR_DEP
+from .friction import apply_friction, curvature_gn, desingularised_velocity, mu_effective
+from .scheme import diff, draining_factors, pad_linear, pad_replicate, sweep
+
+Tensor = torch.Tensor
+
+
+@dataclass(frozen=True)
+class StepFlags:
+    """Python constants of one solver call (compile-time for torch.compile)."""
+
+    dx: float
+    g: float
+    cfl: float
+    theta: float
+    h_eps: float
+    h_wet: float
+    dt_max: float
+    t_end: float
+    stop_ke_fraction: float
+    arrival_threshold: float
+    entrain_h_min: float
+    no_creep: bool
+    slope_correction: bool
+    use_ep: bool
+    use_curv: bool
+    use_ent: bool
+    use_dep: bool
+    use_mu_i: bool
+    use_mu_scale: bool
+
+
+def _geometry(z: Tensor, F: StepFlags):
+    """Slope-dependent fields from the bed z (B or 1, ny, nx): g_n, |grad z|^2 and the Hessian."""
+    ny, nx = z.shape[1], z.shape[2]
+    zpx = pad_linear(z, 2)
+    zpy = pad_linear(z, 1)
+    zx = (zpx.narrow(2, 3, nx) - zpx.narrow(2, 1, nx)) / (2 * F.dx)
+    zy = (zpy.narrow(1, 3, ny) - zpy.narrow(1, 1, ny)) / (2 * F.dx)
+    grad2 = zx * zx + zy * zy
+    if F.slope_correction:
+        gn = F.g / torch.sqrt(1.0 + grad2)
+    else:
+        gn = torch.full_like(z, F.g)
+    hess = None
+    if F.use_curv:
+        zxx = (zpx.narrow(2, 3, nx) - 2 * z + zpx.narrow(2, 1, nx)) / F.dx**2
+        zyy = (zpy.narrow(1, 3, ny) - 2 * z + zpy.narrow(1, 1, ny)) / F.dx**2
+        zp2 = pad_linear(zpx, 1)  # (.., ny+4, nx+4)
+        zxy = (zp2[:, 3:ny + 3, 3:nx + 3] - zp2[:, 3:ny + 3, 1:nx + 1]
+               - zp2[:, 1:ny + 1, 3:nx + 3] + zp2[:, 1:ny + 1, 1:nx + 1]) / (4 * F.dx**2)
+        hess = (zxx, zxy, zyy)
+    return gn, grad2, hess
+
+
+def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
+    """k per cell: (1 - s) k_ap + s k_SH, k_SH active where div(u) >= 0, passive where < 0."""
+    if not F.use_ep:
+        return P["k_ap"]
+    ny, nx = u.shape[1], u.shape[2]
+    up = pad_replicate(u, 2)
+    vp = pad_replicate(v, 1)
+    div = (up.narrow(2, 3, nx) - up.narrow(2, 1, nx)) + (vp.narrow(1, 3, ny) - vp.narrow(1, 1, ny))
+    ksh = torch.where(div >= 0, P["k_act"], P["k_pass"])
+    s = P["earth_pressure"]
+    return (1.0 - s) * P["k_ap"] + s * ksh
+
+
+def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags):
+    """Forward-Euler stage: fluxes + bed source, entrainment / deposition, friction.
+
+    With ``dt`` None the time step is chosen here from the CFL condition and ``dt_cap`` (B,).
+    Returns the new (h, hu, hv, z, erod, dep), the outflow volume of the stage (B,) m^3 and dt (B,).
+    """
+    dx = F.dx
+    gn, grad2, hess = _geometry(z, F)
+    u = desingularised_velocity(h, hu, F.h_eps)
+    v = desingularised_velocity(h, hv, F.h_eps)
+    k = _earth_pressure(u, v, P, F)
+    kg = k * gn
+    rest = (hu == 0) & (hv == 0)
+    mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
+    tau = P["tau_y"]
+    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, gn, rest, mu_c, tau, 2, dx, F.theta, F.h_wet, F.no_creep)
+    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, gn, rest, mu_c, tau, 1, dx, F.theta, F.h_wet, F.no_creep)
+    if dt is None:
+        dt = torch.minimum(F.cfl * dx / (ax + ay), dt_cap)
+        dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
+    dtb = dt.view(-1, 1, 1)
+    facx, facy = draining_factors(h, Fhx, Fhy, dtb, dx)
+    Fhx, Fqnx, Fqtx = Fhx * facx, Fqnx * facx, Fqtx * facx
+    Fhy, Fqny, Fqty = Fhy * facy, Fqny * facy, Fqty * facy
+    lam = dtb / dx
+    hn = h - lam * (diff(Fhx, 2) + diff(Fhy, 1))
+    qx = hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + (kg * diff(phix, 2) + gn * hbarx * dBx))
+    qy = hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + (kg * diff(phiy, 1) + gn * hbary * dBy))
+    nx, ny = h.shape[2], h.shape[1]
+    bnd = ((Fhx.narrow(2, nx, 1).sum(dim=(1, 2)) - Fhx.narrow(2, 0, 1).sum(dim=(1, 2)))
+           + (Fhy.narrow(1, ny, 1).sum(dim=(1, 2)) - Fhy.narrow(1, 0, 1).sum(dim=(1, 2))))
+    outflow = dt * dx * bnd
+    # --- mass sources (explicit in the stage-start state)
+    if F.use_ent or F.use_dep:
+        speed0 = torch.sqrt(u * u + v * v)
+    if F.use_ent:
+        rate = P["kappa"] * speed0 * (h > F.entrain_h_min).to(h.dtype)
+        de = torch.minimum(dtb * rate, erod)
+        hn = hn + de
+        erod = erod - de
+        z = z - de
+    if F.use_dep:
+        hs = torch.clamp(h, min=F.h_eps)
+        froude = speed0 / torch.sqrt(torch.clamp(gn, min=1e-12) * hs)
+        rate = P["deposition"] * h * torch.clamp(1.0 - froude / FR_DEP, min=0.0)
+        hpos = torch.clamp(hn, min=0.0)
+        dd = torch.minimum(dtb * rate, hpos)
+        left = hpos > 0
+        ratio = torch.where(left, (hpos - dd) / torch.where(left, hpos, torch.ones_like(hpos)), torch.zeros_like(hpos))
+        qx, qy = qx * ratio, qy * ratio
+        hn = hn - dd
+        dep = dep + dd
+        z = z + dd
+    # --- friction on the momentum vector (Eq. 4)
+    un = desingularised_velocity(hn, qx, F.h_eps)
+    vn = desingularised_velocity(hn, qy, F.h_eps)
+    gne = curvature_gn(gn, P["curvature"], un, vn, hess, grad2) if F.use_curv else gn
+    spd = torch.sqrt(un * un + vn * vn) if F.use_mu_i else None
+    mue = mu_effective(mu_c, P["mu_i"], spd, hn, gne, F.h_eps, F.use_mu_i)
+    coul = mue * gne * torch.clamp(hn, min=0.0) + tau
+    qx, qy = apply_friction(hn, qx, qy, dtb, coul, P["xi"], F.g, F.h_eps)
+    thin = hn < F.h_eps
+    qx = torch.where(thin, hn * desingularised_velocity(hn, qx, F.h_eps), qx)
+    qy = torch.where(thin, hn * desingularised_velocity(hn, qy, F.h_eps), qy)
+    hn = torch.clamp(hn, min=0.0)
+    return hn, qx, qy, z, erod, dep, outflow, dt
+
+
+def make_step(F: StepFlags):
+    """The step function for one call's constants ``F``: ``step(S, P) -> S`` (dicts of tensors).
+
+    S holds h, hu, hv (B, ny, nx); z (B or 1, ny, nx); erod, dep (B, ny, nx) or placeholders;
+    outflow, t, t_next, ke_peak (B,); active (B,) bool; h_max, v_max, arrival (B, ny, nx);
+    steps (B,) int64. P holds the member parameters as (B, 1, 1) tensors.
+    """
+
+    def step(S: dict, P: dict) -> dict:
+        h, hu, hv, z, erod, dep = S["h"], S["hu"], S["hv"], S["z"], S["erod"], S["dep"]
+        active = S["active"]
+        t, t_next = S["t"], S["t_next"]
+        rem = t_next - t
+        dt_cap = torch.where(active, torch.clamp(rem, max=F.dt_max), torch.zeros_like(rem))
+        h1, hu1, hv1, z1, e1, d1, o1, dt = _stage(h, hu, hv, z, erod, dep, None, dt_cap, P, F)
+        h2, hu2, hv2, z2, e2, d2, o2, _ = _stage(h1, hu1, hv1, z1, e1, d1, dt, dt_cap, P, F)
+        stop = (hu1 == 0) & (hv1 == 0) & (hu2 == 0) & (hv2 == 0)
+        zero = torch.zeros_like(hu)
+        out = dict(S)
+        out["h"] = 0.5 * (h + h2)
+        out["hu"] = torch.where(stop, zero, 0.5 * (hu + hu2))
+        out["hv"] = torch.where(stop, zero, 0.5 * (hv + hv2))
+        if F.use_ent or F.use_dep:
+            out["z"] = 0.5 * (z + z2)
+        if F.use_ent:
+            out["erod"] = 0.5 * (erod + e2)
+        if F.use_dep:
+            out["dep"] = 0.5 * (dep + d2)
+        out["outflow"] = S["outflow"] + 0.5 * (o1 + o2)
+        hit = active & (dt >= rem)
+        t_new = torch.where(hit, t_next, t + dt)
+        out["t"] = t_new
+        out["dt"] = dt
+        out["hit"] = hit
+        out["steps"] = S["steps"] + active.to(S["steps"].dtype)
+        # --- per-step records
+        hN = out["h"]
+        uN = desingularised_velocity(hN, out["hu"], F.h_eps)
+        vN = desingularised_velocity(hN, out["hv"], F.h_eps)
+        spd2 = uN * uN + vN * vN
+        spd = torch.sqrt(spd2)
+        hfin = hN + out["dep"] if F.use_dep else hN
+        out["h_max"] = torch.maximum(S["h_max"], hfin)
+        out["v_max"] = torch.maximum(S["v_max"], spd)
+        arrived = torch.isinf(S["arrival"]) & (hN > F.arrival_threshold)
+        out["arrival"] = torch.where(arrived, t_new.view(-1, 1, 1).expand_as(hN), S["arrival"])
+        cell_area = F.dx * F.dx
+        ke = 0.5 * (hN * spd2).sum(dim=(1, 2)) * cell_area
+        mass = hfin.sum(dim=(1, 2)) * cell_area
+        out["ke"] = ke
+        out["mass"] = mass
+        peak = torch.maximum(S["ke_peak"], ke)
+        out["ke_peak"] = peak
+        finite = torch.isfinite(ke) & torch.isfinite(mass)
+        calm = (peak > 0) & (ke < F.stop_ke_fraction * peak)
+        at_end = hit & (t_next >= F.t_end)
+        newly_failed = active & ~finite
+        newly_stopped = active & finite & calm & ~at_end
+        out["failed"] = S["failed"] | newly_failed
+        out["stopped"] = S["stopped"] | newly_stopped
+        out["active"] = active & finite & ~calm & ~at_end
+        return out
+
+    return step

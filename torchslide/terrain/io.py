@@ -1,0 +1,356 @@
+"""Raster I/O: ESRI ASCII grids (always) and GeoTIFF (when rasterio is installed).
+
+Conventions (see :mod:`torchslide.terrain.grid`): arrays are (ny, nx) with row 0 the *southern*
+row; files store the northern row first, so readers and writers flip. ``xll, yll`` is the
+lower-left *corner*; an ``xllcenter``/``yllcenter`` header is converted to the corner on read.
+
+Public functions:
+
+* :func:`read_asc`, :func:`write_asc` -- ESRI ASCII grid.
+* :func:`read_geotiff`, :func:`write_geotiff` -- GeoTIFF via rasterio (``pip install torchslide[geo]``).
+* :func:`read_raster` (dispatch on extension, returns a DEM), :func:`write_raster`.
+* :func:`read_dem` -- read_raster with a DEM-specific name.
+* :func:`read_raster_like` -- read a raster (release, erodible depth, ...) that must share a DEM's grid.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .grid import DEM, TerrainError
+
+__all__ = [
+    "read_asc",
+    "write_asc",
+    "read_geotiff",
+    "write_geotiff",
+    "read_raster",
+    "read_dem",
+    "write_raster",
+    "read_raster_like",
+]
+
+ASC_EXTENSIONS = (".asc", ".txt", ".grd")
+TIFF_EXTENSIONS = (".tif", ".tiff", ".gtiff")
+
+_REQUIRED = ("ncols", "nrows", "cellsize")
+_KNOWN = {"ncols", "nrows", "cellsize", "xllcorner", "yllcorner", "xllcenter", "yllcenter", "nodata_value",
+          "xllcentre", "yllcentre"}
+
+
+# --------------------------------------------------------------------------------------------- ASC
+def _fill_nearest(z: np.ndarray, bad: np.ndarray) -> np.ndarray:
+    """Fill cells where ``bad`` is True with the value of the nearest good cell (Euclidean in cells)."""
+    from scipy import ndimage
+
+    _, (ii, jj) = ndimage.distance_transform_edt(bad, return_indices=True)
+    return z[ii, jj]
+
+
+def _edge_connected(bad: np.ndarray) -> np.ndarray:
+    """Bool mask of nodata cells connected (4-neighbour) to the grid edge."""
+    from scipy import ndimage
+
+    lab, _ = ndimage.label(bad)
+    edge_labels = set(np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))) - {0}
+    return np.isin(lab, list(edge_labels)) if edge_labels else np.zeros_like(bad)
+
+
+def _handle_nodata(z: np.ndarray, path, cellsize, xll, yll, fill_nodata: bool) -> np.ndarray:
+    """Raise on nodata/NaN cells, or fill edge-connected ones by nearest neighbour when asked."""
+    bad = ~np.isfinite(z)
+    if not bad.any():
+        return z
+    if fill_nodata:
+        edge = _edge_connected(bad)
+        interior = bad & ~edge
+        if interior.any():
+            i, j = np.argwhere(interior)[0]
+            raise TerrainError(
+                f"{path}: {int(interior.sum())} nodata cells inside the domain (not connected to the edge) "
+                f"cannot be filled, first at row {i} from the south, col {j} "
+                f"(x={xll + (j + 0.5) * cellsize:.1f} m, y={yll + (i + 0.5) * cellsize:.1f} m)"
+            )
+        if bad.all():
+            raise TerrainError(f"{path}: every cell is nodata")
+        return _fill_nearest(z, bad)
+    i, j = np.argwhere(bad)[0]
+    raise TerrainError(
+        f"{path}: {int(bad.sum())} nodata cells, first at row {i} from the south, col {j} "
+        f"(x={xll + (j + 0.5) * cellsize:.1f} m, y={yll + (i + 0.5) * cellsize:.1f} m); "
+        "fix the raster or pass fill_nodata=True to fill edge cells by nearest neighbour"
+    )
+
+
+def read_asc(path, *, fill_nodata: bool = False, allow_nodata: bool = False) -> DEM:
+    """Read an ESRI ASCII grid into a :class:`DEM` (row 0 south).
+
+    Header keys are case-insensitive; ``xllcorner``/``yllcorner`` or ``xllcenter``/``yllcenter``
+    (converted to the corner); ``nodata_value`` optional. Cells equal to nodata (or NaN) raise a
+    :class:`TerrainError` naming the file, the count and the first location, unless
+    ``fill_nodata=True`` (cells connected to the grid edge are filled from the nearest valid cell).
+    ``allow_nodata=True`` sets nodata cells to 0 instead (for non-DEM rasters); leave it False for DEMs.
+    """
+    z, cellsize, xll, yll = read_asc_array(path)
+    if allow_nodata:
+        z = np.where(np.isfinite(z), z, 0.0)
+    else:
+        z = _handle_nodata(z, path, cellsize, xll, yll, fill_nodata)
+    return DEM(z=z, cellsize=cellsize, xll=xll, yll=yll)
+
+
+def read_asc_array(path) -> tuple[np.ndarray, float, float, float]:
+    """Parse an ESRI ASCII grid: returns (z (ny, nx) row 0 south with NaN at nodata, cellsize, xll, yll)."""
+    path = Path(path)
+    if not path.exists():
+        raise TerrainError(f"{path}: file not found")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise TerrainError(f"{path}: not a text file (expected an ESRI ASCII grid)") from None
+    lines = text.splitlines()
+    header: dict[str, float] = {}
+    n = 0
+    while n < len(lines):
+        parts = lines[n].split()
+        if not parts:
+            n += 1
+            continue
+        key = parts[0].lower()
+        if key[0].isalpha():
+            if key not in _KNOWN:
+                raise TerrainError(f"{path}, line {n + 1}: unknown header key {parts[0]!r}")
+            if len(parts) != 2:
+                raise TerrainError(f"{path}, line {n + 1}: header line must be 'key value', got {lines[n].strip()!r}")
+            try:
+                header[key.replace("centre", "center")] = float(parts[1])
+            except ValueError:
+                raise TerrainError(f"{path}, line {n + 1}: header value {parts[1]!r} for {parts[0]} is not a number") from None
+            n += 1
+        else:
+            break
+    for k in _REQUIRED:
+        if k not in header:
+            raise TerrainError(f"{path}: header is missing {k!r}")
+    ncols, nrows = header["ncols"], header["nrows"]
+    if ncols != int(ncols) or nrows != int(nrows) or ncols < 1 or nrows < 1:
+        raise TerrainError(f"{path}: ncols/nrows must be positive integers, got {ncols:g}/{nrows:g}")
+    ncols, nrows = int(ncols), int(nrows)
+    cs = header["cellsize"]
+    if not (np.isfinite(cs) and cs > 0):
+        raise TerrainError(f"{path}: cellsize must be positive, got {cs:g}")
+    if "xllcorner" in header:
+        xll = header["xllcorner"]
+    elif "xllcenter" in header:
+        xll = header["xllcenter"] - 0.5 * cs
+    else:
+        raise TerrainError(f"{path}: header is missing 'xllcorner' or 'xllcenter'")
+    if "yllcorner" in header:
+        yll = header["yllcorner"]
+    elif "yllcenter" in header:
+        yll = header["yllcenter"] - 0.5 * cs
+    else:
+        raise TerrainError(f"{path}: header is missing 'yllcorner' or 'yllcenter'")
+    nodata = header.get("nodata_value")
+
+    rows = []
+    for ln in range(n, len(lines)):
+        parts = lines[ln].split()
+        if not parts:
+            continue
+        if len(parts) != ncols:
+            raise TerrainError(f"{path}, line {ln + 1}: expected {ncols} values (ncols), found {len(parts)}")
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError:
+            bad = next(p for p in parts if not _isfloat(p))
+            raise TerrainError(f"{path}, line {ln + 1}: non-numeric value {bad!r}") from None
+    if len(rows) != nrows:
+        raise TerrainError(f"{path}: expected {nrows} data rows (nrows), found {len(rows)}")
+    z = np.asarray(rows, dtype=np.float64)[::-1].copy()  # file is north first -> row 0 south
+    if nodata is not None:
+        z[z == nodata] = np.nan
+    return z, float(cs), float(xll), float(yll)
+
+
+def _isfloat(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def write_asc(path, array, dem: DEM, *, nodata_value: float | None = -9999.0, fmt: str = "%.6g") -> None:
+    """Write ``array`` ((ny, nx), row 0 south, on ``dem``'s grid) as an ESRI ASCII grid.
+
+    Non-finite cells are written as ``nodata_value``. Uses ``xllcorner``/``yllcorner``. ``fmt``
+    defaults to 6 significant digits; pass ``"%.17g"`` for an exact float64 round trip.
+    """
+    a = np.asarray(array, dtype=np.float64)
+    if a.shape != dem.shape:
+        raise TerrainError(f"{path}: array shape {a.shape} does not match the DEM grid {dem.shape}")
+    a = a[::-1]
+    bad = ~np.isfinite(a)
+    if bad.any():
+        if nodata_value is None:
+            raise TerrainError(f"{path}: array has non-finite values and nodata_value is None")
+        a = np.where(bad, nodata_value, a)
+    lines = [
+        f"ncols {dem.nx}",
+        f"nrows {dem.ny}",
+        f"xllcorner {dem.xll!r}",
+        f"yllcorner {dem.yll!r}",
+        f"cellsize {dem.cellsize!r}",
+    ]
+    if nodata_value is not None:
+        lines.append(f"NODATA_value {nodata_value:g}")
+    body = "\n".join(" ".join(fmt % v for v in row) for row in a)
+    Path(path).write_text("\n".join(lines) + "\n" + body + "\n")
+
+
+# ----------------------------------------------------------------------------------------- GeoTIFF
+def _rasterio():
+    try:
+        import rasterio  # noqa: F401
+    except ImportError:
+        raise TerrainError(
+            "GeoTIFF support needs rasterio, which is not installed: `pip install torchslide[geo]` "
+            "(or convert the raster to ESRI ASCII .asc)"
+        ) from None
+    return rasterio
+
+
+def read_geotiff(path, *, fill_nodata: bool = False, band: int = 1) -> DEM:
+    """Read one band of a GeoTIFF into a :class:`DEM` (needs rasterio). Square, north-up pixels only."""
+    rasterio = _rasterio()
+    path = Path(path)
+    if not path.exists():
+        raise TerrainError(f"{path}: file not found")
+    with rasterio.open(path) as src:
+        t = src.transform
+        if abs(t.b) > 0 or abs(t.d) > 0:
+            raise TerrainError(f"{path}: rotated rasters are not supported")
+        if not np.isclose(abs(t.a), abs(t.e), rtol=1e-9):
+            raise TerrainError(f"{path}: pixels are not square ({abs(t.a)} x {abs(t.e)} m)")
+        z = src.read(band).astype(np.float64)
+        nodata = src.nodata
+        cs = abs(t.a)
+        xll = t.c
+        yll = t.f - src.height * cs if t.e < 0 else t.f
+        if t.e > 0:
+            z = z[::-1]
+        crs = src.crs.to_wkt() if src.crs else None
+    z = z[::-1].copy()
+    if nodata is not None:
+        z[z == nodata] = np.nan
+    z = _handle_nodata(z, path, cs, xll, yll, fill_nodata)
+    return DEM(z=z, cellsize=cs, xll=xll, yll=yll, crs=crs)
+
+
+def _read_geotiff_array(path, band: int = 1):
+    """(z (ny, nx) row 0 south with NaN at nodata, cellsize, xll, yll) of a north-up GeoTIFF."""
+    rasterio = _rasterio()
+    path = Path(path)
+    if not path.exists():
+        raise TerrainError(f"{path}: file not found")
+    with rasterio.open(path) as src:
+        t = src.transform
+        z = src.read(band).astype(np.float64)[::-1].copy()
+        if src.nodata is not None:
+            z[z == src.nodata] = np.nan
+        cs = abs(t.a)
+        return z, cs, t.c, t.f - src.height * cs
+
+
+def write_geotiff(path, array, dem: DEM, *, nodata_value: float = -9999.0) -> None:
+    """Write ``array`` ((ny, nx), row 0 south) as a single-band float64 GeoTIFF (needs rasterio)."""
+    rasterio = _rasterio()
+    from rasterio.transform import from_origin
+
+    a = np.asarray(array, dtype=np.float64)
+    if a.shape != dem.shape:
+        raise TerrainError(f"{path}: array shape {a.shape} does not match the DEM grid {dem.shape}")
+    a = np.where(np.isfinite(a), a, nodata_value)[::-1]
+    _, _, _, ymax = dem.extent
+    transform = from_origin(dem.xll, ymax, dem.cellsize, dem.cellsize)
+    with rasterio.open(
+        path, "w", driver="GTiff", height=dem.ny, width=dem.nx, count=1, dtype="float64",
+        crs=dem.crs, transform=transform, nodata=nodata_value,
+    ) as dst:
+        dst.write(a, 1)
+
+
+# ----------------------------------------------------------------------------------------- dispatch
+def _kind(path) -> str:
+    ext = os.path.splitext(str(path))[1].lower()
+    if ext in ASC_EXTENSIONS:
+        return "asc"
+    if ext in TIFF_EXTENSIONS:
+        return "tif"
+    raise TerrainError(
+        f"{path}: unknown raster extension {ext!r} (expected one of {', '.join(ASC_EXTENSIONS + TIFF_EXTENSIONS)})"
+    )
+
+
+def read_raster(path, *, fill_nodata: bool = False) -> DEM:
+    """Read an .asc or .tif raster into a :class:`DEM` (dispatch on the extension)."""
+    if _kind(path) == "asc":
+        return read_asc(path, fill_nodata=fill_nodata)
+    return read_geotiff(path, fill_nodata=fill_nodata)
+
+
+read_dem = read_raster
+
+
+def write_raster(path, array, dem: DEM, **kwargs) -> None:
+    """Write ``array`` ((ny, nx) numpy or torch, row 0 south) on ``dem``'s grid; format from the extension."""
+    try:
+        import torch
+
+        if isinstance(array, torch.Tensor):
+            array = array.detach().cpu().double().numpy()
+    except ImportError:  # pragma: no cover
+        pass
+    if _kind(path) == "asc":
+        write_asc(path, array, dem, **kwargs)
+    else:
+        write_geotiff(path, array, dem, **kwargs)
+
+
+def _grid_str(dem: DEM) -> str:
+    return f"{dem.ny}x{dem.nx} cells of {dem.cellsize:g} m at xll={dem.xll:g}, yll={dem.yll:g}"
+
+
+def read_raster_like(path, dem: DEM, what: str = "release", *, nodata_as_zero: bool = True) -> np.ndarray:
+    """Read a raster that must lie on ``dem``'s grid; returns its (ny, nx) array (row 0 south).
+
+    Raises :class:`TerrainError` naming the file, ``what`` it is, and both grids when shape,
+    cell size or origin differ. Nodata cells become 0 (``nodata_as_zero``; usual for release and
+    erodible-depth rasters) or raise.
+    """
+    if _kind(path) == "asc":
+        z, cs, xll, yll = read_asc_array(path)
+    else:
+        z, cs, xll, yll = _read_geotiff_array(path)
+    ny, nx = z.shape
+    same = (
+        (ny, nx) == dem.shape
+        and abs(cs - dem.cellsize) <= 1e-9 * dem.cellsize
+        and abs(xll - dem.xll) <= 1e-6 * dem.cellsize
+        and abs(yll - dem.yll) <= 1e-6 * dem.cellsize
+    )
+    if not same:
+        raise TerrainError(
+            f"{path}: {what} grid ({ny}x{nx} cells of {cs:g} m at xll={xll:g}, yll={yll:g}) "
+            f"does not match the DEM grid ({_grid_str(dem)})"
+        )
+    bad = ~np.isfinite(z)
+    if bad.any():
+        if nodata_as_zero:
+            z = np.where(bad, 0.0, z)
+        else:
+            _handle_nodata(z, path, cs, xll, yll, False)
+    return z
