@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     from torchslide.cli import main as cli
-    from torchslide.figures import plot_hmax_map
+    from torchslide.mapplots import plot_hmax_map
     from torchslide.posterior import hdr_mask
     from torchslide.terrain.io import read_raster
     from torchslide.terrain.synthetic import bondo_like

@@ -131,3 +131,29 @@ def test_simulate_single_member_layout(case, capsys):
     assert {"h_max.asc", "v_max.asc", "h_final.asc", "summary.json", "config.toml"} <= names
     s = json.loads((out / "summary.json").read_text())
     assert MEMBER_KEYS <= set(s)
+
+
+def test_failure_during_run_leaves_nothing(case, capsys, monkeypatch):
+    pytest.importorskip("torchslide.solver")
+    import torchslide.solver as solver
+
+    def boom(*a, **k):
+        raise RuntimeError("solver exploded")
+
+    monkeypatch.setattr(solver, "simulate", boom)
+    (case / "c.toml").write_text(cfg_text())
+    with pytest.raises(RuntimeError, match="exploded"):
+        main(["simulate", str(case / "c.toml"), "--out", str(case / "o"), "-q"])
+    assert not (case / "o").exists()
+    assert not [p for p in case.iterdir() if p.name.startswith(".torchslide")]
+
+
+def test_overwrite(case, capsys):
+    pytest.importorskip("torchslide.solver")
+    (case / "c.toml").write_text(cfg_text().replace("t_end = 20.0", "t_end = 2.0"))
+    out = case / "o"
+    out.mkdir()
+    (out / "old.txt").write_text("x")
+    code, _, err = run_cli(["simulate", case / "c.toml", "--out", out, "-q", "--overwrite"], capsys)
+    assert code == 0, err
+    assert not (out / "old.txt").exists() and (out / "h_max.asc").is_file()

@@ -184,13 +184,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
-def write_runs_csv(path: Path, names, obs_names, records) -> None:
-    """One line per run: parameters, predicted observables, z, failed, reason."""
+def write_runs_csv(path: Path, res, obs_names, records) -> None:
+    """One line per run of the result (in run order): parameters, predicted observables (blank for runs
+    made before a resume, whose outputs this session did not see), z, failed, reason, initial."""
+    preds = {tuple(np.round(r.x, 12)): r.predictions for r in records}
     with open(path, "w") as f:
-        f.write(",".join(list(names) + list(obs_names) + ["z", "failed", "reason"]) + "\n")
-        for r in records:
-            vals = [f"{v:.10g}" for v in r.x] + [f"{v:.10g}" for v in r.predictions]
-            f.write(",".join(vals + [f"{r.z:.10g}", str(int(r.failed)), r.reason.replace(",", ";")]) + "\n")
+        f.write(",".join(list(res.names) + list(obs_names) + ["z", "failed", "reason", "initial"]) + "\n")
+        for i, (x, z, fl, why) in enumerate(zip(res.x, res.z, res.failed, res.reasons)):
+            p = preds.get(tuple(np.round(x, 12)))
+            pv = [f"{v:.10g}" for v in p] if p is not None else [""] * len(obs_names)
+            f.write(",".join([f"{v:.10g}" for v in x] + pv + [f"{z:.10g}", str(int(fl)), str(why).replace(",", ";"),
+                                                               str(int(i < res.n_initial))]) + "\n")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -220,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
                              "x": o.x, "y": o.y} for o in ev.observations]
     info["solver_seconds_this_session"] = ev.solver_seconds
     (out / "posterior.json").write_text(json.dumps(info, indent=2))
-    write_runs_csv(out / "runs.csv", prior.names, ev.observation_names, ev.records)
+    write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
     if res.posterior_grid is not None and len(prior.names) == 2:
         plot_posterior(res, out / "posterior.png", title=Path(args.config).stem)
     if res.tv_history:

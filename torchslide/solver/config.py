@@ -17,6 +17,10 @@ class SolverConfig:
             (Kurganov-Petrova u = sqrt(2) h hu / sqrt(h^4 + max(h^4, h_eps^4))).
         h_wet: cells (and their two neighbours along a direction) thicker than this reconstruct the
             free surface w = h + z (well-balanced); elsewhere the thickness h is reconstructed (wet/dry front).
+        wb_depth_ratio: the surface is reconstructed only where the bed-curvature offset of the face
+            beds |z_{j+1} - 2 z_j + z_{j-1}| / 4 is at most this fraction of h (else h is reconstructed,
+            which keeps the gravity drive of thin layers on curved terrain right; the lake at rest is
+            exact wherever the surface is reconstructed).
         arrival_threshold: thickness, m, that defines arrival_time.
         output_interval: s, spacing of gauge / mass / kinetic-energy samples (t_end is always a sample).
         stop_ke_fraction: a member ends when its kinetic energy falls below this fraction of its
@@ -35,6 +39,7 @@ class SolverConfig:
     limiter_theta: float = 1.3
     h_eps: float = 1e-3
     h_wet: float = 1e-4
+    wb_depth_ratio: float = 0.25
     arrival_threshold: float = 0.1
     output_interval: float = 1.0
     stop_ke_fraction: float = 1e-4
@@ -55,6 +60,7 @@ class SolverConfig:
         need(1 <= self.limiter_theta <= 2, "limiter_theta", "need 1 <= limiter_theta <= 2")
         need(self.h_eps > 0, "h_eps", "need h_eps > 0")
         need(self.h_wet >= 0, "h_wet", "need h_wet >= 0")
+        need(self.wb_depth_ratio >= 0, "wb_depth_ratio", "need >= 0")
         need(self.arrival_threshold > 0, "arrival_threshold", "need > 0")
         need(self.output_interval > 0, "output_interval", "need > 0")
         need(0 <= self.stop_ke_fraction < 1, "stop_ke_fraction", "need 0 <= f < 1")

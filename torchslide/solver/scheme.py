@@ -3,8 +3,10 @@
 Every function here works along a tensor dimension ``d`` (2 = x, columns; 1 = y, rows) of (B, ny, nx)
 fields, so the x and y sweeps run the same code (rotations and mirrors of the grid are exact).
 
-Ghost cells (2 per side, open boundaries): thickness, velocities and per-cell coefficients are
-replicated (zero gradient, transmissive), the bed is extrapolated linearly (a plane stays a plane).
+Ghost cells (2 per side, open boundaries): the bed and the thickness are extrapolated linearly (the
+thickness clipped at 0), so the surface w = h + z is too: a lake at rest and a uniform layer on a plane
+continue unchanged through the boundary. Velocities and per-cell coefficients are replicated (zero
+gradient, transmissive).
 """
 from __future__ import annotations
 
@@ -66,7 +68,8 @@ def faces_of(qp: Tensor, d: int, n: int) -> tuple[Tensor, Tensor]:
 
 
 def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, rest: Tensor,
-          mu_c: Tensor, tau: Tensor, d: int, dx: float, theta: float, h_wet: float, no_creep: bool):
+          mu_c: Tensor, tau: Tensor, d: int, dx: float, theta: float, h_wet: float, no_creep: bool,
+          wb_ratio: float = 0.25):
     """Central-upwind fluxes along direction ``d``.
 
     Args:
@@ -81,7 +84,7 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, 
         well-balanced bed source -g_n hbar dB/dx (KP07 Eq. 3.13); amax: (B,) largest one-sided speed.
     """
     n = h.shape[d]
-    hp = pad_replicate(h, d)
+    hp = torch.clamp(pad_linear(h, d), min=0.0)
     zp = pad_linear(z, d)
     wp = hp + zp
     # bed at faces (mean of the two cells; exact for a plane)
@@ -91,7 +94,12 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, 
     wL, wR = reconstruct(wp, d, n, theta)
     hLh, hRh = reconstruct(hp, d, n, theta)
     hm, hc, hq = hp.narrow(d, 0, n + 2), hp.narrow(d, 1, n + 2), hp.narrow(d, 2, n + 2)
-    wet = torch.minimum(torch.minimum(hm, hc), hq) > h_wet
+    # w-reconstruction only where the layer is thick compared with the bed-curvature bias of the face
+    # beds ((z+ - 2 z + z-) / 4): on a curved bed a thin layer would otherwise see face thickness 0 and
+    # lose its gravity drive; there h is reconstructed (the face mean then equals the cell's h).
+    zm, zc, zq = zp.narrow(d, 0, n + 2), zp.narrow(d, 1, n + 2), zp.narrow(d, 2, n + 2)
+    bias = torch.abs(zq - 2.0 * zc + zm) * 0.25
+    wet = (torch.minimum(torch.minimum(hm, hc), hq) > h_wet) & (bias <= wb_ratio * hc)
     wetL, wetR = wet.narrow(d, 0, n + 1), wet.narrow(d, 1, n + 1)
     hL = torch.where(wetL, torch.clamp(wL - Bf, min=0.0), hLh)
     hR = torch.where(wetR, torch.clamp(wR - Bf, min=0.0), hRh)

@@ -158,7 +158,7 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     use_dep = bool((P0.deposition > 0).any())
     evolve = use_ent or use_dep
     F = StepFlags(
-        dx=dx, g=G, cfl=cfg.cfl, theta=cfg.limiter_theta, h_eps=cfg.h_eps, h_wet=cfg.h_wet,
+        dx=dx, g=G, cfl=cfg.cfl, theta=cfg.limiter_theta, h_eps=cfg.h_eps, h_wet=cfg.h_wet, wb_ratio=cfg.wb_depth_ratio,
         dt_max=cfg.dt_max, t_end=float(t_end), stop_ke_fraction=cfg.stop_ke_fraction,
         arrival_threshold=cfg.arrival_threshold, entrain_h_min=cfg.entrain_h_min,
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,

@@ -28,6 +28,7 @@ class StepFlags:
     theta: float
     h_eps: float
     h_wet: float
+    wb_ratio: float
     dt_max: float
     t_end: float
     stop_ke_fraction: float
@@ -94,8 +95,8 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags):
     rest = (hu == 0) & (hv == 0)
     mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
     tau = P["tau_y"]
-    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, gn, rest, mu_c, tau, 2, dx, F.theta, F.h_wet, F.no_creep)
-    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, gn, rest, mu_c, tau, 1, dx, F.theta, F.h_wet, F.no_creep)
+    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, gn, rest, mu_c, tau, 2, dx, F.theta, F.h_wet, F.no_creep, F.wb_ratio)
+    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, gn, rest, mu_c, tau, 1, dx, F.theta, F.h_wet, F.no_creep, F.wb_ratio)
     if dt is None:
         dt = torch.minimum(F.cfl * dx / (ax + ay), dt_cap)
         dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))

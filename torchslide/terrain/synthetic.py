@@ -217,18 +217,18 @@ def release_from_raster(path, dem: DEM) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------- Bondo-like
 # Geometry constants (m, degrees). x runs down-valley, y across; thalweg at y = BONDO_Y0 + bends.
-BONDO_EXTENT = (6500.0, 2400.0)
-BONDO_Y0 = 1200.0
-BONDO_BENDS = (1100.0, 4700.0, 230.0)  # x0, x1, amplitude A -> lateral excursion +-1.3 A = +-299 m
+BONDO_EXTENT = (6500.0, 2000.0)
+BONDO_Y0 = 1000.0
+BONDO_BENDS = (1100.0, 4700.0, 200.0)  # x0, x1, amplitude A -> lateral excursion +-1.3 A = +-260 m
 # Thalweg slope angle (deg) at knots along x; tan(angle) is piecewise linear in x, so z is piecewise quadratic.
 BONDO_PROFILE = (
     (0.0, 40.0), (750.0, 40.0), (1200.0, 24.0), (2800.0, 19.0), (4500.0, 15.0),
     (4900.0, 7.0), (5300.0, 3.0), (5700.0, 2.0), (6500.0, 1.5),
 )
 BONDO_Z_BOTTOM = 800.0  # thalweg elevation at the down-valley edge, m
-BONDO_CHANNEL = dict(depth=35.0, halfwidth=70.0, start=(700.0, 1100.0), end=(4800.0, 5400.0))
+BONDO_CHANNEL = dict(depth=45.0, halfwidth=70.0, start=(700.0, 1100.0), end=(4600.0, 5100.0))
 BONDO_RELEASE = dict(centre=(400.0, BONDO_Y0), radii=(300.0, 220.0), volume=3.0e6)
-BONDO_POINTS_X = {"L1": 1700.0, "L2": 3200.0, "L3": 5300.0}
+BONDO_POINTS_X = {"L1": 1700.0, "L2": 3200.0, "L3": 4900.0}
 
 
 def _bondo_profile(x):
@@ -258,7 +258,7 @@ def _bondo_surface(X, Y):
     depth = ch["depth"] * _smoothstep(X, *ch["start"]) * (1.0 - _smoothstep(X, *ch["end"]))
     channel = depth * (1.0 - np.exp(-((d / ch["halfwidth"]) ** 2)))
     # valley-side slope: 12 deg on the rock face, 20 deg along the channel, 2 deg on the fan
-    side = np.tan(np.radians(12.0 + 8.0 * _smoothstep(X, 700.0, 1200.0) - 18.0 * _smoothstep(X, 4800.0, 5500.0)))
+    side = np.tan(np.radians(12.0 + 8.0 * _smoothstep(X, 700.0, 1200.0) - 18.0 * _smoothstep(X, 4600.0, 5200.0)))
     c = 100.0
     valley = side * (np.sqrt(d**2 + c**2) - c)
     # steep valley walls beyond 650 m from the thalweg keep the fan inside the domain
@@ -270,17 +270,21 @@ def _bondo_surface(X, Y):
 def bondo_like(cellsize: float = 20.0) -> SyntheticCase:
     """A Bondo-like rock avalanche case (after the 2017 Piz Cengalo-Bondo event), analytic and deterministic.
 
-    Domain 6400 m (x, down-valley) x 2400 m (y), origin (0, 0); 320 x 120 cells at 20 m.
-    * Rock face x in [0, 750] m at 40 deg along the thalweg (35-45 deg over the release), concave sides.
-    * Release: paraboloid-cap ellipse centred (400, 1200) m, radii 300 m x 220 m, volume 3.0e6 m^3
+    Domain 6500 m (x, down-valley) x 2000 m (y), origin (0, 0); 325 x 100 cells at 20 m.
+    * Rock face x in [0, 750] m at 40 deg along the thalweg (40-41 deg over the release), concave sides.
+    * Release: paraboloid-cap ellipse centred (400, 1000) m, radii 300 m x 220 m, volume 3.0e6 m^3
       (scaled exactly at every cell size), peak ~29 m.
-    * Channel: 35 m deep, Gaussian half-width 70 m, from x ~ 700 m to ~4600 m, with two bends
-      (S-curve, +-300 m lateral, x in [1100, 4300] m) inside a valley with 20 deg sides.
-    * Thalweg angle 25 -> 21 -> 17 deg down to x = 3800 m, 8 deg at 4300 m, fan / valley floor at
-      3 -> 1.5 deg beyond 4700 m, walls 650 m either side of the thalweg.
-    * Drop from the release top to the fan ~2000 m; thalweg ~6.6 km (x 0 -> 6400 m).
-    * Points on the thalweg: L1 upper channel (x = 1700 m), L2 mid path (x = 3000 m), L3 fan (x = 4700 m).
-    * erodible_depth: up to 5 m along the channel floor (Gaussian across, x in ~[1100, 4300] m).
+    * Channel: 45 m deep, Gaussian half-width 70 m, from x ~ 700 m to ~5000 m, with two bends
+      (S-curve, +-260 m lateral, x in [1100, 4700] m) inside a valley with 20 deg sides.
+    * Thalweg angle 24 -> 19 -> 15 deg down to x = 4500 m, 7 deg at 4900 m, fan / valley floor at
+      3 -> 1.5 deg beyond 5300 m (side slopes 2 deg), walls 650 m either side of the thalweg.
+    * Drop from the release top (x = 100 m, z = 2942 m) to L3 2065 m; path release top -> L3 5.0 km,
+      thalweg 6.7 km (x 0 -> 6500 m). With mu = 0.23, xi = 1000 the deposit lies on the fan at
+      x ~ 4500-5300 m (front ~5.5 km along the path); some overspill on the outer bank of the first bend.
+    * Points on the thalweg: L1 upper channel (x = 1700 m), L2 mid path (x = 3200 m), L3 fan, in the
+      mu = 0.23 / xi = 1000 deposit (x = 4900 m).
+    * erodible_depth: up to 5 m along the channel floor (Gaussian across, x in ~[1100, 4700] m).
+    * ``info`` holds these numbers as computed.
     """
     X, Y = _grid(*BONDO_EXTENT, cellsize)
     dem = DEM(z=_bondo_surface(X, Y), cellsize=cellsize)

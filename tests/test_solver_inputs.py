@@ -1,0 +1,89 @@
+"""Bad inputs raise ValueError naming the field and the value."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchslide.physics import Params, earth_pressure_sh
+from torchslide.solver import SolverConfig, simulate
+from torchslide.terrain import DEM
+
+
+def _dem():
+    return DEM(np.zeros((6, 8)), 10.0)
+
+
+@pytest.mark.parametrize("kw,match", [
+    (dict(mu=0.0), "mu"), (dict(mu=-0.1), "mu"), (dict(mu=0.2, xi=0.0), "xi"), (dict(mu=0.2, xi=-5.0), "xi"),
+    (dict(mu=0.2, kappa=-1e-3), "kappa"), (dict(mu=0.2, tau_y=-1.0), "tau_y"),
+    (dict(mu=0.2, earth_pressure=0.5), "earth_pressure"), (dict(mu=0.2, earth_pressure=1.5, phi_int=30.0), "earth_pressure"),
+    (dict(mu=0.9, phi_int=30.0), "phi_int"), (dict(mu=[0.1, 0.2], xi=[1.0, 2.0, 3.0]), "has 2 values but B = 3"),
+    (dict(mu=float("nan")), "mu"), (dict(mu=0.2, bogus=1.0), "bogus"), (dict(xi=100.0), "mu"),
+])
+def test_params_bad(kw, match):
+    with pytest.raises(ValueError, match=match):
+        Params.make(**kw)
+
+
+def test_params_broadcast_and_types():
+    p = Params.make(mu=[0.1, 0.2, 0.3], xi=500.0, dtype=torch.float32)
+    assert p.B == 3 and p.xi.shape == (3,) and p.mu.dtype == torch.float32
+    p2 = Params.make(B=4, mu=torch.tensor(0.2))
+    assert p2.B == 4 and math.isinf(float(p2.xi[0]))
+    ka, kp = earth_pressure_sh(torch.tensor(35.0), torch.tensor(0.0))
+    # delta = 0: k_act/pass = (1 -/+ sin phi) / (1 +/- sin phi) (Rankine)
+    s = math.sin(math.radians(35))
+    assert abs(float(ka) - (1 - s) / (1 + s)) < 1e-12 and abs(float(kp) - (1 + s) / (1 - s)) < 1e-12
+
+
+def test_negative_thickness():
+    rel = np.zeros((6, 8)); rel[2, 3] = -1.0
+    with pytest.raises(ValueError, match="release"):
+        simulate(_dem(), rel, Params.make(mu=0.2), t_end=1.0)
+
+
+def test_nan_release():
+    rel = np.zeros((6, 8)); rel[2, 3] = np.nan
+    with pytest.raises(ValueError, match="release.*non-finite"):
+        simulate(_dem(), rel, Params.make(mu=0.2), t_end=1.0)
+
+
+def test_release_shape_mismatch():
+    with pytest.raises(ValueError, match=r"release has shape \(5, 8\)"):
+        simulate(_dem(), np.zeros((5, 8)), Params.make(mu=0.2), t_end=1.0)
+    with pytest.raises(ValueError, match="B = 3"):
+        simulate(_dem(), np.zeros((2, 6, 8)), Params.make(mu=[0.1, 0.2, 0.3]), t_end=1.0)
+
+
+def test_gauge_outside():
+    with pytest.raises(ValueError, match="gauge 'far'.*outside"):
+        simulate(_dem(), np.ones((6, 8)), Params.make(mu=0.2), t_end=1.0, gauges=[("far", 500.0, 5.0)])
+
+
+def test_bad_t_end_and_config():
+    with pytest.raises(ValueError, match="t_end"):
+        simulate(_dem(), np.ones((6, 8)), Params.make(mu=0.2), t_end=-1.0)
+    with pytest.raises(ValueError, match="cfl"):
+        simulate(_dem(), np.ones((6, 8)), Params.make(mu=0.2), t_end=1.0, config=SolverConfig(cfl=2.0))
+
+
+def test_kappa_needs_erodible():
+    with pytest.raises(ValueError, match="kappa"):
+        simulate(_dem(), np.ones((6, 8)), Params.make(mu=0.2, kappa=0.01), t_end=1.0)
+
+
+def test_failed_member_flagged_not_silent():
+    """A member that blows up is marked failed with a reason; the others are unaffected."""
+    dem = _dem()
+    rel = np.ones((6, 8))
+    p = Params.make(mu=[0.2, 0.2])
+    # float overflow: an absurd release thickness in member 1 only
+    rel_b = np.stack([rel, np.full((6, 8), 1e300)])
+    r = simulate(dem, rel_b, p, t_end=2.0)
+    single = simulate(dem, rel, p.select([0]), t_end=2.0)
+    assert bool(r.failed[1]) and "non-finite" in r.failure_reason[1]
+    assert not bool(r.failed[0]) and r.failure_reason[0] is None
+    assert torch.equal(r.member(0).h_final, single.h_final)

@@ -1,0 +1,159 @@
+"""DiagnosisEvaluator: a LandslideEvaluator whose observations may be vector-valued.
+
+Scalar :class:`torchslide.observe.Observation` s count as blocks of one value, each
+:class:`torchslide.observe_series.SeriesObservation` as a block of m values. ``predict`` returns the
+flattened (B, k) predictions (k = sum of block sizes), the data vector d (k,) and the effective
+standard deviations (k,) (sigma sqrt(f) for correlated maps/series, see observe_series) feed the
+ordinary diagonal :class:`torchslide.bayes.GaussianLikelihood`. Everything else (batching, records,
+failure flags) is inherited unchanged, so ``calibrate(evaluator, ...)`` works as for scalar data.
+
+Change proposed upstream (not made here): LandslideEvaluator could accept observations whose
+``predict`` returns (B, m) and flatten them itself; this subclass is that change, kept local.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from ..bayes import GaussianLikelihood
+from ..evaluator import LandslideEvaluator
+from ..observe import Observation
+from ..observe_series import SeriesObservation
+from ..physics import Params
+from ..result import SimulationResult
+
+
+@dataclass
+class Block:
+    """One observation's slice of the flat data vector."""
+
+    name: str
+    kind: str
+    start: int
+    stop: int
+    obs: object
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.stop)
+
+    @property
+    def is_vector(self) -> bool:
+        return isinstance(self.obs, SeriesObservation)
+
+
+@dataclass
+class DiagnosisEvaluator(LandslideEvaluator):
+    """LandslideEvaluator over scalar and vector observations (see the module doc)."""
+
+    def __post_init__(self) -> None:
+        if not self.observations:
+            raise ValueError("at least one observation is needed")
+        gauge_names = [g[0] for g in self.gauges]
+        for o in self.observations:
+            if isinstance(o, SeriesObservation):
+                o.validate(self.dem, gauge_names)
+            else:
+                o.validate(self.dem)
+        names = [str(o.name) for o in self.observations]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"observations have duplicate names {dup}")
+        known = set(Params.names())
+        for n in list(self.prior.names) + list(self.fixed):
+            if n not in known:
+                raise ValueError(f"parameter {n!r} is not a model parameter; known: {sorted(known)}")
+        both = set(self.prior.names) & set(self.fixed)
+        if both:
+            raise ValueError(f"parameter(s) {sorted(both)} are both calibrated and fixed")
+        if "mu" not in self.prior.names and "mu" not in self.fixed:
+            raise ValueError("mu must be calibrated (in the prior) or fixed")
+        self.blocks: list[Block] = []
+        d, s, s_raw = [], [], []
+        k = 0
+        for o in self.observations:
+            if isinstance(o, SeriesObservation):
+                m = o.m
+                d.append(np.asarray(o.values, dtype=np.float64))
+                s.append(o.sigma_eff())
+                s_raw.append(o.sigma_vector())
+            else:
+                m = 1
+                d.append(np.array([float(o.value)]))
+                s.append(np.array([float(o.sigma)]))
+                s_raw.append(np.array([float(o.sigma)]))
+            self.blocks.append(Block(str(o.name), o.kind, k, k + m, o))
+            k += m
+        self.data = np.concatenate(d)
+        self.sigma = np.concatenate(s)          # effective (used by the likelihood)
+        self.sigma_raw = np.concatenate(s_raw)  # per-value measurement sigma
+        self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), sigma=torch.as_tensor(self.sigma))
+
+    @property
+    def k(self) -> int:
+        return int(self.data.size)
+
+    def block(self, name: str) -> Block:
+        for b in self.blocks:
+            if b.name == name:
+                return b
+        raise KeyError(name)
+
+    def predict(self, result: SimulationResult):
+        B = result.batch_size
+        cols = []
+        for o in self.observations:
+            p = o.predict(result).to(torch.float64).cpu()
+            cols.append(p.reshape(B, -1))
+        preds = torch.cat(cols, dim=1)
+        failed = torch.zeros(B, dtype=torch.bool) if result.failed is None else result.failed.cpu().clone()
+        reasons = [(result.failure_reason[b] or "") if result.failure_reason else "" for b in range(B)]
+        finite = torch.isfinite(preds).all(dim=1)
+        for b in range(B):
+            if failed[b] and not reasons[b]:
+                reasons[b] = "solver reported failure"
+            if not bool(finite[b]) and not failed[b]:
+                failed[b] = True
+                reasons[b] = "non-finite observable(s)"
+        return preds, failed, reasons
+
+    def with_prior(self, prior, fixed: dict | None = None) -> "DiagnosisEvaluator":
+        """A copy with another prior (e.g. the enlarged space of a candidate) and extra fixed values."""
+        f = {k: v for k, v in dict(self.fixed).items() if k not in prior.names}
+        f.update(fixed or {})
+        return DiagnosisEvaluator(dem=self.dem, release=self.release, observations=self.observations, prior=prior,
+                                  fixed=f, t_end=self.t_end, gauges=self.gauges, erodible_depth=self.erodible_depth,
+                                  mu_scale=self.mu_scale, solver_config=self.solver_config, dtype=self.dtype,
+                                  device=self.device, max_batch=self.max_batch)
+
+    def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (n, k) and failed (n,) for explicit Params values {name: (n,) array} (+ fixed),
+        in chunks of max_batch members (screening uses this for one batch of perturbed parameter sets)."""
+        from ..solver import simulate
+        n = max(np.size(v) for v in values.values())
+        allv = {k: v for k, v in self.fixed.items()}
+        allv.update(values)
+        out, fails = [], []
+        for s in range(0, n, self.max_batch):
+            sub = {k: (np.asarray(v, dtype=np.float64).reshape(-1)[s:s + self.max_batch] if np.size(v) > 1 else v)
+                   for k, v in allv.items()}
+            nb = min(self.max_batch, n - s)
+            p = Params.make(B=nb, dtype=self.dtype, device=self.device, **sub)
+            t0 = time.perf_counter()
+            res = simulate(self.dem, self.release, p, t_end=self.t_end, gauges=list(self.gauges) or None,
+                           config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
+                           dtype=self.dtype, device=self.device)
+            self.solver_seconds += time.perf_counter() - t0
+            preds, failed, _ = self.predict(res)
+            out.append(preds.numpy())
+            fails.append(failed.numpy())
+        return np.concatenate(out), np.concatenate(fails)
+
+    def misfit(self, preds: np.ndarray) -> float:
+        """Sum of squared effective-standardised residuals of one prediction vector (k,)."""
+        r = (self.data - np.asarray(preds)) / self.sigma
+        return float(np.sum(r * r))

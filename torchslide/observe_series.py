@@ -1,0 +1,316 @@
+"""Vector-valued observation kinds: gauge series and maps on the DEM grid.
+
+A :class:`SeriesObservation` contributes m residuals (not one). Its operator returns a (B, m) tensor;
+an evaluator flattens all observations (scalar ones count as m = 1) into one data vector d (k,) with
+per-element effective standard deviations, so the usual diagonal Gaussian likelihood applies
+(see :class:`torchslide.diagnose.evaluator.DiagnosisEvaluator`).
+
+Kinds (registered in :data:`torchslide.observe.KINDS` with :func:`register_kind`; their ``fn``
+returns (B, m), which is why they are listed in :data:`VECTOR_KINDS` and must be used through
+``SeriesObservation``, not the scalar ``Observation``):
+
+* ``gauge_series``: flow thickness ("h", m) or speed ("speed", m/s) of a named gauge at the observed
+  times t (s), linearly interpolated between the solver's output samples (clamped at both ends).
+  CSV input: a header row with ``t`` and ``h`` and/or ``speed`` columns; times must increase strictly.
+* ``deposit_map``: final thickness h_final (m) on every cell of the DEM grid with a finite value in the
+  raster (nodata cells are left out).
+* ``impact_map``: 1 where h_max > threshold, else 0, per cell (the indicator of ``impact_area``).
+  With a Gaussian error model on a 0/1 quantity, sigma ~ 0.3-0.5 is sensible.
+
+Error model: independent Gaussian errors with standard deviation ``sigma`` (scalar or per element),
+optionally *correlated*: ``corr_length`` (m for maps, s for gauge series) is the length of an
+exponential covariance exp(-r / L). We do not invert the dense covariance; we use the effective
+number of independent samples instead. For an exponential covariance the integral of the
+correlation over the plane is 2 pi L^2 (over a line, 2 L), so each cell (sample) carries the
+information of 1/f independent values with
+
+    f = max(1, 2 pi L^2 / cellsize^2)   (maps),     f = max(1, 2 L / dt)   (series, dt the sample step)
+
+and the likelihood uses sigma_eff = sigma sqrt(f) (equivalently, n_eff = m / f independent samples).
+This is exact for the total information in the large-domain limit and keeps correlated map errors
+from being counted as thousands of independent ones (a cause of false discoveries).
+"""
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+from .observe import DEFAULT_THRESHOLD, KINDS, register_kind
+from .result import SimulationResult
+from .terrain.grid import DEM, TerrainError
+
+__all__ = ["SeriesObservation", "VECTOR_KINDS", "read_gauge_csv", "read_map", "interp_series",
+           "GaugeSeriesError", "effective_factor"]
+
+VECTOR_KINDS = ("gauge_series", "deposit_map", "impact_map")
+
+
+class GaugeSeriesError(ValueError):
+    """Bad gauge-series input (names the file and row)."""
+
+
+# ----------------------------------------------------------------------------------------- operators
+def interp_series(t_model: torch.Tensor, y: torch.Tensor, t_obs: torch.Tensor) -> torch.Tensor:
+    """Linear interpolation of (B, T) series sampled at t_model (T,) onto t_obs (m,) -> (B, m); clamped."""
+    t_model = t_model.to(y)
+    t_obs = t_obs.to(y)
+    T = t_model.numel()
+    if T == 1:
+        return y[:, :1].expand(-1, t_obs.numel())
+    tq = t_obs.clamp(t_model[0], t_model[-1])
+    j = torch.searchsorted(t_model, tq, right=True).clamp(1, T - 1)
+    t0, t1 = t_model[j - 1], t_model[j]
+    w = ((tq - t0) / (t1 - t0).clamp_min(1e-12)).clamp(0, 1)
+    return y[:, j - 1] * (1 - w) + y[:, j] * w
+
+
+def _gauge_fn(result: SimulationResult, obs: "SeriesObservation") -> torch.Tensor:
+    name = obs.gauge
+    if name not in result.gauges:
+        raise KeyError(f"observation {obs.name!r}: the run has no gauge named {name!r}; gauges: {sorted(result.gauges)}")
+    g = result.gauges[name]
+    y = g.speed if obs.quantity == "speed" else g.h
+    return interp_series(g.t, y, torch.as_tensor(obs.times, dtype=y.dtype, device=y.device))
+
+
+def _cells(result: SimulationResult, obs: "SeriesObservation", field_: torch.Tensor) -> torch.Tensor:
+    idx = torch.as_tensor(obs.cell_index, device=field_.device)
+    return field_.flatten(1)[:, idx]
+
+
+def _deposit_map_fn(result, obs):
+    return _cells(result, obs, result.h_final)
+
+
+def _impact_map_fn(result, obs):
+    return _cells(result, obs, (result.h_max > obs.threshold).to(result.h_max))
+
+
+register_kind("gauge_series", _gauge_fn, unit="m or m/s",
+              description="vector (B, m): gauge h or speed at the observed times (use SeriesObservation)",
+              overwrite=True)
+register_kind("deposit_map", _deposit_map_fn, unit="m",
+              description="vector (B, m): h_final per mapped cell (use SeriesObservation)", overwrite=True)
+register_kind("impact_map", _impact_map_fn, unit="-", uses_threshold=True,
+              description="vector (B, m): 1 where h_max > threshold per mapped cell (use SeriesObservation)",
+              overwrite=True)
+
+
+def effective_factor(kind: str, corr_length: float | None, cellsize: float | None = None,
+                     dt: float | None = None) -> float:
+    """Variance inflation f >= 1 for an exponential correlation of length L (see the module doc)."""
+    if not corr_length:
+        return 1.0
+    if kind == "gauge_series":
+        return max(1.0, 2.0 * corr_length / dt) if dt else 1.0
+    return max(1.0, 2.0 * math.pi * corr_length**2 / cellsize**2)
+
+
+# -------------------------------------------------------------------------------------------- readers
+def read_gauge_csv(path) -> dict[str, np.ndarray]:
+    """Read a gauge CSV (header ``t`` plus ``h`` and/or ``speed``) -> {column: (m,) array}.
+
+    Raises GaugeSeriesError naming the file and the (1-based, header = row 1) row for missing columns,
+    non-numeric values or times that do not increase strictly.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GaugeSeriesError(f"{path}: gauge series file not found")
+    with open(path, newline="") as f:
+        rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise GaugeSeriesError(f"{path}: empty gauge series file (need a header t,h and/or t,speed)")
+    header = [c.strip().lower() for c in rows[0]]
+    if "t" not in header or not ({"h", "speed"} & set(header)):
+        raise GaugeSeriesError(f"{path}: row 1: header must name t and h and/or speed, got {rows[0]}")
+    cols = {c: [] for c in header if c in ("t", "h", "speed")}
+    for r_i, row in enumerate(rows[1:], start=2):
+        if len(row) != len(header):
+            raise GaugeSeriesError(f"{path}: row {r_i}: expected {len(header)} values, got {len(row)}")
+        for c in cols:
+            s = row[header.index(c)].strip()
+            try:
+                v = float(s)
+            except ValueError:
+                raise GaugeSeriesError(f"{path}: row {r_i}: column {c!r} is not a number: {s!r}") from None
+            if not math.isfinite(v):
+                raise GaugeSeriesError(f"{path}: row {r_i}: column {c!r} is not finite: {s!r}")
+            cols[c].append(v)
+    t = np.asarray(cols["t"])
+    if t.size < 2:
+        raise GaugeSeriesError(f"{path}: need at least 2 samples, got {t.size}")
+    bad = np.nonzero(np.diff(t) <= 0)[0]
+    if bad.size:
+        k = int(bad[0]) + 1
+        raise GaugeSeriesError(f"{path}: row {k + 2}: times must increase strictly, got t = {t[k]:g} after {t[k - 1]:g}")
+    return {c: np.asarray(v) for c, v in cols.items()}
+
+
+def read_map(path, dem: DEM, what: str = "map") -> np.ndarray:
+    """A raster on ``dem``'s grid (ny, nx), nodata as NaN; TerrainError naming the file and both grids otherwise."""
+    return _read_keep_nan(path, dem, what)
+
+
+def _read_keep_nan(path, dem, what):
+    from .terrain import io as tio
+    if tio._kind(path) == "asc":
+        z, cs, xll, yll = tio.read_asc_array(path)
+    else:
+        z, cs, xll, yll = tio._read_geotiff_array(path)
+    ny, nx = z.shape
+    same = ((ny, nx) == dem.shape and abs(cs - dem.cellsize) <= 1e-9 * dem.cellsize
+            and abs(xll - dem.xll) <= 1e-6 * dem.cellsize and abs(yll - dem.yll) <= 1e-6 * dem.cellsize)
+    if not same:
+        raise TerrainError(f"{path}: {what} grid ({ny}x{nx} cells of {cs:g} m at xll={xll:g}, yll={yll:g}) "
+                           f"does not match the DEM grid ({tio._grid_str(dem)})")
+    return np.asarray(z, dtype=np.float64)
+
+
+# ------------------------------------------------------------------------------------ the observation
+@dataclass
+class SeriesObservation:
+    """A vector-valued observation (m values) with its error model.
+
+    Attributes:
+        kind: "gauge_series", "deposit_map" or "impact_map".
+        values: (m,) observed values (for maps: the mapped cells in row-major order of ``cell_index``).
+        sigma: standard deviation (scalar or (m,)), > 0.
+        name: label.
+        gauge, quantity, times: gauge series only (gauge name, "h" or "speed", (m,) s).
+        cell_index: (m,) flat indices (row-major, row 0 south) of the mapped cells (maps only).
+        grid_shape: (ny, nx) of the map grid.
+        threshold: impact_map thickness threshold, m.
+        corr_length: exponential correlation length (m for maps, s for series) or None (independent).
+        source: the file it came from (messages).
+    """
+
+    kind: str
+    values: np.ndarray
+    sigma: Any
+    name: str
+    gauge: str | None = None
+    quantity: str = "h"
+    times: np.ndarray | None = None
+    cell_index: np.ndarray | None = None
+    grid_shape: tuple | None = None
+    cellsize: float | None = None
+    threshold: float = DEFAULT_THRESHOLD
+    corr_length: float | None = None
+    source: str = ""
+    options: dict = field(default_factory=dict)
+
+    # ---------------------------------------------------------------- constructors
+    @classmethod
+    def from_gauge_csv(cls, path, gauge: str, sigma: dict | float, quantities: Sequence[str] | None = None,
+                       corr_time: float | None = None, name: str | None = None) -> list["SeriesObservation"]:
+        """One observation per quantity column (h, speed) of a gauge CSV. ``sigma``: a number or {quantity: sigma}."""
+        cols = read_gauge_csv(path)
+        qs = [q for q in ("h", "speed") if q in cols] if quantities is None else list(quantities)
+        out = []
+        for q in qs:
+            if q not in cols:
+                raise GaugeSeriesError(f"{path}: no column {q!r} (columns: {sorted(cols)})")
+            s = sigma.get(q) if isinstance(sigma, dict) else sigma
+            if s is None:
+                raise GaugeSeriesError(f"{path}: sigma for {q!r} is missing")
+            out.append(cls("gauge_series", cols[q], s, name=f"{name or gauge}:{q}", gauge=gauge, quantity=q,
+                           times=cols["t"], corr_length=corr_time, source=str(path)))
+        return out
+
+    @classmethod
+    def from_array(cls, kind: str, array: np.ndarray, dem: DEM, sigma, name: str | None = None,
+                   threshold: float = DEFAULT_THRESHOLD, corr_length: float | None = None,
+                   source: str = "", mask: np.ndarray | None = None) -> "SeriesObservation":
+        """A map observation from an (ny, nx) array on ``dem``'s grid (NaN = not mapped)."""
+        a = np.asarray(array, dtype=np.float64)
+        if a.shape != dem.shape:
+            raise TerrainError(f"{source or name or kind}: map has shape {a.shape}, the DEM grid is {dem.shape}")
+        ok = np.isfinite(a) if mask is None else (np.isfinite(a) & mask)
+        idx = np.flatnonzero(ok.ravel())
+        if idx.size == 0:
+            raise ValueError(f"{source or name or kind}: map has no finite cells")
+        return cls(kind, a.ravel()[idx], sigma, name=name or kind, cell_index=idx, grid_shape=dem.shape,
+                   cellsize=float(dem.cellsize), threshold=threshold, corr_length=corr_length, source=source)
+
+    @classmethod
+    def from_raster(cls, path, kind: str, dem: DEM, sigma, **kw) -> "SeriesObservation":
+        arr = read_map(path, dem, what=kind.replace("_", " "))
+        return cls.from_array(kind, arr, dem, sigma, source=str(path), **kw)
+
+    # ---------------------------------------------------------------- properties
+    @property
+    def m(self) -> int:
+        return int(np.asarray(self.values).size)
+
+    @property
+    def is_map(self) -> bool:
+        return self.kind in ("deposit_map", "impact_map")
+
+    def sigma_vector(self) -> np.ndarray:
+        s = np.asarray(self.sigma, dtype=np.float64)
+        return np.broadcast_to(s, (self.m,)).copy()
+
+    def factor(self) -> float:
+        dt = float(np.median(np.diff(self.times))) if self.times is not None and len(self.times) > 1 else None
+        return effective_factor(self.kind, self.corr_length, self.cellsize, dt)
+
+    def sigma_eff(self) -> np.ndarray:
+        """(m,) sigma * sqrt(f): the standard deviations the likelihood uses."""
+        return self.sigma_vector() * math.sqrt(self.factor())
+
+    @property
+    def n_eff(self) -> float:
+        return self.m / self.factor()
+
+    def labels(self) -> list[str]:
+        if self.kind == "gauge_series":
+            return [f"{self.name}@t={t:g}" for t in self.times]
+        return [f"{self.name}[{i}]" for i in self.cell_index]
+
+    def to_grid(self, vec) -> np.ndarray:
+        """(m,) values of this map -> (ny, nx) array with NaN off the map."""
+        out = np.full(int(np.prod(self.grid_shape)), np.nan)
+        out[self.cell_index] = np.asarray(vec, dtype=np.float64)
+        return out.reshape(self.grid_shape)
+
+    # ---------------------------------------------------------------- checks and prediction
+    def validate(self, dem: DEM | None = None, gauges: Sequence[str] | None = None) -> "SeriesObservation":
+        label = f"observation {self.name!r}" + (f" ({self.source})" if self.source else "")
+        if self.kind not in VECTOR_KINDS:
+            raise ValueError(f"{label}: kind {self.kind!r} is not a vector kind ({', '.join(VECTOR_KINDS)})")
+        v = np.asarray(self.values, dtype=np.float64)
+        if v.ndim != 1 or v.size == 0 or not np.isfinite(v).all():
+            raise ValueError(f"{label}: values must be a non-empty finite vector")
+        s = np.asarray(self.sigma, dtype=np.float64)
+        if s.size not in (1, v.size) or not (np.isfinite(s).all() and (s > 0).all()):
+            raise ValueError(f"{label}: sigma must be > 0 (scalar or one per value), got {self.sigma!r}")
+        if self.corr_length is not None and not (math.isfinite(self.corr_length) and self.corr_length >= 0):
+            raise ValueError(f"{label}: corr_length must be >= 0, got {self.corr_length!r}")
+        if self.kind == "gauge_series":
+            if self.quantity not in ("h", "speed"):
+                raise ValueError(f"{label}: quantity must be 'h' or 'speed', got {self.quantity!r}")
+            t = np.asarray(self.times, dtype=np.float64)
+            if t.shape != v.shape:
+                raise ValueError(f"{label}: {t.size} times for {v.size} values")
+            bad = np.nonzero(np.diff(t) <= 0)[0]
+            if bad.size:
+                raise GaugeSeriesError(f"{label}: times must increase strictly (sample {int(bad[0]) + 2}: "
+                                       f"t = {t[bad[0] + 1]:g} after {t[bad[0]]:g})")
+            if gauges is not None and self.gauge not in gauges:
+                raise ValueError(f"{label}: gauge {self.gauge!r} is not defined; gauges: {sorted(gauges)}")
+        elif dem is not None and tuple(self.grid_shape) != dem.shape:
+            raise TerrainError(f"{label}: map grid {self.grid_shape} does not match the DEM grid {dem.shape}")
+        return self
+
+    def predict(self, result: SimulationResult) -> torch.Tensor:
+        """(B, m) predictions."""
+        out = KINDS[self.kind].fn(result, self)
+        if out.shape != (result.batch_size, self.m):
+            raise RuntimeError(f"kind {self.kind!r} returned {tuple(out.shape)}, expected ({result.batch_size}, {self.m})")
+        return out
