@@ -12,6 +12,7 @@ by ``model.posterior``), so that exp(g_hat) is the emulated unnormalised posteri
 from __future__ import annotations
 
 import math
+import warnings
 
 import torch
 from botorch.acquisition.analytic import AnalyticAcquisitionFunction
@@ -83,8 +84,10 @@ def select_batch(model: Model, q: int = 1, acquisition: str = "entropy", num_res
     for j in range(q):
         acq = make_acquisition(acquisition, cur)
         opts = {"seed": None if seed is None else int(seed) * 1000 + j, "maxiter": 200}
-        x, v = optimize_acqf(acq, bounds=bounds, q=1, num_restarts=num_restarts, raw_samples=raw_samples,
-                             options=opts)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # L-BFGS-B 'ABNORMAL' line-search exits on flat regions
+            x, v = optimize_acqf(acq, bounds=bounds, q=1, num_restarts=num_restarts, raw_samples=raw_samples,
+                                 options=opts, retry_on_optimization_warning=False)
         x = x.detach().reshape(1, d)
         picks.append(x)
         vals.append(v.detach().reshape(()))

@@ -20,7 +20,7 @@ import torch
 
 from .active import ActiveConfig, ActiveLearner
 from .bayes import check_bounds
-from .posterior import PosteriorSummary, adaptive_metropolis, cell_volume, log_evidence_importance
+from .posterior import PosteriorSummary, adaptive_metropolis, log_evidence_importance
 
 
 @dataclass
@@ -99,7 +99,7 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
               seed: int = 0, grid_size: int = 100, acquisition: str = "entropy",
               checkpoint: str | os.PathLike | None = None, log_dir: str | os.PathLike | None = None,
               tv_threshold: float | None = None, names: Sequence[str] | None = None, progress: bool = True,
-              clip_range: float | None = 50.0, tv_lag: int = 10, tv_patience: int = 3,
+              clip_range: float | None = 1000.0, tv_lag: int = 10, tv_patience: int = 3,
               num_restarts: int = 8, raw_samples: int = 256, mcmc_steps: int = 4000,
               mcmc_chains: int = 8) -> CalibrationResult:
     """Calibrate parameters in a box by Bayesian active learning (Algorithm 1).

@@ -15,7 +15,10 @@ part spans a few nats. A stationary GP fitted to both resolves neither. Training
 capped from below, ``z_train = max(z, max(z) - clip_range)`` (as in GPry / approxposterior
 variants). With ``clip_range = C`` the capped region carries at most ``exp(-C)`` of the peak density,
 so the posterior is unchanged to that order, while the GP spends its variance on the region that
-matters. ``clip_range=None`` disables it. The benchmark (bench/bench_inference.py) measures both.
+matters. ``clip_range=None`` disables it. Measured on Rosenbrock (40 + 60 runs, seed 0): C = 50 gave
+TV 0.011 and no cap TV 0.002 -- a tight cap adds a kink that the stationary GP pays for -- so the
+default is a loose safety cap, C = 1000 nats, which leaves the analytic benchmark targets untouched
+and only flattens pathological values such as -1e4 from a run far from the data.
 """
 from __future__ import annotations
 
@@ -55,7 +58,7 @@ class LogPosteriorEmulator:
         max_jitter: the largest Cholesky jitter tried before giving up on a fit.
     """
 
-    def __init__(self, bounds, clip_range: float | None = 50.0, noise_floor: float = 1e-6,
+    def __init__(self, bounds, clip_range: float | None = 1000.0, noise_floor: float = 1e-6,
                  warm_start: bool = True, max_jitter: float = 1e-2):
         self.bounds = torch.as_tensor(bounds, dtype=DTYPE)
         self.dim = self.bounds.shape[1]
@@ -148,11 +151,15 @@ class LogPosteriorEmulator:
         means, vars_ = [], []
         with torch.no_grad(), gpytorch.settings.cholesky_jitter(double_value=self.jitter):
             for i in range(0, X.shape[0], batch):
-                post = self.model.posterior(X[i:i + batch])
+                # (b, 1, p): one t-batch per point, so only marginal variances are computed
+                post = self.model.posterior(X[i:i + batch].unsqueeze(-2))
                 means.append(post.mean.reshape(-1))
                 vars_.append(post.variance.reshape(-1).clamp_min(0.0))
         return torch.cat(means), torch.cat(vars_)
 
-    def mean(self, x: torch.Tensor) -> torch.Tensor:
-        """g_hat(x) = posterior mean in z units; x (n, p) in parameter units."""
-        return self.predict(x)[0]
+    def mean(self, x: torch.Tensor, batch: int = 20000) -> torch.Tensor:
+        """g_hat(x) = posterior mean m'(x) (Eq. 13) in z units; x (n, p) in parameter units -> (n,).
+        """
+        if self.model is None:
+            raise RuntimeError("emulator is not fitted")
+        return self.predict(x, batch=batch)[0]

@@ -23,7 +23,7 @@ import numpy as np
 class Thresholds:
     bf_min: float = 6.0         # 2 ln BF vs the baseline to support a candidate
     margin_min: float = 6.0     # 2 ln BF over the runner-up for an unambiguous name
-    located_min: float = 4.0    # |standardised residual| of a located mismatch that counts
+    located_min: float = 8.0    # |standardised residual| of a located mismatch that counts (null runs: up to ~6.6)
     z_threshold: float = 3.0    # per-value / cluster / window detection level (localisation)
 
     def to_json(self) -> dict:

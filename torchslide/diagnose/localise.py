@@ -10,7 +10,7 @@ correlation factor of the block, see torchslide.observe_series):
   factor f widens the spread for correlated errors).
 * map clusters: Getis-Ord Gi* of the z map with a square window of radius r cells (r >= the error
   correlation length), permutation p-values (z values shuffled over the mapped cells, n_perm
-  permutations), Benjamini-Hochberg FDR at level q; significant cells of one sign that touch form a
+  permutations, the |Gi*| of all cells and permutations pooled into one null distribution), Benjamini-Hochberg FDR at level q; significant cells of one sign that touch form a
   cluster, reported as a bounding box [xmin, ymin, xmax, ymax] in map coordinates with the cluster
   score sum z / sqrt(n_cells f).
 * gauge series: first the arrival-time shift tau (s) that best aligns E y with d (grid search over
@@ -87,13 +87,16 @@ def map_clusters(zmap: np.ndarray, mask: np.ndarray, dem, radius: int = 1, n_per
     rng = np.random.default_rng(seed)
     g = getis_ord(zmap, mask, radius)
     vals = zmap[mask]
-    exceed = np.zeros(mask.sum())
     gm = np.abs(g[mask])
     perm = np.zeros_like(zmap)
+    pooled = []
     for _ in range(n_perm):
         perm[mask] = rng.permutation(vals)
-        exceed += np.abs(getis_ord(perm, mask, radius)[mask]) >= gm
-    p = (1 + exceed) / (n_perm + 1)
+        pooled.append(np.abs(getis_ord(perm, mask, radius)[mask]))
+    pooled = np.sort(np.concatenate(pooled)) if pooled else np.zeros(0)
+    # pooled permutation null (all cells, all permutations): resolution 1 / (n_perm * n_cells)
+    exceed = pooled.size - np.searchsorted(pooled, gm, side="left")
+    p = (1 + exceed) / (pooled.size + 1)
     sig = np.zeros(mask.shape, bool)
     sig[mask] = benjamini_hochberg(p, q)
     pmap = np.full(mask.shape, np.nan)

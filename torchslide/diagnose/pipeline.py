@@ -32,6 +32,7 @@ class Budgets:
     top_k: int = 2
     n_perm: int = 99
     seed: int = 0
+    mcmc_steps: int = 1500             # emulator MCMC steps per chain (p > 2 refits)
 
 
 def check_candidates(candidates) -> list[str]:
@@ -121,7 +122,7 @@ def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: 
     if baseline is None:
         log(f"[diagnose] baseline calibration ({bud.baseline_n_total} runs)")
         baseline = calibrate_evaluator(evaluator, bud.baseline_n_initial, bud.baseline_n_total,
-                                       batch_size=bud.batch_size, seed=bud.seed)
+                                       batch_size=bud.batch_size, seed=bud.seed, mcmc_steps=bud.mcmc_steps)
     T["baseline_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     samples = posterior_samples(baseline, bud.n_posterior_samples, seed=bud.seed)
@@ -138,7 +139,8 @@ def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: 
     refits, cand_out, misfit_after = {}, [], {}
     t0 = time.perf_counter()
     for c in top:
-        ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed)
+        ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
+                            mcmc_steps=bud.mcmc_steps)
         refits[c] = (ev_c, cal_c)
         ok = ~cal_c.failed
         best_i = int(np.nanargmax(np.where(ok, cal_c.z, -np.inf)))

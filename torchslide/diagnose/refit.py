@@ -22,9 +22,10 @@ def calibrate_evaluator(evaluator, n_initial: int, n_total: int, batch_size: int
                      num_restarts=4, raw_samples=128, mcmc_steps=mcmc_steps, mcmc_chains=mcmc_chains, **kw)
 
 
-def refit(evaluator, candidate: str, n_initial: int, n_total: int, batch_size: int = 8, seed: int = 0):
+def refit(evaluator, candidate: str, n_initial: int, n_total: int, batch_size: int = 8, seed: int = 0,
+          mcmc_steps: int = 1500):
     """(candidate evaluator, CalibrationResult) of the baseline + ``candidate`` model."""
     cd = CANDIDATES[candidate]
     ev = evaluator.with_prior(candidate_prior(evaluator.prior, candidate), fixed=dict(cd.fixed))
-    cal = calibrate_evaluator(ev, n_initial, n_total, batch_size=batch_size, seed=seed)
+    cal = calibrate_evaluator(ev, n_initial, n_total, batch_size=batch_size, seed=seed, mcmc_steps=mcmc_steps)
     return ev, cal

@@ -1,0 +1,1 @@
+"""Blind hidden-physics harness for torchslide.diagnose (see README.md)."""

@@ -1,0 +1,118 @@
+"""Write a Diagnosis: report.json, report.md and figures (residual maps, gauge series, posteriors)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def _fmt(v, f="{:.3g}"):
+    return "-" if v is None else f.format(v)
+
+
+def write_figures(diag, out: Path) -> list[str]:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    before = diag.localisation.maps
+    after = diag.after_localisation.maps if diag.after_localisation is not None else {}
+    dem = diag.evaluator.dem
+    ext = [dem.xll, dem.xll + dem.nx * dem.cellsize, dem.yll, dem.yll + dem.ny * dem.cellsize]
+    for name, m in before.items():
+        safe = name.replace(":", "_").replace("/", "_")
+        if "t" not in m:  # map
+            ncol = 2 if name in after else 1
+            fig, axs = plt.subplots(1, ncol, figsize=(5.5 * ncol, 3.2), squeeze=False)
+            for ax, (lab, mm) in zip(axs[0], [("before", m)] + ([("after", after[name])] if name in after else [])):
+                im = ax.imshow(mm["z"], origin="lower", extent=ext, cmap="RdBu_r", vmin=-4, vmax=4)
+                ax.set_title(f"{name}: standardised residual, {lab}")
+                fig.colorbar(im, ax=ax, shrink=0.8)
+            for loc in diag.localisation.located:
+                if isinstance(loc["where"], list):
+                    x0, y0, x1, y1 = loc["where"]
+                    axs[0][0].add_patch(plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="k", lw=1.2))
+            fig.tight_layout()
+            f = out / f"residual_map_{safe}.png"
+            fig.savefig(f, dpi=90)
+            plt.close(fig)
+            files.append(f.name)
+        else:
+            fig, ax = plt.subplots(figsize=(6, 3))
+            ax.plot(m["t"], m["data"], "k.", ms=3, label="data")
+            ax.plot(m["t"], m["pred"], "C0-", label="baseline")
+            ax.fill_between(m["t"], m["pred"] - 2 * m["pred_sd"], m["pred"] + 2 * m["pred_sd"], color="C0", alpha=0.2)
+            if name in after:
+                a = after[name]
+                ax.plot(a["t"], a["pred"], "C3-", label=f"refit ({diag.fit_after.get('model')})")
+            ax.set_xlabel("t (s)")
+            ax.set_title(name)
+            ax.legend(fontsize=7)
+            fig.tight_layout()
+            f = out / f"gauge_{safe}.png"
+            fig.savefig(f, dpi=90)
+            plt.close(fig)
+            files.append(f.name)
+    # posteriors of the refit switches (1-D marginal histograms of MCMC samples)
+    refits = [(c, cal) for c, (_, cal) in diag.refits.items() if cal.samples is not None]
+    if refits:
+        fig, axs = plt.subplots(1, len(refits), figsize=(3.5 * len(refits), 2.8), squeeze=False)
+        for ax, (c, cal) in zip(axs[0], refits):
+            i = len(cal.names) - 1
+            ax.hist(cal.samples[:, i], bins=30, color="C2", density=True)
+            ax.set_xlabel(cal.names[i])
+            ax.set_title(c)
+        fig.tight_layout()
+        f = out / "posteriors.png"
+        fig.savefig(f, dpi=90)
+        plt.close(fig)
+        files.append(f.name)
+    return files
+
+
+def write_markdown(j: dict, figures: list[str]) -> str:
+    L = [f"# Missing-physics diagnosis", "", f"**Verdict: {j['verdict']}**" +
+         (f" — missing physics: **{j['missing_physics']}**" if j["missing_physics"] else ""), "",
+         f"Reason: {j['decision']['reason']}", ""]
+    if j["decision"].get("ambiguous"):
+        L += [f"Ambiguous: the lead over {j['decision']['runner_up']} is only "
+              f"{j['decision']['two_ln_bf_over_runner_up']:.1f} (2 ln BF).", ""]
+    L += ["## Where the baseline disagrees with the data", "", "| what | where | standardised residual |", "|---|---|---|"]
+    for l in j["located"]:
+        L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")
+    if not j["located"]:
+        L.append("| (nothing located) | | |")
+    L += ["", "## Candidates", "", "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDR |",
+          "|---|---|---|---|---|---|---|"]
+    for c in j["candidates"]:
+        p = c["parameters"].get(c["param"], {}) if c["parameters"] else {}
+        L.append(f"| {c['name']} | {_fmt(c['screening_score'], '{:.1f}')} | {_fmt(c.get('mimic'), '{:.2f}')} | "
+                 f"{_fmt(c['log_evidence'], '{:.2f}')} | {_fmt(c['two_ln_bf'], '{:.1f}')} | {_fmt(p.get('mean'))} | "
+                 f"{[round(v, 5) for v in p['hdr90']] if p else '-'} |")
+    fb, fa = j["fit_before"], j["fit_after"]
+    L += ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
+    if fa:
+        L.append(f"- after ({fa.get('model')}): log Z {_fmt(fa['log_evidence'], '{:.2f}')}, misfit {_fmt(fa['misfit'], '{:.1f}')}")
+    L += ["", "| observable | before | after |", "|---|---|---|"]
+    for name, r in fb["residuals"].items():
+        a = fa.get("residuals", {}).get(name, {}) if fa else {}
+        key = "z" if "z" in r else "rms_z"
+        L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} |")
+    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
+    return "\n".join(L) + "\n"
+
+
+def write_report(diag, out) -> Path:
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    j = diag.to_json()
+    (out / "report.json").write_text(json.dumps(j, indent=1))
+    try:
+        figs = write_figures(diag, out)
+    except Exception as e:  # figures are a convenience; the report must still be written
+        figs = []
+        j.setdefault("warnings", []).append(f"figures failed: {e}")
+    (out / "report.md").write_text(write_markdown(j, figs))
+    return out

@@ -1,0 +1,68 @@
+"""Figures like the paper's Fig. 3 (posterior map with design points) and Fig. 4 (TV against runs).
+PNG via the matplotlib Agg backend."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .posterior import hdr_mask  # noqa: E402
+
+
+def plot_posterior(result, path, truth=None, names=None, level: float = 0.9, title: str | None = None):
+    """Fig. 3: pcolormesh of the grid posterior, initial points (black circles), adaptive points
+    (red diamonds), the truth (black cross) when known, and the `level` HDR contour (p = 2 only)."""
+    if result.posterior_grid is None or len(result.grid_axes) != 2:
+        raise ValueError("plot_posterior needs a 2-D grid posterior")
+    a0, a1 = result.grid_axes
+    dens = result.posterior_grid
+    names = names or result.names
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    pc = ax.pcolormesh(a0, a1, dens.T, shading="nearest", cmap="viridis")
+    fig.colorbar(pc, ax=ax, label="posterior density")
+    mask = hdr_mask(dens, level)
+    ax.contour(a0, a1, mask.T.astype(float), levels=[0.5], colors="white", linewidths=1.0)
+    x = np.asarray(result.x)
+    ok = ~np.asarray(result.failed, dtype=bool)
+    init = np.arange(len(x)) < result.n_initial
+    ax.plot(x[init & ok, 0], x[init & ok, 1], "o", mfc="none", mec="black", ms=5, label="initial")
+    ax.plot(x[~init & ok, 0], x[~init & ok, 1], "D", color="red", ms=4, label="adaptive")
+    if (~ok).any():
+        ax.plot(x[~ok, 0], x[~ok, 1], "x", color="orange", ms=6, label="failed")
+    if truth is not None:
+        ax.plot([truth[0]], [truth[1]], "+", color="black", ms=14, mew=2.5, label="truth")
+    ax.set_xlabel(names[0])
+    ax.set_ylabel(names[1])
+    ax.set_xlim(result.bounds[0, 0], result.bounds[1, 0])
+    ax.set_ylim(result.bounds[0, 1], result.bounds[1, 1])
+    ax.set_title(title or f"posterior after {len(x)} runs ({int(level * 100)} % HDR in white)")
+    ax.legend(loc="upper right", fontsize=7)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_tv(tv_histories: dict, path, n_initial: int | None = None, threshold: float | None = None):
+    """Fig. 4: TV(p_i, p_{i-10}) against the number of runs; tv_histories maps label -> [(n, tv), ...]."""
+    fig, ax = plt.subplots(figsize=(5.5, 3.8))
+    for label, hist in tv_histories.items():
+        h = np.asarray(hist, dtype=float).reshape(-1, 2)
+        n = h[:, 0] - (n_initial or 0)
+        ax.semilogy(n, h[:, 1], "-o", ms=3, label=label)
+    if threshold is not None:
+        ax.axhline(threshold, color="gray", ls="--", lw=1)
+    ax.set_xlabel("number of adaptive runs" if n_initial else "number of runs")
+    ax.set_ylabel("TV(p_i, p_{i-10})")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)
