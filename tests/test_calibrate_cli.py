@@ -14,8 +14,8 @@ BASE = """
 [terrain]
 synthetic = "inclined_plane"
 cellsize = 50.0
-options = {{ theta_deg = 30.0, slope_length = 500.0, runout_length = 700.0, width = 300.0 }}
-release = {{ centre = [250.0, 150.0], radii = [120.0, 100.0], volume = 1.0e5 }}
+options = { theta_deg = 30.0, slope_length = 500.0, runout_length = 700.0, width = 300.0 }
+release = { centre = [250.0, 150.0], radii = [120.0, 100.0], volume = 1.0e5 }
 
 [model]
 rheology = "voellmy"

@@ -33,7 +33,7 @@ def test_params_broadcast_and_types():
     assert p.B == 3 and p.xi.shape == (3,) and p.mu.dtype == torch.float32
     p2 = Params.make(B=4, mu=torch.tensor(0.2))
     assert p2.B == 4 and math.isinf(float(p2.xi[0]))
-    ka, kp = earth_pressure_sh(torch.tensor(35.0), torch.tensor(0.0))
+    ka, kp = earth_pressure_sh(torch.tensor(35.0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64))
     # delta = 0: k_act/pass = (1 -/+ sin phi) / (1 +/- sin phi) (Rankine)
     s = math.sin(math.radians(35))
     assert abs(float(ka) - (1 - s) / (1 + s)) < 1e-12 and abs(float(kp) - (1 + s) / (1 - s)) < 1e-12

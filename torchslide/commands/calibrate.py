@@ -133,7 +133,7 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
     path = cfg.path
     check_keys(table, _CAL_KEYS, "[calibration]", path)
     c = {"n_initial": 40, "n_total": 120, "batch_size": 1, "seed": 0, "grid_size": 100,
-         "acquisition": "entropy", "tv_threshold": None, "max_batch": 32, "clip_range": 50.0}
+         "acquisition": "entropy", "tv_threshold": None, "max_batch": 32, "clip_range": 1000.0}
     c.update(table)
     for k in ("n_initial", "n_total", "batch_size", "grid_size", "max_batch"):
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < 1:
@@ -226,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
     (out / "posterior.json").write_text(json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
     if res.posterior_grid is not None and len(prior.names) == 2:
-        plot_posterior(res, out / "posterior.png", title=Path(args.config).stem)
+        plot_posterior(res, out / "posterior.png")
     if res.tv_history:
         plot_tv({Path(args.config).stem: res.tv_history}, out / "tv.png")
     s = res.summary

@@ -250,13 +250,15 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             break
         if cfg.compact and n_act < idx.numel():
             for k in member_keys:
-                full[k][idx] = work[k]
+                if work[k] is not full[k]:
+                    full[k][idx] = work[k]
             idx = idx[act]
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = {k: (v[idx] if k in Pm else v) for k, v in Pm.items()}
             Pw.update(shared)
     for k in member_keys:
-        full[k][idx] = work[k]
+        if work[k] is not full[k]:
+            full[k][idx] = work[k]
     if bar is not None:
         bar.n = float(t_end)
         bar.close()
