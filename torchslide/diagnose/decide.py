@@ -64,11 +64,11 @@ def decide(candidates: list, located_before: list, located_after: dict, misfit_b
                        reason=f"{best['name']} is supported (2 ln BF = {tl:.1f}) but leaves {len(left)} located "
                               f"mismatch(es) above {th.located_min}: not named")
             return out
+    why = (f"no candidate reaches 2 ln BF >= {th.bf_min}" if best is None or out["two_ln_bf"] < th.bf_min else
+           f"{best['name']} reaches 2 ln BF = {out['two_ln_bf']:.1f} but does not reduce the misfit")
     if sig_before:
         out.update(verdict="unexplained",
-                   reason=f"{len(sig_before)} located mismatch(es) above {th.located_min}; no candidate reaches "
-                          f"2 ln BF >= {th.bf_min}")
+                   reason=f"{len(sig_before)} located mismatch(es) above {th.located_min}; {why}")
     else:
-        out.update(verdict="no_missing_physics",
-                   reason=f"no located mismatch above {th.located_min} and no candidate with 2 ln BF >= {th.bf_min}")
+        out.update(verdict="no_missing_physics", reason=f"no located mismatch above {th.located_min}; {why}")
     return out

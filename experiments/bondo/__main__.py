@@ -1,0 +1,59 @@
+"""python -m experiments.bondo [--case N ...] [--quick] [--cellsize M] [--no-sweep] [--no-report]
+
+Runs the Bondo-like study (Table 1, the Table 2 cases by Bayesian active learning in lockstep, the
+LHS-only comparison, the brute-force sweep reference), writes results under experiments/bondo/_work/
+and regenerates the figures and README.md (full configuration only; --quick writes its page under
+its work directory). Rerun the same command to resume after an interruption.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def main(argv=None) -> int:
+    from .config import CASES, HERE, BondoConfig
+    from .report import write_readme
+    from .study import run_study
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--case", type=int, action="append", choices=sorted(CASES), help="case number (repeatable)")
+    ap.add_argument("--quick", action="store_true", help="small configuration of the whole pipeline")
+    ap.add_argument("--cellsize", type=float, default=None, help="terrain cell size, m")
+    ap.add_argument("--t-end", type=float, default=None, help="simulated time, s")
+    ap.add_argument("--n-initial", type=int, default=None)
+    ap.add_argument("--n-adaptive", type=int, default=None)
+    ap.add_argument("--batch-size", type=int, default=None, help="q points per case per iteration")
+    ap.add_argument("--sweep-n", type=int, default=None)
+    ap.add_argument("--work-dir", default=None)
+    ap.add_argument("--name", default=None, help="run name (results go to <work-dir>/<name>_<tag>)")
+    ap.add_argument("--no-sweep", action="store_true", help="skip the brute-force reference")
+    ap.add_argument("--no-report", action="store_true", help="do not regenerate figures / README")
+    ap.add_argument("--no-tensorboard", action="store_true")
+    a = ap.parse_args(argv)
+    cfg = BondoConfig.quick(a.work_dir) if a.quick else BondoConfig()
+    kw = {k: v for k, v in {"cellsize": a.cellsize, "t_end": a.t_end, "n_initial": a.n_initial,
+                            "n_adaptive": a.n_adaptive, "batch_size": a.batch_size, "sweep_n": a.sweep_n,
+                            "name": a.name}.items() if v is not None}
+    if a.case:
+        kw["cases"] = tuple(sorted(set(a.case)))
+    if a.work_dir is not None and not a.quick:
+        kw["work_dir"] = a.work_dir
+    if a.no_tensorboard:
+        kw["tensorboard"] = False
+    if a.n_adaptive is not None and "snapshots" not in kw:
+        kw["snapshots"] = tuple(s for s in cfg.snapshots if s < a.n_adaptive) + (a.n_adaptive,)
+    cfg = cfg.with_(**kw)
+    run_study(cfg, with_sweep=not a.no_sweep)
+    if not a.no_report:
+        if cfg.name == "full" and a.work_dir is None:
+            readme, figs = HERE / "README.md", HERE / "figures"
+        else:
+            readme, figs = cfg.run_dir / "README.md", cfg.run_dir / "figures"
+        print(write_readme(cfg.run_dir, readme, figs))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,224 @@
+"""The study: Table 1, the shared initial design, Algorithm 1 for every Table 2 case in lockstep,
+the LHS-only comparison, brute-force references, and all saved results.
+
+Lockstep active learning: every case has its own torchslide.active.ActiveLearner (own GP, own
+checkpoint, own TensorBoard log), but in each iteration the q new points of ALL cases are simulated
+together in one batched solver call through the shared CachedSimulator. The 40 initial maximin-LHS
+points are identical for all cases (same seed), so they are simulated once. Rerunning resumes from
+the per-case checkpoints and the simulator cache.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from torchslide.active import ActiveConfig, ActiveLearner, ActiveState, maximin_lhs
+from torchslide.emulator import LogPosteriorEmulator
+from torchslide.posterior import cell_volume, grid_posterior, hdr_mask, summarise_grid, tv_distance
+
+from .config import CASES, BondoConfig
+from .data import CaseLogPosterior, table1
+from .simulator import CachedSimulator
+
+
+def _log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def truth_cell(cfg: BondoConfig, axes) -> tuple[int, int]:
+    return tuple(int(np.argmin(np.abs(a - cfg.truth[n]))) for a, n in zip(axes, cfg.names))
+
+
+def fit_density(cfg: BondoConfig, x, z):
+    """Grid posterior of a GP fitted (fresh) to runs x (n, 2), z (n,) (failed runs dropped)."""
+    x = torch.as_tensor(np.asarray(x), dtype=torch.float64)
+    z = torch.as_tensor(np.asarray(z), dtype=torch.float64)
+    ok = torch.isfinite(z)
+    em = LogPosteriorEmulator(torch.as_tensor(cfg.bounds_array()))
+    em.fit(x[ok], z[ok])
+    return grid_posterior(em.mean, torch.as_tensor(cfg.bounds_array()), cfg.grid_size).density
+
+
+def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
+    """Algorithm 1 for all cases in lockstep; returns case -> {"state", "snapshots", "seconds"}."""
+    rd = cfg.run_dir
+    acfg = ActiveConfig(n_initial=cfg.n_initial, n_total=cfg.n_total, batch_size=cfg.batch_size, seed=cfg.seed,
+                        grid_size=cfg.grid_size, tv_lag=cfg.tv_lag, num_restarts=cfg.num_restarts,
+                        raw_samples=cfg.raw_samples, image_every=cfg.tv_lag)
+    bounds = torch.as_tensor(cfg.bounds_array())
+    learners, snaps, secs = {}, {}, {}
+    x0 = torch.as_tensor(cfg.bounds_array()[0] + maximin_lhs(cfg.n_initial, 2, cfg.seed)
+                         * np.diff(cfg.bounds_array(), axis=0)[0])
+    _log(f"initial design: {cfg.n_initial} maximin-LHS runs shared by {len(fns)} cases")
+    sim.run(x0.numpy())
+    for c, fn in fns.items():
+        L = ActiveLearner(fn, bounds, acfg, checkpoint=rd / f"case_{c}" / "checkpoint.pt", progress=False,
+                          names=cfg.names)
+        if not L._load():
+            L.state = ActiveState(x=torch.empty(0, 2, dtype=torch.float64), z=torch.empty(0, dtype=torch.float64),
+                                  failed=torch.empty(0, dtype=torch.bool), reasons=[],
+                                  is_initial=torch.empty(0, dtype=torch.bool))
+            L._append(x0, L._evaluate(x0), initial=True)
+            L._save()
+        if cfg.tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            L._writer = SummaryWriter(str(rd / "tb" / f"case_{c}"))
+        learners[c] = L
+        sp = rd / f"case_{c}" / "snapshots.npz"
+        snaps[c] = dict(np.load(sp)) if sp.exists() else {}
+        secs[c] = json.loads((rd / f"case_{c}" / "seconds.json").read_text()) \
+            if (rd / f"case_{c}" / "seconds.json").exists() else {"gp_acq_s": 0.0, "solver_share_s": 0.0}
+    from tqdm.auto import tqdm
+
+    # a case that already finished (resume) is not refitted: its final posterior is in its snapshots
+    done = {c: L.state.n_runs >= cfg.n_total and f"a{cfg.n_adaptive}" in snaps[c] for c, L in learners.items()}
+    total = sum(cfg.n_total for _ in learners)
+    bar = tqdm(total=total, initial=sum(L.state.n_runs for L in learners.values()), desc="active (all cases)",
+               unit="run")
+    while not all(done.values()):
+        proposals = {}
+        for c, L in learners.items():
+            if done[c]:
+                continue
+            t0 = time.perf_counter()
+            s = L.state
+            L._fit()
+            density, cvol = L._estimate()
+            tv = L._record_tv(density, cvol)
+            n_ad = s.n_runs - cfg.n_initial
+            if n_ad in cfg.snapshots:
+                snaps[c][f"a{n_ad}"] = density
+                np.savez(cfg.run_dir / f"case_{c}" / "snapshots.npz", **snaps[c])
+            if s.n_runs >= cfg.n_total:
+                s.stopped_reason = "n_total reached"
+                L._log(tv, density=density)
+                L._save()
+                done[c] = True
+            else:
+                q = min(cfg.batch_size, cfg.n_total - s.n_runs)
+                x_new, vals = L._acquire(q, s.iteration)
+                proposals[c] = (x_new, vals, tv, density)
+            secs[c]["gp_acq_s"] += time.perf_counter() - t0
+        if not proposals:
+            break
+        allx = torch.cat([p[0] for p in proposals.values()])
+        t0 = time.perf_counter()
+        sim.run(allx.numpy())  # ONE batched solver call for all cases' new points
+        dt = time.perf_counter() - t0
+        for c, (x_new, vals, tv, density) in proposals.items():
+            L = learners[c]
+            s = L.state
+            secs[c]["solver_share_s"] += dt * x_new.shape[0] / allx.shape[0]
+            res = L._evaluate(x_new)
+            L._append(x_new, res, initial=False)
+            s.acq_history.append((s.n_runs, float(vals[0])))
+            s.iteration += 1
+            L._save()
+            L._log(tv, new_z=res.z, acq_max=vals[0], density=density)
+            (cfg.run_dir / f"case_{c}" / "seconds.json").write_text(json.dumps(secs[c]))
+            bar.update(x_new.shape[0])
+        _log(f"iteration done: {allx.shape[0]} new runs in {dt:.1f} s; runs per case "
+             + ", ".join(f"{c}:{learners[c].state.n_runs}" for c in learners))
+    bar.close()
+    for c, L in learners.items():
+        (cfg.run_dir / f"case_{c}" / "seconds.json").write_text(json.dumps(secs[c]))
+        if L._writer is not None:
+            L._writer.flush()
+            L._writer.close()
+    return {c: {"state": L.state, "snapshots": snaps[c], "seconds": secs[c]} for c, L in learners.items()}
+
+
+def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
+    """The whole study for ``cfg``; writes results.json and per-case npz under cfg.run_dir. Returns results."""
+    from experiments.sweep import reference_posterior, run_sweep
+
+    t_start = time.perf_counter()
+    rd = cfg.run_dir
+    rd.mkdir(parents=True, exist_ok=True)
+    (rd / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    sim = CachedSimulator(cfg, rd / "cache.npz")
+    _log(f"study {cfg.name}: cell size {cfg.cellsize} m, t_end {cfg.t_end} s, cases {list(cfg.cases)}")
+    # First solver call: the truth (Table 1, map), the shared initial design and the LHS-only design together.
+    xt = np.array([[cfg.truth[n] for n in cfg.names]])
+    lo, span = cfg.bounds_array()[0], np.diff(cfg.bounds_array(), axis=0)[0]
+    x0 = lo + maximin_lhs(cfg.n_initial, 2, cfg.seed) * span
+    x_lhs = lo + maximin_lhs(cfg.n_total, 2, cfg.lhs_only_seed) * span
+    t0 = time.perf_counter()
+    maps = rd / "truth_maps.npz"
+    if not maps.exists():
+        pts = np.vstack([xt] + [p[None] for p in np.vstack([x0, x_lhs]) if p not in sim])
+        pts = pts[:cfg.max_batch]
+        _log(f"first solver call: truth + {len(pts) - 1} design runs")
+        y, f, r = sim.simulate_batch(pts)
+        for i in range(len(pts)):
+            sim._add(pts[i], y[i], f[i], r[i])
+        sim.save()
+        res_t = sim.last_result
+        np.savez_compressed(maps, h_max=res_t.h_max[0].double().cpu().numpy(),
+                            h_final=res_t.h_final[0].double().cpu().numpy())
+    sim.run(np.vstack([x0, x_lhs]))
+    design_s = time.perf_counter() - t0
+    t1 = table1(sim, cfg)
+    _log("Table 1: " + ", ".join(f"{k}={v:.4g}" for k, v in t1["simulated"].items()))
+    fns = {c: CaseLogPosterior(c, sim, t1["data"], cfg) for c in cfg.cases}
+
+    t0 = time.perf_counter()
+    act = run_active(cfg, sim, fns)
+    active_s = time.perf_counter() - t0
+
+    # LHS-only comparison: GP on n_total maximin-LHS runs (another seed); simulated in the first call above.
+    lhs_sim_s = design_s
+    sweep = None
+    if with_sweep:
+        _log(f"brute-force sweep {cfg.sweep_n} x {cfg.sweep_n}")
+        sweep = run_sweep(cfg, cfg.sweep_n)
+
+    from torchslide.posterior import grid_axes
+
+    axes = grid_axes(torch.as_tensor(cfg.bounds_array()), cfg.grid_size)
+    cvol = cell_volume(axes)
+    ti = truth_cell(cfg, axes)
+    results = {"config": cfg.to_dict(), "table1": t1, "cases": {},
+               "timing": {"active_s": active_s, "design_s": design_s,
+                          "sweep_s": None if sweep is None else sweep.seconds,
+                          "solver_s_this_process": sim.solver_seconds, "solver_calls": sim.n_solver_calls}}
+    for c, a in act.items():
+        fn, s = fns[c], a["state"]
+        x, z = s.x.numpy(), s.z.numpy()
+        dens = dict(a["snapshots"])
+        for k in cfg.snapshots:  # refit where a snapshot is missing (e.g. after a resume)
+            if f"a{k}" not in dens:
+                dens[f"a{k}"] = fit_density(cfg, x[:cfg.n_initial + k], z[:cfg.n_initial + k])
+        z_lhs = fns[c](x_lhs).z.numpy()
+        dens["lhs_only"] = fit_density(cfg, x_lhs, z_lhs)
+        entry = {"description": CASES[c][0], "data": list(CASES[c][1]), "n_runs": int(s.n_runs),
+                 "n_failed": int(s.failed.sum()), "tv_history": [[int(n), float(t)] for n, t in s.tv_history],
+                 "seconds": a["seconds"]}
+        final = dens[f"a{cfg.snapshots[-1]}"]
+        entry["summary"] = summarise_grid(final, axes, cfg.names).to_dict()
+        entry["truth_in_hdr90"] = bool(hdr_mask(final, 0.9)[ti])
+        entry["truth_in_hdr90_lhs_only"] = bool(hdr_mask(dens["lhs_only"], 0.9)[ti])
+        if sweep is not None:
+            _, ref, _ = reference_posterior(sweep, fn, cfg.bounds_array(), cfg.grid_size)
+            dens["reference"] = ref
+            entry["tv_ref"] = {str(k): tv_distance(dens[f"a{k}"], ref, cvol) for k in cfg.snapshots}
+            entry["tv_ref_lhs_only"] = tv_distance(dens["lhs_only"], ref, cvol)
+            entry["truth_in_hdr90_reference"] = bool(hdr_mask(ref, 0.9)[ti])
+        np.savez_compressed(rd / f"case_{c}" / "posteriors.npz", x=x, z=z, is_initial=s.is_initial.numpy(),
+                            x_lhs=x_lhs, axis_0=axes[0], axis_1=axes[1], **dens)
+        results["cases"][str(c)] = entry
+        _log(f"case {c}: truth in HDR90 {entry['truth_in_hdr90']}, TV to reference "
+             f"{entry.get('tv_ref')}, LHS-only {entry.get('tv_ref_lhs_only')}")
+    results["timing"]["total_s"] = time.perf_counter() - t_start
+    results["timing"]["n_simulations_cached"] = len(sim)
+    results["timing"]["solver_s_all_sessions"] = sim.solver_seconds
+    prev = rd / "results.json"
+    prev.write_text(json.dumps(results, indent=2))
+    _log(f"results written to {prev} (total {results['timing']['total_s']:.0f} s)")
+    return results
