@@ -38,6 +38,10 @@ def main(argv=None) -> int:
                             "name": a.name}.items() if v is not None}
     if a.case:
         kw["cases"] = tuple(sorted(set(a.case)))
+        if a.name is None and not a.quick and set(a.case) != set(CASES):
+            # a subset gets its own run directory (the full run's results are never overwritten);
+            # it reuses the full run's simulations through a read-only cache
+            kw["name"] = "cases_" + "_".join(map(str, kw["cases"]))
     if a.work_dir is not None and not a.quick:
         kw["work_dir"] = a.work_dir
     if a.no_tensorboard:

@@ -77,7 +77,7 @@ class BondoConfig:
     seed: int = 0
     lhs_only_seed: int = 1
     noise_seed: int = 2017
-    sweep_n: int = 16
+    sweep_n: int = 24
     cases: tuple = tuple(CASES)
     max_batch: int = 200
     dtype: str = "float64"

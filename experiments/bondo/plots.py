@@ -34,7 +34,7 @@ def map_figure(case, h_max: np.ndarray, h_final: np.ndarray, path: Path, thresho
     fig.colorbar(im, ax=ax, label="deposit height h (m)", shrink=0.8)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title("Bondo-like terrain: release (red), impact area (orange, h_max > 0.5 m), deposit (h > 0.5 m)")
+    ax.set_title("Truth run: release (red), impact area (orange, h_max > 0.5 m), deposit (h > 0.5 m)", fontsize=9)
     ax.set_aspect("equal")
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
@@ -43,7 +43,8 @@ def map_figure(case, h_max: np.ndarray, h_final: np.ndarray, path: Path, thresho
 
 
 def _panel(ax, axes, dens, truth, title, x_init=None, x_adapt=None):
-    ext = [axes[0][0], axes[0][-1], axes[1][0], axes[1][-1]]
+    h0, h1 = (axes[0][1] - axes[0][0]) / 2, (axes[1][1] - axes[1][0]) / 2
+    ext = [axes[0][0] - h0, axes[0][-1] + h0, axes[1][0] - h1, axes[1][-1] + h1]
     ax.imshow(dens.T, origin="lower", extent=ext, aspect="auto", cmap="viridis")
     if x_init is not None:
         ax.plot(x_init[:, 0], x_init[:, 1], "o", mfc="none", mec="k", ms=4, mew=0.7)
@@ -51,6 +52,8 @@ def _panel(ax, axes, dens, truth, title, x_init=None, x_adapt=None):
         ax.plot(x_adapt[:, 0], x_adapt[:, 1], "D", mfc="none", mec="r", ms=3.5, mew=0.8)
     ax.plot(truth[0], truth[1], "kx", ms=9, mew=2)
     ax.set_title(title, fontsize=9)
+    ax.set_xlim(ext[0], ext[1])
+    ax.set_ylim(ext[2], ext[3])
     ax.set_xlabel("mu")
     ax.set_ylabel("xi (m/s^2)")
 

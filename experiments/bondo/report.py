@@ -129,10 +129,35 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
              f"interpolated bilinearly to the {cfg['grid_size']} x {cfg['grid_size']} grid")
     L.append(f"- LHS-only comparison: GP fitted to {cfg['n_initial'] + cfg['n_adaptive']} maximin-LHS runs "
              f"(seed {cfg['lhs_only_seed']})")
-    L.append(f"- wall time of the study process: **{_fmt(t.get('total_s'))} s** (active learning {_fmt(t.get('active_s'))} s, "
-             f"truth + initial + LHS-only runs {_fmt(t.get('design_s'))} s, sweep {_fmt(t.get('sweep_s'))} s; "
-             f"solver time recorded in the cache over all sessions {_fmt(t.get('solver_s_all_sessions'))} s; "
-             f"{t.get('n_simulations_cached')} distinct simulations). Machine: shared 2-core CPU.")
+    sess = t.get("sessions", [])
+    L.append(f"- wall time of the study (all invocations of `python -m experiments.bondo` on this run directory, "
+             f"{len(sess)} session(s)): **{_fmt(t.get('total_s_all_sessions', t.get('total_s')))} s**; "
+             f"the brute-force sweep ({cfg['sweep_n']}^2 runs, `python -m experiments.sweep`, run concurrently "
+             f"in a second process) used {_fmt(t.get('sweep_solver_s'))} s of solver time; "
+             f"{t.get('n_simulations_cached')} distinct simulations in the study cache. "
+             "Machine: a 2-core CPU shared with other jobs (load 3-5 during the run), one thread per process.")
+    if sess:
+        L.append("- sessions: " + "; ".join(f"{_fmt(x.get('total_s'))} s ({x.get('solver_calls')} solver calls)"
+                                           for x in sess))
+    if t.get("solver_s_all_sessions") and t.get("n_simulations_cached"):
+        L.append(f"- solver cost in this run: {_fmt(t['solver_s_all_sessions'] / t['n_simulations_cached'], 3)} s "
+                 f"per simulation (batched, {cfg['cellsize']:g} m cells, t_end {cfg['t_end']:g} s)")
+    L.append("")
+    L.append("### How this run differs from the paper\n")
+    L.append(f"- **Cell size {cfg['cellsize']:g} m.** The solver (torchslide, eager PyTorch on CPU) was too slow on the "
+             "shared 2-core machine for the ~1400 runs of the study at 20 m cells in the available time "
+             "(the cost per run grows roughly with the cube of 1/cell size: 4x the cells and 2x the time steps per halving), "
+             "so the reported study runs on a coarse grid where the channel is only a few cells wide. "
+             "The 20 m study is `python -m experiments.bondo --cellsize 20 --t-end 300 --sweep-n 50` "
+             "(plus `python -m experiments.sweep --cellsize 20 --t-end 300 --n 50`); it was not run here.")
+    L.append("- Terrain: the analytic Bondo-like valley of `torchslide.terrain.synthetic.bondo_like` "
+             "(3e6 m^3 release), not the real DEM; solver: torchslide, not r.avaflow. Table 1 values therefore differ "
+             "from the paper's.")
+    L.append(f"- Active learning picks q = {cfg['batch_size']} points per case and iteration (kriging believer) "
+             "instead of one, so that all cases' points run in one batched solver call.")
+    L.append(f"- The brute-force reference is a {cfg['sweep_n']} x {cfg['sweep_n']} sweep with observables "
+             "interpolated bilinearly; for very narrow posteriors (deposit height, 10 % noise) the interpolation "
+             "error of the reference itself can be a sizeable part of the TV distance.")
     if t.get("note"):
         L.append(f"- note: {t['note']}")
     L.append("")
@@ -174,6 +199,12 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append(f"Targets: TV to reference <= 0.1 after {snaps[-1]} adaptive runs: **{n_tv_ok} of {n}** cases; "
              f"smaller than LHS-only: **{n_better} of {n}**; truth inside the 90 % HDR (2-D mask of the final "
              f"posterior): **{n_hdr} of {n}**.\n")
+    chk = {c: e.get("tv_ref_other_sweeps") for c, e in res["cases"].items() if e.get("tv_ref_other_sweeps")}
+    if chk:
+        L.append("Reference check (how much the brute-force reference itself moves with the sweep resolution): "
+                 "TV between the reference from the " + f"{cfg['sweep_n']}^2 sweep and from other sweeps: " +
+                 "; ".join(f"case {c}: " + ", ".join(f"{n}^2: {_fmt(v, 3)}" for n, v in d.items())
+                           for c, d in sorted(chk.items(), key=lambda kv: int(kv[0]))) + ".\n")
     L.append("'solver share' apportions each lockstep solver call to the cases by their number of points. "
              "TV = 0.5 * sum |p - p_ref| * cell area (Eq. 17) on the posterior grid.\n")
     L.append("Posterior summaries (final, grid):\n")

@@ -51,7 +51,7 @@ class CachedSimulator:
         path: .npz cache file (created on first save); None keeps the cache in memory.
     """
 
-    def __init__(self, cfg: BondoConfig, path: str | os.PathLike | None = None):
+    def __init__(self, cfg: BondoConfig, path: str | os.PathLike | None = None, extra=()):
         self.cfg = cfg
         self.case = bondo_like(cfg.cellsize)
         self.path = Path(path) if path is not None else None
@@ -66,17 +66,24 @@ class CachedSimulator:
         self.n_solver_calls = 0
         self.n_simulated = 0
         if self.path is not None and self.path.exists():
-            self._load()
+            self._load(self.path, own=True)
+        for p in extra:  # read-only caches of other runs with the same simulator setup
+            if p is not None and Path(p).exists() and Path(p) != self.path:
+                try:
+                    self._load(Path(p), own=False)
+                except ValueError:
+                    pass
 
     # ------------------------------------------------------------------ persistence
-    def _load(self) -> None:
-        d = np.load(self.path, allow_pickle=False)
+    def _load(self, path: Path, own: bool = True) -> None:
+        d = np.load(path, allow_pickle=False)
         meta = json.loads(str(d["meta"]))
         if meta.get("tag") != self.cfg.tag or meta.get("names") != self.names:
-            raise ValueError(f"cache {self.path} was made with {meta}, not tag {self.cfg.tag}")
+            raise ValueError(f"cache {path} was made with {meta}, not tag {self.cfg.tag}")
         for x, y, f, r in zip(d["x"], d["y"], d["failed"], json.loads(str(d["reasons"]))):
             self._add(x, y, bool(f), r)
-        self.solver_seconds = float(meta.get("solver_seconds", 0.0))
+        if own:
+            self.solver_seconds = float(meta.get("solver_seconds", 0.0))
 
     def save(self) -> None:
         if self.path is None:

@@ -29,6 +29,29 @@ def _log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
+def _sweep_solver_seconds(path) -> float | None:
+    try:
+        return float(json.loads(str(np.load(path)["meta"]))["solver_seconds"])
+    except Exception:  # noqa: BLE001 - informational only
+        return None
+
+
+def _load_sweep(cfg: BondoConfig, path: Path, n: int):
+    """A finished sweep from disk (no new runs), or None if it is incomplete."""
+    from experiments.sweep.core import SweepResult, sweep_axes
+
+    from torchslide.posterior import grid_points
+
+    sim = CachedSimulator(cfg, path)
+    axes = sweep_axes(cfg.bounds_array(), n)
+    pts = grid_points(axes).numpy()
+    if any(p not in sim for p in pts):
+        return None
+    y, failed, _ = sim.get(pts)
+    return SweepResult(axes=axes, y=y.reshape(n, n, -1), failed=failed.reshape(n, n), names=list(sim.names),
+                       seconds=0.0, path=str(path))
+
+
 def truth_cell(cfg: BondoConfig, axes) -> tuple[int, int]:
     return tuple(int(np.argmin(np.abs(a - cfg.truth[n]))) for a, n in zip(axes, cfg.names))
 
@@ -142,7 +165,8 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
     rd.mkdir(parents=True, exist_ok=True)
     (rd / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    sim = CachedSimulator(cfg, rd / "cache.npz")
+    extra = [] if cfg.name == "full" else [Path(cfg.work_dir) / f"full_{cfg.tag}" / "cache.npz"]
+    sim = CachedSimulator(cfg, rd / "cache.npz", extra=extra)
     _log(f"study {cfg.name}: cell size {cfg.cellsize} m, t_end {cfg.t_end} s, cases {list(cfg.cases)}")
     # First solver call: the truth (Table 1, map), the shared initial design and the LHS-only design together.
     xt = np.array([[cfg.truth[n] for n in cfg.names]])
@@ -210,6 +234,16 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
             entry["tv_ref"] = {str(k): tv_distance(dens[f"a{k}"], ref, cvol) for k in cfg.snapshots}
             entry["tv_ref_lhs_only"] = tv_distance(dens["lhs_only"], ref, cvol)
             entry["truth_in_hdr90_reference"] = bool(hdr_mask(ref, 0.9)[ti])
+            # reference check: TV between this reference and one from every other (finished) sweep on disk
+            entry["tv_ref_other_sweeps"] = {}
+            for other in sorted(Path(cfg.work_dir).glob(f"sweep_{cfg.tag}_*x*.npz")):
+                n_o = int(other.stem.rsplit("_", 1)[1].split("x")[0])
+                if n_o == cfg.sweep_n:
+                    continue
+                so = _load_sweep(cfg, other, n_o)
+                if so is not None:
+                    _, ref_o, _ = reference_posterior(so, fn, cfg.bounds_array(), cfg.grid_size)
+                    entry["tv_ref_other_sweeps"][str(n_o)] = tv_distance(ref_o, ref, cvol)
         np.savez_compressed(rd / f"case_{c}" / "posteriors.npz", x=x, z=z, is_initial=s.is_initial.numpy(),
                             x_lhs=x_lhs, axis_0=axes[0], axis_1=axes[1], **dens)
         results["cases"][str(c)] = entry
@@ -219,6 +253,19 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
     results["timing"]["n_simulations_cached"] = len(sim)
     results["timing"]["solver_s_all_sessions"] = sim.solver_seconds
     prev = rd / "results.json"
+    sp = rd / "sessions.json"  # wall time of every invocation (an interrupted study is resumed in several)
+    sessions = json.loads(sp.read_text()) if sp.exists() else []
+    if not sessions and prev.exists():
+        old = json.loads(prev.read_text()).get("timing", {})
+        sessions.append({"total_s": old.get("total_s"), "solver_calls": old.get("solver_calls"),
+                         "source": "earlier results.json"})
+    sessions.append({"total_s": results["timing"]["total_s"], "solver_calls": sim.n_solver_calls,
+                     "new_simulations": sim.n_simulated, "ended": time.strftime("%Y-%m-%d %H:%M:%S")})
+    sp.write_text(json.dumps(sessions, indent=2))
+    results["timing"]["sessions"] = sessions
+    results["timing"]["total_s_all_sessions"] = float(sum(x.get("total_s") or 0.0 for x in sessions))
+    if sweep is not None:
+        results["timing"]["sweep_solver_s"] = _sweep_solver_seconds(sweep.path)
     prev.write_text(json.dumps(results, indent=2))
     _log(f"results written to {prev} (total {results['timing']['total_s']:.0f} s)")
     return results
