@@ -93,3 +93,17 @@ def test_entrainment_volume_balance():
     bal = r.final_volume + r.outflow_volume - r.release_volume - r.entrained_volume
     assert abs(float(bal[0])) < 1e-10 * float(r.release_volume[0])
     assert float(r.bed_change.min()) >= -0.5 - 1e-12  # never deeper than the erodible layer
+
+
+import pytest  # noqa: E402
+
+
+@pytest.mark.slow
+def test_compiled_matches_eager():
+    """torch.compile of the step (dynamic batch size) gives the eager result to round-off."""
+    dem, rel = chute_case()
+    p = Params.make(mu=[0.25, 0.3], xi=600.0)
+    re = simulate(dem, rel, p, t_end=40.0, config=CFG)
+    rc = simulate(dem, rel, p, t_end=40.0, config=SolverConfig(output_interval=5.0, compile=True))
+    assert torch.equal(re.steps, rc.steps)
+    assert torch.allclose(re.h_final, rc.h_final, rtol=0, atol=1e-10)

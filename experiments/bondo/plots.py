@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-DPI = 80
+DPI = 64
 
 
 def map_figure(case, h_max: np.ndarray, h_final: np.ndarray, path: Path, threshold: float = 0.5) -> Path:
@@ -51,7 +51,7 @@ def _panel(ax, axes, dens, truth, title, x_init=None, x_adapt=None):
     if x_adapt is not None and len(x_adapt):
         ax.plot(x_adapt[:, 0], x_adapt[:, 1], "D", mfc="none", mec="r", ms=3.5, mew=0.8)
     ax.plot(truth[0], truth[1], "kx", ms=9, mew=2)
-    ax.set_title(title, fontsize=9)
+    ax.set_title(title, fontsize=8)
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
     ax.set_xlabel("mu")
@@ -62,7 +62,7 @@ def posterior_grid_figure(panels: list[dict], truth, path: Path, ncols: int = 2,
     """panels: dicts with axes, density, title, optional x_init, x_adapt."""
     n = len(panels)
     nrows = int(np.ceil(n / ncols))
-    fig, axs = plt.subplots(nrows, ncols, figsize=(3.6 * ncols, 3.0 * nrows), squeeze=False)
+    fig, axs = plt.subplots(nrows, ncols, figsize=(2.9 * ncols, 2.5 * nrows), squeeze=False)
     for ax, p in zip(axs.flat, panels):
         _panel(ax, p["axes"], p["density"], truth, p["title"], p.get("x_init"), p.get("x_adapt"))
     for ax in list(axs.flat)[n:]:

@@ -106,7 +106,10 @@ def make_figures(run_dir: Path, res: dict, fig_dir: Path) -> dict:
                                                     ncols=4 if name == "fig5" else 2,
                                                     title=f"{name}-like: posteriors after {last} adaptive runs beside the brute-force reference")
     # any other case run alone (e.g. --case 3): its own figure
+    covered = set(range(1, 7)) | {9, 10} if ("fig5" in out or "fig6" in out) else set()
     for c in P:
+        if c in covered:
+            continue
         pan = panels_for(c, last)
         out[f"case{c}"] = plots.posterior_grid_figure(pan, truth, fig_dir / f"case_{c}.png", ncols=2)
     return out

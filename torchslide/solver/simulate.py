@@ -159,7 +159,7 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     evolve = use_ent or use_dep
     F = StepFlags(
         dx=dx, g=G, cfl=cfg.cfl, theta=cfg.limiter_theta, h_eps=cfg.h_eps, h_wet=cfg.h_wet, wb_ratio=cfg.wb_depth_ratio,
-        dt_max=cfg.dt_max, t_end=float(t_end), stop_ke_fraction=cfg.stop_ke_fraction,
+        dt_max=cfg.dt_max, stop_ke_fraction=cfg.stop_ke_fraction,
         arrival_threshold=cfg.arrival_threshold, entrain_h_min=cfg.entrain_h_min,
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,
         use_ep=bool((P0.earth_pressure > 0).any()), use_curv=bool((P0.curvature > 0).any()),
@@ -171,7 +171,9 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     phi = torch.where(torch.isnan(P0.phi_int), torch.full_like(P0.phi_int, 45.0), P0.phi_int)
     k_act, k_pass = earth_pressure_sh(phi, P0.mu)
     Pm["k_act"], Pm["k_pass"] = k_act.view(B, 1, 1), k_pass.view(B, 1, 1)
-    shared = {"mu_scale": ms.unsqueeze(0) if ms is not None else None}
+    # shared (non-member) inputs; t_end is a tensor so a compiled step is reused for any end time
+    shared = {"mu_scale": ms.unsqueeze(0) if ms is not None else None,
+              "t_end": torch.tensor(float(t_end), dtype=dtype, device=device)}
 
     out_times_l = list(np.arange(0.0, t_end, cfg.output_interval))
     if not out_times_l or t_end - out_times_l[-1] > 1e-9 * max(1.0, t_end):

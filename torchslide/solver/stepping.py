@@ -30,7 +30,6 @@ class StepFlags:
     h_wet: float
     wb_ratio: float
     dt_max: float
-    t_end: float
     stop_ke_fraction: float
     arrival_threshold: float
     entrain_h_min: float
@@ -203,7 +202,7 @@ def make_step(F: StepFlags):
         out["ke_peak"] = peak
         finite = torch.isfinite(ke) & torch.isfinite(mass)
         calm = (peak > 0) & (ke < F.stop_ke_fraction * peak)
-        at_end = hit & (t_next >= F.t_end)
+        at_end = hit & (t_next >= P["t_end"])
         newly_failed = active & ~finite
         newly_stopped = active & finite & calm & ~at_end
         out["failed"] = S["failed"] | newly_failed
