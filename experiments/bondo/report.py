@@ -107,6 +107,8 @@ def make_figures(run_dir: Path, res: dict, fig_dir: Path) -> dict:
                                                     title=f"{name}-like: posteriors after {last} adaptive runs beside the brute-force reference")
     # any other case run alone (e.g. --case 3): its own figure
     covered = set(range(1, 7)) | {9, 10} if ("fig5" in out or "fig6" in out) else set()
+    if "fig3" in out:
+        covered |= {1, 7, 8}
     for c in P:
         if c in covered:
             continue
@@ -139,6 +141,16 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
              f"in a second process) used {_fmt(t.get('sweep_solver_s'))} s of solver time; "
              f"{t.get('n_simulations_cached')} distinct simulations in the study cache. "
              "Machine: a 2-core CPU shared with other jobs (load 3-5 during the run), one thread per process.")
+    sweeps = []
+    for f in sorted(run_dir.parent.glob(f"sweep_{run_dir.name.split('_', 1)[1]}_*x*.npz")):
+        try:
+            meta = json.loads(str(np.load(f)["meta"]))
+            sweeps.append(f"`{f.name}` {_fmt(meta['solver_seconds'])} s")
+        except Exception:  # noqa: BLE001 - informational only
+            pass
+    if sweeps:
+        L.append("- solver time of the sweeps on disk (each run concurrently with the study in its own process): "
+                 + "; ".join(sweeps))
     if sess:
         L.append("- sessions: " + "; ".join(f"{_fmt(x.get('total_s'))} s ({x.get('solver_calls')} solver calls)"
                                            for x in sess))
@@ -166,15 +178,17 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append("")
     # Table 1
     L.append("## Table 1: simulation at the truth and synthetic observed data\n")
-    L.append("| quantity | unit | simulated (mu = 0.23, xi = 1000) | noise sd | sigma | synthetic observed |")
-    L.append("|---|---|---|---|---|---|")
+    L.append("| quantity | unit | simulated (mu = 0.23, xi = 1000) | noise sd | sigma | synthetic observed | noise draw (sigma units) |")
+    L.append("|---|---|---|---|---|---|---|")
     tb = res["table1"]
     for did, obs, frac in DATA:
         d = tb["data"][did]
         unit, label = OBSERVABLES[obs]
         L.append(f"| {label} | {unit} | {_fmt(d['simulated'])} | {int(round(frac * 100))} % | {_fmt(d['sigma'])} | "
-                 f"{_fmt(d['observed'])} |")
-    L.append(f"\nNoise: Gaussian, sd = fraction x simulated value, seed {cfg['noise_seed']} (one stream per row).\n")
+                 f"{_fmt(d['observed'])} | {(d['observed'] - d['simulated']) / d['sigma']:+.2f} |")
+    L.append(f"\nNoise: Gaussian, sd = fraction x simulated value, seed {cfg['noise_seed']} (one stream per row, "
+             "fixed before any result was seen). A draw far from 0 (in sigma units) puts the truth in the tail "
+             "of that case's posterior, whatever the method.\n")
     if "map" in figs:
         L.append(f"![map]({rel(figs['map'])})\n")
     # Table 2 + results
