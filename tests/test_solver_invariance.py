@@ -107,3 +107,16 @@ def test_compiled_matches_eager():
     rc = simulate(dem, rel, p, t_end=40.0, config=SolverConfig(output_interval=5.0, compile=True))
     assert torch.equal(re.steps, rc.steps)
     assert torch.allclose(re.h_final, rc.h_final, rtol=0, atol=1e-10)
+
+
+def test_members_ending_early_without_gauges():
+    """A member that stops (or fails) early is compacted out of the batch; with no gauges the empty
+    gauge arrays must not break the write-back, and the early member's result is kept."""
+    dem, rel = _bowl_case()
+    # mu = 2 holds the release at rest (stops at once), mu = 0.3 flows on
+    p = Params.make(mu=[2.0, 0.3], xi=800.0)
+    r = simulate(dem, rel, p, t_end=30.0, config=SolverConfig(output_interval=5.0, check_every=5))
+    assert bool(r.stopped[0]) and float(r.t_final[0]) < float(r.t_final[1])
+    assert torch.allclose(r.h_final[0], torch.as_tensor(rel, dtype=r.h_final.dtype), atol=1e-12)
+    alone = simulate(dem, rel, Params.make(mu=0.3, xi=800.0), t_end=30.0, config=SolverConfig(output_interval=5.0, check_every=5))
+    assert torch.equal(r.h_final[1], alone.h_final[0])

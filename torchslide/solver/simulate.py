@@ -252,14 +252,14 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             break
         if cfg.compact and n_act < idx.numel():
             for k in member_keys:
-                if work[k] is not full[k]:
+                if work[k] is not full[k] and full[k].numel():  # empty (no gauges): nothing to copy
                     full[k][idx] = work[k]
             idx = idx[act]
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = {k: (v[idx] if k in Pm else v) for k, v in Pm.items()}
             Pw.update(shared)
     for k in member_keys:
-        if work[k] is not full[k]:
+        if work[k] is not full[k] and full[k].numel():
             full[k][idx] = work[k]
     if bar is not None:
         bar.n = float(t_end)

@@ -201,7 +201,12 @@ def make_step(F: StepFlags):
         peak = torch.maximum(S["ke_peak"], ke)
         out["ke_peak"] = peak
         finite = torch.isfinite(ke) & torch.isfinite(mass)
+        # calm: motion fell below a fraction of its peak, or nothing has moved at all (a release that
+        # friction holds at rest ends at once instead of idling to t_end)
+        # (stop_ke_fraction = 0 switches stopping off altogether)
         calm = (peak > 0) & (ke < F.stop_ke_fraction * peak)
+        if F.stop_ke_fraction > 0:
+            calm = calm | (peak == 0)
         at_end = hit & (t_next >= P["t_end"])
         newly_failed = active & ~finite
         newly_stopped = active & finite & calm & ~at_end
