@@ -28,7 +28,7 @@ test-all: $(STAMP)
 bench: bench-solver bench-inference
 
 bench-solver: $(STAMP)
-	$(PY) -m bench.bench_solver --out bench/results/solver.json
+	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 --full-batch 2
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"

@@ -79,10 +79,12 @@ def main(argv=None) -> None:
     ap.add_argument("--batches", default="1,8,32")
     ap.add_argument("--no-compile", action="store_true")
     ap.add_argument("--full-batch", type=int, default=8, help="members in the full Bondo-like run")
+    ap.add_argument("--full-t-end", type=float, default=300.0, help="simulated seconds of the full run")
+    ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
     args = ap.parse_args(argv)
-    terrain, source = load_terrain(20.0)
+    terrain, source = load_terrain(args.cellsize)
     ny, nx = terrain.dem.shape
-    res = {"terrain": source, "grid": [ny, nx], "cellsize_m": terrain.dem.cellsize, "device": args.device,
+    res = {"load_average_at_start": os.getloadavg()[0], "terrain": source, "grid": [ny, nx], "cellsize_m": terrain.dem.cellsize, "device": args.device,
            "torch": torch.__version__, "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
            "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "throughput": []}
     for B in [int(b) for b in args.batches.split(",")]:
@@ -103,7 +105,7 @@ def main(argv=None) -> None:
         cfg = SolverConfig(compile=comp)
         p = Params.make(B=Bf, mu=0.23, xi=1000.0)
         t0 = time.perf_counter()
-        r = simulate(terrain.dem, terrain.release, p, t_end=600.0, config=cfg, device=args.device)
+        r = simulate(terrain.dem, terrain.release, p, t_end=args.full_t_end, config=cfg, device=args.device)
         w = time.perf_counter() - t0
         row = {"compile": comp, "B": Bf, "wall_s": w, "wall_s_per_member": w / Bf,
                "t_final_s": float(r.t_final[0]), "steps": int(r.steps[0]), "stopped": bool(r.stopped[0]),
