@@ -20,6 +20,8 @@ from botorch.models.model import Model
 from botorch.optim import optimize_acqf
 from botorch.utils.transforms import t_batch_mode_transform
 
+from torchslide.emulator import single_threaded
+
 _LOG_2PIE = math.log(2.0 * math.pi * math.e)
 
 
@@ -76,6 +78,11 @@ def select_batch(model: Model, q: int = 1, acquisition: str = "entropy", num_res
         (X, values): X (q, d) in the unit cube; values (q,) the acquisition maximum of each pick
         (under the model conditioned on the earlier picks).
     """
+    with single_threaded():  # reproducible picks for a given seed, whatever the thread count
+        return _select_batch(model, q, acquisition, num_restarts, raw_samples, seed, dim)
+
+
+def _select_batch(model, q, acquisition, num_restarts, raw_samples, seed, dim):
     d = dim if dim is not None else model.train_inputs[0].shape[-1]
     dtype = model.train_inputs[0].dtype
     bounds = torch.stack([torch.zeros(d, dtype=dtype), torch.ones(d, dtype=dtype)])

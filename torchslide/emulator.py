@@ -22,6 +22,7 @@ and only flattens pathological values such as -1e4 from a run far from the data.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import warnings
 
@@ -45,6 +46,26 @@ def cap_low_values(z: torch.Tensor, clip_range: float | None) -> torch.Tensor:
     if clip_range is None or z.numel() == 0:
         return z
     return torch.clamp_min(z, float(z.max()) - float(clip_range))
+
+
+@contextlib.contextmanager
+def single_threaded():
+    """Run the enclosed torch work on one intra-op thread, then restore the caller's setting.
+
+    GP fitting and acquisition optimisation on a few hundred points gain nothing from threads, and
+    multi-threaded reductions change the last bits of results from call to call, which sends L-BFGS to
+    other local optima: with one thread the same seed gives the same points, so a resumed calibration
+    repeats an uninterrupted one exactly whatever the machine's thread count.
+    """
+    n = torch.get_num_threads()
+    if n == 1:
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 class LogPosteriorEmulator:
@@ -90,6 +111,10 @@ class LogPosteriorEmulator:
 
     def fit(self, x: torch.Tensor, z: torch.Tensor) -> "LogPosteriorEmulator":
         """Fit the GP to training points x (n, p) (parameter units) and finite values z (n,)."""
+        with single_threaded():
+            return self._fit(x, z)
+
+    def _fit(self, x: torch.Tensor, z: torch.Tensor) -> "LogPosteriorEmulator":
         x = torch.as_tensor(x, dtype=DTYPE).reshape(-1, self.dim)
         z = torch.as_tensor(z, dtype=DTYPE).reshape(-1)
         ok = torch.isfinite(z)
