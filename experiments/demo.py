@@ -113,6 +113,7 @@ n_total = {args.n_total}
 batch_size = {args.batch_size}
 seed = 0
 grid_size = 100
+truth = {{ mu = {TRUTH['mu']}, xi = {TRUTH['xi']} }}
 """)
     cal_dir = out / "calibration"
     cal_args = ["calibrate", str(cal_cfg), "--out", str(cal_dir)]

@@ -49,6 +49,7 @@ n_total = 10
 batch_size = 2
 seed = 3
 grid_size = 30
+truth = { mu = 0.2, xi = 1000.0 }
 """
 
 
@@ -75,6 +76,7 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
         assert key in post, key
     assert post["n_runs"] == 10 and len(post["runs"]) == 10
     assert np.isfinite(post["log_evidence"])
+    assert post["truth"] == {"mu": 0.2, "xi": 1000.0}
     for n in ("mu", "xi"):
         lo, hi = post["hdr90"][n]
         assert lo <= post["map"][n] <= hi
@@ -84,8 +86,13 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     assert abs(dens.sum() * (a0[1] - a0[0]) * (a1[1] - a1[0]) - 1.0) < 1e-6
     rows = list(csv.DictReader(open(out / "runs.csv")))
     assert len(rows) == 10 and all(r["v_plane"] != "" for r in rows)
-    # the observable of every run is the solver's v_max at the point: the run at the truth-like
-    # parameters reproduces the observation, so z is highest near it
+    # z of every run is Eq. 10 with the Gaussian likelihood of Eq. 6-7 and the uniform prior density
+    sigma = 0.1 * v
+    log_prior = -np.log((0.5 - 0.05) * (2000.0 - 200.0))
+    for r in rows:
+        pred = float(r["v_plane"])
+        expect = -0.5 * ((pred - v) / sigma) ** 2 - np.log(sigma * np.sqrt(2 * np.pi)) + log_prior
+        assert float(r["z"]) == pytest.approx(expect, rel=1e-9, abs=1e-9)
     assert (out / "posterior.png").exists()
     assert any((out / "tensorboard").rglob("events.out.tfevents*"))
 
@@ -109,6 +116,7 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     (PRIOR, '[[observations]]\nkind = "max_velocity"\nx = 9000.0\ny = 150.0\nvalue = 3.0\nsigma = 1.0\n', "outside the DEM"),
     ("[prior]\nfriction = [0.1, 0.3]\n", OBS.format(value=10.0, sigma=1.0), "friction"),
     (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\nn_initial = 10\nn_total = 5\n", "n_total"),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\ntruth = { mu = 0.2 }\n", "truth"),
 ])
 def test_bad_input_is_refused_before_any_run(tmp_path, capsys, prior, obs, msg):
     cfg = write(tmp_path, BASE + prior + obs)

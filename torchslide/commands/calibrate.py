@@ -23,6 +23,7 @@ The config is the ``simulate`` config plus::
     acquisition = "entropy"      # or "expvar"
     tv_threshold = 0.0           # optional early stop on TV(p_i, p_{i-10})
     max_batch = 32               # most members per solver call
+    truth = { mu = 0.23, xi = 1000.0 }   # optional, synthetic cases: drawn as a cross, reported in posterior.json
 
 [model] gives the values of the parameters that are not calibrated (mu and xi in [model] are
 ignored when they are in [prior]). Writes posterior.json, posterior.npz, posterior.png, tv.png,
@@ -47,7 +48,7 @@ from ..observe import Observation
 HELP = "calibrate rheological parameters by Bayesian active learning"
 
 _CAL_KEYS = {"n_initial", "n_total", "batch_size", "seed", "grid_size", "acquisition", "tv_threshold",
-             "max_batch", "clip_range"}
+             "max_batch", "clip_range", "truth"}
 _PRIOR_DISTS = {
     "uniform": ({"low", "high"}, set()),
     "truncnormal": ({"low", "high", "mean", "sd"}, set()),
@@ -140,6 +141,10 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
             raise ConfigError(f"{path}: [calibration] {k} must be a positive integer, got {c[k]!r}")
     if c["n_total"] < c["n_initial"]:
         raise ConfigError(f"{path}: [calibration] n_total ({c['n_total']}) must be >= n_initial ({c['n_initial']})")
+    if c.get("truth") is not None:
+        t = c["truth"]
+        if not isinstance(t, dict) or not all(isinstance(v, (int, float)) for v in t.values()):
+            raise ConfigError(f"{path}: [calibration] truth must be a table of numbers, e.g. {{ mu = 0.23, xi = 1000.0 }}")
     if c["acquisition"] not in ("entropy", "expvar"):
         raise ConfigError(f"{path}: [calibration] acquisition must be 'entropy' or 'expvar', got {c['acquisition']!r}")
     return c
@@ -156,6 +161,10 @@ def load_calibration_config(path) -> Config:
             raise ConfigError(f"{cfg.path}: section [{sec}] is missing (needed to calibrate)")
     if "calibration" not in cfg.extra:
         cfg.extra["calibration"] = parse_calibration({}, cfg)
+    truth = cfg.extra["calibration"].get("truth")
+    if truth is not None and sorted(truth) != sorted(cfg.extra["prior"].names):
+        raise ConfigError(f"{cfg.path}: [calibration] truth must give exactly the calibrated parameters "
+                          f"{cfg.extra['prior'].names}, got {sorted(truth)}")
     if cfg.batch_size != 1:
         raise ConfigError(f"{cfg.path}: [model] must give single values when calibrating, got a batch of {cfg.batch_size}")
     return cfg
@@ -225,8 +234,12 @@ def run(args: argparse.Namespace) -> int:
     info["solver_seconds_this_session"] = ev.solver_seconds
     (out / "posterior.json").write_text(json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
+    truth = cal.get("truth")
+    if truth is not None:
+        info["truth"] = {n: float(truth[n]) for n in prior.names}
+        (out / "posterior.json").write_text(json.dumps(info, indent=2))
     if res.posterior_grid is not None and len(prior.names) == 2:
-        plot_posterior(res, out / "posterior.png")
+        plot_posterior(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
     if res.tv_history:
         plot_tv({Path(args.config).stem: res.tv_history}, out / "tv.png")
     s = res.summary
