@@ -1,8 +1,6 @@
 """torchslide.diagnose: localisation pieces, decision rules, CLI bad input (exit 2), and a tiny blind harness."""
 from __future__ import annotations
 
-import json
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -23,7 +23,6 @@ of a full grid; the final posterior of p > 2 comes from MCMC (see calibrate.py).
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import asdict, dataclass, field

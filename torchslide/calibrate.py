@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
-import torch
 
 from .active import ActiveConfig, ActiveLearner
 from .bayes import check_bounds

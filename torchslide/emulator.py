@@ -23,7 +23,6 @@ and only flattens pathological values such as -1e4 from a run far from the data.
 from __future__ import annotations
 
 import contextlib
-import math
 import warnings
 
 import gpytorch

@@ -79,6 +79,18 @@ class LandslideEvaluator:
             raise ValueError("at least one observation is needed to calibrate")
         for o in self.observations:
             o.validate(self.dem)
+        self.check_parameters()
+        if self.max_batch < 1:
+            raise ValueError(f"max_batch must be >= 1, got {self.max_batch}")
+        values = torch.tensor([float(o.value) for o in self.observations], dtype=torch.float64)
+        if self.covariance is not None:
+            self.likelihood = GaussianLikelihood(values, covariance=self.covariance)
+        else:
+            sigma = torch.tensor([float(o.sigma) for o in self.observations], dtype=torch.float64)
+            self.likelihood = GaussianLikelihood(values, sigma=sigma)
+
+    def check_parameters(self) -> None:
+        """Calibrated and fixed names must be Params fields, disjoint, and give mu."""
         known = set(Params.names())
         for n in list(self.prior.names) + list(self.fixed):
             if n not in known:
@@ -88,14 +100,6 @@ class LandslideEvaluator:
             raise ValueError(f"parameter(s) {sorted(both)} are both calibrated and fixed")
         if "mu" not in self.prior.names and "mu" not in self.fixed:
             raise ValueError("mu must be calibrated (in the prior) or fixed")
-        if self.max_batch < 1:
-            raise ValueError(f"max_batch must be >= 1, got {self.max_batch}")
-        values = torch.tensor([float(o.value) for o in self.observations], dtype=torch.float64)
-        if self.covariance is not None:
-            self.likelihood = GaussianLikelihood(values, covariance=self.covariance)
-        else:
-            sigma = torch.tensor([float(o.sigma) for o in self.observations], dtype=torch.float64)
-            self.likelihood = GaussianLikelihood(values, sigma=sigma)
 
     @property
     def names(self) -> list[str]:

@@ -8,7 +8,6 @@ inversion; its final_volume sigma is 10 % of the nominal volume).
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np

@@ -40,7 +40,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from ..config import Config, ConfigError, check_keys, load_config
 from ..observe import Observation
@@ -122,11 +121,16 @@ def parse_observations(table: Any, cfg: Config) -> list[Observation]:
         except ValueError as e:
             raise ConfigError(f"{path}: observation {i + 1}: {e}") from None
         out.append(o)
-    names = [o.name for o in out]
+    check_unique_names(out, path)
+    return out
+
+
+def check_unique_names(observations, path) -> None:
+    """Observation names label residuals and reports: they must be distinct."""
+    names = [o.name for o in observations]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ConfigError(f"{path}: observations have duplicate names {dup}; give each a distinct name")
-    return out
 
 
 def parse_calibration(table: Any, cfg: Config) -> dict:

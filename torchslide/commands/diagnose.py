@@ -43,7 +43,7 @@ from typing import Any
 
 from ..config import Config, ConfigError, check_keys, load_config
 from ..observe import Observation
-from .calibrate import parse_calibration, parse_prior
+from .calibrate import check_unique_names, parse_calibration, parse_prior
 
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
@@ -102,10 +102,7 @@ def parse_observations(table: Any, cfg: Config) -> list:
         except ValueError as e:
             raise ConfigError(f"{path}: observation {i + 1}: {e}") from None
         out.append(o)
-    names = [o.name for o in out]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ConfigError(f"{path}: observations have duplicate names {dup}; give each a distinct name")
+    check_unique_names(out, path)
     return out
 
 

@@ -12,7 +12,6 @@ Change proposed upstream (not made here): LandslideEvaluator could accept observ
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
@@ -63,15 +62,7 @@ class DiagnosisEvaluator(LandslideEvaluator):
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"observations have duplicate names {dup}")
-        known = set(Params.names())
-        for n in list(self.prior.names) + list(self.fixed):
-            if n not in known:
-                raise ValueError(f"parameter {n!r} is not a model parameter; known: {sorted(known)}")
-        both = set(self.prior.names) & set(self.fixed)
-        if both:
-            raise ValueError(f"parameter(s) {sorted(both)} are both calibrated and fixed")
-        if "mu" not in self.prior.names and "mu" not in self.fixed:
-            raise ValueError("mu must be calibrated (in the prior) or fixed")
+        self.check_parameters()
         self.blocks: list[Block] = []
         d, s, s_raw = [], [], []
         k = 0
