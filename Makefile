@@ -19,11 +19,12 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(PY) -m experiments.demo --out demo_out
 
+# Tests run on every core (pytest-xdist), one torch thread per worker.
 test: $(STAMP)
-	$(PY) -m pytest -q -x --timeout=900
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto --maxfail=1 --timeout=900 --durations=15
 
 test-all: $(STAMP)
-	$(PY) -m pytest -q -m "" --timeout=3600
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto -m "" --timeout=3600 --durations=15
 
 bench: bench-solver bench-inference
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchslide.calibrate import calibrate
+from torchslide.calibration import calibrate
 from torchslide.figures import plot_posterior, plot_tv
 from torchslide.posterior import grid_posterior, tv_distance
 
@@ -22,7 +22,7 @@ def rosenbrock(x):
 
 
 def test_import_does_not_load_solver():
-    code = "import sys, torchslide.calibrate; print(any(m.startswith('torchslide.solver') for m in sys.modules))"
+    code = "import sys, torchslide.calibration; print(any(m.startswith('torchslide.solver') for m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -75,3 +75,19 @@ def test_rosenbrock_40_plus_60_tv_below_0_1():
     r = calibrate(rosenbrock, B, n_initial=40, n_total=100, seed=0, progress=False)
     ref = grid_posterior(rosenbrock, B, 100)
     assert tv_distance(r.posterior_grid, ref.density, ref.cell_volume) < 0.1
+
+
+def test_package_level_entry_point():
+    """``torchslide.calibrate(...)`` is the function of the issue; ``import torchslide`` stays light."""
+    import subprocess
+    import sys
+
+    import torchslide
+    from torchslide import calibration
+
+    assert torchslide.calibrate is calibration.calibrate
+    assert torchslide.CalibrationResult is calibration.CalibrationResult
+    code = ("import sys, torchslide; "
+            "print(any(m.startswith(('botorch', 'torchslide.solver')) for m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -211,7 +211,7 @@ def write_runs_csv(path: Path, res, obs_names, records) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..calibrate import calibrate
+    from ..calibration import calibrate
     from ..figures import plot_posterior, plot_tv
 
     cfg = load_calibration_config(args.config)

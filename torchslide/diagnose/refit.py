@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from ..bayes import Prior, Uniform
-from ..calibrate import calibrate
+from ..calibration import calibrate
 from ..physics import CANDIDATES
 
 
