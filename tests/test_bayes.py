@@ -141,3 +141,14 @@ def test_hdr_mask_mass():
     d = np.array([[0.5, 0.3], [0.15, 0.05]])
     m = hdr_mask(d, 0.9)
     assert m.sum() == 3 and not m[1, 1]
+
+
+def test_bounds_forms_and_the_square_case():
+    from torchslide.bayes import check_bounds
+
+    lows_highs = check_bounds([[0.0, 10.0], [1.0, 20.0]])  # (2, p): [lows; highs]
+    assert lows_highs.tolist() == [[0.0, 10.0], [1.0, 20.0]]
+    assert check_bounds({"mu": (0.0, 1.0), "xi": (10.0, 20.0)}).tolist() == [[0.0, 10.0], [1.0, 20.0]]
+    assert check_bounds([(0, 1), (2, 3), (4, 5)]).tolist() == [[0, 2, 4], [1, 3, 5]]  # p pairs, p != 2
+    with pytest.raises(ValueError, match="read as \\[lows; highs\\]"):
+        check_bounds([(0.0, 1.0), (0.0, 1.0)])  # pairs for p = 2 are not guessed

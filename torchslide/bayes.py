@@ -200,10 +200,13 @@ class Prior:
 
 
 def check_bounds(bounds, names: Sequence[str] | None = None) -> torch.Tensor:
-    """Validate bounds given as (2, p) [lows; highs] or as p pairs (low, high); return (2, p) float64.
+    """Validate bounds given as (2, p) [lows; highs] (BoTorch's convention, also for p = 2), as p pairs
+    (low, high) when p != 2, or as a dict {name: (low, high)}; return (2, p) float64.
 
     Raises ValueError naming the parameter when low >= high or a bound is not finite.
     """
+    if isinstance(bounds, dict):
+        bounds = [[float(v[0]) for v in bounds.values()], [float(v[1]) for v in bounds.values()]]
     b = torch.as_tensor(bounds, dtype=torch.float64)
     if b.dim() != 2:
         raise ValueError(f"bounds must be (2, p) or (p, 2), got shape {tuple(b.shape)}")
@@ -220,7 +223,11 @@ def check_bounds(bounds, names: Sequence[str] | None = None) -> torch.Tensor:
         if not (math.isfinite(lo) and math.isfinite(hi)):
             raise ValueError(f"parameter {n!r}: bounds must be finite, got low={lo}, high={hi}")
         if lo >= hi:
-            raise ValueError(f"parameter {n!r}: low must be < high, got low={lo}, high={hi}")
+            hint = ""
+            if b.shape == (2, 2) and bool((b.T[0] < b.T[1]).all()):
+                hint = (" (a 2 x 2 bounds array is read as [lows; highs]; for (low, high) pairs pass a dict "
+                        "{name: (low, high)} or the transpose)")
+            raise ValueError(f"parameter {n!r}: low must be < high, got low={lo}, high={hi}{hint}")
     return b.contiguous()
 
 

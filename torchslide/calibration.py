@@ -106,7 +106,7 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
     Args:
         log_posterior: maps an (n, p) float64 tensor of parameter points to z (n,), or to (z, failed_mask),
             or to a torchslide.bayes.EvaluationResult. One call gets a whole batch.
-        bounds: (2, p) [lows; highs] or p pairs (low, high).
+        bounds: (2, p) [lows; highs], or {name: (low, high)} (which also names the parameters).
         n_initial: b0, maximin-LHS initial runs. n_total: total run budget.
         batch_size: q points per iteration (kriging believer).
         seed: seeds the LHS and every iteration (resume reproduces the uninterrupted run).
@@ -117,6 +117,8 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
         tv_threshold: stop when TV(p_i, p_{i-tv_lag}) < threshold for tv_patience iterations.
         clip_range: GP training values are capped at max(z) - clip_range (None: off).
     """
+    if isinstance(bounds, dict):
+        names = list(bounds) if names is None else names
     b = check_bounds(bounds, names)
     p = b.shape[1]
     names = list(names) if names is not None else [f"x{i}" for i in range(p)]
