@@ -33,7 +33,7 @@ bench-solver: $(STAMP)
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"
-	$(PY) -m bench.bench_inference --out bench/results/inference.json
+	OMP_NUM_THREADS=1 $(PY) -m bench.bench_inference --quick --seeds 5 --out bench/results/inference.json
 
 clean:
 	rm -rf $(VENV) demo_out .pytest_cache
