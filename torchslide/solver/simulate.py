@@ -11,6 +11,7 @@ import torch
 from ..physics import G, Params, earth_pressure_sh
 from ..result import GaugeSeries, SimulationResult
 from ..terrain.grid import DEM
+from . import crop as _crop
 from .config import SolverConfig
 from .friction import desingularised_velocity
 from .stepping import StepFlags, make_step
@@ -61,15 +62,23 @@ def _get_step(F: StepFlags, compile_: bool):
     return fn
 
 
-def _record(S: dict, out_times: Tensor, gidx: Tensor, h_eps: float, K: int) -> dict:
-    """Write the current state into output slot k_out of members that just reached an output time."""
+def _record(S: dict, out_times: Tensor, gidx: Tensor, h_eps: float, K: int, gin: Tensor | None = None) -> dict:
+    """Write the current state into output slot k_out of members that just reached an output time.
+
+    gidx: (G,) flat gauge indices into the (cropped) rasters of S; gin: (G,) bool, gauge inside the
+    cropped window (outside it the flow has never been: the gauge reads 0); None = all inside.
+    """
     hit = S["hit"]
     k = S["k_out"].clamp(max=K - 1)
     S = dict(S)
     if gidx.numel() > 0:
         hf = S["h"].flatten(1)[:, gidx]
-        uf = desingularised_velocity(hf, S["hu"].flatten(1)[:, gidx], h_eps)
-        vf = desingularised_velocity(hf, S["hv"].flatten(1)[:, gidx], h_eps)
+        hu = S["hu"].flatten(1)[:, gidx]
+        hv = S["hv"].flatten(1)[:, gidx]
+        if gin is not None:
+            hf, hu, hv = (torch.where(gin, x, torch.zeros_like(x)) for x in (hf, hu, hv))
+        uf = desingularised_velocity(hf, hu, h_eps)
+        vf = desingularised_velocity(hf, hv, h_eps)
         kg = k.view(-1, 1, 1).expand(-1, gidx.numel(), 1)
         for key, val in (("g_h", hf), ("g_u", uf), ("g_v", vf)):
             cur = S[key].gather(2, kg)
@@ -231,10 +240,34 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
         from tqdm.auto import tqdm
         bar = tqdm(total=float(t_end), unit="s", desc="simulate")
     n_iter = 0
+    # active-region cropping (torchslide.solver.crop): the steps run on `sub`, the state cut to `box`
+    g_rows = torch.div(gidx, nx, rounding_mode="floor")
+    g_cols = gidx - g_rows * nx
+    margin = 2 * cfg.crop_every + 3
+    box = _crop.full_box(ny, nx) if not cfg.crop else None
+
+    def _enter(state: dict, b: _crop.Box):
+        sub_ = _crop.extract(state, b, ny, nx)
+        P_ = dict(Pw)
+        if P_.get("mu_scale") is not None and not b.covers(ny, nx):
+            P_["mu_scale"] = P_["mu_scale"][:, b.r0:b.r1, b.c0:b.c1].contiguous()
+        gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
+        return sub_, P_, gi_, gin_
+
+    if box is None:
+        box = _crop.grow(work["h"], None, ny, nx, margin)
+    sub, Psub, gsub, gin = _enter(work, box)
     while True:
-        for _ in range(cfg.check_every):
-            work = step(work, Pw)
-            work = _record(work, out_times, gidx, cfg.h_eps, K)
+        for s_ in range(cfg.check_every):
+            if cfg.crop and s_ % cfg.crop_every == 0 and not box.covers(ny, nx):
+                nbox = _crop.grow(sub["h"], box, ny, nx, margin)
+                if nbox != box:
+                    _crop.write_back(work, sub, box, ny, nx, member_keys)
+                    box = nbox
+                    sub, Psub, gsub, gin = _enter(work, box)
+            sub = step(sub, Psub)
+            sub = _record(sub, out_times, gsub, cfg.h_eps, K, gin)
+        _crop.write_back(work, sub, box, ny, nx, member_keys)
         n_iter += cfg.check_every
         act = work["active"]
         over = act & (work["steps"] >= cfg.max_steps)
@@ -258,6 +291,7 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = {k: (v[idx] if k in Pm else v) for k, v in Pm.items()}
             Pw.update(shared)
+        sub, Psub, gsub, gin = _enter(work, box)
     for k in member_keys:
         if work[k] is not full[k] and full[k].numel():
             full[k][idx] = work[k]
