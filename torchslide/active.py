@@ -260,14 +260,75 @@ class ActiveLearner:
             img = density.T[::-1].copy()  # rows = x2 descending, cols = x1
             w.add_image("posterior", (img / max(img.max(), 1e-300))[None], n)
 
+    # ------------------------------------------------------------------ public ask / tell interface
+    def initialise(self, x0: torch.Tensor | None = None) -> bool:
+        """Resume from the checkpoint, or evaluate the initial design (``x0`` (n, p) in parameter units,
+        default the maximin LHS of n_initial points) and checkpoint it. Returns True when resumed."""
+        if self._load():
+            return True
+        self.state = ActiveState(x=torch.empty(0, self.dim, dtype=torch.float64),
+                                 z=torch.empty(0, dtype=torch.float64),
+                                 failed=torch.empty(0, dtype=torch.bool), reasons=[],
+                                 is_initial=torch.empty(0, dtype=torch.bool))
+        if x0 is None:
+            x0 = self.emulator.from_unit(torch.from_numpy(maximin_lhs(self.config.n_initial, self.dim,
+                                                                      self.config.seed)))
+        x0 = torch.as_tensor(x0, dtype=torch.float64).reshape(-1, self.dim)
+        self._append(x0, self.evaluate(x0), initial=True)
+        self._save()
+        return False
+
+    def evaluate(self, x: torch.Tensor) -> EvaluationResult:
+        """The evaluator at (n, p) points (no state change)."""
+        return self._evaluate(x)
+
+    def update(self, estimate: bool = True):
+        """Fit the emulator to all runs so far; with ``estimate`` also compute the posterior estimate and
+        record the lagged TV. Returns (density, cell volume, TV) (None where not computed)."""
+        self._fit()
+        if not estimate:
+            return None, None, None
+        density, cvol = self._estimate()
+        return density, cvol, self._record_tv(density, cvol)
+
+    def propose(self, q: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """q new points (q, p) maximising the acquisition on the current fit, and the acquisition values."""
+        return self._acquire(q, self.state.iteration)
+
+    def tell(self, x: torch.Tensor, res: EvaluationResult, acq_max=None, tv=None, density=None) -> None:
+        """Add evaluated adaptive points, advance the iteration, checkpoint and log."""
+        s = self.state
+        self._append(x, res, initial=False)
+        if acq_max is not None:
+            s.acq_history.append((s.n_runs, float(acq_max)))
+        s.iteration += 1
+        self._save()
+        self._log(tv, new_z=res.z, acq_max=acq_max, density=density)
+
+    def finish(self, reason: str, tv=None, density=None) -> None:
+        """Mark the run as ended (``reason``), log the final estimate and checkpoint."""
+        self.state.stopped_reason = reason
+        self._log(tv, density=density)
+        self._save()
+
+    def open_log(self, log_dir) -> None:
+        """Start TensorBoard logging to ``log_dir``."""
+        from torch.utils.tensorboard import SummaryWriter
+
+        self._writer = SummaryWriter(str(log_dir))
+
+    def close_log(self) -> None:
+        if self._writer is not None:
+            self._writer.flush()
+            self._writer.close()
+            self._writer = None
+
     def run(self) -> ActiveState:
         """Run (or resume) the loop until n_total runs or TV convergence. Returns the final state."""
         c = self.config
         resumed = self._load()
         if self.log_dir is not None:
-            from torch.utils.tensorboard import SummaryWriter
-
-            self._writer = SummaryWriter(str(self.log_dir))
+            self.open_log(self.log_dir)
         bar = None
         if self.progress:
             from tqdm.auto import tqdm
@@ -275,51 +336,30 @@ class ActiveLearner:
             bar = tqdm(total=c.n_total, desc="calibrate", unit="run")
         try:
             if not resumed:
-                self.state = ActiveState(x=torch.empty(0, self.dim, dtype=torch.float64),
-                                         z=torch.empty(0, dtype=torch.float64),
-                                         failed=torch.empty(0, dtype=torch.bool), reasons=[],
-                                         is_initial=torch.empty(0, dtype=torch.bool))
-                u0 = torch.from_numpy(maximin_lhs(c.n_initial, self.dim, c.seed))
-                x0 = self.emulator.from_unit(u0)
-                self._append(x0, self._evaluate(x0), initial=True)
-                self._save()
+                self.initialise()
             s = self.state
             if bar is not None:
                 bar.update(s.n_runs)
             while True:
-                self._fit()
-                density, tv = None, None
-                if c.track_tv or s.n_runs >= c.n_total:
-                    density, cvol = self._estimate()
-                    tv = self._record_tv(density, cvol)
+                density, cvol, tv = self.update(estimate=c.track_tv or s.n_runs >= c.n_total)
                 if bar is not None:
                     bar.set_postfix(tv=f"{tv:.3g}" if tv is not None else "-", failed=int(s.failed.sum()))
                 if c.tv_threshold is not None and tv is not None:
                     s.below_count = s.below_count + 1 if tv < c.tv_threshold else 0
                     if s.below_count >= c.tv_patience:
-                        s.stopped_reason = f"TV < {c.tv_threshold} for {c.tv_patience} iterations"
-                        self._log(tv, density=density)
+                        self.finish(f"TV < {c.tv_threshold} for {c.tv_patience} iterations", tv, density)
                         break
                 if s.n_runs >= c.n_total:
-                    s.stopped_reason = "n_total reached"
-                    self._log(tv, density=density)
+                    self.finish("n_total reached", tv, density)
                     break
                 q = min(c.batch_size, c.n_total - s.n_runs)
-                x_new, vals = self._acquire(q, s.iteration)
-                res = self._evaluate(x_new)
-                self._append(x_new, res, initial=False)
-                s.acq_history.append((s.n_runs, float(vals[0])))
-                s.iteration += 1
-                self._save()
-                self._log(tv, new_z=res.z, acq_max=vals[0], density=density)
+                x_new, vals = self.propose(q)
+                self.tell(x_new, self.evaluate(x_new), acq_max=vals[0], tv=tv, density=density)
                 if bar is not None:
                     bar.update(q)
             self._save()
         finally:
             if bar is not None:
                 bar.close()
-            if self._writer is not None:
-                self._writer.flush()
-                self._writer.close()
-                self._writer = None
+            self.close_log()
         return self.state

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchslide.active import ActiveConfig, ActiveLearner, ActiveState, maximin_lhs
+from torchslide.active import ActiveConfig, ActiveLearner, maximin_lhs
 from torchslide.emulator import LogPosteriorEmulator
 from torchslide.posterior import cell_volume, grid_posterior, hdr_mask, summarise_grid, tv_distance
 
@@ -81,16 +81,9 @@ def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
     for c, fn in fns.items():
         L = ActiveLearner(fn, bounds, acfg, checkpoint=rd / f"case_{c}" / "checkpoint.pt", progress=False,
                           names=cfg.names)
-        if not L._load():
-            L.state = ActiveState(x=torch.empty(0, 2, dtype=torch.float64), z=torch.empty(0, dtype=torch.float64),
-                                  failed=torch.empty(0, dtype=torch.bool), reasons=[],
-                                  is_initial=torch.empty(0, dtype=torch.bool))
-            L._append(x0, L._evaluate(x0), initial=True)
-            L._save()
+        L.initialise(x0)
         if cfg.tensorboard:
-            from torch.utils.tensorboard import SummaryWriter
-
-            L._writer = SummaryWriter(str(rd / "tb" / f"case_{c}"))
+            L.open_log(rd / "tb" / f"case_{c}")
         learners[c] = L
         sp = rd / f"case_{c}" / "snapshots.npz"
         snaps[c] = dict(np.load(sp)) if sp.exists() else {}
@@ -110,21 +103,17 @@ def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
                 continue
             t0 = time.perf_counter()
             s = L.state
-            L._fit()
-            density, cvol = L._estimate()
-            tv = L._record_tv(density, cvol)
+            density, cvol, tv = L.update()
             n_ad = s.n_runs - cfg.n_initial
             if n_ad in cfg.snapshots:
                 snaps[c][f"a{n_ad}"] = density
                 np.savez(cfg.run_dir / f"case_{c}" / "snapshots.npz", **snaps[c])
             if s.n_runs >= cfg.n_total:
-                s.stopped_reason = "n_total reached"
-                L._log(tv, density=density)
-                L._save()
+                L.finish("n_total reached", tv, density)
                 done[c] = True
             else:
                 q = min(cfg.batch_size, cfg.n_total - s.n_runs)
-                x_new, vals = L._acquire(q, s.iteration)
+                x_new, vals = L.propose(q)
                 proposals[c] = (x_new, vals, tv, density)
             secs[c]["gp_acq_s"] += time.perf_counter() - t0
         if not proposals:
@@ -135,14 +124,8 @@ def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
         dt = time.perf_counter() - t0
         for c, (x_new, vals, tv, density) in proposals.items():
             L = learners[c]
-            s = L.state
             secs[c]["solver_share_s"] += dt * x_new.shape[0] / allx.shape[0]
-            res = L._evaluate(x_new)
-            L._append(x_new, res, initial=False)
-            s.acq_history.append((s.n_runs, float(vals[0])))
-            s.iteration += 1
-            L._save()
-            L._log(tv, new_z=res.z, acq_max=vals[0], density=density)
+            L.tell(x_new, L.evaluate(x_new), acq_max=vals[0], tv=tv, density=density)
             (cfg.run_dir / f"case_{c}" / "seconds.json").write_text(json.dumps(secs[c]))
             bar.update(x_new.shape[0])
         _log(f"iteration done: {allx.shape[0]} new runs in {dt:.1f} s; runs per case "
@@ -150,9 +133,7 @@ def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
     bar.close()
     for c, L in learners.items():
         (cfg.run_dir / f"case_{c}" / "seconds.json").write_text(json.dumps(secs[c]))
-        if L._writer is not None:
-            L._writer.flush()
-            L._writer.close()
+        L.close_log()
     return {c: {"state": L.state, "snapshots": snaps[c], "seconds": secs[c]} for c, L in learners.items()}
 
 
@@ -197,7 +178,6 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
     active_s = time.perf_counter() - t0
 
     # LHS-only comparison: GP on n_total maximin-LHS runs (another seed); simulated in the first call above.
-    lhs_sim_s = design_s
     sweep = None
     if with_sweep:
         _log(f"brute-force sweep {cfg.sweep_n} x {cfg.sweep_n}")
