@@ -29,7 +29,8 @@ test-all: $(STAMP)
 bench: bench-solver bench-inference
 
 bench-solver: $(STAMP)
-	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 --full-batch 2
+	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 \
+		--full-batch 8 --full-configs eager-f64-whole:1,eager-f64-crop:1,compiled-f64-crop,compiled-f32-crop
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"
