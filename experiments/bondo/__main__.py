@@ -30,6 +30,8 @@ def main(argv=None) -> int:
     ap.add_argument("--no-sweep", action="store_true", help="skip the brute-force reference")
     ap.add_argument("--no-report", action="store_true", help="do not regenerate figures / README")
     ap.add_argument("--no-tensorboard", action="store_true")
+    ap.add_argument("--dtype", choices=["float32", "float64"], default=None, help="solver precision")
+    ap.add_argument("--no-compile", action="store_true", help="run the solver eagerly (no torch.compile)")
     a = ap.parse_args(argv)
     cfg = BondoConfig.quick(a.work_dir) if a.quick else BondoConfig()
     kw = {k: v for k, v in {"cellsize": a.cellsize, "t_end": a.t_end, "n_initial": a.n_initial,
@@ -43,6 +45,10 @@ def main(argv=None) -> int:
             kw["name"] = "cases_" + "_".join(map(str, kw["cases"]))
     if a.work_dir is not None and not a.quick:
         kw["work_dir"] = a.work_dir
+    if a.dtype is not None:
+        kw["dtype"] = a.dtype
+    if a.no_compile:
+        kw["compile"] = False
     if a.no_tensorboard:
         kw["tensorboard"] = False
     if a.n_adaptive is not None and "snapshots" not in kw:

@@ -140,7 +140,8 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
              f"the brute-force sweep ({cfg['sweep_n']}^2 runs, `python -m experiments.sweep`, run concurrently "
              f"in a second process) used {_fmt(t.get('sweep_solver_s'))} s of solver time; "
              f"{t.get('n_simulations_cached')} distinct simulations in the study cache. "
-             "Machine: a 2-core CPU shared with other jobs (load 3-5 during the run), one thread per process.")
+             "Machine: a 2-core CPU shared with other jobs (the other experiments of this repository ran at the same "
+             "time), one thread per process.")
     sweeps = []
     for f in sorted(run_dir.parent.glob(f"sweep_{run_dir.name.split('_', 1)[1]}_*x*.npz")):
         try:
@@ -159,12 +160,15 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
                  f"per simulation (batched, {cfg['cellsize']:g} m cells, t_end {cfg['t_end']:g} s)")
     L.append("")
     L.append("### How this run differs from the paper\n")
-    L.append(f"- **Cell size {cfg['cellsize']:g} m.** The solver (torchslide, eager PyTorch on CPU) was too slow on the "
-             "shared 2-core machine for the ~1400 runs of the study at 20 m cells in the available time "
-             "(the cost per run grows roughly with the cube of 1/cell size: 4x the cells and 2x the time steps per halving), "
-             "so the reported study runs on a coarse grid where the channel is only a few cells wide. "
-             "The 20 m study is `python -m experiments.bondo --cellsize 20 --t-end 300 --sweep-n 50` "
-             "(plus `python -m experiments.sweep --cellsize 20 --t-end 300 --n 50`); it was not run here.")
+    if float(cfg["cellsize"]) > 20.0:
+        solver_mode = ("torch.compile, active-region cropping" if cfg.get("compile") else "eager PyTorch") + \
+            f", {cfg['dtype']}"
+        L.append(f"- **Cell size {cfg['cellsize']:g} m** (the terrain's default is 20 m). The solver ({solver_mode}) "
+                 "on the shared 2-core CPU was not fast enough for the ~1500 runs of the study plus the sweep at 20 m "
+                 "in the available time (per run the cost grows roughly with the cube of 1/cell size: 4x the cells "
+                 "and 2x the time steps per halving; the 20 m cost per run is in bench/results/solver.json). "
+                 "The 20 m study is `python -m experiments.bondo --cellsize 20` "
+                 "(plus `python -m experiments.sweep --cellsize 20`); it was not run here.")
     L.append("- Terrain: the analytic Bondo-like valley of `torchslide.terrain.synthetic.bondo_like` "
              "(3e6 m^3 release), not the real DEM; solver: torchslide, not r.avaflow. Table 1 values therefore differ "
              "from the paper's.")

@@ -116,7 +116,7 @@ class CachedSimulator:
     # ------------------------------------------------------------------ running
     def simulate_batch(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
         """One solver call for (B, 2) points; returns observables (B, k), failed (B,), reasons."""
-        from torchslide.solver import simulate
+        from torchslide.solver import SolverConfig, simulate
 
         x = np.asarray(x, dtype=np.float64).reshape(-1, 2)
         c = self.case
@@ -124,7 +124,8 @@ class CachedSimulator:
         params = Params.make(mu=x[:, 0], xi=x[:, 1], dtype=dtype)
         gauges = [(k, float(px), float(py)) for k, (px, py) in c.points.items()]
         t0 = time.perf_counter()
-        res = simulate(c.dem, c.release, params, t_end=self.cfg.t_end, gauges=gauges, dtype=dtype)
+        res = simulate(c.dem, c.release, params, t_end=self.cfg.t_end, gauges=gauges, dtype=dtype,
+                       config=SolverConfig(compile=self.cfg.compile))
         self.solver_seconds += time.perf_counter() - t0
         self.last_result = res
         self.n_solver_calls += 1
@@ -151,6 +152,9 @@ class CachedSimulator:
             if k not in self._index and k not in seen:
                 seen.add(k)
                 todo.append(xi)
+        # members of one call share one cropped window (torchslide.solver.crop): sorted by mu, a call
+        # holds similar run-outs, so a long low-friction run does not widen the window of short ones
+        todo = sorted(todo, key=lambda p: (p[0], p[1]))
         for s in range(0, len(todo), self.cfg.max_batch):
             xb = np.asarray(todo[s:s + self.cfg.max_batch])
             y, f, r = self.simulate_batch(xb)

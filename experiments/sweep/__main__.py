@@ -22,6 +22,8 @@ def main(argv=None) -> int:
     ap.add_argument("--t-end", type=float, default=None)
     ap.add_argument("--chunk", type=int, default=None, help="runs per solver call (default: config max_batch)")
     ap.add_argument("--work-dir", default=None)
+    ap.add_argument("--dtype", choices=["float32", "float64"], default=None, help="solver precision")
+    ap.add_argument("--no-compile", action="store_true", help="run the solver eagerly (no torch.compile)")
     a = ap.parse_args(argv)
     cfg = BondoConfig.quick(a.work_dir) if a.quick else BondoConfig()
     kw = {}
@@ -31,6 +33,10 @@ def main(argv=None) -> int:
         kw["t_end"] = a.t_end
     if a.work_dir is not None and not a.quick:
         kw["work_dir"] = a.work_dir
+    if a.dtype is not None:
+        kw["dtype"] = a.dtype
+    if a.no_compile:
+        kw["compile"] = False
     cfg = cfg.with_(**kw)
     res = run_sweep(cfg, a.n, chunk=a.chunk)
     print(json.dumps({"path": res.path, "n": [len(x) for x in res.axes], "failed": res.n_failed,
