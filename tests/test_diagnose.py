@@ -35,19 +35,6 @@ def test_arrival_shift():
     assert abs(arrival_shift(t, d, y) - 6.0) <= 0.5
 
 
-def test_decide_rules():
-    th = Thresholds()
-    cands = [{"name": "entrainment", "log_bayes_factor": 20.0}, {"name": "curvature", "log_bayes_factor": 1.0}]
-    big = [{"standardised_residual": 12.0}]
-    d = decide(cands, big, {"entrainment": []}, 100.0, {"entrainment": 50.0}, th)
-    assert d["verdict"] == "missing_physics" and d["missing_physics"] == "entrainment" and not d["ambiguous"]
-    d = decide(cands, big, {"entrainment": big}, 100.0, {"entrainment": 50.0}, th)  # still mismatched after refit
-    assert d["verdict"] == "unexplained" and d["missing_physics"] is None
-    weak = [{"name": "entrainment", "log_bayes_factor": 1.0}]
-    assert decide(weak, big, {}, 100.0, {}, th)["verdict"] == "unexplained"
-    assert decide(weak, [], {}, 100.0, {}, th)["verdict"] == "no_missing_physics"
-
-
 # ------------------------------------------------------------------------------------------------ CLI
 BASE = """
 [terrain]
@@ -131,8 +118,9 @@ def test_small_harness(tmp_path):
     from experiments.hidden_physics.harness import run_case
     from experiments.hidden_physics.make_page import build_page
 
-    bud = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, baseline_n_initial=6,
-               baseline_n_total=8, batch_size=8, top_k=1, n_perm=19, mcmc_steps=200)
+    bud = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
+               baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1, n_perm=19,
+               mcmc_steps=200)
     cands = ["entrainment", "yield_stress", "mu_i"]
     out = tmp_path / "res"
     cases = {sc: run_case(sc, 0, out, budgets=bud, candidates=cands, log=lambda s: None) for sc in ("null", "entrainment")}
@@ -147,3 +135,177 @@ def test_small_harness(tmp_path):
     assert cases["null"]["diagnosis"]["missing_physics"] != "yield_stress"
     page = build_page(out, tmp_path / "page")
     assert "Confusion matrix" in page.read_text()
+
+
+# ------------------------------------------------------------------ verified evidence and the new decision
+from types import SimpleNamespace
+
+import math
+import torch
+
+from torchslide.bayes import GaussianLikelihood, Prior, Uniform
+from torchslide.diagnose.verify import rescore, savage_dickey, verified_evidence, waic
+
+
+def _toy(d=0.3, sig=0.1, lo=-1.0, hi=1.0):
+    """y = x (one datum d, sd sig), Uniform(lo, hi) prior: z(x) = log N(d | x, sig) - log(hi - lo)."""
+    ev = SimpleNamespace(likelihood=GaussianLikelihood(torch.tensor([d]), sigma=torch.tensor([sig])),
+                         prior=Prior({"x": Uniform(lo, hi)}), data=np.array([d]), sigma=np.array([sig]),
+                         sigma_raw=np.array([sig]))
+    true_logz = -math.log(hi - lo)  # the Gaussian integrates to ~1 inside the box
+    return ev, true_logz
+
+
+def test_verified_evidence_corrects_a_wrong_emulator():
+    """An emulator whose peak is too high by 40 and shifted by half a posterior sd: its own evidence
+    is off by ~40, the verified one (importance weights from solver values) recovers the truth."""
+    ev, true_logz = _toy()
+    rng = np.random.default_rng(0)
+    shift, bump, s = 0.05, 40.0, 0.1
+    g = lambda x: (-0.5 * ((x[:, 0] - 0.3 - shift) / s) ** 2 - math.log(s * math.sqrt(2 * math.pi))
+                   - math.log(2.0) + bump)
+    x = (0.3 + shift + s * rng.standard_normal(400))[:, None]           # draws from exp(g) / Z_hat
+    cal = SimpleNamespace(log_evidence=true_logz + bump, samples=x, posterior_grid=None,
+                          emulator=SimpleNamespace(mean=lambda t: torch.as_tensor(g(np.asarray(t)))))
+    v = verified_evidence(ev, cal, x, x.copy())
+    assert abs(cal.log_evidence - true_logz) > 39
+    assert abs(v["log_evidence"] - true_logz) < 0.2 and v["ess_fraction"] > 0.5 and v["se"] < 0.1
+    # a badly placed emulator peak: weights degenerate, ESS small (the decision then refuses to name)
+    x_bad = (0.3 + 0.5 + s * rng.standard_normal(12))[:, None]
+    g_bad = lambda t: torch.as_tensor(-0.5 * ((np.asarray(t)[:, 0] - 0.8) / s) ** 2)
+    bad = verified_evidence(ev, SimpleNamespace(log_evidence=0.0, samples=x_bad, posterior_grid=None,
+                                                emulator=SimpleNamespace(mean=g_bad)), x_bad, x_bad.copy())
+    assert bad["ess"] < 3 and bad["log_evidence"] < true_logz
+
+
+def test_savage_dickey_sign():
+    far = SimpleNamespace(names=["mu", "kappa"], samples=np.column_stack([np.full(1000, 0.2),
+                                                                          np.random.default_rng(0).uniform(0.005, 0.01, 1000)]))
+    near = SimpleNamespace(names=["mu", "kappa"], samples=np.column_stack([np.full(1000, 0.2),
+                                                                           np.random.default_rng(0).uniform(0, 0.0005, 1000)]))
+    assert savage_dickey(far, "kappa", (0.0, 0.02))["two_ln_bf"] > 6
+    assert savage_dickey(near, "kappa", (0.0, 0.02))["two_ln_bf"] < -4
+
+
+def test_rescore_and_waic():
+    """A located excess (values 0..3) that the 'after' draws reproduce is explained; WAIC prefers them."""
+    rng = np.random.default_rng(1)
+    k = 10
+    data = np.zeros(k)
+    data[:4] = 2.0
+    ev = SimpleNamespace(data=data, sigma=np.full(k, 0.5), sigma_raw=np.full(k, 0.5))
+    before = 0.05 * rng.standard_normal((12, k))
+    after = before + np.where(np.arange(k) < 4, 2.0, 0.0)
+    item = {"what": "excess cluster", "standardised_residual": 8.0, "_idx": [0, 1, 2, 3], "_f": 1.0, "_stat": "sum"}
+    r = rescore(ev, [item], before, after)
+    assert r["max_before"] > 7.5 and r["max_after"] < 1 and r["explained"] > 0.99
+    assert waic(ev, after)["elpd"] - waic(ev, before)["elpd"] > 20
+
+
+def _cand(name, two_ln_bf, **kw):
+    c = {"name": name, "log_bayes_factor": two_ln_bf / 2, "two_ln_bf_lower": two_ln_bf - 2, "ess": 6.0,
+         "two_ln_bf_savage_dickey": 8.0, "delta_waic": 30.0, "misfit_after": 50.0,
+         "located_rescored": {"items": [{"before": 9.0, "after": 1.0}], "max_after": 1.0, "explained": 0.9}}
+    c.update(kw)
+    return c
+
+
+def test_decide_new_rules():
+    th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0)
+    base = {"ess": 5.0}
+    loc = [{"standardised_residual": 9.0}]
+    d = decide([_cand("entrainment", 60.0), _cand("curvature", 10.0)], loc, base, 100.0, th)
+    assert d["verdict"] == "missing_physics" and d["missing_physics"] == "entrainment" and not d["ambiguous"]
+    # supported by the evidence but the located structure stays: out-of-library -> never a name
+    keep = {"items": [{"before": 9.0, "after": 8.5}], "max_after": 8.5, "explained": 0.1}
+    d = decide([_cand("curvature", 60.0, located_rescored=keep)], loc, base, 100.0, th)
+    assert d["verdict"] == "unexplained" and d["missing_physics"] is None
+    # untrustworthy evidence, Savage-Dickey disagreeing, or no out-of-sample gain: not named
+    for bad in ({"ess": 1.0}, {"two_ln_bf_savage_dickey": -3.0}, {"delta_waic": -5.0}):
+        d = decide([_cand("entrainment", 60.0, **bad)], loc, base, 100.0, th)
+        assert d["missing_physics"] is None and d["verdict"] == "unexplained"
+    # below the null-calibrated bf_min: nothing missing unless a located mismatch is significant
+    assert decide([_cand("curvature", 15.0)], [{"standardised_residual": 6.0}], base, 100.0, th)["verdict"] == \
+        "no_missing_physics"
+    assert decide([_cand("curvature", 15.0)], loc, base, 100.0, th)["verdict"] == "unexplained"
+
+
+# ------------------------------------------------- ambiguity, null-like evidence, HDI, baseline refinement
+def test_decide_ambiguous_and_null_like():
+    th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)
+    base = {"ess": 5.0}
+    loc = [{"standardised_residual": 9.0}]
+    # the runner-up explains the located mismatch better: evidence and location disagree -> no name
+    better = {"items": [{"before": 9.0, "after": 0.5}], "max_after": 0.5, "explained": 0.99}
+    d = decide([_cand("earth_pressure", 60.0), _cand("yield_stress", -10.0, located_rescored=better)],
+               loc, base, 100.0, th)
+    assert d["verdict"] == "unexplained" and d["missing_physics"] is None and d["ambiguous"]
+    assert d["competitors"] == ["yield_stress"]
+    # two candidates pass every check within margin_min: no name
+    d = decide([_cand("earth_pressure", 60.0), _cand("curvature", 57.0)], loc, base, 100.0, th)
+    assert d["verdict"] == "unexplained" and d["ambiguous"]
+    # evidence gain without a significant located mismatch and without explaining it: null-like
+    keep = {"items": [{"before": 7.0, "after": 6.9}], "max_after": 6.9, "explained": 0.03}
+    d = decide([_cand("curvature", 25.0, located_rescored=keep)], [{"standardised_residual": 7.0}], base, 100.0, th)
+    assert d["verdict"] == "no_missing_physics"
+
+
+def test_hdi_includes_the_bound_and_savage_dickey_adapts():
+    from torchslide.diagnose.verify import hdi_interval
+    rng = np.random.default_rng(0)
+    s = 1.0 - np.abs(0.08 * rng.standard_normal(4000))        # piled up against the upper bound 1
+    lo, hi = hdi_interval(s, 0.0, 1.0)
+    assert hi == 1.0 and 0.8 < lo < 0.9
+    assert np.quantile(s, 0.95) < 1.0                            # the equal-tailed interval misses it
+    # Savage-Dickey: the density at 0 follows the posterior width (no fixed bin)
+    narrow = SimpleNamespace(names=["k"], samples=np.abs(0.001 * rng.standard_normal((4000, 1))))
+    wide = SimpleNamespace(names=["k"], samples=np.abs(0.01 * rng.standard_normal((4000, 1))))
+    a, b = savage_dickey(narrow, "k", (0.0, 0.02)), savage_dickey(wide, "k", (0.0, 0.02))
+    # true densities at 0: 2 / (sqrt(2 pi) sd) -> 2 ln BF = 2 ln(sqrt(2 pi) sd / (2 * 0.02))
+    for r, sd in ((a, 0.001), (b, 0.01)):
+        assert abs(r["two_ln_bf"] - 2 * math.log(math.sqrt(2 * math.pi) * sd / 0.04)) < 0.6
+
+
+def test_refine_baseline_narrow_posterior():
+    """A 2-D posterior ~1 % of the box wide, a 16-run global GP: the refinement (zoomed grid, local
+    GP refits with the verification runs) recovers log Z with a trustworthy ESS."""
+    from torchslide.active import maximin_lhs
+    from torchslide.diagnose.predictive import Predictive
+    from torchslide.diagnose.verify import refine_baseline
+    from torchslide.emulator import LogPosteriorEmulator
+
+    d, sig = np.array([0.3, 0.55]), np.array([0.004, 0.006])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"a": Uniform(0.0, 1.0), "b": Uniform(0.0, 1.0)})
+
+    class Ev:
+        def evaluate(self, x):
+            x = torch.as_tensor(x, dtype=torch.float64)
+            return SimpleNamespace(failed=torch.zeros(len(x), dtype=torch.bool)), x.clone()
+
+    Ev.likelihood, Ev.prior = lik, prior
+
+    z_of = lambda x: (lik.log_likelihood(torch.as_tensor(x)) + prior.log_prob(torch.as_tensor(x))).numpy()
+    b = np.array([[0.0, 0.0], [1.0, 1.0]])
+    x = np.vstack([maximin_lhs(14, 2, seed=0), d + [0.01, -0.01], d - [0.02, 0.0]])
+    z = z_of(x)
+    em = LogPosteriorEmulator(torch.as_tensor(b)).fit(torch.as_tensor(x), torch.as_tensor(z))
+    cal = SimpleNamespace(x=x, z=z, failed=np.zeros(len(x), bool), bounds=b, emulator=em)
+    _, pred, ver, hist = refine_baseline(Ev(), cal, 16, seed=0, log=lambda s: None)
+    assert abs(ver["log_evidence"] - 0.0) < 0.5          # the Gaussian integrates to 1, prior density 1
+    assert ver["ess"] >= 0.3 * 16 and len(pred.x) == 16
+
+
+def test_cli_diagnose_keys(tmp_path):
+    from torchslide.commands.diagnose import load_diagnose_config
+    from torchslide.config import ConfigError
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nwaic_min = 4\nexplain_min = 0.6\ness_min = 3')
+    dg = load_diagnose_config(p).extra["diagnose"]
+    assert (dg["waic_min"], dg["explain_min"], dg["ess_min"], dg["bf_min"]) == (4.0, 0.6, 3.0, 6.0)
+    for extra, msg in (("bf_minimum = 3", "unknown key 'bf_minimum'"), ("explain_min = 2", "explain_min"),
+                       ("ess_min = 0.5", "ess_min"), ("waic_min = 'x'", "waic_min")):
+        q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
+        with pytest.raises(ConfigError, match=msg):
+            load_diagnose_config(q)

@@ -210,7 +210,7 @@ CANDIDATES: dict[str, Candidate] = {
         "Savage-Hutter active/passive k (phi_int 35 deg): faster spreading of the front, steeper piling at the stop",
         fixed=(("phi_int", 35.0),)),
     "yield_stress": Candidate(
-        "yield_stress", "tau_y", 0.0, (0.0, 200.0),
+        "yield_stress", "tau_y", 0.0, (0.0, 20.0),  # m^2/s^2 (stress / density): up to ~40 kPa at 2000 kg/m^3
         "thin flows stop early: thick lobate deposits with steep margins, shorter run-out of the tail"),
     "mu_i": Candidate(
         "mu_i", "mu_i", 0.0, (0.0, 0.4),

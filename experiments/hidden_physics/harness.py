@@ -1,9 +1,12 @@
-"""Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N] [--scenarios a,b]``.
+"""Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
 gauge series). Cases already saved are skipped, so the run can be resumed; make_page.py builds the
 results page from whatever finished.
+
+Decision thresholds: read from ``thresholds.json`` next to this file when it exists (written by
+calibrate_thresholds.py from *separate* null seeds 100-104), else torchslide.diagnose.Thresholds().
 """
 from __future__ import annotations
 
@@ -14,34 +17,49 @@ from pathlib import Path
 
 import numpy as np
 
-from torchslide.diagnose import Budgets, diagnose
+from torchslide.diagnose import Budgets, Thresholds, diagnose
 from torchslide.physics import CANDIDATES
 
 from .scenarios import SCENARIOS, SWITCH, make_evaluator, make_recording
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
-HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=8, n_initial=10, n_total=20,
-                       baseline_n_initial=10, baseline_n_total=16, batch_size=8, top_k=2, n_perm=49)
+HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
+                       baseline_n_initial=10, baseline_n_total=16, baseline_refine_rounds=3, batch_size=8, top_k=2,
+                       n_perm=49)
+THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
+
+
+def harness_thresholds() -> Thresholds:
+    if THRESHOLDS_FILE.exists():
+        d = json.loads(THRESHOLDS_FILE.read_text())
+        return Thresholds(**d["thresholds"])
+    return Thresholds()
 
 
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
-             budgets: dict | None = None, candidates=None, log=print) -> dict:
+             budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
     rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength)
     ev = make_evaluator(rec, cellsize=cellsize)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
-    d = diagnose(ev, candidates or LIBRARY, bud, log=log)
+    d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
     j = d.to_json()
     term = rec.truth["term"]
-    cover = None
+    cover = cover_eq = None
     if term in SWITCH:
+        # "covers the truth": the 90 % highest-density interval on the prior range (it may include a
+        # prior bound, e.g. curvature / earth pressure switch = 1); the equal-tailed one is kept too
         c = next((c for c in j["candidates"] if c["name"] == term), None)
         if c and c["parameters"].get(SWITCH[term]):
-            lo, hi = c["parameters"][SWITCH[term]]["hdr90"]
+            par = c["parameters"][SWITCH[term]]
+            lo, hi = par.get("hdi90", par["hdr90"])
             cover = bool(lo <= rec.truth[SWITCH[term]] <= hi)
+            lo, hi = par["hdr90"]
+            cover_eq = bool(lo <= rec.truth[SWITCH[term]] <= hi)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
+            "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
     tag = f"{scenario}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}")
     out.mkdir(parents=True, exist_ok=True)
@@ -62,11 +80,13 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--out", default=str(Path(__file__).parent / "_work" / "results"))
     p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--seed-list", default=None, help="comma-separated seeds (overrides --seeds)")
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
     p.add_argument("--strengths", default="1")
     a = p.parse_args(argv)
     out = Path(a.out)
-    for seed in range(a.seeds):
+    seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
+    for seed in seeds:
         for strength in [float(s) for s in a.strengths.split(",")]:
             for sc in a.scenarios.split(","):
                 tag = f"{sc}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}")

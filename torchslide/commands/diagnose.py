@@ -16,20 +16,28 @@ and a [diagnose] section::
     sigma = 0.5
     corr_length = 60.0           # optional exponential correlation length, m
 
-    [diagnose]
+    [diagnose]                   # every key optional; defaults shown
     candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
-    n_posterior_samples = 32     # baseline posterior-predictive members
-    n_posterior_samples_after = 16
-    n_initial = 16               # refit budgets
+    n_posterior_samples = 32     # baseline posterior-predictive members (and per baseline refinement round)
+    n_posterior_samples_after = 16   # posterior-predictive members of every refit (verification)
+    n_initial = 16               # refit budgets: LHS runs, first-stage total ...
     n_total = 32
+    n_total_max = 48             # ... and the total a refit with untrustworthy evidence is continued to
+    baseline_refine_rounds = 3   # rounds refining the baseline's verified evidence
     top_k = 2                    # candidates refitted
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
-    bf_min = 6.0                 # decision thresholds (torchslide.diagnose.decide.Thresholds)
-    margin_min = 6.0
-    located_min = 8.0
-    z_threshold = 3.0
+    seed = 0
+    # decision thresholds (torchslide.diagnose.decide.Thresholds; set them on null data):
+    bf_min = 6.0                 # lower bound of the verified 2 ln BF vs the baseline
+    margin_min = 6.0             # 2 ln BF over a competing candidate for an unambiguous name
+    located_min = 8.0            # |score| of a located mismatch that counts as significant
+    waic_min = 6.0               # out-of-sample check: 2 (elpd_WAIC candidate - baseline)
+    explain_min = 0.5            # fraction of the located structure a named term must remove (0..1)
+    ess_min = 2.0                # importance-sampling ESS a verified evidence needs (>= 1)
+    z_threshold = 3.0            # per-value / cluster / window detection level
 
+Unknown keys stop with a clear error (exit code 2) listing the allowed ones.
 The baseline calibration uses [calibration] n_initial / n_total / batch_size / seed. Writes DIR/report.json,
 DIR/report.md and figures. Bad input (a gauge series with non-increasing times, a map on another grid,
 an unknown candidate, ...) stops with exit code 2 before any run.
@@ -47,8 +55,20 @@ from .calibrate import check_unique_names, parse_calibration, parse_prior
 
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
-_DIAG_KEYS = {"candidates", "n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "top_k",
-              "batch_size", "n_perm", "seed", "bf_min", "margin_min", "located_min", "z_threshold"}
+_INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
+             "baseline_refine_rounds", "top_k", "batch_size", "n_perm")
+_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
+_DIAG_KEYS = {"candidates", "seed", *_INT_KEYS, *_THRESHOLD_KEYS}
+
+
+def diagnose_defaults() -> dict:
+    """[diagnose] defaults, taken from Budgets() and Thresholds() (one source of truth)."""
+    from ..diagnose import Budgets, Thresholds
+    from ..physics import CANDIDATES
+
+    b, t = Budgets(), Thresholds()
+    return {"candidates": list(CANDIDATES), "seed": b.seed, **{k: getattr(b, k) for k in _INT_KEYS},
+            **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 _VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
              "deposit_map": {"kind", "file", "sigma", "corr_length", "name"},
              "impact_map": {"kind", "file", "sigma", "corr_length", "name", "threshold"}}
@@ -111,23 +131,34 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
 
     path = cfg.path
     check_keys(table, _DIAG_KEYS, "[diagnose]", path)
-    c = {"candidates": list(CANDIDATES), "n_posterior_samples": 32, "n_posterior_samples_after": 16,
-         "n_initial": 16, "n_total": 32, "top_k": 2, "batch_size": 8, "n_perm": 99, "seed": 0,
-         "bf_min": 6.0, "margin_min": 6.0, "located_min": 8.0, "z_threshold": 3.0}
+    c = diagnose_defaults()
     c.update(table)
     if not isinstance(c["candidates"], list) or not c["candidates"]:
         raise ConfigError(f"{path}: [diagnose] candidates must be a non-empty list of names")
     bad = [n for n in c["candidates"] if n not in CANDIDATES]
     if bad:
         raise ConfigError(f"{path}: [diagnose] unknown candidate(s) {bad} (known: {', '.join(CANDIDATES)})")
-    for k in ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "top_k", "batch_size", "n_perm"):
-        if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < 1:
-            raise ConfigError(f"{path}: [diagnose] {k} must be a positive integer, got {c[k]!r}")
+    for k in _INT_KEYS:
+        low = 0 if k == "baseline_refine_rounds" else 1
+        if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
+            raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
+    if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
+        raise ConfigError(f"{path}: [diagnose] seed must be an integer, got {c['seed']!r}")
     if c["n_total"] < c["n_initial"]:
         raise ConfigError(f"{path}: [diagnose] n_total ({c['n_total']}) must be >= n_initial ({c['n_initial']})")
-    for k in ("bf_min", "margin_min", "located_min", "z_threshold"):
-        if not isinstance(c[k], (int, float)) or not math.isfinite(c[k]):
-            raise ConfigError(f"{path}: [diagnose] {k} must be a number, got {c[k]!r}")
+    if c["n_total_max"] < c["n_total"]:
+        raise ConfigError(f"{path}: [diagnose] n_total_max ({c['n_total_max']}) must be >= n_total ({c['n_total']})")
+    for k in _THRESHOLD_KEYS:
+        if not isinstance(c[k], (int, float)) or isinstance(c[k], bool) or not math.isfinite(c[k]):
+            raise ConfigError(f"{path}: [diagnose] {k} must be a finite number, got {c[k]!r}")
+        c[k] = float(c[k])
+    for k in ("margin_min", "located_min", "z_threshold"):
+        if c[k] <= 0:
+            raise ConfigError(f"{path}: [diagnose] {k} must be > 0, got {c[k]!r}")
+    if not 0.0 <= c["explain_min"] <= 1.0:
+        raise ConfigError(f"{path}: [diagnose] explain_min is a fraction in [0, 1], got {c['explain_min']!r}")
+    if c["ess_min"] < 1.0:
+        raise ConfigError(f"{path}: [diagnose] ess_min must be >= 1 (an effective number of draws), got {c['ess_min']!r}")
     return c
 
 
@@ -181,11 +212,11 @@ def run(args: argparse.Namespace) -> int:
     if "entrainment" in dg["candidates"] and cfg.terrain.erodible_depth is None:
         raise ConfigError(f"{cfg.path}: candidate 'entrainment' needs an erodible depth raster ([terrain] erodible)")
     bud = Budgets(n_posterior_samples=dg["n_posterior_samples"], n_posterior_samples_after=dg["n_posterior_samples_after"],
-                  n_initial=dg["n_initial"], n_total=dg["n_total"], baseline_n_initial=cal["n_initial"],
-                  baseline_n_total=cal["n_total"], batch_size=dg["batch_size"], top_k=dg["top_k"], n_perm=dg["n_perm"],
-                  seed=dg["seed"])
-    th = Thresholds(bf_min=float(dg["bf_min"]), margin_min=float(dg["margin_min"]),
-                    located_min=float(dg["located_min"]), z_threshold=float(dg["z_threshold"]))
+                  n_initial=dg["n_initial"], n_total=dg["n_total"], n_total_max=dg["n_total_max"],
+                  baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
+                  baseline_refine_rounds=dg["baseline_refine_rounds"], batch_size=dg["batch_size"], top_k=dg["top_k"],
+                  n_perm=dg["n_perm"], seed=dg["seed"])
+    th = Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
     out = Path(args.out)
     d = diagnose(ev, dg["candidates"], bud, th, log=(lambda s: None) if args.quiet else print)
     write_report(d, out)

@@ -5,7 +5,9 @@
 * localise: standardised residuals, p-values, Getis-Ord map clusters (permutation + BH FDR), gauge windows
 * screen: one-batch finite-difference screening with the baseline directions projected out
 * refit: calibration in the enlarged (baseline + switch) space
-* decide: thresholds and the verdict
+* verify: checks with solver runs: verified (importance-weighted) evidence, WAIC, Savage-Dickey,
+  located mismatches re-scored after a refit, the beta = 0 slice as a second baseline proposal
+* decide: thresholds (set on null data) and the verdict
 * pipeline: diagnose() -> Diagnosis
 * report: report.json, report.md and figures
 """

@@ -79,6 +79,10 @@ class Cluster:
     score: float
     sign: int
     mean_z: float
+    cells: list = field(default_factory=list, repr=False)  # flat grid indices (not in the JSON)
+
+    def to_json(self) -> dict:
+        return {k: v for k, v in self.__dict__.items() if k != "cells"}
 
 
 def map_clusters(zmap: np.ndarray, mask: np.ndarray, dem, radius: int = 1, n_perm: int = 199, q: float = 0.05,
@@ -115,7 +119,8 @@ def map_clusters(zmap: np.ndarray, mask: np.ndarray, dem, radius: int = 1, n_per
                     dem.yll + (ii.max() + 1) * cs]
             zc = zmap[cells]
             score = float(zc.sum() / math.sqrt(nc * max(f, 1.0)))
-            out.append(Cluster([float(b) for b in bbox], nc, score, sign, float(zc.mean())))
+            out.append(Cluster([float(b) for b in bbox], nc, score, sign, float(zc.mean()),
+                               np.flatnonzero(cells.ravel()).tolist()))
     out.sort(key=lambda c: -abs(c.score))
     return out, pmap
 
@@ -149,6 +154,10 @@ class Localisation:
     def n_located(self) -> int:
         return len(self.located)
 
+    def public(self) -> list:
+        """``located`` without the private index keys (for JSON)."""
+        return [{k: v for k, v in l.items() if not k.startswith("_")} for l in self.located]
+
     def max_abs(self) -> float:
         return max([abs(l["standardised_residual"]) for l in self.located], default=0.0)
 
@@ -171,7 +180,7 @@ def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_thres
             L.blocks[b.name] = info
             if abs(zb[0]) >= z_threshold:
                 L.located.append({"what": f"{b.kind} {b.name}", "where": b.name, "standardised_residual": float(zb[0]),
-                                  "p_value": float(pv[b.start])})
+                                  "p_value": float(pv[b.start]), "_idx": [b.start], "_f": 1.0, "_stat": "sum"})
             continue
         m, f = o.m, o.factor()
         Zb = float((np.sum(zb**2) - m) / math.sqrt(2 * m * f))
@@ -183,12 +192,15 @@ def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_thres
             clusters, pmap = map_clusters(np.nan_to_num(zmap), mask, dem, radius=radius, n_perm=n_perm, q=q, f=f,
                                           seed=seed)
             clusters = [c for c in clusters if abs(c.score) >= z_threshold]
-            info["clusters"] = [c.__dict__ for c in clusters]
+            info["clusters"] = [c.to_json() for c in clusters]
+            pos = np.full(int(np.prod(o.grid_shape)), -1)
+            pos[np.asarray(o.cell_index)] = np.arange(m)
             L.maps[b.name] = {"z": zmap, "p": pmap, "data": o.to_grid(evaluator.data[b.slice]),
                               "pred": o.to_grid(mean[b.slice])}
             for c in clusters:
                 L.located.append({"what": f"{b.kind} {b.name} {'excess' if c.sign > 0 else 'deficit'} cluster",
-                                  "where": c.bbox, "standardised_residual": c.score, "n_cells": c.n_cells})
+                                  "where": c.bbox, "standardised_residual": c.score, "n_cells": c.n_cells,
+                                  "_idx": (b.start + pos[np.asarray(c.cells)]).tolist(), "_f": f, "_stat": "sum"})
         else:
             t = np.asarray(o.times, float)
             d = evaluator.data[b.slice]
@@ -217,11 +229,15 @@ def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_thres
             if abs(shift_score) >= z_threshold:
                 L.located.append({"what": f"arrival-time shift {tau:+.3g} s ({b.name})",
                                   "where": {"gauge": o.gauge, "quantity": o.quantity, "t0": float(t[0]), "t1": float(t[-1])},
-                                  "standardised_residual": shift_score})
+                                  "standardised_residual": shift_score,
+                                  "_idx": list(range(b.start, b.stop)), "_f": f, "_stat": "shift",
+                                  "_t": t.tolist()})
             for wdw in windows:
                 L.located.append({"what": f"gauge series {b.name} {'above' if wdw['score'] > 0 else 'below'} prediction",
                                   "where": {"gauge": o.gauge, "quantity": o.quantity, "t0": wdw["t0"], "t1": wdw["t1"]},
-                                  "standardised_residual": wdw["score"]})
+                                  "standardised_residual": wdw["score"],
+                                  "_idx": [b.start + i for i in range(len(t)) if wdw["t0"] <= t[i] <= wdw["t1"]],
+                                  "_f": f, "_stat": "sum"})
         if abs(Zb) >= block_threshold and Zb > 0:
             info["flagged"] = True
         L.blocks[b.name] = info

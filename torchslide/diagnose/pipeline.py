@@ -1,13 +1,19 @@
 """``diagnose(evaluator, candidates, ...)``: the whole missing-physics diagnosis in one call.
 
-baseline calibration (or a given CalibrationResult) -> posterior-predictive runs -> localisation ->
-one-batch screening -> refits of the top_k candidates -> evidence / Bayes factors -> predictive runs
-of the best refit -> verdict (torchslide.diagnose.decide).
+baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
+zoomed grid posterior, local emulator refits with the verification runs until the verified evidence is
+trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batch screening -> refits
+of the top_k candidates -> for every refit: posterior-predictive runs, verified evidence
+(torchslide.diagnose.verify), Savage-Dickey (boundary-corrected KDE at switch 0), WAIC, the located
+mismatches re-scored, 90 % HDIs; a refit whose verified evidence is not yet trustworthy is continued
+to ``n_total_max`` runs -> verdict (torchslide.diagnose.decide).
 """
 from __future__ import annotations
 
 import math
+import tempfile
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -17,17 +23,27 @@ from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
+from .verify import (hdi_from_grid, hdi_interval, refine_baseline, rescore, savage_dickey, slice_proposal,
+                     verified_evidence, waic)
 from .screen import ScreenResult, screen
 
 
 @dataclass
 class Budgets:
     n_posterior_samples: int = 32      # posterior-predictive members (baseline)
-    n_posterior_samples_after: int = 16  # posterior-predictive members of the best refit
+    n_posterior_samples_after: int = 16  # posterior-predictive members of every refit (verification)
     n_initial: int = 16                # refit LHS runs
-    n_total: int = 32                  # refit total runs
+    n_total: int = 32                  # refit total runs (first stage)
+    n_total_max: int = 48              # a refit whose verified evidence is not trustworthy is continued to this
     baseline_n_initial: int = 12
     baseline_n_total: int = 24
+    baseline_n_total_max: int = 32     # (not used since the baseline refinement; kept for old configs)
+    baseline_grid_size: int = 160      # p = 2 baseline: active-learning estimation grid
+    baseline_refine_rounds: int = 3    # rounds of verify.refine_baseline (M solver runs each)
+    baseline_tv_tol: float = 0.15      # ... stop when the zoomed posterior moves by less (or log Z is stable)
+    verify_ess_fraction: float = 0.3   # "trustworthy": importance ESS >= this fraction of the draws ...
+    verify_se: float = 1.0             # ... and bootstrap se of the verified log Z <= this
+    slice_check: bool = True           # baseline evidence also from the beta = 0 slice of each refit
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -81,13 +97,15 @@ class Diagnosis:
             "verdict": self.verdict,
             "missing_physics": self.missing_physics,
             "decision": self.decision,
-            "located": self.localisation.located,
-            "located_after": self.after_localisation.located if self.after_localisation else [],
+            "located": self.localisation.public(),
+            "located_after": self.after_localisation.public() if self.after_localisation else [],
             "candidates": self.candidates,
             "screening": self.screening.to_json(),
             "fit_before": self.fit_before,
             "fit_after": self.fit_after,
-            "baseline": {"log_evidence": self.baseline.log_evidence,
+            "baseline": {"log_evidence": self.fit_before.get("log_evidence"),
+                         "log_evidence_emulator": self.baseline.log_evidence,
+                         "verification": self.decision.get("baseline_verification"),
                          "parameters": _params(self.baseline)},
             "thresholds": self.thresholds.to_json(),
             "timings": self.timings,
@@ -95,8 +113,21 @@ class Diagnosis:
 
 
 def _params(cal) -> dict:
+    """Posterior mean, MAP, the calibration's 90 % interval ('hdr90': grid HDR extent or MCMC
+    equal-tailed) and 'hdi90': the 90 % highest-density interval on the prior range (boundary-corrected
+    KDE of the samples, or the grid marginal), which may include a prior bound."""
     s = cal.summary
-    return {n: {"mean": s["mean"][n], "hdr90": list(s["hdr90"][n]), "map": s["map"][n]} for n in cal.names}
+    out = {}
+    for i, n in enumerate(cal.names):
+        lo, hi = float(cal.bounds[0][i]), float(cal.bounds[1][i])
+        if getattr(cal, "samples", None) is not None and len(cal.samples):
+            hdi = hdi_interval(np.asarray(cal.samples)[:, i], lo, hi)
+        elif getattr(cal, "posterior_grid", None) is not None:
+            hdi = hdi_from_grid(cal.posterior_grid, cal.grid_axes, i)
+        else:
+            hdi = list(s["hdr90"][n])
+        out[n] = {"mean": s["mean"][n], "hdr90": list(s["hdr90"][n]), "hdi90": hdi, "map": s["map"][n]}
+    return out
 
 
 def _fit(evaluator, pred: Predictive, loc: Localisation, log_evidence) -> dict:
@@ -111,22 +142,54 @@ def _fit(evaluator, pred: Predictive, loc: Localisation, log_evidence) -> dict:
     return {"log_evidence": log_evidence, "misfit": evaluator.misfit(mean), "k": evaluator.k, "residuals": res}
 
 
+def _trusted(ver: dict, bud: Budgets) -> bool:
+    return bool(ver.get("verified") and ver["ess_fraction"] >= bud.verify_ess_fraction and ver["se"] <= bud.verify_se)
+
+
 def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: Thresholds | None = None,
-             baseline=None, log=print) -> Diagnosis:
-    """Run the diagnosis (see module doc). ``evaluator``: a DiagnosisEvaluator with the baseline prior."""
+             baseline=None, log=print, workdir=None) -> Diagnosis:
+    """Run the diagnosis (see module doc). ``evaluator``: a DiagnosisEvaluator with the baseline prior.
+    ``workdir``: where the refit checkpoints go (default: a temporary folder)."""
     bud = budgets or Budgets()
     th = thresholds or Thresholds()
     candidates = check_candidates(candidates)
+    tmp = None
+    if workdir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="diagnose_")
+        workdir = tmp.name
+    workdir = Path(workdir)
+    workdir.mkdir(parents=True, exist_ok=True)
+    try:
+        return _diagnose(evaluator, candidates, bud, th, baseline, log, workdir)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
+
+
+def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnosis:
     T = {}
     t0 = time.perf_counter()
+    M = bud.n_posterior_samples
     if baseline is None:
         log(f"[diagnose] baseline calibration ({bud.baseline_n_total} runs)")
         baseline = calibrate_evaluator(evaluator, bud.baseline_n_initial, bud.baseline_n_total,
-                                       batch_size=bud.batch_size, seed=bud.seed, mcmc_steps=bud.mcmc_steps)
+                                       batch_size=bud.batch_size, seed=bud.seed, mcmc_steps=bud.mcmc_steps,
+                                       checkpoint=workdir / "baseline.pt", grid_size=bud.baseline_grid_size)
+    if baseline.emulator is not None and len(baseline.names) <= 2:
+        # narrow 2-D posterior: zoomed grid proposal, emulator refitted with the verification runs
+        # until the verified evidence is trustworthy and stable (verify.refine_baseline)
+        _, pred, base_ver, _ = refine_baseline(evaluator, baseline, M, seed=bud.seed,
+                                               max_rounds=bud.baseline_refine_rounds, tv_tol=bud.baseline_tv_tol,
+                                               ess_fraction=bud.verify_ess_fraction, se_max=bud.verify_se, log=log)
+    else:
+        samples = posterior_samples(baseline, M, seed=bud.seed)
+        pred = posterior_predictive(evaluator, samples)
+        base_ver = verified_evidence(evaluator, baseline, pred.x, pred.draws, seed=bud.seed)
+    elpd_b = waic(evaluator, pred.draws)
     T["baseline_s"] = time.perf_counter() - t0
+    log(f"[diagnose] baseline log Z {base_ver['log_evidence']:.2f} (emulator {baseline.log_evidence:.2f}, "
+        f"ESS {base_ver['ess']:.1f}/{base_ver['n_draws']}, se {base_ver['se']:.2f})")
     t0 = time.perf_counter()
-    samples = posterior_samples(baseline, bud.n_posterior_samples, seed=bud.seed)
-    pred = posterior_predictive(evaluator, samples)
     loc = localise(evaluator, pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
     T["predictive_s"] = time.perf_counter() - t0
     log(f"[diagnose] located {loc.n_located} mismatch(es); max |score| {loc.max_abs():.2f}")
@@ -136,50 +199,108 @@ def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: 
     T["screen_s"] = time.perf_counter() - t0
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
     top = [c for c in scr.ranking][: bud.top_k]
-    refits, cand_out, misfit_after = {}, [], {}
+    refits, cand_out, preds_after = {}, [], {}
+    misfit_before = evaluator.misfit(pred.mean)
     t0 = time.perf_counter()
+    Ma = bud.n_posterior_samples_after
+    raw = {}
     for c in top:
+        ck = workdir / f"refit_{c}.pt"
         ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
-                            mcmc_steps=bud.mcmc_steps)
+                            mcmc_steps=bud.mcmc_steps, checkpoint=ck)
+        p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 1))
+        ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
+        history = [{"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
+                    "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]}]
+        if not _trusted(ver, bud) and bud.n_total_max > bud.n_total:
+            log(f"[diagnose] refit {c}: evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
+                f"se {ver['se']:.2f}): continuing to {bud.n_total_max} runs")
+            cal_c = calibrate_evaluator(ev_c, bud.n_initial, bud.n_total_max, batch_size=bud.batch_size,
+                                        seed=bud.seed, mcmc_steps=bud.mcmc_steps, checkpoint=ck)
+            p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 2))
+            ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
+            history.append({"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
+                            "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]})
         refits[c] = (ev_c, cal_c)
+        preds_after[c] = p_c
+        raw[c] = (ver, history)
+    # baseline evidence, second proposal: the beta = 0 slice of every refit's emulator (nested models:
+    # a refit that finds a better (mu, xi) must not be credited to its switch)
+    base_source = "baseline calibration"
+    if bud.slice_check and refits:
+        for c, (ev_c, cal_c) in refits.items():
+            sl = slice_proposal(cal_c, evaluator.prior.bounds.numpy())
+            p_s = posterior_predictive(evaluator, posterior_samples(sl, M, seed=bud.seed + 3))
+            v_s = verified_evidence(evaluator, sl, p_s.x, p_s.draws, seed=bud.seed)
+            log(f"[diagnose] baseline via the beta = 0 slice of the {c} refit: log Z {v_s['log_evidence']:.2f} "
+                f"(ESS {v_s['ess']:.1f})")
+            # taken only when it is itself trustworthy and larger beyond its noise (the larger of two
+            # noisy estimates is biased up; an ESS ~ 1 estimate must not replace a reliable one)
+            gap = v_s["log_evidence"] - base_ver["log_evidence"]
+            if (_trusted(v_s, bud) and len(p_s.draws) > 1 and
+                    (not _trusted(base_ver, bud) or gap > 2 * math.hypot(v_s["se"], base_ver["se"]))):
+                base_ver, pred, base_source = v_s, p_s, f"beta = 0 slice of the {c} refit"
+        if base_source != "baseline calibration":
+            log(f"[diagnose] baseline evidence and predictive taken from the {base_source}; re-localising")
+            loc = localise(evaluator, pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
+            elpd_b = waic(evaluator, pred.draws)
+            misfit_before = evaluator.misfit(pred.mean)
+    for c in top:
+        ev_c, cal_c = refits[c]
+        p_c = preds_after[c]
+        ver, history = raw[c]
         ok = ~cal_c.failed
         best_i = int(np.nanargmax(np.where(ok, cal_c.z, -np.inf)))
-        # misfit at the best evaluated point (no extra runs)
         recs = [r for r in ev_c.records if not r.failed]
         rb = max(recs, key=lambda r: r.z) if recs else None
-        misfit_after[c] = ev_c.misfit(rb.predictions) if rb is not None else float("inf")
-        lbf = cal_c.log_evidence - baseline.log_evidence
-        log(f"[diagnose] refit {c}: log Z {cal_c.log_evidence:.2f}, 2 ln BF {2 * lbf:.2f}, best misfit {misfit_after[c]:.1f}")
-        cand_out.append({"name": c, "param": CANDIDATES[c].param, "log_evidence": cal_c.log_evidence,
-                         "log_bayes_factor": lbf, "two_ln_bf": 2 * lbf, "screening_score": scr.scores[c],
-                         "mimic": scr.mimic[c], "parameters": _params(cal_c), "best_misfit": misfit_after[c],
-                         "n_runs": cal_c.n_runs, "best_x": cal_c.x[best_i].tolist()})
+        best_misfit = ev_c.misfit(rb.predictions) if rb is not None else float("inf")
+        cd = CANDIDATES[c]
+        lbf = ver["log_evidence"] - base_ver["log_evidence"]
+        se_tot = math.sqrt(ver["se"] ** 2 + base_ver["se"] ** 2)
+        sd = savage_dickey(cal_c, cd.param, cd.prior)
+        el = waic(ev_c, p_c.draws) if len(p_c.draws) > 1 else {"elpd": float("nan")}
+        rs = rescore(evaluator, loc.located, pred.draws, p_c.draws) if len(p_c.draws) > 1 else {}
+        misfit_c = ev_c.misfit(p_c.mean) if len(p_c.draws) else float("inf")
+        out = {"name": c, "param": cd.param, "log_evidence": ver["log_evidence"],
+               "log_evidence_emulator": cal_c.log_evidence, "log_bayes_factor": lbf, "two_ln_bf": 2 * lbf,
+               "two_ln_bf_emulator": 2 * (cal_c.log_evidence - baseline.log_evidence),
+               "two_ln_bf_lower": 2 * lbf - 4 * se_tot, "evidence_se": ver["se"], "ess": ver["ess"],
+               "ess_fraction": ver["ess_fraction"], "evidence_history": history,
+               "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
+               "delta_waic": 2 * (el["elpd"] - elpd_b["elpd"]), "located_rescored": rs,
+               "misfit_after": misfit_c, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
+               "parameters": _params(cal_c), "best_misfit": best_misfit, "n_runs": cal_c.n_runs,
+               "best_x": cal_c.x[best_i].tolist()}
+        log(f"[diagnose] refit {c}: 2 ln BF {2 * lbf:.1f} (lower {out['two_ln_bf_lower']:.1f}; emulator "
+            f"{out['two_ln_bf_emulator']:.1f}; ESS {ver['ess']:.1f}), SD {sd['two_ln_bf']:.1f}, "
+            f"dWAIC {out['delta_waic']:.1f}, explained {rs.get('explained')}, misfit {misfit_c:.1f}")
+        cand_out.append(out)
     for c in candidates:
         if c not in refits:
             cand_out.append({"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
                              "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
                              "parameters": {}, "not_refit": "screening score below the top_k"})
     T["refit_s"] = time.perf_counter() - t0
-    # best refit: posterior-predictive runs and localisation after
+    fit_before = _fit(evaluator, pred, loc, base_ver["log_evidence"])
+    fit_before["log_evidence_emulator"] = baseline.log_evidence
+    dec = decide(cand_out, loc.located, base_ver, misfit_before, th)
+    dec["baseline_verification"] = dict(base_ver, source=base_source)
+    dec["elpd_waic_baseline"] = elpd_b["elpd"]
+    log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
+    # fit after: the named candidate, else the best by verified evidence
     fitted = [c for c in cand_out if c.get("log_bayes_factor") is not None]
     after_pred = after_loc = None
-    located_after = {}
     fit_after = {}
     t0 = time.perf_counter()
     if fitted:
-        best = max(fitted, key=lambda c: c["log_bayes_factor"])
-        ev_b, cal_b = refits[best["name"]]
-        s_b = posterior_samples(cal_b, bud.n_posterior_samples_after, seed=bud.seed + 1)
-        after_pred = posterior_predictive(ev_b, s_b)
-        after_loc = localise(ev_b, after_pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
-        located_after[best["name"]] = after_loc.located
-        misfit_after[best["name"]] = ev_b.misfit(after_pred.mean)
-        fit_after = _fit(ev_b, after_pred, after_loc, cal_b.log_evidence)
-        fit_after["model"] = best["name"]
+        name = dec["missing_physics"] or max(fitted, key=lambda c: c["log_bayes_factor"])["name"]
+        ev_b, cal_b = refits[name]
+        after_pred = preds_after[name]
+        if len(after_pred.draws) > 1:
+            after_loc = localise(ev_b, after_pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
+            fit_after = _fit(ev_b, after_pred, after_loc, next(c["log_evidence"] for c in fitted if c["name"] == name))
+            fit_after["model"] = name
     T["after_s"] = time.perf_counter() - t0
-    fit_before = _fit(evaluator, pred, loc, baseline.log_evidence)
-    dec = decide(cand_out, loc.located, located_after, fit_before["misfit"], misfit_after, th)
-    log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
     cand_out.sort(key=lambda c: -(c["log_bayes_factor"] if c["log_bayes_factor"] is not None else -1e300))
     return Diagnosis(verdict=dec["verdict"], decision=dec, baseline=baseline, predictive=pred, localisation=loc,
                      screening=scr, refits=refits, candidates=cand_out, fit_before=fit_before, fit_after=fit_after,

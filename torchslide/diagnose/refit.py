@@ -22,10 +22,18 @@ def calibrate_evaluator(evaluator, n_initial: int, n_total: int, batch_size: int
                      num_restarts=4, raw_samples=128, mcmc_steps=mcmc_steps, mcmc_chains=mcmc_chains, **kw)
 
 
-def refit(evaluator, candidate: str, n_initial: int, n_total: int, batch_size: int = 8, seed: int = 0,
-          mcmc_steps: int = 1500):
-    """(candidate evaluator, CalibrationResult) of the baseline + ``candidate`` model."""
+def candidate_evaluator(evaluator, candidate: str):
+    """The evaluator of the baseline + ``candidate`` model (enlarged prior, the candidate's fixed values)."""
     cd = CANDIDATES[candidate]
-    ev = evaluator.with_prior(candidate_prior(evaluator.prior, candidate), fixed=dict(cd.fixed))
-    cal = calibrate_evaluator(ev, n_initial, n_total, batch_size=batch_size, seed=seed, mcmc_steps=mcmc_steps)
+    return evaluator.with_prior(candidate_prior(evaluator.prior, candidate), fixed=dict(cd.fixed))
+
+
+def refit(evaluator, candidate: str, n_initial: int, n_total: int, batch_size: int = 8, seed: int = 0,
+          mcmc_steps: int = 1500, checkpoint=None):
+    """(candidate evaluator, CalibrationResult) of the baseline + ``candidate`` model. With a
+    ``checkpoint`` file the refit can later be continued to a larger n_total (calibrate_evaluator on the
+    returned evaluator with the same checkpoint)."""
+    ev = candidate_evaluator(evaluator, candidate)
+    cal = calibrate_evaluator(ev, n_initial, n_total, batch_size=batch_size, seed=seed, mcmc_steps=mcmc_steps,
+                              checkpoint=checkpoint)
     return ev, cal

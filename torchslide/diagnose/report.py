@@ -76,20 +76,20 @@ def write_markdown(j: dict, figures: list[str]) -> str:
          (f" — missing physics: **{j['missing_physics']}**" if j["missing_physics"] else ""), "",
          f"Reason: {j['decision']['reason']}", ""]
     if j["decision"].get("ambiguous"):
-        L += [f"Ambiguous: the lead over {j['decision']['runner_up']} is only "
-              f"{j['decision']['two_ln_bf_over_runner_up']:.1f} (2 ln BF).", ""]
+        L += [f"Ambiguous: competing candidate(s) {', '.join(j['decision'].get('competitors') or [])} "
+              f"(see the reason above); no name is given.", ""]
     L += ["## Where the baseline disagrees with the data", "", "| what | where | standardised residual |", "|---|---|---|"]
     for l in j["located"]:
         L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")
     if not j["located"]:
         L.append("| (nothing located) | | |")
-    L += ["", "## Candidates", "", "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDR |",
+    L += ["", "## Candidates", "", "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDI |",
           "|---|---|---|---|---|---|---|"]
     for c in j["candidates"]:
         p = c["parameters"].get(c["param"], {}) if c["parameters"] else {}
         L.append(f"| {c['name']} | {_fmt(c['screening_score'], '{:.1f}')} | {_fmt(c.get('mimic'), '{:.2f}')} | "
                  f"{_fmt(c['log_evidence'], '{:.2f}')} | {_fmt(c['two_ln_bf'], '{:.1f}')} | {_fmt(p.get('mean'))} | "
-                 f"{[round(v, 5) for v in p['hdr90']] if p else '-'} |")
+                 f"{[round(v, 5) for v in p.get('hdi90', p['hdr90'])] if p else '-'} |")
     fb, fa = j["fit_before"], j["fit_after"]
     L += ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
     if fa:
