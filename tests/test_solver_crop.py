@@ -83,3 +83,17 @@ def test_box_grows_from_the_release_and_stays_inside_the_grid():
 def test_crop_every_validated():
     with pytest.raises(ValueError, match="crop_every"):
         SolverConfig(crop_every=0).validate()
+
+
+def test_max_steps_ends_the_member_while_cropped():
+    """A member over max_steps is marked failed and stops advancing (its state stays at max_steps)."""
+    dem, rel = _channel()
+    p = Params.make(mu=[0.25, 0.3], xi=[800.0, 900.0])
+    runs = [simulate(dem, rel, p, t_end=60.0, config=SolverConfig(crop=c, max_steps=10, check_every=5))
+            for c in (True, False)]
+    for r in runs:
+        assert r.failed.tolist() == [True, True]
+        assert r.steps.tolist() == [10, 10]
+        assert "max_steps" in r.failure_reason[0]
+        assert float(r.t_final[0]) < 60.0
+    _same(*runs)

@@ -267,13 +267,15 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
                     sub, Psub, gsub, gin = _enter(work, box)
             sub = step(sub, Psub)
             sub = _record(sub, out_times, gsub, cfg.h_eps, K, gin)
-        _crop.write_back(work, sub, box, ny, nx, member_keys)
+        # the checks below need only the per-member scalars; rasters go back at compaction / the end
+        work.update({k: v for k, v in sub.items() if k not in _crop.SPATIAL})
         n_iter += cfg.check_every
         act = work["active"]
         over = act & (work["steps"] >= cfg.max_steps)
         if bool(over.any()):
             exceeded[idx[over]] = True
             work["active"] = act & ~over
+            sub["active"] = work["active"]
             act = work["active"]
         n_act = int(act.sum())
         if bar is not None:
@@ -282,8 +284,10 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             bar.set_postfix(active=n_act)
             bar.refresh()
         if n_act == 0:
+            _crop.write_back(work, sub, box, ny, nx, member_keys)
             break
         if cfg.compact and n_act < idx.numel():
+            _crop.write_back(work, sub, box, ny, nx, member_keys)
             for k in member_keys:
                 if work[k] is not full[k] and full[k].numel():  # empty (no gauges): nothing to copy
                     full[k][idx] = work[k]
@@ -291,7 +295,7 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = {k: (v[idx] if k in Pm else v) for k, v in Pm.items()}
             Pw.update(shared)
-        sub, Psub, gsub, gin = _enter(work, box)
+            sub, Psub, gsub, gin = _enter(work, box)
     for k in member_keys:
         if work[k] is not full[k] and full[k].numel():
             full[k][idx] = work[k]
