@@ -79,6 +79,17 @@ def full_run(case, B: int, compile_: bool, crop: bool, dtype: str, device: str, 
             "h_max_max_m": float(r.h_max[0].max()), "v_max_max_ms": float(r.v_max[0].max())}
 
 
+def full_run_speedups(rows: list) -> dict:
+    """{"full_run_speedup_vs_eager_whole_f64": {config-B: per-member speed-up}} against the eager
+    float64 whole-grid row of the same run (empty when that row is missing)."""
+    base = [r for r in rows if not r["compile"] and not r["crop"] and r["dtype"] == "float64"]
+    if not base:
+        return {}
+    return {"full_run_speedup_vs_eager_whole_f64": {
+        f"{'compiled' if r['compile'] else 'eager'}-{r['dtype']}-{'crop' if r['crop'] else 'whole'}-B{r['B']}":
+            base[0]["wall_s_per_member"] / r["wall_s_per_member"] for r in rows}}
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="bench/results/solver.json")
@@ -135,11 +146,7 @@ def main(argv=None) -> None:
         print(json.dumps(row), flush=True)
         res["full_run"].append(row)
         save()
-    base = [r for r in res["full_run"] if not r["compile"] and not r["crop"] and r["dtype"] == "float64"]
-    if base:
-        res["full_run_speedup_vs_eager_whole_f64"] = {
-            f"{'compiled' if r['compile'] else 'eager'}-{r['dtype']}-{'crop' if r['crop'] else 'whole'}":
-                base[0]["wall_s_per_member"] / r["wall_s_per_member"] for r in res["full_run"]}
+    res.update(full_run_speedups(res["full_run"]))
     res["load_average_at_end"] = os.getloadavg()[0]
     save()
     print("wrote", args.out)

@@ -67,16 +67,36 @@ def faces_of(qp: Tensor, d: int, n: int) -> tuple[Tensor, Tensor]:
     return qp.narrow(d, 1, n + 1), qp.narrow(d, 2, n + 1)
 
 
+def bed_terms(z: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Bed-only quantities of a sweep along ``d`` (computed once per step when the bed does not evolve).
+
+    Args:
+        z: (B or 1, ny, nx) bed, m.
+    Returns:
+        zp: bed padded with 2 ghost cells (n + 4 along ``d``); zL, zR: cell beds left / right of the
+        n + 1 faces; Bf: face bed (mean of the two); bias: (z+ - 2 z + z-) / 4 magnitude of the n + 2
+        cells with a neighbour on each side (the bed-curvature offset of the face beds).
+    """
+    n = z.shape[d]
+    zp = pad_linear(z, d)
+    zL, zR = faces_of(zp, d, n)
+    Bf = 0.5 * (zL + zR)
+    zm, zc, zq = zp.narrow(d, 0, n + 2), zp.narrow(d, 1, n + 2), zp.narrow(d, 2, n + 2)
+    bias = torch.abs(zq - 2.0 * zc + zm) * 0.25
+    return zp, zL, zR, Bf, bias
+
+
 def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, rest: Tensor,
           mu_c: Tensor, tau: Tensor, d: int, dx: float, theta: float, h_wet: float, no_creep: bool,
-          wb_ratio: float = 0.25):
+          wb_ratio: float = 0.25, bed=None):
     """Central-upwind fluxes along direction ``d``.
 
     Args:
         h: (B, ny, nx) thickness, m; un, ut: velocity normal / tangential to the faces, m/s.
         z: (B or 1, ny, nx) bed, m. kg: k g_n per cell (pressure coefficient), gn: g_n per cell, m/s^2.
         rest: (B, ny, nx) bool, cell momentum exactly zero. mu_c: Coulomb coefficient per cell;
-        tau: yield stress / density (m^2/s^2), broadcastable.
+        tau: yield stress / density (m^2/s^2), broadcastable. bed: ``bed_terms(z, d)`` when the caller
+        has it (None: computed here).
     Returns:
         Fh, Fqn, Fqt: mass and momentum fluxes (normal, tangential) at the n + 1 faces (per unit width);
         phi: the face pressure potential (a+ h-^2/2 - a- h+^2/2)/(a+ - a-) (times k g_n of the cell it
@@ -85,11 +105,9 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, 
     """
     n = h.shape[d]
     hp = torch.clamp(pad_linear(h, d), min=0.0)
-    zp = pad_linear(z, d)
+    # bed at faces (mean of the two cells; exact for a plane) and its curvature offset
+    zp, zL, zR, Bf, bias = bed if bed is not None else bed_terms(z, d)
     wp = hp + zp
-    # bed at faces (mean of the two cells; exact for a plane)
-    zL, zR = faces_of(zp, d, n)
-    Bf = 0.5 * (zL + zR)
     # surface reconstruction where wet, thickness reconstruction at wet/dry fronts
     wL, wR = reconstruct(wp, d, n, theta)
     hLh, hRh = reconstruct(hp, d, n, theta)
@@ -97,8 +115,6 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, 
     # w-reconstruction only where the layer is thick compared with the bed-curvature bias of the face
     # beds ((z+ - 2 z + z-) / 4): on a curved bed a thin layer would otherwise see face thickness 0 and
     # lose its gravity drive; there h is reconstructed (the face mean then equals the cell's h).
-    zm, zc, zq = zp.narrow(d, 0, n + 2), zp.narrow(d, 1, n + 2), zp.narrow(d, 2, n + 2)
-    bias = torch.abs(zq - 2.0 * zc + zm) * 0.25
     wet = (torch.minimum(torch.minimum(hm, hc), hq) > h_wet) & (bias <= wb_ratio * hc)
     wetL, wetR = wet.narrow(d, 0, n + 1), wet.narrow(d, 1, n + 1)
     hL = torch.where(wetL, torch.clamp(wL - Bf, min=0.0), hLh)
@@ -125,14 +141,17 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, 
         # D-Claw "no failure" rule: both cells at rest and friction holds the driving jump
         restL, restR = faces_of(pad_replicate(rest, d), d, n)
         hcL, hcR = faces_of(hp, d, n)
-        gnp = pad_replicate(gn.expand_as(h) if gn.shape != h.shape else gn, d)
-        gnL, gnR = faces_of(gnp, d, n)
-        mup = pad_replicate(mu_c.expand_as(h) if mu_c.shape != h.shape else mu_c, d)
-        muL, muR = faces_of(mup, d, n)
+        # bed-only (1, ny, nx) and per-member (B, 1, 1) fields are padded without expanding to B
+        gnL, gnR = faces_of(pad_replicate(gn, d), d, n)
+        if mu_c.shape[-1] == 1 and mu_c.shape[-2] == 1:
+            muf = mu_c  # one value per member: the face mean is the value itself
+        else:
+            muL, muR = faces_of(pad_replicate(mu_c, d), d, n)
+            muf = 0.5 * (muL + muR)
         hbf = 0.5 * (hcL + hcR)
         gnf = 0.5 * (gnL + gnR)
         drive = torch.abs(0.5 * (kgL + kgR) * (hcR - hcL) + gnf * (zR - zL)) * hbf
-        hold = dx * (0.5 * (muL + muR) * gnf * hbf + tau)
+        hold = dx * (muf * gnf * hbf + tau)
         frozen = restL & restR & (drive <= hold)
         keep = ~frozen
         Fh = torch.where(keep, Fh, zero)

@@ -14,7 +14,7 @@ from ..terrain.grid import DEM
 from . import crop as _crop
 from .config import SolverConfig
 from .friction import desingularised_velocity
-from .stepping import StepFlags, make_step
+from .stepping import StepFlags, make_step, static_geometry
 
 Tensor = torch.Tensor
 
@@ -52,12 +52,17 @@ def _check_raster(t: Tensor, name: str, shape: tuple[int, int], allow_batch: boo
 
 
 def _get_step(F: StepFlags, compile_: bool):
+    """``advance(S, P, out_times, gidx, gin)``: one time step (stepping.make_step) and its output
+    record (_record), compiled together when ``compile_`` (one compiled call per step)."""
     key = (F, compile_)
     fn = _STEP_CACHE.get(key)
     if fn is None:
-        fn = make_step(F)
-        if compile_:
-            fn = torch.compile(fn, dynamic=True)
+        step = make_step(F)
+
+        def advance(S: dict, P: dict, out_times: Tensor, gidx: Tensor, gin: Tensor) -> dict:
+            return _record(step(S, P), out_times, gidx, F.h_eps, out_times.shape[0], gin)
+
+        fn = torch.compile(advance, dynamic=True) if compile_ else advance
         _STEP_CACHE[key] = fn
     return fn
 
@@ -251,6 +256,8 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
         P_ = dict(Pw)
         if P_.get("mu_scale") is not None and not b.covers(ny, nx):
             P_["mu_scale"] = P_["mu_scale"][:, b.r0:b.r1, b.c0:b.c1].contiguous()
+        if not evolve:  # the bed terms of this box, once (not once per step)
+            P_["geo"] = static_geometry(sub_["z"], F)
         gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
         return sub_, P_, gi_, gin_
 
@@ -265,8 +272,7 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
                     _crop.write_back(work, sub, box, ny, nx, member_keys)
                     box = nbox
                     sub, Psub, gsub, gin = _enter(work, box)
-            sub = step(sub, Psub)
-            sub = _record(sub, out_times, gsub, cfg.h_eps, K, gin)
+            sub = step(sub, Psub, out_times, gsub, gin)
         # the checks below need only the per-member scalars; rasters go back at compaction / the end
         work.update({k: v for k, v in sub.items() if k not in _crop.SPATIAL})
         n_iter += cfg.check_every

@@ -13,7 +13,7 @@ import torch
 
 from ..physics import FR_DEP
 from .friction import apply_friction, curvature_gn, desingularised_velocity, mu_effective
-from .scheme import diff, draining_factors, pad_linear, pad_replicate, sweep
+from .scheme import bed_terms, diff, draining_factors, pad_linear, pad_replicate, sweep
 
 Tensor = torch.Tensor
 
@@ -66,6 +66,13 @@ def _geometry(z: Tensor, F: StepFlags):
     return gn, grad2, hess
 
 
+def static_geometry(z: Tensor, F: StepFlags):
+    """Everything the step needs from a bed that does not evolve: (g_n, |grad z|^2, Hessian or None,
+    (bed_terms along x, bed_terms along y)); computed once per cropping box by the caller and passed
+    in as ``P["geo"]`` (it is the same for every step on that box)."""
+    return (*_geometry(z, F), (bed_terms(z, 2), bed_terms(z, 1)))
+
+
 def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
     """k per cell: (1 - s) k_ap + s k_SH, k_SH active where div(u) >= 0, passive where < 0."""
     if not F.use_ep:
@@ -79,14 +86,16 @@ def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
     return (1.0 - s) * P["k_ap"] + s * ksh
 
 
-def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags):
+def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None):
     """Forward-Euler stage: fluxes + bed source, entrainment / deposition, friction.
 
     With ``dt`` None the time step is chosen here from the CFL condition and ``dt_cap`` (B,).
+    ``geo``: (g_n, |grad z|^2, Hessian, (bed_terms x, bed_terms y)) when the caller already has them
+    (a bed that does not evolve: both stages share them); None computes them from ``z``.
     Returns the new (h, hu, hv, z, erod, dep), the outflow volume of the stage (B,) m^3 and dt (B,).
     """
     dx = F.dx
-    gn, grad2, hess = _geometry(z, F)
+    gn, grad2, hess, beds = geo if geo is not None else (*_geometry(z, F), None)
     u = desingularised_velocity(h, hu, F.h_eps)
     v = desingularised_velocity(h, hv, F.h_eps)
     k = _earth_pressure(u, v, P, F)
@@ -94,8 +103,11 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags):
     rest = (hu == 0) & (hv == 0)
     mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
     tau = P["tau_y"]
-    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, gn, rest, mu_c, tau, 2, dx, F.theta, F.h_wet, F.no_creep, F.wb_ratio)
-    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, gn, rest, mu_c, tau, 1, dx, F.theta, F.h_wet, F.no_creep, F.wb_ratio)
+    bx, by = (beds if beds is not None else (None, None))
+    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, gn, rest, mu_c, tau, 2, dx, F.theta, F.h_wet,
+                                                  F.no_creep, F.wb_ratio, bx)
+    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, gn, rest, mu_c, tau, 1, dx, F.theta, F.h_wet,
+                                                  F.no_creep, F.wb_ratio, by)
     if dt is None:
         dt = torch.minimum(F.cfl * dx / (ax + ay), dt_cap)
         dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
@@ -152,7 +164,8 @@ def make_step(F: StepFlags):
 
     S holds h, hu, hv (B, ny, nx); z (B or 1, ny, nx); erod, dep (B, ny, nx) or placeholders;
     outflow, t, t_next, ke_peak (B,); active (B,) bool; h_max, v_max, arrival (B, ny, nx);
-    steps (B,) int64. P holds the member parameters as (B, 1, 1) tensors.
+    steps (B,) int64. P holds the member parameters as (B, 1, 1) tensors and, optionally, "geo":
+    ``static_geometry(z, F)`` of the (static) bed of S.
     """
 
     def step(S: dict, P: dict) -> dict:
@@ -161,8 +174,14 @@ def make_step(F: StepFlags):
         t, t_next = S["t"], S["t_next"]
         rem = t_next - t
         dt_cap = torch.where(active, torch.clamp(rem, max=F.dt_max), torch.zeros_like(rem))
-        h1, hu1, hv1, z1, e1, d1, o1, dt = _stage(h, hu, hv, z, erod, dep, None, dt_cap, P, F)
-        h2, hu2, hv2, z2, e2, d2, o2, _ = _stage(h1, hu1, hv1, z1, e1, d1, dt, dt_cap, P, F)
+        # a bed that does not evolve (no entrainment / deposition) has one geometry for both stages,
+        # given by the caller as P["geo"] (static_geometry) or else computed here once per step
+        if F.use_ent or F.use_dep:
+            geo = None
+        else:
+            geo = P["geo"] if "geo" in P else static_geometry(z, F)
+        h1, hu1, hv1, z1, e1, d1, o1, dt = _stage(h, hu, hv, z, erod, dep, None, dt_cap, P, F, geo)
+        h2, hu2, hv2, z2, e2, d2, o2, _ = _stage(h1, hu1, hv1, z1, e1, d1, dt, dt_cap, P, F, geo)
         stop = (hu1 == 0) & (hv1 == 0) & (hu2 == 0) & (hv2 == 0)
         zero = torch.zeros_like(hu)
         out = dict(S)
