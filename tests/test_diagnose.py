@@ -309,3 +309,77 @@ def test_cli_diagnose_keys(tmp_path):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
         with pytest.raises(ConfigError, match=msg):
             load_diagnose_config(q)
+
+
+def test_rescore_gauge_window_uses_the_localisation_statistic():
+    """A gauge-window mismatch is re-scored with the statistic that located it (arrival-aligned running
+    mean, max |.| in the window), so the 'before' score equals the located score and is on the scale
+    of located_min; a model that reproduces the bump removes it."""
+    from torchslide.diagnose.evaluator import Block
+    from torchslide.diagnose.localise import localise
+    from torchslide.observe_series import SeriesObservation
+
+    rng = np.random.default_rng(3)
+    t = np.arange(2.0, 92.0, 2.0)
+    shape = 3.0 * np.exp(-((t - 30) / 10) ** 2)
+    bump = 2.5 * np.exp(-((t - 70) / 8) ** 2)
+    data = shape + bump + 0.2 * rng.standard_normal(t.size)
+    o = SeriesObservation("gauge_series", data, 0.5, name="g:h", gauge="g", quantity="h", times=t.copy(),
+                          corr_length=4.0)
+    ev = SimpleNamespace(blocks=[Block("g:h", "gauge_series", 0, t.size, o)], data=data,
+                         sigma=o.sigma_eff(), sigma_raw=o.sigma_vector(), dem=None)
+    before = shape + 0.05 * rng.standard_normal((16, t.size))
+    after = shape + bump + 0.05 * rng.standard_normal((16, t.size))
+    loc = localise(ev, before, n_perm=9)
+    win = [l for l in loc.located if l.get("_stat") == "window"]
+    assert win, loc.located
+    r = rescore(ev, win, before, after)
+    assert abs(r["items"][0]["before"] - win[0]["standardised_residual"]) < 1e-9
+    assert abs(r["items"][0]["after"]) < 3.0 and r["explained"] > 0.8
+
+
+def test_harness_refits_every_library_candidate():
+    from experiments.hidden_physics.harness import HARNESS_BUDGETS, LIBRARY
+    assert HARNESS_BUDGETS["top_k"] >= len(LIBRARY)
+
+
+def test_needs_bound_probe_and_savage_dickey_on_a_zoomed_grid():
+    """The bound probe fires when the switch posterior leans against an upper bound that no
+    posterior-relevant run sampled, not when a good run lies there; Savage-Dickey on a zoomed grid
+    that stops short of switch = 0 gives the floor density (strong evidence for the switch)."""
+    from torchslide.diagnose.verify import needs_bound_probe
+    rng = np.random.default_rng(0)
+    b = np.array([[0.0, 0.0], [1.0, 1.0]])
+    samples = np.column_stack([rng.uniform(0.4, 0.6, 2000), rng.uniform(0.75, 0.95, 2000)])
+    x = np.column_stack([rng.uniform(0, 1, 20), np.r_[rng.uniform(0.0, 0.9, 19), 0.99]])
+    z = -((x[:, 0] - 0.5) ** 2 + (x[:, 1] - 0.85) ** 2) * 100
+    z[-1] = -500.0                       # the run at the bound is far from the posterior (irrelevant)
+    cal = SimpleNamespace(samples=samples, emulator=object(), bounds=b, x=x, z=z, failed=np.zeros(20, bool))
+    assert needs_bound_probe(cal)
+    z2 = z.copy()
+    z2[-1] = z.max()                     # a good run at the bound: nothing to probe
+    assert not needs_bound_probe(SimpleNamespace(**{**cal.__dict__, "z": z2}))
+    far = SimpleNamespace(**{**cal.__dict__, "samples": np.column_stack([samples[:, 0], 0.3 * samples[:, 1]])})
+    assert not needs_bound_probe(far)
+    axes = [np.linspace(0.1, 0.9, 10), np.linspace(0.52, 0.98, 24)]   # zoomed: switch axis starts at 0.51
+    g = SimpleNamespace(names=["mu", "k"], samples=None, grid_axes=axes, posterior_grid=np.ones((10, 24)))
+    sd = savage_dickey(g, "k", (0.0, 1.0))
+    assert sd["at_floor"] and sd["two_ln_bf"] > 20
+
+
+def test_decide_competitor_needs_evidence_variant():
+    """Default rule: a competitor explaining more of the located mismatch blocks the name even without
+    evidence; the (post-hoc) variant requires the competitor to pass the evidence check too."""
+    th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)
+    base = {"ess": 5.0}
+    loc = [{"standardised_residual": 6.0}]
+    a = {"items": [{"before": 6.0, "after": 3.7}], "max_after": 3.7, "explained": 0.61}
+    b = {"items": [{"before": 6.0, "after": 3.6}], "max_after": 3.6, "explained": 0.63}
+    cands = [_cand("earth_pressure", 64.0, located_rescored=a), _cand("mu_i", 8.0, located_rescored=b)]
+    d = decide(cands, loc, base, 100.0, th)
+    assert d["verdict"] == "unexplained" and d["ambiguous"] and d["competitors"] == ["mu_i"]
+    d = decide(cands, loc, base, 100.0, th, competitor_needs_evidence=True)
+    assert d["verdict"] == "missing_physics" and d["missing_physics"] == "earth_pressure"
+    # a supported competitor that explains more still blocks
+    cands[1] = _cand("mu_i", 40.0, located_rescored=b)
+    assert decide(cands, loc, base, 100.0, th, competitor_needs_evidence=True)["ambiguous"]

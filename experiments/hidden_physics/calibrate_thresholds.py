@@ -1,10 +1,12 @@
 """Set the decision thresholds on null data: ``python -m experiments.hidden_physics.calibrate_thresholds [--results DIR]``.
 
 Input: harness results of the *null* scenario on calibration seeds that are NOT the reported ones
-(default: _work/null_calib_v3, made with ``harness --seed-list 100,101,102,103,104 --scenarios null
---out experiments/hidden_physics/_work/null_calib_v3``; v3: re-run after the baseline refinement and the
-stricter acceptance of the beta = 0 slice changed how the baseline evidence is estimated; null_calib and
-null_calib_v2 are earlier versions).
+(default: _work/null_calib_v4, made with ``harness --seed-list 100,101,102,103,104 --scenarios null
+--out experiments/hidden_physics/_work/null_calib_v4``; v4: re-run after all five library candidates
+are refitted (HARNESS_BUDGETS top_k), gauge-window mismatches are re-scored with their own statistic
+and refits leaning against an unsampled switch bound are probed there and refined; v3: after the
+baseline refinement and the stricter acceptance of the beta = 0 slice; null_calib and null_calib_v2
+are earlier versions).
 The recordings there have no hidden term but do have the finer recording grid, noise and the release
 error, so whatever the candidates gain on them is what model discretisation and noise alone buy.
 
@@ -45,7 +47,7 @@ def thresholds_from_null(stats: dict) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--results", default=str(HERE / "_work" / "null_calib_v3"))
+    p.add_argument("--results", default=str(HERE / "_work" / "null_calib_v4"))
     p.add_argument("--out", default=str(HERE / "thresholds.json"))
     a = p.parse_args(argv)
     st = null_statistics(a.results)

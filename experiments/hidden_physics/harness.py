@@ -24,7 +24,7 @@ from .scenarios import SCENARIOS, SWITCH, make_evaluator, make_recording
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
-                       baseline_n_initial=10, baseline_n_total=16, baseline_refine_rounds=3, batch_size=8, top_k=2,
+                       baseline_n_initial=10, baseline_n_total=16, baseline_refine_rounds=3, batch_size=8, top_k=len(LIBRARY),
                        n_perm=49)
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
 

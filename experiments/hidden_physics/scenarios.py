@@ -82,13 +82,19 @@ class Recording:
 
 
 def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: float = 1.0,
-                   map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = 0.3, gauge_corr: float = 4.0, fine_factor: int = 2) -> Recording:
+                   map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = 0.3, gauge_corr: float = 4.0, fine_factor: int = 2,
+                   noise_scale: float = 1.0, base: dict | None = None, volume_factor: float | None = None) -> Recording:
+    """``noise_scale`` multiplies every noise draw (0: noise-free recording; the draws, and so the
+    recordings at 1, are unchanged); ``base`` overrides TRUE_BASE values; ``volume_factor`` overrides
+    the drawn release error (both for experiments/hidden_physics/effect_size.py only)."""
     term, hidden = SCENARIOS[scenario]
     rng = np.random.default_rng(1000 + seed)
     dem_c, erod_c = terrain(cellsize)
     dem_f, erod_f = terrain(cellsize / fine_factor)
     vf = float(rng.uniform(0.9, 1.1))
-    vals = dict(TRUE_BASE)
+    if volume_factor is not None:
+        vf = float(volume_factor)
+    vals = dict(TRUE_BASE, **(base or {}))
     for k, v in hidden.items():
         vals[k] = v * strength if k != "phi_int" else v
     mu_scale = mu_scale_patch(dem_f) if term == "outside" else None
@@ -100,7 +106,7 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     dep = block_average(hf, fine_factor)
     assert dep.shape == dem_c.shape, (dep.shape, dem_c.shape)
     obs = []
-    dep_obs = dep + noise * rng.standard_normal(dep.shape)
+    dep_obs = dep + noise_scale * noise * rng.standard_normal(dep.shape)
     obs.append(SeriesObservation.from_array("deposit_map", dep_obs, dem_c, map_sigma, name="deposit",
                                             corr_length=map_corr))
     t = np.arange(DT_OBS, T_END + 1e-9, DT_OBS)
@@ -110,11 +116,11 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
         for q, s, e in (("h", 0.5, 0.2), ("speed", 2.0, 0.5)):
             y = (g.h if q == "h" else g.speed)
             yv = interp_series(g.t, y, torch.as_tensor(t))[0].numpy()
-            yv = yv + e * rng.standard_normal(yv.shape)
+            yv = yv + noise_scale * e * rng.standard_normal(yv.shape)
             obs.append(SeriesObservation("gauge_series", yv, s, name=f"{g.name}:{q}", gauge=g.name, quantity=q,
                                          times=t.copy(), corr_length=gauge_corr))
     fv = float(res.final_volume[0])
-    obs.append(Observation("final_volume", fv + 0.02 * V_NOMINAL * rng.standard_normal(), 0.1 * V_NOMINAL,
+    obs.append(Observation("final_volume", fv + noise_scale * 0.02 * V_NOMINAL * rng.standard_normal(), 0.1 * V_NOMINAL,
                            name="final_volume"))
     truth = {"term": term, **vals}
     return Recording(scenario, seed, strength, truth, vf, obs, hf)

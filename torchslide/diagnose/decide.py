@@ -90,9 +90,13 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
     return out
 
 
-def decide(candidates: list, located_before: list, baseline: dict, misfit_before: float, th: Thresholds) -> dict:
+def decide(candidates: list, located_before: list, baseline: dict, misfit_before: float, th: Thresholds,
+           competitor_needs_evidence: bool = False) -> dict:
     """candidates: refitted candidates with the verify statistics (see pipeline); baseline: the baseline's
-    verified-evidence dict. Returns {verdict, missing_physics, ambiguous, reason, checks, ...}."""
+    verified-evidence dict. Returns {verdict, missing_physics, ambiguous, reason, checks, ...}.
+    ``competitor_needs_evidence`` (default False = the rule in the module doc): a candidate that explains
+    more of the located mismatch blocks the name only when it also passes ``evidence`` (a post-hoc
+    variant, see experiments/hidden_physics/make_page.py)."""
     scored = sorted([c for c in candidates if c.get("log_bayes_factor") is not None
                      and np.isfinite(c["log_bayes_factor"])], key=lambda c: -c["log_bayes_factor"])
     sig_before = significant(located_before, th)
@@ -116,7 +120,8 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
             close = [c["name"] for c in scored[1:] if all(out["checks"][c["name"]].values())
                      and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
-                      and _explained(c) > ex_best]
+                      and _explained(c) > ex_best
+                      and (out["checks"][c["name"]]["evidence"] or not competitor_needs_evidence)]
             if close or better:
                 why = []
                 if close:

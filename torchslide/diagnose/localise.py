@@ -140,6 +140,19 @@ def arrival_shift(t: np.ndarray, d: np.ndarray, y: np.ndarray, max_shift: float 
     return tau
 
 
+def aligned_running_score(t, d, mean, var, sigma, w: int, f: float):
+    """Gauge-series statistic of the localisation: the arrival shift tau aligning the predictive mean
+    with the data, the aligned standardised residuals za, and their running mean over ``w`` samples
+    times sqrt(w / f) (the window score). Returns (tau, za, run)."""
+    t = np.asarray(t, float)
+    tau = arrival_shift(t, d, mean)
+    ys = np.interp(t - tau, t, mean)
+    vs = np.interp(t - tau, t, var)
+    za = (d - ys) / np.sqrt(vs + np.asarray(sigma, float) ** 2)
+    run = np.convolve(za, np.ones(w) / w, mode="same") * math.sqrt(w / f)
+    return tau, za, run
+
+
 @dataclass
 class Localisation:
     """Per-value z, per-block summaries, and the list of located mismatches."""
@@ -204,13 +217,9 @@ def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_thres
         else:
             t = np.asarray(o.times, float)
             d = evaluator.data[b.slice]
-            tau = arrival_shift(t, d, mean[b.slice])
-            ys = np.interp(t - tau, t, mean[b.slice])
-            vs = np.interp(t - tau, t, var[b.slice])
-            za = (d - ys) / np.sqrt(vs + o.sigma_vector() ** 2)
             dt = float(np.median(np.diff(t)))
             w = max(3, int(round(2 * (o.corr_length or 0.0) / dt)) + 1)
-            run = np.convolve(za, np.ones(w) / w, mode="same") * math.sqrt(w / f)
+            tau, za, run = aligned_running_score(t, d, mean[b.slice], var[b.slice], o.sigma_vector(), w, f)
             sig = np.abs(run) >= z_threshold
             windows = []
             lab, n = ndimage.label(sig)
@@ -237,7 +246,8 @@ def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_thres
                                   "where": {"gauge": o.gauge, "quantity": o.quantity, "t0": wdw["t0"], "t1": wdw["t1"]},
                                   "standardised_residual": wdw["score"],
                                   "_idx": [b.start + i for i in range(len(t)) if wdw["t0"] <= t[i] <= wdw["t1"]],
-                                  "_f": f, "_stat": "sum"})
+                                  "_f": f, "_stat": "window", "_block": [b.start, b.stop], "_t": t.tolist(),
+                                  "_w": w, "_window": [wdw["t0"], wdw["t1"]]})
         if abs(Zb) >= block_threshold and Zb > 0:
             info["flagged"] = True
         L.blocks[b.name] = info

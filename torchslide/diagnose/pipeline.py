@@ -6,7 +6,10 @@ trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batc
 of the top_k candidates -> for every refit: posterior-predictive runs, verified evidence
 (torchslide.diagnose.verify), Savage-Dickey (boundary-corrected KDE at switch 0), WAIC, the located
 mismatches re-scored, 90 % HDIs; a refit whose verified evidence is not yet trustworthy is continued
-to ``n_total_max`` runs -> verdict (torchslide.diagnose.decide).
+to ``n_total_max`` runs; a refit whose posterior leans against an unsampled upper bound of its switch
+is instead probed at the bound and refined (verify.needs_bound_probe / refine_refit) -> baseline
+evidence cross-checked on the beta = 0 slices of the ``slice_top`` best refits -> verdict
+(torchslide.diagnose.decide).
 """
 from __future__ import annotations
 
@@ -23,8 +26,9 @@ from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
-from .verify import (hdi_from_grid, hdi_interval, refine_baseline, rescore, savage_dickey, slice_proposal,
-                     verified_evidence, waic)
+from .verify import (hdi_from_grid, hdi_interval, needs_bound_probe, refine_baseline, refine_refit, rescore,
+                     savage_dickey,
+                     slice_proposal, verified_evidence, waic)
 from .screen import ScreenResult, screen
 
 
@@ -35,6 +39,12 @@ class Budgets:
     n_initial: int = 16                # refit LHS runs
     n_total: int = 32                  # refit total runs (first stage)
     n_total_max: int = 48              # a refit whose verified evidence is not trustworthy is continued to this
+                                       # (only when refit_refine_rounds = 0)
+    refit_refine_rounds: int = 2       # refits whose posterior leans against an unsampled switch bound
+                                       # (verify.needs_bound_probe): verify.refine_refit rounds (M =
+                                       # n_posterior_samples_after runs each) instead of the continuation to
+                                       # n_total_max; 0: never
+    refit_grid: tuple = (48, 40)       # ... its zoomed grid posterior, points per axis (coarse, fine)
     baseline_n_initial: int = 12
     baseline_n_total: int = 24
     baseline_n_total_max: int = 32     # (not used since the baseline refinement; kept for old configs)
@@ -43,7 +53,8 @@ class Budgets:
     baseline_tv_tol: float = 0.15      # ... stop when the zoomed posterior moves by less (or log Z is stable)
     verify_ess_fraction: float = 0.3   # "trustworthy": importance ESS >= this fraction of the draws ...
     verify_se: float = 1.0             # ... and bootstrap se of the verified log Z <= this
-    slice_check: bool = True           # baseline evidence also from the beta = 0 slice of each refit
+    slice_check: bool = True           # baseline evidence also from the beta = 0 slice of refits ...
+    slice_top: int = 2                 # ... of this many, those with the largest verified evidence
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -208,6 +219,20 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
         ck = workdir / f"refit_{c}.pt"
         ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
                             mcmc_steps=bud.mcmc_steps, checkpoint=ck)
+        if bud.refit_refine_rounds > 0 and needs_bound_probe(cal_c):
+            # the MCMC posterior leans against the switch's upper bound where no relevant run was made:
+            # probe the bound, zoomed grid posterior, emulator refitted locally with the verification runs
+            # (verify.refine_refit): a 24-run GP's posterior can exclude a bound it never sampled
+            cal_c, p_c, ver = refine_refit(ev_c, cal_c, Ma, seed=bud.seed + 1, max_rounds=bud.refit_refine_rounds,
+                                           grid=tuple(bud.refit_grid), ess_fraction=bud.verify_ess_fraction,
+                                           se_max=bud.verify_se, tv_tol=bud.baseline_tv_tol, log=log)
+            history = [{"n_runs": h["n_runs"], "log_evidence": h["log_evidence"],
+                        "log_evidence_emulator": h["log_evidence_grid"], "ess": h["ess"], "se": h["se"],
+                        "trusted": h["trusted"], "kept": h.get("kept", False)} for h in ver["rounds"]]
+            refits[c] = (ev_c, cal_c)
+            preds_after[c] = p_c
+            raw[c] = (ver, history)
+            continue
         p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 1))
         ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
         history = [{"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
@@ -228,7 +253,11 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     # a refit that finds a better (mu, xi) must not be credited to its switch)
     base_source = "baseline calibration"
     if bud.slice_check and refits:
-        for c, (ev_c, cal_c) in refits.items():
+        # the slices of the slice_top refits with the largest verified evidence (they explored the
+        # (mu, xi) peak near beta = 0 best; the others' slices cost M runs each for little)
+        order = sorted(refits, key=lambda c: -raw[c][0]["log_evidence"])[: max(1, bud.slice_top)]
+        for c in order:
+            ev_c, cal_c = refits[c]
             sl = slice_proposal(cal_c, evaluator.prior.bounds.numpy())
             p_s = posterior_predictive(evaluator, posterior_samples(sl, M, seed=bud.seed + 3))
             v_s = verified_evidence(evaluator, sl, p_s.x, p_s.draws, seed=bud.seed)

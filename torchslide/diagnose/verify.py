@@ -39,7 +39,7 @@ import math
 import numpy as np
 import torch
 
-from .localise import arrival_shift, standardised
+from .localise import aligned_running_score, arrival_shift, standardised
 
 
 def logmeanexp(a: np.ndarray) -> float:
@@ -174,19 +174,39 @@ def savage_dickey(cal, param: str, prior_range) -> dict:
         m = marginals(np.asarray(cal.posterior_grid, float), cal.grid_axes)[i]
         bw = float(ax[1] - ax[0]) if len(ax) > 1 else width
         floor = 1e-6 / width
-        dens0 = max(float(m[0]), floor)
-        mass = float(m[0] * bw)
+        if ax[0] - 0.5 * bw > lo + 1e-9 * width:
+            # zoomed grid (refine_refit) that stops short of switch = 0: the mass there is below the
+            # zoom's cut (exp(-25) of the peak), i.e. at the floor
+            dens0, mass = floor, 0.0
+        else:
+            dens0 = max(float(m[0]), floor)
+            mass = float(m[0] * bw)
     two_ln = 2 * (math.log(1.0 / width) - math.log(dens0))
     return {"two_ln_bf": two_ln, "posterior_density_at_0": dens0, "prior_density": 1.0 / width,
             "bandwidth": bw, "at_floor": bool(dens0 <= floor), "posterior_mass_near_zero": mass}
 
 
 def located_statistic(evaluator, mean: np.ndarray, var: np.ndarray, item: dict) -> float:
-    """The score of one located mismatch recomputed from predictive moments (see localise: '_idx', '_f',
-    '_stat'): 'sum' = sum z / sqrt(n f) over the item's values (scalar, map cluster, gauge window);
-    'shift' = the arrival-time shift score (misfit reduction from re-aligning the series)."""
+    """The score of one located mismatch recomputed from predictive moments with the statistic that
+    located it (see localise: '_idx', '_f', '_stat'): 'sum' = sum z / sqrt(n f) over the item's values
+    (scalar, map cluster); 'window' = a gauge time window: the largest |running-mean score| of the
+    arrival-aligned series inside the window [t0, t1] (localise.aligned_running_score, alignment
+    re-estimated for the new predictive mean), signed; 'shift' = the arrival-time shift score (misfit
+    reduction from re-aligning the series)."""
     idx = np.asarray(item["_idx"], int)
     f = max(float(item.get("_f", 1.0)), 1.0)
+    if item.get("_stat") == "window":
+        b0, b1 = item["_block"]
+        sl = slice(int(b0), int(b1))
+        t = np.asarray(item["_t"], float)
+        _, _, run = aligned_running_score(t, evaluator.data[sl], mean[sl], var[sl], evaluator.sigma_raw[sl],
+                                          int(item["_w"]), float(item.get("_f", 1.0)))
+        t0, t1 = item["_window"]
+        inside = (t >= t0) & (t <= t1)
+        if not inside.any():
+            return 0.0
+        r = run[inside]
+        return float(r[np.argmax(np.abs(r))])
     z = standardised(evaluator, mean, var)[idx]
     n = idx.size
     if item.get("_stat") == "shift":
@@ -274,7 +294,8 @@ def _tv_on(prop_new, log_fn_old) -> float:
     return tv_distance(prop_new.posterior_grid, old, cell_volume(prop_new.grid_axes))
 
 
-def _local_proposal(X, Z, bounds, local_range: float = 100.0, min_points: int = 8):
+def _local_proposal(X, Z, bounds, local_range: float = 100.0, min_points: int = 8, coarse: int = 160,
+                    fine: int = 120):
     """Zoomed grid proposal of a GP fitted to the runs with z >= max z - local_range on their bounding
     box (padded by 15 % of its width per side, clipped to ``bounds``); all runs / the whole box when
     fewer than ``min_points`` are local."""
@@ -284,17 +305,17 @@ def _local_proposal(X, Z, bounds, local_range: float = 100.0, min_points: int = 
     sel = Z >= Z.max() - local_range
     if int(sel.sum()) < min_points:
         em = LogPosteriorEmulator(torch.as_tensor(b)).fit(torch.as_tensor(X), torch.as_tensor(Z))
-        return zoom_proposal(em.mean, b)
+        return zoom_proposal(em.mean, b, coarse=coarse, fine=fine)
     lo, hi = X[sel].min(0), X[sel].max(0)
     pad = 0.15 * np.maximum(hi - lo, 1e-3 * (b[1] - b[0]))
     lb = np.vstack([np.maximum(b[0], lo - pad), np.minimum(b[1], hi + pad)])
     em = LogPosteriorEmulator(torch.as_tensor(lb)).fit(torch.as_tensor(X[sel]), torch.as_tensor(Z[sel]))
-    return zoom_proposal(em.mean, lb)
+    return zoom_proposal(em.mean, lb, coarse=coarse, fine=fine)
 
 
 def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, tv_tol: float = 0.15,
                     ess_fraction: float = 0.3, se_max: float = 1.0, agree: float = 1.0, local_range: float = 100.0,
-                    log=print):
+                    log=print, coarse: int = 160, fine: int = 120, label: str = "baseline"):
     """Make the baseline's verified evidence reliable (see the module doc). Each round: draw M from the
     zoomed grid posterior of the current emulator, run the solver there, verify. Stop when the verified
     evidence is trustworthy (ESS >= ``ess_fraction`` M, bootstrap se <= ``se_max``) and stable: round 0,
@@ -309,7 +330,7 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
     b = _bounds_of(cal)
     ok = ~np.asarray(cal.failed, bool) & np.isfinite(cal.z)
     X, Z = np.asarray(cal.x, float)[ok], np.asarray(cal.z, float)[ok]
-    prop = zoom_proposal(cal.emulator.mean, b)
+    prop = zoom_proposal(cal.emulator.mean, b, coarse=coarse, fine=fine)
     tv = None
     hist, rounds = [], []
     prev = None
@@ -322,7 +343,7 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
                      "log_evidence_grid": prop.log_evidence, "ess": ver["ess"], "se": ver["se"], "tv": tv,
                      "trusted": trusted, "zoom_box": prop.bounds.tolist()})
         rounds.append((prop, pred, ver))
-        log(f"[diagnose] baseline round {r}: log Z {ver['log_evidence']:.2f} (grid {prop.log_evidence:.2f}), "
+        log(f"[diagnose] {label} round {r}: log Z {ver['log_evidence']:.2f} (grid {prop.log_evidence:.2f}), "
             f"ESS {ver['ess']:.1f}/{ver['n_draws']}, se {ver['se']:.2f}, TV {tv if tv is None else round(tv, 3)}")
         stable = r == 0 or (tv is not None and tv < tv_tol) or (
             prev is not None and prev.get("verified") and
@@ -334,7 +355,7 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
              evaluator.prior.log_prob(torch.as_tensor(pred.x))).numpy()
         good = np.isfinite(z)
         X, Z = np.vstack([X, pred.x[good]]), np.concatenate([Z, z[good]])
-        new = _local_proposal(X, Z, b, local_range)
+        new = _local_proposal(X, Z, b, local_range, coarse=coarse, fine=fine)
         tv = _tv_on(new, prop.log_fn)
         prop = new
     if not hist[-1]["trusted"]:
@@ -344,4 +365,90 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
     else:
         hist[-1]["kept"] = True
     n_total = int(len(X) + len(rounds[-1][1].x))
+    prop.runs = (X, Z)  # the calibration's runs + the verification runs of every round but the last
     return prop, pred, dict(ver, rounds=hist, n_runs_total=n_total), hist
+
+
+def needs_bound_probe(cal_c, near: float = 0.2, gap: float = 0.05, relevant: float = 10.0) -> bool:
+    """True when the refit's MCMC posterior leans against the switch's (last parameter's) upper bound
+    where no posterior-relevant run was made: the 95 % quantile of the switch draws is within ``near``
+    x prior width of the bound, and none of the runs with z >= max z - ``relevant`` has the switch
+    within ``gap`` x width of it (a run at the bound far from the posterior's mu, xi says nothing
+    about the posterior there). The emulator's value at such a bound is an extrapolation."""
+    draws = getattr(cal_c, "samples", None)
+    if draws is None or not len(draws) or cal_c.emulator is None:
+        return False
+    b = _bounds_of(cal_c)
+    lo, hi = b[0, -1], b[1, -1]
+    ok = ~np.asarray(cal_c.failed, bool) & np.isfinite(cal_c.z)
+    X, Z = np.asarray(cal_c.x, float)[ok], np.asarray(cal_c.z, float)[ok]
+    if not len(X):
+        return False
+    rel = X[Z >= Z.max() - relevant]
+    return bool(np.quantile(np.asarray(draws, float)[:, -1], 0.95) > hi - near * (hi - lo)
+                and rel[:, -1].max() < hi - gap * (hi - lo))
+
+
+def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: tuple = (48, 40), log=print,
+                 n_probe: int = 4, near: float = 0.2, gap: float = 0.05, relevant: float = 10.0, **kw):
+    """The refit's (p = 3) posterior refined like the baseline's (refine_baseline): the emulator's MCMC
+    posterior can be confidently wrong where the active learning left no runs, e.g. against a prior
+    bound of the switch (a 24-run GP in 3-D under-predicted z by ~7 at switch = 1 on an earth-pressure
+    recording and its 90 % interval excluded the truth). Here the proposal is a zoomed *grid*
+    posterior of the emulator (``grid`` = (coarse, fine) points per axis), its M draws are run,
+    verified, and the emulator is refitted locally with those runs until the verified evidence is
+    trustworthy and stable. Bound probe: when the MCMC posterior's 95 % quantile of the switch (the
+    last parameter) is within ``near`` x prior width of its upper bound and no posterior-relevant run
+    lies within ``gap`` x width of it, ``n_probe`` runs are made first at posterior draws with the switch set to the bound
+    and the emulator is refitted locally with them (the GP's value at an unsampled bound is an
+    extrapolation; needs_bound_probe). The pipeline calls this only where that is the case.
+    Returns (result, predictive, verification dict): ``result`` is a
+    CalibrationResult-like namespace (grid posterior on the zoomed box, the summary / HDIs from it,
+    every run in x / z, the original global emulator kept for the beta = 0 slice check)."""
+    from types import SimpleNamespace
+
+    from ..posterior import summarise_grid
+
+    start = cal_c
+    b = _bounds_of(cal_c)
+    lo, hi = b[0, -1], b[1, -1]
+    ok = ~np.asarray(cal_c.failed, bool) & np.isfinite(cal_c.z)
+    X0, Z0 = np.asarray(cal_c.x, float)[ok], np.asarray(cal_c.z, float)[ok]
+    draws = np.asarray(cal_c.samples, float) if getattr(cal_c, "samples", None) is not None else None
+    probes = 0
+    if n_probe > 0 and needs_bound_probe(cal_c, near=near, gap=gap, relevant=relevant):
+        # the posterior leans against the switch's upper bound where no run was made: the GP's value
+        # there is an extrapolation. Probe the face: posterior draws with the switch set to the bound.
+        rng = np.random.default_rng(seed + 7)
+        xp = draws[rng.choice(len(draws), size=n_probe, replace=False)].copy()
+        xp[:, -1] = hi
+        from .predictive import posterior_predictive
+        pp = posterior_predictive(ev_c, xp)
+        zp = (ev_c.likelihood.log_likelihood(torch.as_tensor(pp.draws)) +
+              ev_c.prior.log_prob(torch.as_tensor(pp.x))).numpy() if len(pp.x) else np.zeros(0)
+        good = np.isfinite(zp)
+        probes = int(good.sum())
+        if probes:
+            X0, Z0 = np.vstack([X0, pp.x[good]]), np.concatenate([Z0, zp[good]])
+            p0 = _local_proposal(X0, Z0, b, coarse=grid[0], fine=grid[1])
+            start = SimpleNamespace(x=X0, z=Z0, failed=np.zeros(len(X0), bool), bounds=b,
+                                    emulator=SimpleNamespace(mean=p0.log_fn))
+        log(f"[diagnose] refit: posterior against the unsampled upper bound of {cal_c.names[-1]}: "
+            f"{probes} probe run(s) there, emulator refitted")
+    prop, pred, ver, hist = refine_baseline(ev_c, start, M, seed=seed, max_rounds=max_rounds, log=log,
+                                            coarse=grid[0], fine=grid[1], label="refit", **kw)
+    hist[0]["bound_probes"] = probes
+    X, Z = prop.runs
+    # the kept round's draws are runs too (the last round's draws were not added to X in the loop)
+    z_last = (ev_c.likelihood.log_likelihood(torch.as_tensor(pred.draws)) +
+              ev_c.prior.log_prob(torch.as_tensor(pred.x))).numpy() if len(pred.x) else np.zeros(0)
+    new = ~np.any(np.all(np.isclose(pred.x[:, None, :], X[None, :, :]), axis=2), axis=1) if len(pred.x) else []
+    if len(pred.x):
+        X, Z = np.vstack([X, pred.x[new]]), np.concatenate([Z, z_last[new]])
+    summ = summarise_grid(prop.posterior_grid, prop.grid_axes, list(cal_c.names), prop.log_evidence).to_dict()
+    res = SimpleNamespace(names=list(cal_c.names), bounds=np.asarray(cal_c.bounds, float), samples=None,
+                          posterior_grid=prop.posterior_grid, grid_axes=prop.grid_axes, zoom_bounds=prop.bounds,
+                          log_evidence=float(prop.log_evidence), summary=summ, emulator=cal_c.emulator,
+                          x=X, z=Z, failed=np.zeros(len(X), bool), n_runs=int(len(X)),
+                          log_evidence_global_emulator=float(cal_c.log_evidence), refine_history=hist)
+    return res, pred, ver

@@ -62,9 +62,27 @@ def _get_step(F: StepFlags, compile_: bool):
         def advance(S: dict, P: dict, out_times: Tensor, gidx: Tensor, gin: Tensor) -> dict:
             return _record(step(S, P), out_times, gidx, F.h_eps, out_times.shape[0], gin)
 
-        fn = torch.compile(advance, dynamic=True) if compile_ else advance
+        fn = _with_recompile_limit(torch.compile(advance, dynamic=True)) if compile_ else advance
         _STEP_CACHE[key] = fn
     return fn
+
+
+# torch.compile keeps one cache per code object: every solver configuration (StepFlags: terms,
+# stop rule) and batch size 1 vs > 1 is a separate entry of the same ``advance``; a process that runs
+# several configurations would pass dynamo's default limit of 8 and silently fall back to eager.
+_RECOMPILE_LIMIT = 64
+
+
+def _with_recompile_limit(compiled):
+    import torch._dynamo as dynamo
+
+    name = "recompile_limit" if hasattr(dynamo.config, "recompile_limit") else "cache_size_limit"
+
+    def call(*args):
+        with dynamo.config.patch(**{name: max(_RECOMPILE_LIMIT, getattr(dynamo.config, name))}):
+            return compiled(*args)
+
+    return call
 
 
 def _record(S: dict, out_times: Tensor, gidx: Tensor, h_eps: float, K: int, gin: Tensor | None = None) -> dict:
