@@ -128,3 +128,21 @@ def test_members_ending_early_without_gauges():
     assert torch.allclose(r.h_final[0], torch.as_tensor(rel, dtype=r.h_final.dtype), atol=1e-12)
     alone = simulate(dem, rel, Params.make(mu=0.3, xi=800.0), t_end=30.0, config=SolverConfig(output_interval=5.0, check_every=5))
     assert torch.equal(r.h_final[1], alone.h_final[0])
+
+
+def test_compiled_step_runs_under_a_raised_recompile_limit():
+    """The compiled step is called with dynamo's recompile limit raised to _RECOMPILE_LIMIT (every
+    solver configuration and batch size 1 vs > 1 takes one slot of the same code object; at the
+    default 8 a process running several configurations silently falls back to eager), and the
+    user's setting is restored after the call."""
+    import torch._dynamo as dynamo
+
+    from torchslide.solver.simulate import _RECOMPILE_LIMIT, _with_recompile_limit
+
+    name = "recompile_limit" if hasattr(dynamo.config, "recompile_limit") else "cache_size_limit"
+    before = getattr(dynamo.config, name)
+    seen = []
+    wrapped = _with_recompile_limit(lambda *a: seen.append(getattr(dynamo.config, name)) or a)
+    assert wrapped(1, 2) == (1, 2)
+    assert seen == [max(_RECOMPILE_LIMIT, before)] and seen[0] > 8
+    assert getattr(dynamo.config, name) == before
