@@ -1,8 +1,10 @@
 """Set the decision thresholds on null data: ``python -m experiments.hidden_physics.calibrate_thresholds [--results DIR]``.
 
 Input: harness results of the *null* scenario on calibration seeds that are NOT the reported ones
-(default: _work/null_calib_v4, made with ``harness --seed-list 100,101,102,103,104 --scenarios null
---out experiments/hidden_physics/_work/null_calib_v4``; v4: re-run after all five library candidates
+(default: _work/null_calib_v6, made with ``harness --seed-list 100,101,102,103,104 --scenarios null
+--out experiments/hidden_physics/_work/null_calib_v6``; v6: re-run after refits with untrustworthy
+evidence are refined with a local emulator (up to 4 rounds, until trustworthy and stable) instead of
+continued; v4: re-run after all five library candidates
 are refitted (HARNESS_BUDGETS top_k), gauge-window mismatches are re-scored with their own statistic
 and refits leaning against an unsampled switch bound are probed there and refined; v3: after the
 baseline refinement and the stricter acceptance of the beta = 0 slice; null_calib and null_calib_v2
@@ -17,6 +19,13 @@ Rule (fixed before looking at any hidden-term result):
 * waic_min = 6, margin_min = 6, explain_min = 0.5, ess_min = 2, z_threshold = 3 (fixed a priori)
 
 Writes experiments/hidden_physics/thresholds.json (read by the harness).
+
+``--apply DIR``: afterwards, re-decide every saved harness case in DIR with the new thresholds
+(torchslide.diagnose.decide on the case's saved statistics; the verdict is a pure function of them
+and the thresholds, so this equals re-running with the thresholds). The case keeps the decision it
+was run with under ``decision_as_run``. This lets the evaluation seeds run at the same time as the
+null calibration seeds (their statistics do not depend on the thresholds); nothing from the
+evaluation seeds enters the thresholds.
 """
 from __future__ import annotations
 
@@ -45,10 +54,35 @@ def thresholds_from_null(stats: dict) -> dict:
             "waic_min": 6.0, "margin_min": 6.0, "explain_min": 0.5, "ess_min": 2.0, "z_threshold": 3.0}
 
 
+def apply_thresholds(results, th: dict) -> int:
+    """Re-decide the saved cases in ``results`` with thresholds ``th`` (see the module doc); returns the
+    number of cases whose verdict or named term changed."""
+    from torchslide.diagnose.decide import Thresholds, decide
+
+    changed = 0
+    for p in sorted(Path(results).glob("*.json")):
+        case = json.loads(p.read_text())
+        j = case["diagnosis"]
+        if j["thresholds"] == th:
+            continue
+        cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
+        d = decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
+                   Thresholds(**th))
+        d["baseline_verification"] = j["decision"].get("baseline_verification")
+        d["elpd_waic_baseline"] = j["decision"].get("elpd_waic_baseline")
+        changed += (d["verdict"], d["missing_physics"]) != (j["verdict"], j["missing_physics"])
+        j.setdefault("decision_as_run", {"verdict": j["verdict"], "missing_physics": j["missing_physics"],
+                                         "thresholds": j["thresholds"], "reason": j["decision"].get("reason")})
+        j.update(verdict=d["verdict"], missing_physics=d["missing_physics"], decision=d, thresholds=dict(th))
+        p.write_text(json.dumps(case, indent=1))
+    return changed
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--results", default=str(HERE / "_work" / "null_calib_v4"))
+    p.add_argument("--results", default=str(HERE / "_work" / "null_calib_v6"))
     p.add_argument("--out", default=str(HERE / "thresholds.json"))
+    p.add_argument("--apply", default=None, help="harness results folder to re-decide with the new thresholds")
     a = p.parse_args(argv)
     st = null_statistics(a.results)
     if not st["cases"]:
@@ -57,6 +91,9 @@ def main(argv=None) -> int:
     Path(a.out).write_text(json.dumps({"rule": __doc__.split("Rule")[1].split("Writes")[0].strip(),
                                        "null_cases": st["cases"], "thresholds": th}, indent=1))
     print(json.dumps(th))
+    if a.apply:
+        n = apply_thresholds(a.apply, th)
+        print(f"re-decided the cases in {a.apply} with these thresholds: {n} verdict(s) changed")
     return 0
 
 

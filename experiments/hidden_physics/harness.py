@@ -1,4 +1,5 @@
-"""Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]``.
+"""Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
+[--model-error N] [--thresholds FILE]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
@@ -83,7 +84,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed-list", default=None, help="comma-separated seeds (overrides --seeds)")
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
     p.add_argument("--strengths", default="1")
+    p.add_argument("--model-error", type=int, default=0,
+                   help="Budgets.model_error_runs: the grid's approximation error from this many run pairs (0: off)")
+    p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
     a = p.parse_args(argv)
+    th_file = Path(a.thresholds)
+    th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
+    bud = {"model_error_runs": a.model_error} if a.model_error else None
     out = Path(a.out)
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
     for seed in seeds:
@@ -93,7 +100,8 @@ def main(argv=None) -> int:
                 if (out / f"{tag}.json").exists():
                     continue
                 print(f"=== {tag}", flush=True)
-                c = run_case(sc, seed, out, strength=strength, log=lambda s: print(s, flush=True))
+                c = run_case(sc, seed, out, strength=strength, budgets=bud, thresholds=th,
+                             log=lambda s: print(s, flush=True))
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
                       f"({c['wall_s']:.0f} s)", flush=True)
     return 0

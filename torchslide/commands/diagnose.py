@@ -23,7 +23,12 @@ and a [diagnose] section::
     n_initial = 16               # refit budgets: LHS runs, first-stage total ...
     n_total = 32
     n_total_max = 48             # ... and the total a refit with untrustworthy evidence is continued to
+                                 #     when refit_refine_rounds = 0
+    refit_refine_rounds = 4      # rounds (at most) refining a refit with untrustworthy evidence (local emulator, zoomed
+                                 #     grid posterior) or leaning against an unsampled switch bound; 0: never
     baseline_refine_rounds = 3   # rounds refining the baseline's verified evidence
+    model_error_runs = 0         # > 0: the grid's approximation error (runs on cells model_error_factor times
+    model_error_factor = 2       #     smaller at this many pilot posterior draws) enters every likelihood
     top_k = 2                    # candidates refitted
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
@@ -56,7 +61,8 @@ from .calibrate import check_unique_names, parse_calibration, parse_prior
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
-             "baseline_refine_rounds", "top_k", "batch_size", "n_perm")
+             "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor", "top_k",
+             "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
 _DIAG_KEYS = {"candidates", "seed", *_INT_KEYS, *_THRESHOLD_KEYS}
 
@@ -139,13 +145,17 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     if bad:
         raise ConfigError(f"{path}: [diagnose] unknown candidate(s) {bad} (known: {', '.join(CANDIDATES)})")
     for k in _INT_KEYS:
-        low = 0 if k == "baseline_refine_rounds" else 1
+        low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0,
+               "model_error_factor": 2}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
         raise ConfigError(f"{path}: [diagnose] seed must be an integer, got {c['seed']!r}")
     if c["n_total"] < c["n_initial"]:
         raise ConfigError(f"{path}: [diagnose] n_total ({c['n_total']}) must be >= n_initial ({c['n_initial']})")
+    if c["model_error_runs"] == 1:
+        raise ConfigError(f"{path}: [diagnose] model_error_runs must be 0 (off) or >= 2 (a covariance needs two "
+                          f"run pairs), got 1")
     if c["n_total_max"] < c["n_total"]:
         raise ConfigError(f"{path}: [diagnose] n_total_max ({c['n_total_max']}) must be >= n_total ({c['n_total']})")
     for k in _THRESHOLD_KEYS:
@@ -214,7 +224,9 @@ def run(args: argparse.Namespace) -> int:
     bud = Budgets(n_posterior_samples=dg["n_posterior_samples"], n_posterior_samples_after=dg["n_posterior_samples_after"],
                   n_initial=dg["n_initial"], n_total=dg["n_total"], n_total_max=dg["n_total_max"],
                   baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
-                  baseline_refine_rounds=dg["baseline_refine_rounds"], batch_size=dg["batch_size"], top_k=dg["top_k"],
+                  baseline_refine_rounds=dg["baseline_refine_rounds"],
+                  refit_refine_rounds=dg["refit_refine_rounds"], model_error_runs=dg["model_error_runs"],
+                  model_error_factor=dg["model_error_factor"], batch_size=dg["batch_size"], top_k=dg["top_k"],
                   n_perm=dg["n_perm"], seed=dg["seed"])
     th = Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
     out = Path(args.out)

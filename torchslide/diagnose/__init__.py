@@ -1,6 +1,8 @@
 """Missing-physics diagnosis (see /work/shared/DIAGNOSIS.md): one idea per module.
 
 * evaluator: DiagnosisEvaluator (scalar + vector observations, flattened likelihood)
+* model_error: the grid's approximation error (runs on finer cells) as a model-error term of the
+  likelihood (optional, Budgets.model_error_runs)
 * predictive: posterior samples and posterior-predictive runs
 * localise: standardised residuals, p-values, Getis-Ord map clusters (permutation + BH FDR), gauge windows
 * screen: one-batch finite-difference screening with the baseline directions projected out

@@ -12,6 +12,7 @@ Change proposed upstream (not made here): LandslideEvaluator could accept observ
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -47,7 +48,15 @@ class Block:
 
 @dataclass
 class DiagnosisEvaluator(LandslideEvaluator):
-    """LandslideEvaluator over scalar and vector observations (see the module doc)."""
+    """LandslideEvaluator over scalar and vector observations (see the module doc).
+
+    ``model_error``: an optional torchslide.diagnose.model_error.ModelError (approximation error of
+    the grid). With it the likelihood is N(d - eps_bar | y, diag(sigma_eff^2) + Gamma_eps) (full
+    covariance); ``data`` is then d - eps_bar and ``sigma`` / ``sigma_raw`` include Gamma_eps's
+    diagonal (what the per-value checks, localisation and WAIC use); ``data_recorded`` is d.
+    """
+
+    model_error: object = None
 
     def __post_init__(self) -> None:
         if not self.observations:
@@ -80,9 +89,21 @@ class DiagnosisEvaluator(LandslideEvaluator):
             self.blocks.append(Block(str(o.name), o.kind, k, k + m, o))
             k += m
         self.data = np.concatenate(d)
+        self.data_recorded = self.data
         self.sigma = np.concatenate(s)          # effective (used by the likelihood)
         self.sigma_raw = np.concatenate(s_raw)  # per-value measurement sigma
-        self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), sigma=torch.as_tensor(self.sigma))
+        me = self.model_error
+        if me is None:
+            self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), sigma=torch.as_tensor(self.sigma))
+            return
+        if me.samples.shape[1] != k:
+            raise ValueError(f"model_error has {me.samples.shape[1]} values per sample, the observations {k}")
+        gamma = me.covariance
+        self.data = self.data_recorded - me.mean
+        cov = np.diag(self.sigma**2) + gamma
+        self.sigma = np.sqrt(np.diag(cov))
+        self.sigma_raw = np.sqrt(self.sigma_raw**2 + np.diag(gamma))
+        self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), covariance=torch.as_tensor(cov))
 
     @property
     def k(self) -> int:
@@ -112,14 +133,22 @@ class DiagnosisEvaluator(LandslideEvaluator):
                 reasons[b] = "non-finite observable(s)"
         return preds, failed, reasons
 
+    def _copy(self, **changes) -> "DiagnosisEvaluator":
+        """A new evaluator with the same inputs except ``changes`` (own, empty run records)."""
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+              if f.init and f.name not in ("records", "solver_seconds")}
+        kw.update(changes)
+        return DiagnosisEvaluator(**kw)
+
     def with_prior(self, prior, fixed: dict | None = None) -> "DiagnosisEvaluator":
         """A copy with another prior (e.g. the enlarged space of a candidate) and extra fixed values."""
         f = {k: v for k, v in dict(self.fixed).items() if k not in prior.names}
         f.update(fixed or {})
-        return DiagnosisEvaluator(dem=self.dem, release=self.release, observations=self.observations, prior=prior,
-                                  fixed=f, t_end=self.t_end, gauges=self.gauges, erodible_depth=self.erodible_depth,
-                                  mu_scale=self.mu_scale, solver_config=self.solver_config, dtype=self.dtype,
-                                  device=self.device, max_batch=self.max_batch)
+        return self._copy(prior=prior, fixed=f)
+
+    def with_model_error(self, model_error) -> "DiagnosisEvaluator":
+        """A copy whose likelihood includes ``model_error`` (see the class doc; None: without)."""
+        return self._copy(model_error=model_error, fixed=dict(self.fixed))
 
     def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
         """Predictions (n, k) and failed (n,) for explicit Params values {name: (n,) array} (+ fixed),

@@ -1,13 +1,17 @@
 """``diagnose(evaluator, candidates, ...)``: the whole missing-physics diagnosis in one call.
 
-baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
+[optional, Budgets.model_error_runs > 0: the grid's approximation error from a pilot calibration's
+posterior draws run on the inversion grid and on finer cells (grid_model_error, model_error), put in
+every model's likelihood] -> baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
 zoomed grid posterior, local emulator refits with the verification runs until the verified evidence is
 trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batch screening -> refits
 of the top_k candidates -> for every refit: posterior-predictive runs, verified evidence
 (torchslide.diagnose.verify), Savage-Dickey (boundary-corrected KDE at switch 0), WAIC, the located
-mismatches re-scored, 90 % HDIs; a refit whose verified evidence is not yet trustworthy is continued
-to ``n_total_max`` runs; a refit whose posterior leans against an unsampled upper bound of its switch
-is instead probed at the bound and refined (verify.needs_bound_probe / refine_refit) -> baseline
+mismatches re-scored, 90 % HDIs; a refit whose posterior leans against an unsampled upper bound of its
+switch is probed at the bound and refined (verify.needs_bound_probe / refine_refit); a refit whose
+verified evidence is not yet trustworthy is refined the same way, its verification runs reused
+(refine_refit(extra=...): local GP, zoomed grid posterior, rounds until trustworthy and stable), or,
+with ``refit_refine_rounds`` = 0, continued to ``n_total_max`` runs of the global active learning -> baseline
 evidence cross-checked on the beta = 0 slices of the ``slice_top`` best refits -> verdict
 (torchslide.diagnose.decide).
 """
@@ -27,8 +31,7 @@ from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
 from .verify import (hdi_from_grid, hdi_interval, needs_bound_probe, refine_baseline, refine_refit, rescore,
-                     savage_dickey,
-                     slice_proposal, verified_evidence, waic)
+                     savage_dickey, slice_proposal, solver_z, verified_evidence, waic)
 from .screen import ScreenResult, screen
 
 
@@ -40,10 +43,11 @@ class Budgets:
     n_total: int = 32                  # refit total runs (first stage)
     n_total_max: int = 48              # a refit whose verified evidence is not trustworthy is continued to this
                                        # (only when refit_refine_rounds = 0)
-    refit_refine_rounds: int = 2       # refits whose posterior leans against an unsampled switch bound
-                                       # (verify.needs_bound_probe): verify.refine_refit rounds (M =
-                                       # n_posterior_samples_after runs each) instead of the continuation to
-                                       # n_total_max; 0: never
+    refit_refine_rounds: int = 4       # refits whose posterior leans against an unsampled switch bound
+                                       # (verify.needs_bound_probe) or whose first verified evidence is not
+                                       # trustworthy: verify.refine_refit rounds (M = n_posterior_samples_after
+                                       # runs each; they stop once the verified evidence is trustworthy and
+                                       # stable) instead of the continuation to n_total_max; 0: never
     refit_grid: tuple = (48, 40)       # ... its zoomed grid posterior, points per axis (coarse, fine)
     baseline_n_initial: int = 12
     baseline_n_total: int = 24
@@ -55,6 +59,10 @@ class Budgets:
     verify_se: float = 1.0             # ... and bootstrap se of the verified log Z <= this
     slice_check: bool = True           # baseline evidence also from the beta = 0 slice of refits ...
     slice_top: int = 2                 # ... of this many, those with the largest verified evidence
+    model_error_runs: int = 0          # > 0: approximation error of the grid (model_error) sampled at this many
+                                       # posterior draws of a pilot baseline calibration, in the likelihood of
+                                       # every model; 0: off
+    model_error_factor: int = 2        # ... against runs on cells this many times smaller
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -86,6 +94,7 @@ class Diagnosis:
     thresholds: Thresholds = field(default_factory=Thresholds)
     timings: dict = field(default_factory=dict)
     evaluator: object = None
+    model_error: dict | None = None
 
     @property
     def missing_physics(self):
@@ -120,6 +129,7 @@ class Diagnosis:
                          "parameters": _params(self.baseline)},
             "thresholds": self.thresholds.to_json(),
             "timings": self.timings,
+            "model_error": self.model_error,
         })
 
 
@@ -157,6 +167,82 @@ def _trusted(ver: dict, bud: Budgets) -> bool:
     return bool(ver.get("verified") and ver["ess_fraction"] >= bud.verify_ess_fraction and ver["se"] <= bud.verify_se)
 
 
+def _refine(ev_c, cal_c, bud: Budgets, log, extra=None):
+    """verify.refine_refit with the budgets' settings; returns (result, predictive, verification,
+    evidence-history rows)."""
+    cal_r, p_r, ver = refine_refit(ev_c, cal_c, bud.n_posterior_samples_after, seed=bud.seed + 1,
+                                   max_rounds=bud.refit_refine_rounds, grid=tuple(bud.refit_grid),
+                                   ess_fraction=bud.verify_ess_fraction, se_max=bud.verify_se,
+                                   tv_tol=bud.baseline_tv_tol, log=log, extra=extra)
+    rows = [{"n_runs": h["n_runs"], "log_evidence": h["log_evidence"], "log_evidence_emulator": h["log_evidence_grid"],
+             "ess": h["ess"], "se": h["se"], "trusted": h["trusted"], "stable": h.get("stable"),
+             "kept": h.get("kept", False)} for h in ver["rounds"]]
+    return cal_r, p_r, ver, rows
+
+
+def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print):
+    """Refit candidate ``c`` (refit.refit: n_initial / n_total runs of active learning in the enlarged
+    space), then make its posterior and verified evidence reliable: probe + refine when it leans against
+    an unsampled switch bound; else verify with n_posterior_samples_after runs and, when that is not
+    trustworthy, refine with those runs reused (or, with refit_refine_rounds = 0, continue to
+    n_total_max). Returns (candidate evaluator, result, predictive, verification, evidence history)."""
+    Ma = bud.n_posterior_samples_after
+    ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
+                        mcmc_steps=bud.mcmc_steps, checkpoint=checkpoint)
+    if bud.refit_refine_rounds > 0 and needs_bound_probe(cal_c):
+        # the MCMC posterior leans against the switch's upper bound where no relevant run was made:
+        # probe the bound, zoomed grid posterior, emulator refitted locally with the verification runs
+        # (verify.refine_refit): a 24-run GP's posterior can exclude a bound it never sampled
+        cal_c, p_c, ver, history = _refine(ev_c, cal_c, bud, log)
+        return ev_c, cal_c, p_c, ver, history
+    p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 1))
+    ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
+    history = [{"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
+                "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]}]
+    if not _trusted(ver, bud) and bud.refit_refine_rounds > 0:
+        # the global GP's posterior is not a good proposal: local GP with these runs too, zoomed grid
+        # posterior, rounds until the verified evidence is trustworthy and stable (verify.refine_refit)
+        log(f"[diagnose] refit {c}: evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
+            f"se {ver['se']:.2f}): refining with a local emulator")
+        r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(p_c.x, solver_z(ev_c, p_c)))
+        history += r_hist
+        if _trusted(r_ver, bud) or r_ver["ess"] >= ver["ess"]:
+            cal_c, p_c, ver = r_cal, r_p, r_ver
+        else:
+            # no refinement round beat the first proposal's ESS: keep the first (both are valid
+            # importance-sampling estimates of the same log Z; the larger ESS is the better one)
+            for h in history:
+                h["kept"] = False
+            history[0]["kept"] = True
+    elif not _trusted(ver, bud) and bud.n_total_max > bud.n_total:
+        log(f"[diagnose] refit {c}: evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
+            f"se {ver['se']:.2f}): continuing to {bud.n_total_max} runs")
+        cal_c = calibrate_evaluator(ev_c, bud.n_initial, bud.n_total_max, batch_size=bud.batch_size,
+                                    seed=bud.seed, mcmc_steps=bud.mcmc_steps, checkpoint=checkpoint)
+        p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 2))
+        ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
+        history.append({"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
+                        "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]})
+    return ev_c, cal_c, p_c, ver, history
+
+
+def grid_model_error(evaluator, bud: Budgets, workdir, log=print):
+    """(evaluator with the grid's approximation error in its likelihood, ModelError): a pilot baseline
+    calibration (baseline budgets), ``model_error_runs`` draws of its posterior, each run on the
+    inversion grid and on cells ``model_error_factor`` times smaller (torchslide.diagnose.model_error)."""
+    from .model_error import approximation_error
+
+    pilot = calibrate_evaluator(evaluator, bud.baseline_n_initial, bud.baseline_n_total, batch_size=bud.batch_size,
+                                seed=bud.seed, mcmc_steps=bud.mcmc_steps, checkpoint=Path(workdir) / "pilot.pt",
+                                grid_size=bud.baseline_grid_size)
+    x = posterior_samples(pilot, bud.model_error_runs, seed=bud.seed + 5)
+    me = approximation_error(evaluator, x, bud.model_error_factor)
+    s = me.summary(evaluator.blocks)
+    log(f"[diagnose] approximation error of the grid from {s['n']} run pairs (x{s['factor']} finer): " +
+        ", ".join(f"{k} rms mean {v['rms_mean']:.3g} sd {v['rms_sd']:.3g}" for k, v in s["blocks"].items()))
+    return evaluator.with_model_error(me), me
+
+
 def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: Thresholds | None = None,
              baseline=None, log=print, workdir=None) -> Diagnosis:
     """Run the diagnosis (see module doc). ``evaluator``: a DiagnosisEvaluator with the baseline prior.
@@ -181,6 +267,15 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     T = {}
     t0 = time.perf_counter()
     M = bud.n_posterior_samples
+    model_error = None
+    if bud.model_error_runs > 0:
+        if baseline is not None:
+            raise ValueError("model_error_runs > 0 changes the likelihood: the baseline must be calibrated here, "
+                             "not given")
+        evaluator, me = grid_model_error(evaluator, bud, workdir, log)
+        model_error = me.summary(evaluator.blocks)
+        T["model_error_s"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
     if baseline is None:
         log(f"[diagnose] baseline calibration ({bud.baseline_n_total} runs)")
         baseline = calibrate_evaluator(evaluator, bud.baseline_n_initial, bud.baseline_n_total,
@@ -213,39 +308,9 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     refits, cand_out, preds_after = {}, [], {}
     misfit_before = evaluator.misfit(pred.mean)
     t0 = time.perf_counter()
-    Ma = bud.n_posterior_samples_after
     raw = {}
     for c in top:
-        ck = workdir / f"refit_{c}.pt"
-        ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
-                            mcmc_steps=bud.mcmc_steps, checkpoint=ck)
-        if bud.refit_refine_rounds > 0 and needs_bound_probe(cal_c):
-            # the MCMC posterior leans against the switch's upper bound where no relevant run was made:
-            # probe the bound, zoomed grid posterior, emulator refitted locally with the verification runs
-            # (verify.refine_refit): a 24-run GP's posterior can exclude a bound it never sampled
-            cal_c, p_c, ver = refine_refit(ev_c, cal_c, Ma, seed=bud.seed + 1, max_rounds=bud.refit_refine_rounds,
-                                           grid=tuple(bud.refit_grid), ess_fraction=bud.verify_ess_fraction,
-                                           se_max=bud.verify_se, tv_tol=bud.baseline_tv_tol, log=log)
-            history = [{"n_runs": h["n_runs"], "log_evidence": h["log_evidence"],
-                        "log_evidence_emulator": h["log_evidence_grid"], "ess": h["ess"], "se": h["se"],
-                        "trusted": h["trusted"], "kept": h.get("kept", False)} for h in ver["rounds"]]
-            refits[c] = (ev_c, cal_c)
-            preds_after[c] = p_c
-            raw[c] = (ver, history)
-            continue
-        p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 1))
-        ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
-        history = [{"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
-                    "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]}]
-        if not _trusted(ver, bud) and bud.n_total_max > bud.n_total:
-            log(f"[diagnose] refit {c}: evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
-                f"se {ver['se']:.2f}): continuing to {bud.n_total_max} runs")
-            cal_c = calibrate_evaluator(ev_c, bud.n_initial, bud.n_total_max, batch_size=bud.batch_size,
-                                        seed=bud.seed, mcmc_steps=bud.mcmc_steps, checkpoint=ck)
-            p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 2))
-            ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
-            history.append({"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
-                            "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]})
+        ev_c, cal_c, p_c, ver, history = refit_candidate(evaluator, c, bud, workdir / f"refit_{c}.pt", log)
         refits[c] = (ev_c, cal_c)
         preds_after[c] = p_c
         raw[c] = (ver, history)
@@ -295,6 +360,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                "two_ln_bf_emulator": 2 * (cal_c.log_evidence - baseline.log_evidence),
                "two_ln_bf_lower": 2 * lbf - 4 * se_tot, "evidence_se": ver["se"], "ess": ver["ess"],
                "ess_fraction": ver["ess_fraction"], "evidence_history": history,
+               "evidence_converged": bool(ver.get("converged", _trusted(ver, bud))),
                "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
                "delta_waic": 2 * (el["elpd"] - elpd_b["elpd"]), "located_rescored": rs,
                "misfit_after": misfit_c, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
@@ -334,4 +400,4 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     return Diagnosis(verdict=dec["verdict"], decision=dec, baseline=baseline, predictive=pred, localisation=loc,
                      screening=scr, refits=refits, candidates=cand_out, fit_before=fit_before, fit_after=fit_after,
                      after_predictive=after_pred, after_localisation=after_loc, thresholds=th, timings=T,
-                     evaluator=evaluator)
+                     evaluator=evaluator, model_error=model_error)

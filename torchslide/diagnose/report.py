@@ -54,13 +54,22 @@ def write_figures(diag, out: Path) -> list[str]:
             fig.savefig(f, dpi=90)
             plt.close(fig)
             files.append(f.name)
-    # posteriors of the refit switches (1-D marginal histograms of MCMC samples)
-    refits = [(c, cal) for c, (_, cal) in diag.refits.items() if cal.samples is not None]
+    # posteriors of the refit switches: 1-D marginal of the MCMC samples (histogram) or of the refined
+    # grid posterior (verify.refine_refit), on the switch's prior range
+    refits = [(c, cal) for c, (_, cal) in diag.refits.items()
+              if getattr(cal, "samples", None) is not None or getattr(cal, "posterior_grid", None) is not None]
     if refits:
+        from ..posterior import marginals
+
         fig, axs = plt.subplots(1, len(refits), figsize=(3.5 * len(refits), 2.8), squeeze=False)
         for ax, (c, cal) in zip(axs[0], refits):
             i = len(cal.names) - 1
-            ax.hist(cal.samples[:, i], bins=30, color="C2", density=True)
+            if cal.samples is not None:
+                ax.hist(cal.samples[:, i], bins=30, color="C2", density=True)
+            else:
+                m = marginals(cal.posterior_grid, cal.grid_axes)[i]
+                ax.fill_between(cal.grid_axes[i], m, color="C2", alpha=0.6, step="mid")
+            ax.set_xlim(float(cal.bounds[0][i]), float(cal.bounds[1][i]))
             ax.set_xlabel(cal.names[i])
             ax.set_title(c)
         fig.tight_layout()
@@ -78,6 +87,11 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     if j["decision"].get("ambiguous"):
         L += [f"Ambiguous: competing candidate(s) {', '.join(j['decision'].get('competitors') or [])} "
               f"(see the reason above); no name is given.", ""]
+    me = j.get("model_error")
+    if me:
+        L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
+              f"times smaller (rms of the mean / sd per observable: " +
+              ", ".join(f"{k} {v['rms_mean']:.3g} / {v['rms_sd']:.3g}" for k, v in me["blocks"].items()) + ").", ""]
     L += ["## Where the baseline disagrees with the data", "", "| what | where | standardised residual |", "|---|---|---|"]
     for l in j["located"]:
         L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")

@@ -323,8 +323,9 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
     agrees with the previous round's within ``agree`` + 2 se. Otherwise refit an emulator *locally*
     (every run so far with z >= max z - ``local_range``, on their bounding box: a global GP over a
     box 100x wider than the posterior cannot resolve its curvature) and repeat. Every round's estimate is a valid importance-sampling estimate of the same
-    log Z, so when ``max_rounds`` is reached the round with the largest ESS is kept. Returns (proposal,
-    predictive, verification dict, history)."""
+    log Z, so when ``max_rounds`` is reached the round with the largest ESS is kept. The verification
+    dict's ``converged`` says whether the last round was trustworthy *and* stable (False: the estimate
+    was still moving when the rounds ran out). Returns (proposal, predictive, verification dict, history)."""
     from .predictive import posterior_predictive, posterior_samples
 
     b = _bounds_of(cal)
@@ -348,16 +349,17 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
         stable = r == 0 or (tv is not None and tv < tv_tol) or (
             prev is not None and prev.get("verified") and
             abs(ver["log_evidence"] - prev["log_evidence"]) <= agree + 2 * math.hypot(ver["se"], prev["se"]))
+        hist[-1]["stable"] = bool(stable)
         if (trusted and stable) or r == max_rounds or len(pred.x) == 0:
             break
         prev = ver
-        z = (evaluator.likelihood.log_likelihood(torch.as_tensor(pred.draws)) +
-             evaluator.prior.log_prob(torch.as_tensor(pred.x))).numpy()
+        z = solver_z(evaluator, pred)
         good = np.isfinite(z)
         X, Z = np.vstack([X, pred.x[good]]), np.concatenate([Z, z[good]])
         new = _local_proposal(X, Z, b, local_range, coarse=coarse, fine=fine)
         tv = _tv_on(new, prop.log_fn)
         prop = new
+    converged = bool(hist[-1]["trusted"] and hist[-1]["stable"])
     if not hist[-1]["trusted"]:
         k = int(np.argmax([h["ess"] if np.isfinite(h["se"]) else -1 for h in hist]))
         prop, pred, ver = rounds[k]
@@ -366,7 +368,7 @@ def refine_baseline(evaluator, cal, M: int, seed: int = 0, max_rounds: int = 3, 
         hist[-1]["kept"] = True
     n_total = int(len(X) + len(rounds[-1][1].x))
     prop.runs = (X, Z)  # the calibration's runs + the verification runs of every round but the last
-    return prop, pred, dict(ver, rounds=hist, n_runs_total=n_total), hist
+    return prop, pred, dict(ver, rounds=hist, n_runs_total=n_total, converged=converged), hist
 
 
 def needs_bound_probe(cal_c, near: float = 0.2, gap: float = 0.05, relevant: float = 10.0) -> bool:
@@ -389,8 +391,17 @@ def needs_bound_probe(cal_c, near: float = 0.2, gap: float = 0.05, relevant: flo
                 and rel[:, -1].max() < hi - gap * (hi - lo))
 
 
+def solver_z(evaluator, pred) -> np.ndarray:
+    """(M,) z = ln L + ln prior of posterior-predictive runs ``pred`` (a Predictive): the solver's value
+    of the log unnormalised posterior at its draws."""
+    if not len(pred.x):
+        return np.zeros(0)
+    return (evaluator.likelihood.log_likelihood(torch.as_tensor(pred.draws)) +
+            evaluator.prior.log_prob(torch.as_tensor(pred.x))).numpy()
+
+
 def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: tuple = (48, 40), log=print,
-                 n_probe: int = 4, near: float = 0.2, gap: float = 0.05, relevant: float = 10.0, **kw):
+                 n_probe: int = 4, near: float = 0.2, gap: float = 0.05, relevant: float = 10.0, extra=None, **kw):
     """The refit's (p = 3) posterior refined like the baseline's (refine_baseline): the emulator's MCMC
     posterior can be confidently wrong where the active learning left no runs, e.g. against a prior
     bound of the switch (a 24-run GP in 3-D under-predicted z by ~7 at switch = 1 on an earth-pressure
@@ -401,7 +412,11 @@ def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: 
     last parameter) is within ``near`` x prior width of its upper bound and no posterior-relevant run
     lies within ``gap`` x width of it, ``n_probe`` runs are made first at posterior draws with the switch set to the bound
     and the emulator is refitted locally with them (the GP's value at an unsampled bound is an
-    extrapolation; needs_bound_probe). The pipeline calls this only where that is the case.
+    extrapolation; needs_bound_probe). ``extra`` = (x (n, p), z (n,)): solver runs already made (the
+    pipeline passes the first verification's draws of a refit whose verified evidence was not
+    trustworthy); with probes or ``extra`` the first proposal is already the local GP's.
+    The pipeline calls this where the refit leans against an unsampled bound, or where its first
+    verified evidence is not trustworthy (instead of continuing the global active learning).
     Returns (result, predictive, verification dict): ``result`` is a
     CalibrationResult-like namespace (grid posterior on the zoomed box, the summary / HDIs from it,
     every run in x / z, the original global emulator kept for the beta = 0 slice check)."""
@@ -416,6 +431,12 @@ def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: 
     X0, Z0 = np.asarray(cal_c.x, float)[ok], np.asarray(cal_c.z, float)[ok]
     draws = np.asarray(cal_c.samples, float) if getattr(cal_c, "samples", None) is not None else None
     probes = 0
+    n_extra = 0
+    if extra is not None and len(extra[0]):
+        xe, ze = np.asarray(extra[0], float), np.asarray(extra[1], float)
+        good = np.isfinite(ze)
+        n_extra = int(good.sum())
+        X0, Z0 = np.vstack([X0, xe[good]]), np.concatenate([Z0, ze[good]])
     if n_probe > 0 and needs_bound_probe(cal_c, near=near, gap=gap, relevant=relevant):
         # the posterior leans against the switch's upper bound where no run was made: the GP's value
         # there is an extrapolation. Probe the face: posterior draws with the switch set to the bound.
@@ -424,24 +445,24 @@ def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: 
         xp[:, -1] = hi
         from .predictive import posterior_predictive
         pp = posterior_predictive(ev_c, xp)
-        zp = (ev_c.likelihood.log_likelihood(torch.as_tensor(pp.draws)) +
-              ev_c.prior.log_prob(torch.as_tensor(pp.x))).numpy() if len(pp.x) else np.zeros(0)
+        zp = solver_z(ev_c, pp)
         good = np.isfinite(zp)
         probes = int(good.sum())
         if probes:
             X0, Z0 = np.vstack([X0, pp.x[good]]), np.concatenate([Z0, zp[good]])
-            p0 = _local_proposal(X0, Z0, b, coarse=grid[0], fine=grid[1])
-            start = SimpleNamespace(x=X0, z=Z0, failed=np.zeros(len(X0), bool), bounds=b,
-                                    emulator=SimpleNamespace(mean=p0.log_fn))
         log(f"[diagnose] refit: posterior against the unsampled upper bound of {cal_c.names[-1]}: "
             f"{probes} probe run(s) there, emulator refitted")
+    if probes or n_extra:
+        p0 = _local_proposal(X0, Z0, b, coarse=grid[0], fine=grid[1])
+        start = SimpleNamespace(x=X0, z=Z0, failed=np.zeros(len(X0), bool), bounds=b,
+                                emulator=SimpleNamespace(mean=p0.log_fn))
     prop, pred, ver, hist = refine_baseline(ev_c, start, M, seed=seed, max_rounds=max_rounds, log=log,
                                             coarse=grid[0], fine=grid[1], label="refit", **kw)
     hist[0]["bound_probes"] = probes
+    hist[0]["extra_runs"] = n_extra
     X, Z = prop.runs
     # the kept round's draws are runs too (the last round's draws were not added to X in the loop)
-    z_last = (ev_c.likelihood.log_likelihood(torch.as_tensor(pred.draws)) +
-              ev_c.prior.log_prob(torch.as_tensor(pred.x))).numpy() if len(pred.x) else np.zeros(0)
+    z_last = solver_z(ev_c, pred)
     new = ~np.any(np.all(np.isclose(pred.x[:, None, :], X[None, :, :]), axis=2), axis=1) if len(pred.x) else []
     if len(pred.x):
         X, Z = np.vstack([X, pred.x[new]]), np.concatenate([Z, z_last[new]])

@@ -1,0 +1,119 @@
+"""Approximation error of the inversion grid (torchslide.diagnose.model_error)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchslide.bayes import Prior, Uniform
+from torchslide.diagnose import DiagnosisEvaluator
+from torchslide.diagnose.model_error import (ModelError, approximation_error, coarsen_result, fine_predictions,
+                                             refine_dem, repeat_cells)
+from torchslide.observe import Observation
+from torchslide.observe_series import SeriesObservation
+from torchslide.solver import SolverConfig, simulate
+from torchslide.terrain.synthetic import inclined_plane, release_from_shape
+
+
+def test_refine_dem_keeps_a_plane_and_the_extent():
+    dem = inclined_plane(30.0, 40.0, slope_length=400.0, runout_length=200.0, width=200.0, transition=0.0)
+    dem.z[:] = 0.3 * dem.x_centres()[None, :] - 0.1 * dem.y_centres()[:, None] + 5.0   # a tilted plane
+    f = refine_dem(dem, 2)
+    assert f.shape == (2 * dem.ny, 2 * dem.nx) and f.cellsize == 20.0
+    assert (f.xll, f.yll) == (dem.xll, dem.yll)
+    exact = 0.3 * f.x_centres()[None, :] - 0.1 * f.y_centres()[:, None] + 5.0
+    assert np.allclose(f.z, exact)                       # bilinear (and its linear extrapolation) is exact
+    with pytest.raises(ValueError, match="refinement factor"):
+        refine_dem(dem, 1)
+
+
+def _case(cellsize=40.0):
+    dem = inclined_plane(30.0, cellsize, slope_length=600.0, runout_length=600.0, width=320.0, transition=200.0)
+    rel = release_from_shape(dem, (150.0, 160.0), 60.0, volume=2.0e4)
+    return dem, rel
+
+
+def test_coarsened_fine_run_conserves_volume_and_matches_the_coarse_layout():
+    dem, rel = _case()
+    rel_f = repeat_cells(rel, 2)
+    dem_f = refine_dem(dem, 2)
+    assert math.isclose(rel_f.sum() * dem_f.cellsize**2, rel.sum() * dem.cellsize**2, rel_tol=1e-12)
+    from torchslide.physics import Params
+    res = simulate(dem_f, rel_f, Params.make(mu=0.3, xi=500.0), t_end=20.0, config=SolverConfig())
+    c = coarsen_result(res, dem, 2)
+    assert c.h_final.shape == (1, dem.ny, dem.nx) and c.dem is dem
+    vol_f = float((res.h_final[0] * res.cell_area).sum())
+    vol_c = float((c.h_final[0] * c.cell_area).sum())
+    assert math.isclose(vol_c, vol_f, rel_tol=1e-9)      # block means x summed areas: same volume
+    assert torch.equal(c.arrival_time[0, 0, 0], res.arrival_time[0, :2, :2].min())
+
+
+def _evaluator(model_error=None):
+    dem, rel = _case()
+    g = [("g1", 700.0, 160.0)]
+    t = np.arange(2.0, 40.0, 2.0)
+    obs = [SeriesObservation.from_array("deposit_map", np.zeros(dem.shape), dem, 0.5, name="deposit"),
+           SeriesObservation("gauge_series", np.zeros_like(t), 0.5, name="g1:h", gauge="g1", quantity="h", times=t),
+           Observation("final_volume", 2.0e4, 2.0e3, name="final_volume")]
+    prior = Prior({"mu": Uniform(0.2, 0.45), "xi": Uniform(200.0, 1500.0)})
+    return DiagnosisEvaluator(dem=dem, release=rel, observations=obs, prior=prior, t_end=40.0, gauges=g,
+                              solver_config=SolverConfig(), model_error=model_error)
+
+
+def test_model_error_likelihood_is_the_shifted_gaussian_with_the_added_covariance():
+    ev = _evaluator()
+    k = ev.k
+    rng = np.random.default_rng(0)
+    eps = rng.normal(0.05, 0.02, (6, k))
+    me = ModelError(samples=eps, x=np.zeros((6, 2)), factor=2)
+    ev2 = ev.with_model_error(me)
+    assert ev2.model_error is me and ev2.records == [] and np.array_equal(ev2.data_recorded, ev.data)
+    y = rng.normal(0.0, 0.3, (3, k))
+    cov = np.diag(ev.sigma**2) + np.cov(eps, rowvar=False)
+    r = (ev.data - eps.mean(0))[None, :] - y
+    sign, logdet = np.linalg.slogdet(cov)
+    quad = np.einsum("ni,ij,nj->n", r, np.linalg.inv(cov), r)
+    ref = -0.5 * (quad + logdet + k * math.log(2 * math.pi))
+    assert np.allclose(ev2.likelihood.log_likelihood(torch.as_tensor(y)).numpy(), ref, rtol=1e-9)
+    assert np.all(ev2.sigma > ev.sigma) and np.all(ev2.sigma_raw >= ev.sigma_raw)
+    # the candidate copies keep it
+    from torchslide.diagnose.refit import candidate_evaluator
+    assert candidate_evaluator(ev2, "mu_i").model_error is me
+    with pytest.raises(ValueError, match="values per sample"):
+        ev.with_model_error(ModelError(samples=eps[:, :-1], x=np.zeros((6, 2)), factor=2))
+
+
+def test_approximation_error_is_the_fine_minus_coarse_difference():
+    ev = _evaluator()
+    x = np.array([[0.3, 500.0], [0.35, 800.0], [0.32, 600.0]])
+    me = approximation_error(ev, x, factor=2)
+    assert me.samples.shape == (3, ev.k) and ev.records == []       # no run records left behind
+    fine, failed = fine_predictions(ev, x[:1], 2)
+    _, coarse = ev.evaluate(torch.as_tensor(x[:1]))
+    assert not failed.any()
+    assert np.allclose(me.samples[0], fine[0] - coarse.numpy()[0])
+    assert np.abs(me.samples).max() > 1e-3                         # the grids do differ
+    fv = ev.block("final_volume").slice
+    assert np.abs(me.samples[:, fv]).max() < 1e-3 * 2.0e4            # ... hardly in the conserved volume
+    s = me.summary(ev.blocks)
+    assert s["n"] == 3 and set(s["blocks"]) == {"deposit", "g1:h", "final_volume"}
+    with pytest.raises(ValueError, match="at least 2"):
+        approximation_error(ev, x[:1])
+
+
+def test_grid_model_error_from_a_pilot_calibration(tmp_path):
+    """The pipeline's step: pilot baseline calibration, posterior draws, run pairs; the returned
+    evaluator carries the model error; a given baseline cannot be combined with it."""
+    from torchslide.diagnose import Budgets, diagnose
+    from torchslide.diagnose.pipeline import grid_model_error
+
+    ev = _evaluator()
+    bud = Budgets(baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40, model_error_runs=3, batch_size=8,
+                  mcmc_steps=200)
+    ev_me, me = grid_model_error(ev, bud, tmp_path, log=lambda s: None)
+    assert me.samples.shape == (3, ev.k) and ev_me.model_error is me
+    assert np.all((me.x >= ev.prior.bounds[0].numpy()) & (me.x <= ev.prior.bounds[1].numpy()))
+    with pytest.raises(ValueError, match="baseline must be calibrated here"):
+        diagnose(ev, ["mu_i"], bud, baseline=object(), workdir=tmp_path)
