@@ -48,8 +48,13 @@ def test_q_batch_distinct_points_in_unit_cube():
     d = torch.cdist(X, X) + torch.eye(4, dtype=X.dtype)
     assert d.min() > 1e-3
     # seeded: the same seed on an identically fitted model gives the same batch (a fresh model, since
-    # the prediction caches the first call built change the last bits of later predictions)
+    # the prediction caches the first call built change the last bits of later predictions). The first
+    # picks exactly; the later ones as a set with near-equal acquisition values: after conditioning on
+    # the first picks two nearby maxima of almost equal height remain, and which one L-BFGS-B reaches
+    # (and in which order) depends on last bits that vary with what ran before in the process
+    # (seen in parallel runs: the 3rd and 4th picks swapped, one of them 0.01 away)
     X2, _ = select_batch(_model().model, q=4, num_restarts=4, raw_samples=64, seed=0)
-    assert torch.allclose(X, X2)
+    assert torch.allclose(X[:2], X2[:2])
+    assert torch.cdist(X, X2).min(dim=1).values.max() < 0.03
     Xb, _ = select_batch(em.model, q=2, acquisition="expvar", num_restarts=4, raw_samples=64, seed=1)
     assert Xb.shape == (2, 2)

@@ -488,3 +488,10 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert (j["verdict"], j["missing_physics"]) == (direct["verdict"], direct["missing_physics"]) == ("unexplained", None)
     assert j["decision_as_run"]["missing_physics"] == "entrainment" and j["thresholds"] == asdict(new)
     assert apply_thresholds(tmp_path, asdict(new)) == 0
+
+
+def test_harness_skips_strengths_beyond_a_switch_range():
+    from experiments.hidden_physics.harness import out_of_range
+    assert out_of_range("earth_pressure", 2.0) and "earth_pressure = 2" in out_of_range("earth_pressure", 2.0)
+    assert out_of_range("earth_pressure", 0.5) is None and out_of_range("entrainment", 2.0) is None
+    assert out_of_range("null", 3.0) is None and out_of_range("low_friction_patch", 2.0) is None

@@ -37,6 +37,19 @@ def harness_thresholds() -> Thresholds:
     return Thresholds()
 
 
+def out_of_range(scenario: str, strength: float) -> str | None:
+    """Why ``scenario`` cannot be recorded at ``strength`` (its scaled switch beyond the switch's range,
+    e.g. earth pressure or curvature above 1), else None."""
+    term, hidden = SCENARIOS[scenario]
+    if term not in SWITCH:
+        return None
+    v = hidden[SWITCH[term]] * strength
+    lo, hi = CANDIDATES[term].prior
+    if not lo <= v <= hi:
+        return f"switch {SWITCH[term]} = {v:g} beyond its range [{lo:g}, {hi:g}]"
+    return None
+
+
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None) -> dict:
     t0 = time.perf_counter()
@@ -98,6 +111,10 @@ def main(argv=None) -> int:
             for sc in a.scenarios.split(","):
                 tag = f"{sc}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}")
                 if (out / f"{tag}.json").exists():
+                    continue
+                beyond = out_of_range(sc, strength)
+                if beyond:
+                    print(f"=== {tag}: skipped, {beyond}", flush=True)
                     continue
                 print(f"=== {tag}", flush=True)
                 c = run_case(sc, seed, out, strength=strength, budgets=bud, thresholds=th,

@@ -70,10 +70,15 @@ def _figs(cases, out: Path) -> list[str]:
             by[(true_label(c), c["strength"])].append(found_label(c) == true_label(c))
     if by:
         fig, ax = plt.subplots(figsize=(5, 3))
-        for term in sorted({k[0] for k in by}):
+        terms = sorted({k[0] for k in by})
+        for i, term in enumerate(terms):
             xs = sorted(s for t, s in by if t == term)
-            ax.plot(xs, [np.mean(by[(term, s)]) for s in xs], "o-", label=term)
-        ax.set_xlabel("effect strength (x nominal)")
+            dx = 0.025 * (i - (len(terms) - 1) / 2)   # side by side, so that equal rates stay visible
+            ax.plot([x + dx for x in xs], [np.mean(by[(term, s)]) for s in xs], "os^vD"[i % 5] + "-", label=term)
+            for x in xs:
+                ax.annotate(str(len(by[(term, x)])), (x + dx, np.mean(by[(term, x)])), fontsize=6,
+                            textcoords="offset points", xytext=(3, 3))
+        ax.set_xlabel("effect strength (x nominal; small numbers: cases)")
         ax.set_ylabel("detection rate")
         ax.set_ylim(-0.05, 1.05)
         ax.legend(fontsize=7)
@@ -301,7 +306,12 @@ def build_page(results, out=None, thresholds_file=None, note: str = "") -> Path:
         L.append(f"| {r} | " + " | ".join(str(v) for v in M[i]) + " |")
     L += ["", "![confusion](figures/confusion.png)", ""]
     if "detection_vs_strength.png" in files:
+        other = sorted({(c["strength"], c["seed"]) for c in cases if c["strength"] != 1.0})
         L += ["## Detection rate against effect strength", "", "![detection](figures/detection_vs_strength.png)", ""]
+        if other:
+            L += [f"Strengths other than 1: {', '.join(f'x{st:g} (seed {sd})' for st, sd in other)}, one case per "
+                  "point; earth pressure and curvature cannot be doubled (their switches end at 1; "
+                  "harness.out_of_range). Detection: the true term named.", ""]
     if "detection_vs_effect_size.png" in files:
         L += ["Against the measured effect (strength 1; effect_size.py: the part of each term's effect that "
               "re-tuning mu and xi cannot mimic, in units of the 40 m grid's discretisation error against the 20 m "
