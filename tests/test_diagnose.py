@@ -333,6 +333,8 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     assert set(c["parameters"]["mu_i"]) >= {"mean", "hdr90"}
     md = (out / "report.md").read_text()
     assert "Verdict" in md and "mu_i" in md
+    # the refit was refined (grid posterior, no MCMC samples): the posterior figure must still be drawn
+    assert any("trusted" in h for h in c["evidence_history"])
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())
 

@@ -40,6 +40,19 @@ def strict_success(case) -> bool:
             and fa is not None and fa < j["fit_before"]["misfit"])
 
 
+def _save_rate_plot(fig, ax, path: Path, xlabel: str, ylabel: str) -> str:
+    """Label a detection-rate plot (y in [0, 1]), save it, close it; returns the file name."""
+    import matplotlib.pyplot as plt
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.set_ylim(-0.05, 1.05)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path.name
+
+
 def _figs(cases, out: Path) -> list[str]:
     import matplotlib
     matplotlib.use("Agg")
@@ -78,14 +91,8 @@ def _figs(cases, out: Path) -> list[str]:
             for x in xs:
                 ax.annotate(str(len(by[(term, x)])), (x + dx, np.mean(by[(term, x)])), fontsize=6,
                             textcoords="offset points", xytext=(3, 3))
-        ax.set_xlabel("effect strength (x nominal; small numbers: cases)")
-        ax.set_ylabel("detection rate")
-        ax.set_ylim(-0.05, 1.05)
-        ax.legend(fontsize=7)
-        fig.tight_layout()
-        fig.savefig(out / "detection_vs_strength.png", dpi=90)
-        plt.close(fig)
-        files.append("detection_vs_strength.png")
+        files.append(_save_rate_plot(fig, ax, out / "detection_vs_strength.png",
+                                     "effect strength (x nominal; small numbers: cases)", "detection rate"))
     eff = HERE / "_work" / "effect_size.json"
     if by and eff.exists():
         # the same detection rates against the *measured* effect at strength 1 (effect_size.py): the part of
@@ -99,14 +106,9 @@ def _figs(cases, out: Path) -> list[str]:
             for x, y, t in pts:
                 ax.plot([x], [y], "o", ms=7, label=t)
             ax.axvline(1.0, color="0.5", ls=":", lw=1)
-            ax.set_xlabel("unmimicked effect / discretisation error (strength 1)")
-            ax.set_ylabel("detection rate (true term named)")
-            ax.set_ylim(-0.05, 1.05)
-            ax.legend(fontsize=7)
-            fig.tight_layout()
-            fig.savefig(out / "detection_vs_effect_size.png", dpi=90)
-            plt.close(fig)
-            files.append("detection_vs_effect_size.png")
+            files.append(_save_rate_plot(fig, ax, out / "detection_vs_effect_size.png",
+                                         "unmimicked effect / discretisation error (strength 1)",
+                                         "detection rate (true term named)"))
     return files, rows, cols, M
 
 
