@@ -120,7 +120,7 @@ def test_small_harness(tmp_path):
 
     bud = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
                baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1, n_perm=19,
-               mcmc_steps=200)
+               mcmc_steps=200, model_error_runs=0, mode_search_iters=2)
     cands = ["entrainment", "yield_stress", "mu_i"]
     out = tmp_path / "res"
     cases = {sc: run_case(sc, 0, out, budgets=bud, candidates=cands, log=lambda s: None) for sc in ("null", "entrainment")}
@@ -143,6 +143,13 @@ def test_small_harness(tmp_path):
                 assert len(h) > 1 and "trusted" in h[1] and sum(bool(r.get("kept")) for r in h) == 1
                 refined += 1
     assert refined >= 1      # 4 verification draws of an 8-run 3-D refit: the path is exercised
+    # every refit was followed by the local search on the solver (the 2 best baseline runs with the
+    # switch at 0, then 2 iterations x 2 starts x 6 moves)
+    for c in cases.values():
+        for cand in c["diagnosis"]["candidates"]:
+            if cand.get("log_evidence") is not None:
+                ms = cand["mode_search"]
+                assert ms["runs"] == 2 + 24 and ms["missed_mode"] == (ms["improvement"] > 3.0)
     page = build_page(out, tmp_path / "page")
     assert "Confusion matrix" in page.read_text()
 
@@ -318,6 +325,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
     tiny = ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
             'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
+            'model_error_runs = 2\nmode_search_iters = 1\n'
             '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
     out = tmp_path / "out"
@@ -335,6 +343,8 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     assert "Verdict" in md and "mu_i" in md
     # the refit was refined (grid posterior, no MCMC samples): the posterior figure must still be drawn
     assert any("trusted" in h for h in c["evidence_history"])
+    # the default path: the grid's approximation error (2 run pairs here) and the mode search ran
+    assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + 12
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())
 
@@ -351,6 +361,7 @@ def test_cli_diagnose_keys(tmp_path):
     for extra, msg in (("bf_minimum = 3", "unknown key 'bf_minimum'"), ("explain_min = 2", "explain_min"),
                        ("refit_refine_rounds = -1", "refit_refine_rounds"),
                        ("model_error_runs = 1", "model_error_runs"), ("model_error_factor = 1", "model_error_factor"),
+                       ("mode_search_iters = -1", "mode_search_iters"),
                        ("ess_min = 0.5", "ess_min"), ("waic_min = 'x'", "waic_min")):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
         with pytest.raises(ConfigError, match=msg):
@@ -497,3 +508,60 @@ def test_harness_skips_strengths_beyond_a_switch_range():
     assert out_of_range("earth_pressure", 2.0) and "earth_pressure = 2" in out_of_range("earth_pressure", 2.0)
     assert out_of_range("earth_pressure", 0.5) is None and out_of_range("entrainment", 2.0) is None
     assert out_of_range("null", 3.0) is None and out_of_range("low_friction_patch", 2.0) is None
+
+
+def test_local_search_climbs_to_a_mode_the_refit_missed():
+    """polish.local_search from runs that missed a narrow 3-D peak (the best run ~0.1 away): it finds
+    a point far better than every earlier run, near the peak, inside the box, in batched calls."""
+    from torchslide.active import maximin_lhs
+    from torchslide.diagnose.polish import local_search
+
+    d, sig = np.array([0.3, 0.55, 0.07]), np.array([0.02, 0.03, 0.01])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
+    calls = []
+
+    def ev(x):
+        x = torch.as_tensor(x, dtype=torch.float64)
+        calls.append(len(x))
+        return SimpleNamespace(z=lik.log_likelihood(x) + prior.log_prob(x), failed=torch.zeros(len(x), dtype=torch.bool))
+
+    x = np.vstack([maximin_lhs(20, 3, seed=1), d + [0.04, -0.05, 0.06]])
+    z = ev(x).z.numpy()
+    calls.clear()
+    r = local_search(ev, x, z, np.array([[0.0] * 3, [1.0] * 3]), n_iter=6, pop=8, n_starts=2,
+                     step0=[0.02, 0.02, 0.02], seed=0)
+    assert calls == [16] * 6 and r["x"].shape == (96, 3)
+    assert np.all((r["x"] >= 0) & (r["x"] <= 1))
+    assert r["improvement"] > 10 and r["best_z"] == r["z"].max()
+    assert np.all(np.abs(r["best_x"] - d) < 3 * sig)
+    # at the peak already: nothing to gain
+    r2 = local_search(ev, np.vstack([x, d]), np.concatenate([z, ev(d[None]).z.numpy()]), np.array([[0.0] * 3, [1.0] * 3]),
+                      n_iter=2, seed=0)
+    assert r2["improvement"] <= 0.0
+
+
+def test_mode_search_starts_from_the_nested_baseline():
+    """A refit whose runs all lie far below the baseline's peak (a lost mode: nested model, evidence
+    far below the baseline's): pipeline._mode_search runs the best baseline points with the switch at
+    0 and searches from them, so the missed mode is flagged and the search's best is at least there."""
+    from torchslide.diagnose.pipeline import Budgets, _mode_search
+
+    d, sig = np.array([0.3, 0.55, 0.0]), np.array([0.02, 0.03, 0.05])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
+
+    def ev(x):
+        x = torch.as_tensor(x, dtype=torch.float64)
+        return SimpleNamespace(z=lik.log_likelihood(x) + prior.log_prob(x), failed=torch.zeros(len(x), dtype=torch.bool))
+
+    rng = np.random.default_rng(0)
+    x = np.clip([0.8, 0.2, 0.6] + 0.05 * rng.standard_normal((10, 3)), 0, 1)      # the refit's runs: off the peak
+    cal = SimpleNamespace(x=x, z=ev(x).z.numpy(), failed=np.zeros(10, bool), bounds=np.array([[0.0] * 3, [1.0] * 3]),
+                          samples=None)
+    base = np.array([[0.31, 0.54], [0.29, 0.57]])
+    ls = _mode_search(ev, cal, Budgets(mode_search_iters=2), base_best=base)
+    assert np.allclose(ls["x"][:2], np.hstack([base, np.zeros((2, 1))]))
+    z_base = ev(ls["x"][:2]).z.numpy()
+    assert ls["best_z"] >= z_base.max() and ls["improvement"] >= z_base.max() - cal.z.max() > 100
+    assert Budgets(mode_search_iters=0).mode_search_iters == 0 and _mode_search(ev, cal, Budgets(mode_search_iters=0)) is None

@@ -97,13 +97,14 @@ def main(argv=None) -> int:
     p.add_argument("--seed-list", default=None, help="comma-separated seeds (overrides --seeds)")
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
     p.add_argument("--strengths", default="1")
-    p.add_argument("--model-error", type=int, default=0,
-                   help="Budgets.model_error_runs: the grid's approximation error from this many run pairs (0: off)")
+    p.add_argument("--model-error", type=int, default=None,
+                   help="Budgets.model_error_runs: the grid's approximation error from this many run pairs "
+                        "(0: off; default: Budgets' default, 12)")
     p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
     a = p.parse_args(argv)
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
-    bud = {"model_error_runs": a.model_error} if a.model_error else None
+    bud = {"model_error_runs": a.model_error} if a.model_error is not None else None
     out = Path(a.out)
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
     for seed in seeds:

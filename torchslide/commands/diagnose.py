@@ -27,8 +27,10 @@ and a [diagnose] section::
     refit_refine_rounds = 4      # rounds (at most) refining a refit with untrustworthy evidence (local emulator, zoomed
                                  #     grid posterior) or leaning against an unsampled switch bound; 0: never
     baseline_refine_rounds = 3   # rounds refining the baseline's verified evidence
-    model_error_runs = 0         # > 0: the grid's approximation error (runs on cells model_error_factor times
-    model_error_factor = 2       #     smaller at this many pilot posterior draws) enters every likelihood
+    model_error_runs = 12        # > 0: the grid's approximation error (runs on cells model_error_factor times
+    model_error_factor = 2       #     smaller at this many pilot posterior draws) enters every likelihood; 0: off
+    mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
+                                 #     is refined with its runs); 0: off
     top_k = 2                    # candidates refitted
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
@@ -61,8 +63,8 @@ from .calibrate import check_unique_names, parse_calibration, parse_prior
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
-             "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor", "top_k",
-             "batch_size", "n_perm")
+             "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
+             "mode_search_iters", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
 _DIAG_KEYS = {"candidates", "seed", *_INT_KEYS, *_THRESHOLD_KEYS}
 
@@ -145,7 +147,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     if bad:
         raise ConfigError(f"{path}: [diagnose] unknown candidate(s) {bad} (known: {', '.join(CANDIDATES)})")
     for k in _INT_KEYS:
-        low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0,
+        low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
                "model_error_factor": 2}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
@@ -226,7 +228,8 @@ def run(args: argparse.Namespace) -> int:
                   baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
                   baseline_refine_rounds=dg["baseline_refine_rounds"],
                   refit_refine_rounds=dg["refit_refine_rounds"], model_error_runs=dg["model_error_runs"],
-                  model_error_factor=dg["model_error_factor"], batch_size=dg["batch_size"], top_k=dg["top_k"],
+                  model_error_factor=dg["model_error_factor"], mode_search_iters=dg["mode_search_iters"],
+                  batch_size=dg["batch_size"], top_k=dg["top_k"],
                   n_perm=dg["n_perm"], seed=dg["seed"])
     th = Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
     out = Path(args.out)

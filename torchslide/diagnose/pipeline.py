@@ -1,11 +1,12 @@
 """``diagnose(evaluator, candidates, ...)``: the whole missing-physics diagnosis in one call.
 
-[optional, Budgets.model_error_runs > 0: the grid's approximation error from a pilot calibration's
+[Budgets.model_error_runs > 0 (default 12): the grid's approximation error from a pilot calibration's
 posterior draws run on the inversion grid and on finer cells (grid_model_error, model_error), put in
 every model's likelihood] -> baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
 zoomed grid posterior, local emulator refits with the verification runs until the verified evidence is
 trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batch screening -> refits
-of the top_k candidates -> for every refit: posterior-predictive runs, verified evidence
+of the top_k candidates, each followed by a local search on the solver from its best runs
+(polish.local_search: a refit that missed its mode is refined with the search's runs) -> for every refit: posterior-predictive runs, verified evidence
 (torchslide.diagnose.verify), Savage-Dickey (boundary-corrected KDE at switch 0), WAIC, the located
 mismatches re-scored, 90 % HDIs; a refit whose posterior leans against an unsampled upper bound of its
 switch is probed at the bound and refined (verify.needs_bound_probe / refine_refit); a refit whose
@@ -24,6 +25,7 @@ from pathlib import Path
 from dataclasses import dataclass, field
 
 import numpy as np
+import torch
 
 from ..physics import CANDIDATES
 from .decide import Thresholds, decide
@@ -32,6 +34,7 @@ from .predictive import Predictive, posterior_mode, posterior_predictive, poster
 from .refit import calibrate_evaluator, refit
 from .verify import (hdi_from_grid, hdi_interval, needs_bound_probe, refine_baseline, refine_refit, rescore,
                      savage_dickey, slice_proposal, solver_z, verified_evidence, waic)
+from .polish import local_search
 from .screen import ScreenResult, screen
 
 
@@ -59,10 +62,15 @@ class Budgets:
     verify_se: float = 1.0             # ... and bootstrap se of the verified log Z <= this
     slice_check: bool = True           # baseline evidence also from the beta = 0 slice of refits ...
     slice_top: int = 2                 # ... of this many, those with the largest verified evidence
-    model_error_runs: int = 0          # > 0: approximation error of the grid (model_error) sampled at this many
+    model_error_runs: int = 12         # > 0: approximation error of the grid (model_error) sampled at this many
                                        # posterior draws of a pilot baseline calibration, in the likelihood of
                                        # every model; 0: off
     model_error_factor: int = 2        # ... against runs on cells this many times smaller
+    mode_search_iters: int = 4         # refits: iterations of polish.local_search on the solver from the refit's
+                                       # best runs (0: off); a search that beats every refit run by more than
+                                       # mode_margin in z means the refit missed its mode: refined with those runs
+    mode_search_pop: int = 6           # ... moves per start and iteration (2 starts, one batched call each)
+    mode_margin: float = 3.0
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -180,33 +188,54 @@ def _refine(ev_c, cal_c, bud: Budgets, log, extra=None):
     return cal_r, p_r, ver, rows
 
 
-def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print):
+def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base_best=None):
     """Refit candidate ``c`` (refit.refit: n_initial / n_total runs of active learning in the enlarged
-    space), then make its posterior and verified evidence reliable: probe + refine when it leans against
-    an unsampled switch bound; else verify with n_posterior_samples_after runs and, when that is not
-    trustworthy, refine with those runs reused (or, with refit_refine_rounds = 0, continue to
-    n_total_max). Returns (candidate evaluator, result, predictive, verification, evidence history)."""
+    space), then make its posterior and verified evidence reliable: a local search on the solver from
+    the refit's best runs (mode_search_iters; its runs join every refinement); probe + refine when it
+    leans against an unsampled switch bound; else verify with n_posterior_samples_after runs and, when
+    that is not trustworthy or the search beat every refit run by more than mode_margin, refine with
+    those runs reused (or, with refit_refine_rounds = 0, continue to
+    n_total_max). ``base_best``: (n, p_base) baseline points (the best baseline runs); they are run in
+    the candidate's model with its switch at 0 (the nested baseline) and the search starts from them too,
+    so a refit never ends below the baseline's peak for want of having looked there.
+    Returns (candidate evaluator, result, predictive, verification, evidence history)."""
     Ma = bud.n_posterior_samples_after
     ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
                         mcmc_steps=bud.mcmc_steps, checkpoint=checkpoint)
+    ls = _mode_search(ev_c, cal_c, bud, base_best)
+    missed = ls is not None and ls["improvement"] > bud.mode_margin
+    ls_runs = (ls["x"], ls["z"]) if ls is not None else None
+    search = None if ls is None else {"runs": int(len(ls["z"])), "improvement": ls["improvement"],
+                                      "best_z": ls["best_z"], "missed_mode": bool(missed)}
+    if missed:
+        log(f"[diagnose] refit {c}: the local search on the solver beats every refit run by "
+            f"{ls['improvement']:.1f} in ln posterior: the refit's runs missed the peak")
     if bud.refit_refine_rounds > 0 and needs_bound_probe(cal_c):
         # the MCMC posterior leans against the switch's upper bound where no relevant run was made:
         # probe the bound, zoomed grid posterior, emulator refitted locally with the verification runs
         # (verify.refine_refit): a 24-run GP's posterior can exclude a bound it never sampled
-        cal_c, p_c, ver, history = _refine(ev_c, cal_c, bud, log)
+        cal_c, p_c, ver, history = _refine(ev_c, cal_c, bud, log, extra=ls_runs)
+        history[0]["mode_search"] = search
         return ev_c, cal_c, p_c, ver, history
     p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 1))
     ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
     history = [{"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
-                "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]}]
-    if not _trusted(ver, bud) and bud.refit_refine_rounds > 0:
-        # the global GP's posterior is not a good proposal: local GP with these runs too, zoomed grid
-        # posterior, rounds until the verified evidence is trustworthy and stable (verify.refine_refit)
-        log(f"[diagnose] refit {c}: evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
-            f"se {ver['se']:.2f}): refining with a local emulator")
-        r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(p_c.x, solver_z(ev_c, p_c)))
+                "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"],
+                "mode_search": search}]
+    if (missed or not _trusted(ver, bud)) and bud.refit_refine_rounds > 0:
+        # the global GP's posterior is not a good proposal (or not where the mass is): local GP with
+        # these runs and the search's, zoomed grid posterior, rounds until the verified evidence is
+        # trustworthy and stable (verify.refine_refit)
+        why = "peak not sampled" if missed else (f"evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
+                                                f"se {ver['se']:.2f})")
+        log(f"[diagnose] refit {c}: {why}: refining with a local emulator")
+        xe, ze = p_c.x, solver_z(ev_c, p_c)
+        if ls_runs is not None:
+            xe, ze = np.vstack([xe, ls_runs[0]]) if len(xe) else ls_runs[0], np.concatenate([ze, ls_runs[1]])
+        r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(xe, ze))
         history += r_hist
-        if _trusted(r_ver, bud) or r_ver["ess"] >= ver["ess"]:
+        # a proposal that missed the mode is never kept: its ESS says nothing about the mass it missed
+        if missed or _trusted(r_ver, bud) or r_ver["ess"] >= ver["ess"]:
             cal_c, p_c, ver = r_cal, r_p, r_ver
         else:
             # no refinement round beat the first proposal's ESS: keep the first (both are valid
@@ -224,6 +253,39 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print):
         history.append({"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
                         "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"]})
     return ev_c, cal_c, p_c, ver, history
+
+
+def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None):
+    """polish.local_search from the best of the refit's runs and of ``base_best`` (baseline points,
+    run here with the switch at its lower bound 0); None when switched off. Initial steps: twice the
+    refit posterior's sd per axis in unit-cube units, within [0.01, 0.1]. The returned runs include
+    the baseline points' runs."""
+    if bud.mode_search_iters <= 0:
+        return None
+    b = np.asarray(cal_c.bounds, float)
+    X = np.asarray(cal_c.x, float)
+    z = np.where(np.asarray(cal_c.failed, bool), -np.inf, np.asarray(cal_c.z, float))
+    xb = zb = None
+    if base_best is not None and len(base_best):
+        xb = np.hstack([np.asarray(base_best, float), np.full((len(base_best), 1), b[0, -1])])
+        r = ev_c(torch.as_tensor(xb))
+        zb = np.where(r.failed.numpy(), -np.inf, r.z.numpy().astype(float))
+        X, z = np.vstack([X, xb]), np.concatenate([z, zb])
+    samples = getattr(cal_c, "samples", None)
+    step = (np.clip(2 * np.asarray(samples).std(0) / (b[1] - b[0]), 0.01, 0.1)
+            if samples is not None and len(samples) > 1 else None)
+    ls = local_search(ev_c, X, z, b, n_iter=bud.mode_search_iters, pop=bud.mode_search_pop, step0=step,
+                      seed=bud.seed + 11)
+    if xb is not None:
+        # the improvement is over the refit's own runs (did the refit miss its mode?), so the baseline
+        # points count as search runs
+        ls["x"], ls["z"] = np.vstack([xb, ls["x"]]), np.concatenate([zb, ls["z"]])
+        ref = float(np.max(np.where(np.asarray(cal_c.failed, bool), -np.inf, np.asarray(cal_c.z, float))))
+        ls["improvement"] = float(max(ls["best_z"], np.max(zb)) - ref)
+        if np.max(zb) > ls["best_z"]:
+            i = int(np.argmax(zb))
+            ls["best_x"], ls["best_z"] = xb[i], float(zb[i])
+    return ls
 
 
 def grid_model_error(evaluator, bud: Budgets, workdir, log=print):
@@ -305,12 +367,16 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     T["screen_s"] = time.perf_counter() - t0
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
     top = [c for c in scr.ranking][: bud.top_k]
+    # the two best baseline runs (the refits' local searches also start from them, switch at 0)
+    zb = solver_z(evaluator, pred)
+    base_best = pred.x[np.argsort(-np.where(np.isfinite(zb), zb, -np.inf))[:2]] if len(pred.x) else None
     refits, cand_out, preds_after = {}, [], {}
     misfit_before = evaluator.misfit(pred.mean)
     t0 = time.perf_counter()
     raw = {}
     for c in top:
-        ev_c, cal_c, p_c, ver, history = refit_candidate(evaluator, c, bud, workdir / f"refit_{c}.pt", log)
+        ev_c, cal_c, p_c, ver, history = refit_candidate(evaluator, c, bud, workdir / f"refit_{c}.pt", log,
+                                                         base_best=base_best)
         refits[c] = (ev_c, cal_c)
         preds_after[c] = p_c
         raw[c] = (ver, history)
@@ -361,6 +427,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                "two_ln_bf_lower": 2 * lbf - 4 * se_tot, "evidence_se": ver["se"], "ess": ver["ess"],
                "ess_fraction": ver["ess_fraction"], "evidence_history": history,
                "evidence_converged": bool(ver.get("converged", _trusted(ver, bud))),
+               "mode_search": history[0].get("mode_search"),
                "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
                "delta_waic": 2 * (el["elpd"] - elpd_b["elpd"]), "located_rescored": rs,
                "misfit_after": misfit_c, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
