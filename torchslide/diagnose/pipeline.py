@@ -69,7 +69,7 @@ class Budgets:
     mode_search_iters: int = 4         # refits: iterations of polish.local_search on the solver from the refit's
                                        # best runs (0: off); a search that beats every refit run by more than
                                        # mode_margin in z means the refit missed its mode: refined with those runs
-    mode_search_pop: int = 6           # ... moves per start and iteration (2 starts, one batched call each)
+    mode_search_pop: int = 6           # ... moves per start and iteration (2 starts; one batched call per iteration)
     mode_margin: float = 3.0
     batch_size: int = 8
     top_k: int = 2
@@ -269,7 +269,7 @@ def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None):
     if base_best is not None and len(base_best):
         xb = np.hstack([np.asarray(base_best, float), np.full((len(base_best), 1), b[0, -1])])
         r = ev_c(torch.as_tensor(xb))
-        zb = np.where(r.failed.numpy(), -np.inf, r.z.numpy().astype(float))
+        zb = np.where(r.failed.detach().cpu().numpy(), -np.inf, r.z.detach().cpu().numpy().astype(float))
         X, z = np.vstack([X, xb]), np.concatenate([z, zb])
     samples = getattr(cal_c, "samples", None)
     step = (np.clip(2 * np.asarray(samples).std(0) / (b[1] - b[0]), 0.01, 0.1)

@@ -1,8 +1,8 @@
 """Mode check of a refit: a batched local search on the solver itself, from the refit's best runs.
 
 A refit's active learning (24 runs in 3-D in the harness) can put its posterior on the wrong side of
-a narrow ridge: on an entrainment recording the refit's 90 % interval of kappa was [0.00094, 0.00100]
-at z = -1451 while the solver gives z = -1364 at kappa = 0.0014 (truth 0.0015). Importance-sampling
+a narrow ridge: on an entrainment recording the refit's 90 % interval of kappa was [0.00094, 0.00100],
+z = -1451 at its posterior mean, while the solver gives z = -1364 at kappa = 0.0014 (truth 0.0015). Importance-sampling
 verification cannot see such missing mass (its draws come from the proposal), so the pipeline checks
 the mode directly: a (1+lambda) evolution strategy in the unit cube of the candidate's prior box,
 several starts in one batched solver call per iteration. A search that beats the refit's best run
