@@ -565,3 +565,56 @@ def test_mode_search_starts_from_the_nested_baseline():
     z_base = ev(ls["x"][:2]).z.numpy()
     assert ls["best_z"] >= z_base.max() and ls["improvement"] >= z_base.max() - cal.z.max() > 100
     assert Budgets(mode_search_iters=0).mode_search_iters == 0 and _mode_search(ev, cal, Budgets(mode_search_iters=0)) is None
+
+
+def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatch):
+    """A refit whose posterior sits off the peak but whose importance weights are flat there (the
+    verification 'trusts' it: it cannot see mass it never drew): pipeline.refit_candidate's search
+    beats every refit run, the refit is refined with the search's runs, and the kept posterior covers
+    the peak with the right evidence."""
+    from torchslide.active import maximin_lhs
+    from torchslide.diagnose import pipeline
+
+    d, sig = np.array([0.3, 0.55, 0.7]), np.array([0.01, 0.015, 0.04])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
+    z_of = lambda x: lik.log_likelihood(torch.as_tensor(x)) + prior.log_prob(torch.as_tensor(x))
+
+    class Ev:
+        def __init__(self):
+            self.likelihood, self.prior = lik, prior
+
+        def evaluate(self, x):
+            x = torch.as_tensor(x, dtype=torch.float64)
+            return SimpleNamespace(failed=torch.zeros(len(x), dtype=torch.bool)), x.clone()
+
+        def __call__(self, x):
+            x = torch.as_tensor(x, dtype=torch.float64)
+            return SimpleNamespace(z=z_of(x), failed=torch.zeros(len(x), dtype=torch.bool))
+
+    ev = Ev()
+    rng = np.random.default_rng(0)
+    wrong = np.clip(d + [0.03, -0.04, -0.2] + 0.005 * rng.standard_normal((200, 3)), 0, 1)
+    x = np.vstack([maximin_lhs(20, 3, seed=1), wrong[:4]])
+    # the emulator equals the solver's z: flat weights on the wrong draws, so the first verification is
+    # trustworthy, and its log Z (-40) is far from the truth (0)
+    cal = SimpleNamespace(names=["mu", "xi", "k"], x=x, z=z_of(x).numpy(), failed=np.zeros(len(x), bool),
+                          bounds=np.array([[0.0] * 3, [1.0] * 3]), samples=wrong, log_evidence=-40.0,
+                          posterior_grid=None, n_runs=len(x),
+                          emulator=SimpleNamespace(mean=lambda t: z_of(t)))
+    monkeypatch.setattr(pipeline, "refit", lambda *a, **k: (ev, cal))
+    bud = pipeline.Budgets(n_posterior_samples_after=16, refit_refine_rounds=3, refit_grid=(40, 32))
+    _, res, _, ver, hist = pipeline.refit_candidate(ev, "entrainment", bud, None, log=lambda s: None)
+    assert hist[0]["mode_search"]["missed_mode"] and pipeline._trusted(
+        {"verified": True, "ess_fraction": hist[0]["ess"] / 16, "se": hist[0]["se"]}, bud)
+    assert abs(ver["log_evidence"]) < 1.0                    # normalised Gaussian, prior density 1
+    lo, hi = pipeline._params(res)["k"]["hdi90"]
+    assert lo <= 0.7 <= hi
+    # a refinement that ends below the first proposal's (flat, 16 of 16) ESS and untrusted (a strict ESS
+    # bar) is still kept: the first proposal missed the peak, so its ESS says nothing
+    strict = pipeline.Budgets(n_posterior_samples_after=16, refit_refine_rounds=1, refit_grid=(40, 32),
+                              verify_ess_fraction=0.99)
+    _, res2, _, ver2, hist2 = pipeline.refit_candidate(ev, "entrainment", strict, None, log=lambda s: None)
+    assert ver2["ess"] < hist2[0]["ess"] and not hist2[0].get("kept")
+    lo, hi = pipeline._params(res2)["k"]["hdi90"]
+    assert lo <= 0.7 <= hi

@@ -280,8 +280,7 @@ def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None):
         # the improvement is over the refit's own runs (did the refit miss its mode?), so the baseline
         # points count as search runs
         ls["x"], ls["z"] = np.vstack([xb, ls["x"]]), np.concatenate([zb, ls["z"]])
-        ref = float(np.max(np.where(np.asarray(cal_c.failed, bool), -np.inf, np.asarray(cal_c.z, float))))
-        ls["improvement"] = float(max(ls["best_z"], np.max(zb)) - ref)
+        ls["improvement"] = float(max(ls["best_z"], np.max(zb)) - np.max(z[: len(cal_c.x)]))
         if np.max(zb) > ls["best_z"]:
             i = int(np.argmax(zb))
             ls["best_x"], ls["best_z"] = xb[i], float(zb[i])
