@@ -144,12 +144,16 @@ def test_small_harness(tmp_path):
                 refined += 1
     assert refined >= 1      # 4 verification draws of an 8-run 3-D refit: the path is exercised
     # every refit was followed by the local search on the solver (the 2 best baseline runs with the
-    # switch at 0, then 2 iterations x 2 starts x 6 moves)
+    # switch at 0, 3 points towards the screening's linearised optimum when it has one, then 2
+    # iterations x 2 starts x 6 moves), checked against its runs and its posterior draws
     for c in cases.values():
+        lin = c["diagnosis"]["screening"]["linear_opt"]
         for cand in c["diagnosis"]["candidates"]:
             if cand.get("log_evidence") is not None:
                 ms = cand["mode_search"]
-                assert ms["runs"] == 2 + 24 and ms["missed_mode"] == (ms["improvement"] > 3.0)
+                assert ms["runs"] == 2 + (3 if lin[cand["name"]] else 0) + 24
+                assert ms["missed_mode"] == (ms["improvement"] > 3.0 or ms.get("gap_to_draws", -1.0) > 3.0)
+    assert cases["entrainment"]["diagnosis"]["screening"]["linear_opt"]["entrainment"]["kappa"] > 0
     page = build_page(out, tmp_path / "page")
     assert "Confusion matrix" in page.read_text()
 
@@ -344,7 +348,8 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     # the refit was refined (grid posterior, no MCMC samples): the posterior figure must still be drawn
     assert any("trusted" in h for h in c["evidence_history"])
     # the default path: the grid's approximation error (2 run pairs here) and the mode search ran
-    assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + 12
+    n_lin = 3 if j["screening"]["linear_opt"]["mu_i"] else 0
+    assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + n_lin + 12
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())
 
@@ -618,3 +623,91 @@ def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatc
     assert ver2["ess"] < hist2[0]["ess"] and not hist2[0].get("kept")
     lo, hi = pipeline._params(res2)["k"]["hdi90"]
     assert lo <= 0.7 <= hi
+
+
+def test_screen_linear_optimum_recovers_a_linear_model():
+    """screen's linear_opt is the joint least-squares optimum of (baseline re-tune, switch): on a model
+    that is linear in (mu, xi, kappa) it is the truth, and _linear_starts puts the f = 1 start there;
+    a residual the switch can only make worse (beta < 0) gives no start."""
+    from torchslide.diagnose.pipeline import _linear_starts
+    from torchslide.diagnose.screen import screen
+
+    rng = np.random.default_rng(3)
+    k = 12
+    Jm, Jx, Jk = rng.standard_normal(k), rng.standard_normal(k) * 0.01, rng.standard_normal(k) * 50
+    x0 = np.array([0.2, 500.0])
+    truth = {"mu": 0.21, "xi": 520.0, "kappa": 0.006}
+
+    def model(mu, xi, kappa):
+        return (np.outer(mu - x0[0], Jm) + np.outer(xi - x0[1], Jx) + np.outer(kappa, Jk))
+
+    class Ev:
+        prior = Prior({"mu": Uniform(0.05, 0.5), "xi": Uniform(100.0, 2000.0)})
+        fixed, sigma = {}, np.full(k, 0.1)
+
+        def __init__(self, data):
+            self.data = data
+
+        def run_values(self, v):
+            return model(v["mu"], v["xi"], v["kappa"]), np.zeros(len(v["mu"]), bool)
+
+    ev = Ev(model(np.array([truth["mu"]]), np.array([truth["xi"]]), np.array([truth["kappa"]]))[0])
+    scr = screen(ev, x0, ["entrainment"])
+    lo = scr.linear_opt["entrainment"]
+    assert lo is not None and scr.scores["entrainment"] > 0
+    for n, v in truth.items():
+        assert abs(lo[n] - v) < 1e-6 * max(1.0, abs(v))
+    st = _linear_starts(scr, "entrainment", ["mu", "xi", "kappa"])
+    assert st.shape == (3, 3) and np.allclose(st[1], [truth["mu"], truth["xi"], truth["kappa"]])
+    assert np.allclose(st[0], 0.5 * (st[1] + [x0[0], x0[1], 0.0]))
+    ev_neg = Ev(model(np.array([0.2]), np.array([500.0]), np.array([-0.004]))[0])
+    scr_neg = screen(ev_neg, x0, ["entrainment"])
+    assert scr_neg.linear_opt["entrainment"] is None and _linear_starts(scr_neg, "entrainment", ["mu", "xi", "kappa"]) is None
+
+
+def test_refit_candidate_checks_the_search_against_the_posterior_draws(monkeypatch):
+    """A refit with a run on the peak's flank (the search gains little over its best run) whose
+    posterior lies off the peak: the search is compared with the best of the posterior draws' runs,
+    the refit is flagged and refined, and the kept posterior covers the peak."""
+    from torchslide.active import maximin_lhs
+    from torchslide.diagnose import pipeline
+
+    d, sig = np.array([0.3, 0.55, 0.7]), np.array([0.01, 0.015, 0.04])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
+    z_of = lambda x: lik.log_likelihood(torch.as_tensor(x)) + prior.log_prob(torch.as_tensor(x))
+
+    class Ev:
+        likelihood, prior_ = lik, prior
+
+        def __init__(self):
+            self.prior = prior
+
+        def evaluate(self, x):
+            x = torch.as_tensor(x, dtype=torch.float64)
+            return SimpleNamespace(failed=torch.zeros(len(x), dtype=torch.bool)), x.clone()
+
+        def __call__(self, x):
+            x = torch.as_tensor(x, dtype=torch.float64)
+            return SimpleNamespace(z=z_of(x), failed=torch.zeros(len(x), dtype=torch.bool))
+
+    ev = Ev()
+    rng = np.random.default_rng(0)
+    wrong = np.clip(d + [0.03, -0.04, -0.2] + 0.005 * rng.standard_normal((200, 3)), 0, 1)
+    flank = d + [0.012, 0.0, 0.0]                                 # z 0.72 below the peak's
+    x = np.vstack([maximin_lhs(20, 3, seed=1), wrong[:4], flank])
+    cal = SimpleNamespace(names=["mu", "xi", "k"], x=x, z=z_of(x).numpy(), failed=np.zeros(len(x), bool),
+                          bounds=np.array([[0.0] * 3, [1.0] * 3]), samples=wrong, log_evidence=-40.0,
+                          posterior_grid=None, n_runs=len(x), emulator=SimpleNamespace(mean=lambda t: z_of(t)))
+    monkeypatch.setattr(pipeline, "refit", lambda *a, **k: (ev, cal))
+    bud = pipeline.Budgets(n_posterior_samples_after=16, refit_refine_rounds=3, refit_grid=(40, 32))
+    _, res, _, ver, hist = pipeline.refit_candidate(ev, "entrainment", bud, None, log=lambda s: None)
+    ms = hist[0]["mode_search"]
+    assert ms["improvement"] <= bud.mode_margin < ms["gap_to_draws"] and ms["missed_mode"]
+    assert abs(ver["log_evidence"]) < 1.0
+    lo, hi = pipeline._params(res)["k"]["hdi90"]
+    assert lo <= 0.7 <= hi
+    # the same refit with the old rule alone (runs only) would have kept the wrong posterior: the first
+    # verification is trusted (flat weights) and far from log Z = 0
+    assert pipeline._trusted({"verified": True, "ess_fraction": hist[0]["ess"] / 16, "se": hist[0]["se"]}, bud)
+    assert hist[0]["log_evidence"] < -20

@@ -6,7 +6,8 @@ every model's likelihood] -> baseline calibration (or a given CalibrationResult)
 zoomed grid posterior, local emulator refits with the verification runs until the verified evidence is
 trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batch screening -> refits
 of the top_k candidates, each followed by a local search on the solver from its best runs
-(polish.local_search: a refit that missed its mode is refined with the search's runs) -> for every refit: posterior-predictive runs, verified evidence
+(polish.local_search, also from the nested baseline and the screening's linearised optimum: a
+refit whose posterior draws missed its mode is refined with the search's runs) -> for every refit: posterior-predictive runs, verified evidence
 (torchslide.diagnose.verify), Savage-Dickey (boundary-corrected KDE at switch 0), WAIC, the located
 mismatches re-scored, 90 % HDIs; a refit whose posterior leans against an unsampled upper bound of its
 switch is probed at the bound and refined (verify.needs_bound_probe / refine_refit); a refit whose
@@ -67,8 +68,10 @@ class Budgets:
                                        # every model; 0: off
     model_error_factor: int = 2        # ... against runs on cells this many times smaller
     mode_search_iters: int = 4         # refits: iterations of polish.local_search on the solver from the refit's
-                                       # best runs (0: off); a search that beats every refit run by more than
-                                       # mode_margin in z means the refit missed its mode: refined with those runs
+                                       # best runs, the nested baseline's and the screening's linearised optimum
+                                       # (0: off); a search that beats every refit run, or the refit's best
+                                       # posterior draw, by more than mode_margin in z means the refit missed its
+                                       # mode: refined with those runs
     mode_search_pop: int = 6           # ... moves per start and iteration (2 starts; one batched call per iteration)
     mode_margin: float = 3.0
     batch_size: int = 8
@@ -188,7 +191,7 @@ def _refine(ev_c, cal_c, bud: Budgets, log, extra=None):
     return cal_r, p_r, ver, rows
 
 
-def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base_best=None):
+def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base_best=None, starts=None):
     """Refit candidate ``c`` (refit.refit: n_initial / n_total runs of active learning in the enlarged
     space), then make its posterior and verified evidence reliable: a local search on the solver from
     the refit's best runs (mode_search_iters; its runs join every refinement); probe + refine when it
@@ -197,19 +200,19 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base
     those runs reused (or, with refit_refine_rounds = 0, continue to
     n_total_max). ``base_best``: (n, p_base) baseline points (the best baseline runs); they are run in
     the candidate's model with its switch at 0 (the nested baseline) and the search starts from them too,
-    so a refit never ends below the baseline's peak for want of having looked there.
+    so a refit never ends below the baseline's peak for want of having looked there. ``starts``: more
+    (n, p_c) start points (the screening's linearised optimum, _linear_starts). The refit missed its
+    mode when the search's best beats the best of its posterior draws' runs (the verification runs:
+    where the posterior's mass is) by more than mode_margin; its best run alone can sit on the peak's
+    flank while the posterior lies elsewhere.
     Returns (candidate evaluator, result, predictive, verification, evidence history)."""
     Ma = bud.n_posterior_samples_after
     ev_c, cal_c = refit(evaluator, c, bud.n_initial, bud.n_total, batch_size=bud.batch_size, seed=bud.seed,
                         mcmc_steps=bud.mcmc_steps, checkpoint=checkpoint)
-    ls = _mode_search(ev_c, cal_c, bud, base_best)
-    missed = ls is not None and ls["improvement"] > bud.mode_margin
+    ls = _mode_search(ev_c, cal_c, bud, base_best, starts)
     ls_runs = (ls["x"], ls["z"]) if ls is not None else None
     search = None if ls is None else {"runs": int(len(ls["z"])), "improvement": ls["improvement"],
-                                      "best_z": ls["best_z"], "missed_mode": bool(missed)}
-    if missed:
-        log(f"[diagnose] refit {c}: the local search on the solver beats every refit run by "
-            f"{ls['improvement']:.1f} in ln posterior: the refit's runs missed the peak")
+                                      "best_z": ls["best_z"], "missed_mode": bool(ls["improvement"] > bud.mode_margin)}
     if bud.refit_refine_rounds > 0 and needs_bound_probe(cal_c):
         # the MCMC posterior leans against the switch's upper bound where no relevant run was made:
         # probe the bound, zoomed grid posterior, emulator refitted locally with the verification runs
@@ -219,6 +222,16 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base
         return ev_c, cal_c, p_c, ver, history
     p_c = posterior_predictive(ev_c, posterior_samples(cal_c, Ma, seed=bud.seed + 1))
     ver = verified_evidence(ev_c, cal_c, p_c.x, p_c.draws, seed=bud.seed)
+    zd = solver_z(ev_c, p_c)
+    missed = False
+    if search is not None:
+        zd_max = float(np.max(np.where(np.isfinite(zd), zd, -np.inf), initial=-np.inf))
+        search["gap_to_draws"] = float(ls["best_z"] - zd_max)
+        missed = search["missed_mode"] = bool(search["missed_mode"] or search["gap_to_draws"] > bud.mode_margin)
+        if missed:
+            log(f"[diagnose] refit {c}: the local search on the solver beats every refit run by "
+                f"{ls['improvement']:.1f} and the best posterior draw by {search['gap_to_draws']:.1f} in ln "
+                f"posterior: the refit's posterior missed the peak")
     history = [{"n_runs": cal_c.n_runs, "log_evidence": ver["log_evidence"],
                 "log_evidence_emulator": cal_c.log_evidence, "ess": ver["ess"], "se": ver["se"],
                 "mode_search": search}]
@@ -229,7 +242,7 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base
         why = "peak not sampled" if missed else (f"evidence not trustworthy (ESS {ver['ess']:.1f}/{ver['n_draws']}, "
                                                 f"se {ver['se']:.2f})")
         log(f"[diagnose] refit {c}: {why}: refining with a local emulator")
-        xe, ze = p_c.x, solver_z(ev_c, p_c)
+        xe, ze = p_c.x, zd
         if ls_runs is not None:
             xe, ze = np.vstack([xe, ls_runs[0]]) if len(xe) else ls_runs[0], np.concatenate([ze, ls_runs[1]])
         r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(xe, ze))
@@ -255,19 +268,26 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base
     return ev_c, cal_c, p_c, ver, history
 
 
-def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None):
-    """polish.local_search from the best of the refit's runs and of ``base_best`` (baseline points,
-    run here with the switch at its lower bound 0); None when switched off. Initial steps: twice the
+def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None, starts=None):
+    """polish.local_search from the best of the refit's runs, of ``base_best`` (baseline points, run
+    here with the switch at its lower bound 0) and of ``starts`` ((n, p_c) points of the candidate's
+    model, e.g. the screening's linearised optimum); None when switched off. Initial steps: twice the
     refit posterior's sd per axis in unit-cube units, within [0.01, 0.1]. The returned runs include
-    the baseline points' runs."""
+    the extra points' runs; ``improvement`` is over the refit's own runs."""
     if bud.mode_search_iters <= 0:
         return None
     b = np.asarray(cal_c.bounds, float)
     X = np.asarray(cal_c.x, float)
     z = np.where(np.asarray(cal_c.failed, bool), -np.inf, np.asarray(cal_c.z, float))
-    xb = zb = None
+    n_refit = len(X)
+    pts = []
     if base_best is not None and len(base_best):
-        xb = np.hstack([np.asarray(base_best, float), np.full((len(base_best), 1), b[0, -1])])
+        pts.append(np.hstack([np.asarray(base_best, float), np.full((len(base_best), 1), b[0, -1])]))
+    if starts is not None and len(starts):
+        pts.append(np.clip(np.asarray(starts, float), b[0], b[1]))
+    xb = zb = None
+    if pts:
+        xb = np.vstack(pts)
         r = ev_c(torch.as_tensor(xb))
         zb = np.where(r.failed.detach().cpu().numpy(), -np.inf, r.z.detach().cpu().numpy().astype(float))
         X, z = np.vstack([X, xb]), np.concatenate([z, zb])
@@ -277,14 +297,25 @@ def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None):
     ls = local_search(ev_c, X, z, b, n_iter=bud.mode_search_iters, pop=bud.mode_search_pop, step0=step,
                       seed=bud.seed + 11)
     if xb is not None:
-        # the improvement is over the refit's own runs (did the refit miss its mode?), so the baseline
+        # the improvement is over the refit's own runs (did the refit miss its mode?), so the extra
         # points count as search runs
         ls["x"], ls["z"] = np.vstack([xb, ls["x"]]), np.concatenate([zb, ls["z"]])
-        ls["improvement"] = float(max(ls["best_z"], np.max(zb)) - np.max(z[: len(cal_c.x)]))
         if np.max(zb) > ls["best_z"]:
             i = int(np.argmax(zb))
             ls["best_x"], ls["best_z"] = xb[i], float(zb[i])
+        ls["improvement"] = float(ls["best_z"] - np.max(z[:n_refit], initial=-np.inf))
     return ls
+
+
+def _linear_starts(scr: ScreenResult, c: str, names, factors=(0.5, 1.0, 2.0)):
+    """(n, p_c) points on the line from the baseline mode to the screening's linearised optimum of
+    candidate ``c`` (ScreenResult.linear_opt) at ``factors`` of the step; None when it has none."""
+    lo = scr.linear_opt.get(c) if scr is not None else None
+    if not lo:
+        return None
+    x0 = np.array([scr.x0.get(n, 0.0) for n in names[:-1]] + [0.0])
+    x1 = np.array([lo[n] for n in names])
+    return np.array([x0 + f * (x1 - x0) for f in factors])
 
 
 def grid_model_error(evaluator, bud: Budgets, workdir, log=print):
@@ -375,7 +406,8 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     raw = {}
     for c in top:
         ev_c, cal_c, p_c, ver, history = refit_candidate(evaluator, c, bud, workdir / f"refit_{c}.pt", log,
-                                                         base_best=base_best)
+                                                         base_best=base_best,
+                                                         starts=_linear_starts(scr, c, list(evaluator.prior.names) + [CANDIDATES[c].param]))
         refits[c] = (ev_c, cal_c)
         preds_after[c] = p_c
         raw[c] = (ver, history)
