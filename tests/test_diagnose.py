@@ -711,3 +711,45 @@ def test_refit_candidate_checks_the_search_against_the_posterior_draws(monkeypat
     # verification is trusted (flat weights) and far from log Z = 0
     assert pipeline._trusted({"verified": True, "ess_fraction": hist[0]["ess"] / 16, "se": hist[0]["se"]}, bud)
     assert hist[0]["log_evidence"] < -20
+
+
+def test_coverage_counts_a_truth_at_the_prior_bound(tmp_path):
+    """A grid posterior's HDI whose last cell edge is 0.9999999999999999 covers a truth at the switch's
+    bound 1 (earth pressure = 1); apply_thresholds recomputes a saved case's coverage that way and
+    keeps the value it was run with."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.calibrate_thresholds import apply_thresholds
+    from experiments.hidden_physics.harness import coverage
+
+    par = {"mean": 0.91, "hdr90": [0.70, 0.9999999999999999], "hdi90": [0.79, 0.9999999999999999]}
+    diag = {"candidates": [{"name": "earth_pressure", "parameters": {"earth_pressure": par}}],
+            "located": [], "thresholds": asdict(Thresholds()), "verdict": "no_missing_physics",
+            "missing_physics": None, "decision": {}, "fit_before": {"misfit": 1.0}}
+    truth = {"term": "earth_pressure", "earth_pressure": 1.0}
+    assert coverage(diag, truth) == (True, True)
+    assert coverage(diag, {"term": "earth_pressure", "earth_pressure": 0.75}) == (False, True)
+    assert coverage(diag, {"term": "entrainment", "kappa": 0.0015}) == (None, None)
+    assert coverage(diag, {"term": None}) == (None, None)
+    case = {"truth": truth, "true_term_covered_hdr90": False, "true_term_covered_equal_tailed90": False,
+            "diagnosis": diag}
+    (tmp_path / "earth_pressure_s0.json").write_text(json.dumps(case))
+    apply_thresholds(tmp_path, asdict(Thresholds()))
+    c = json.loads((tmp_path / "earth_pressure_s0.json").read_text())
+    assert c["true_term_covered_hdr90"] and c["coverage_as_run"] == [False, False]
+
+
+def test_params_snaps_a_grid_interval_to_the_prior_bound():
+    """_params reports a grid posterior's interval that ends in the last cell as ending at the bound
+    itself (not 0.9999999999999999)."""
+    from torchslide.diagnose.pipeline import _params
+
+    e = np.linspace(0.8776381909547739, 1.0, 33)
+    ax = (e[:-1] + e[1:]) / 2                                      # centres; last edge one ulp short of 1
+    assert ax[-1] + (ax[1] - ax[0]) / 2 < 1.0
+    dens = np.exp(30 * (ax - 1.0))
+    cal = SimpleNamespace(names=["k"], bounds=np.array([[0.0], [1.0]]), samples=None, posterior_grid=dens,
+                          grid_axes=[ax], summary={"mean": {"k": 0.95}, "hdr90": {"k": [0.9, ax[-1] + (ax[1] - ax[0]) / 2]},
+                                                   "map": {"k": ax[-1]}})
+    p = _params(cal)["k"]
+    assert p["hdi90"][1] == 1.0 and p["hdr90"][1] == 1.0 and 0.87 < p["hdi90"][0] < 1.0

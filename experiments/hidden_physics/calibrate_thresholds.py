@@ -59,14 +59,25 @@ def thresholds_from_null(stats: dict) -> dict:
 
 
 def apply_thresholds(results, th: dict) -> int:
-    """Re-decide the saved cases in ``results`` with thresholds ``th`` (see the module doc); returns the
-    number of cases whose verdict or named term changed."""
+    """Re-decide the saved cases in ``results`` with thresholds ``th`` (see the module doc) and
+    recompute their coverage check (harness.coverage); returns the number of cases whose verdict or
+    named term changed."""
     from torchslide.diagnose.decide import Thresholds, decide
+
+    from .harness import coverage
 
     changed = 0
     for p in sorted(Path(results).glob("*.json")):
         case = json.loads(p.read_text())
         j = case["diagnosis"]
+        # the coverage check as harness.coverage does it now (with the tolerance for a grid's last
+        # cell edge); the value it was run with is kept
+        cov = coverage(j, case["truth"]) if "truth" in case else None
+        if cov is not None and cov != (case.get("true_term_covered_hdr90"), case.get("true_term_covered_equal_tailed90")):
+            case.setdefault("coverage_as_run", [case.get("true_term_covered_hdr90"),
+                                                case.get("true_term_covered_equal_tailed90")])
+            case["true_term_covered_hdr90"], case["true_term_covered_equal_tailed90"] = cov
+            p.write_text(json.dumps(case, indent=1))
         if j["thresholds"] == th:
             continue
         cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]

@@ -50,6 +50,27 @@ def out_of_range(scenario: str, strength: float) -> str | None:
     return None
 
 
+def coverage(diag: dict, truth: dict) -> tuple:
+    """(true switch in the 90 % HDI, in the equal-tailed 90 % interval) of the true term's refit in a
+    report.json-style ``diag``; (None, None) when the scenario has no library term or it was not
+    refitted. "Covers": the highest-density interval on the prior range (it may include a prior bound,
+    e.g. earth pressure = 1), with a tolerance of 1e-9 of the prior width for the floating-point end
+    of a grid's last cell (0.9999999999999999 for a bound at 1)."""
+    term = truth["term"]
+    if term not in SWITCH:
+        return None, None
+    c = next((c for c in diag["candidates"] if c["name"] == term), None)
+    par = c["parameters"].get(SWITCH[term]) if c else None
+    if not par:
+        return None, None
+    lo_p, hi_p = CANDIDATES[term].prior
+    tol = 1e-9 * (hi_p - lo_p)
+    v = truth[SWITCH[term]]
+    lo, hi = par.get("hdi90", par["hdr90"])
+    lo_e, hi_e = par["hdr90"]
+    return bool(lo - tol <= v <= hi + tol), bool(lo_e - tol <= v <= hi_e + tol)
+
+
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None) -> dict:
     t0 = time.perf_counter()
@@ -59,18 +80,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
     d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
     j = d.to_json()
-    term = rec.truth["term"]
-    cover = cover_eq = None
-    if term in SWITCH:
-        # "covers the truth": the 90 % highest-density interval on the prior range (it may include a
-        # prior bound, e.g. curvature / earth pressure switch = 1); the equal-tailed one is kept too
-        c = next((c for c in j["candidates"] if c["name"] == term), None)
-        if c and c["parameters"].get(SWITCH[term]):
-            par = c["parameters"][SWITCH[term]]
-            lo, hi = par.get("hdi90", par["hdr90"])
-            cover = bool(lo <= rec.truth[SWITCH[term]] <= hi)
-            lo, hi = par["hdr90"]
-            cover_eq = bool(lo <= rec.truth[SWITCH[term]] <= hi)
+    cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,

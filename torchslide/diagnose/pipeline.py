@@ -158,7 +158,10 @@ def _params(cal) -> dict:
             hdi = hdi_from_grid(cal.posterior_grid, cal.grid_axes, i)
         else:
             hdi = list(s["hdr90"][n])
-        out[n] = {"mean": s["mean"][n], "hdr90": list(s["hdr90"][n]), "hdi90": hdi, "map": s["map"][n]}
+        # a grid cell's edge computed as centre + half-width can miss the bound by an ulp
+        snap = lambda v: lo if abs(v - lo) <= 1e-9 * (hi - lo) else hi if abs(v - hi) <= 1e-9 * (hi - lo) else v
+        out[n] = {"mean": s["mean"][n], "hdr90": [snap(float(v)) for v in s["hdr90"][n]],
+                  "hdi90": [snap(float(v)) for v in hdi], "map": s["map"][n]}
     return out
 
 

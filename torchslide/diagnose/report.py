@@ -87,8 +87,9 @@ def _refit_check(c: dict) -> str:
     ms = c.get("mode_search")
     parts = []
     if ms:
-        parts.append(f"peak not sampled by the refit (search +{ms['improvement']:.1f}), refined" if ms["missed_mode"]
-                     else f"mode confirmed (search {ms['improvement']:+.1f})")
+        gap = ms.get("gap_to_draws")
+        vs = f"search {ms['improvement']:+.1f} over its runs" + ("" if gap is None else f", {gap:+.1f} over its draws")
+        parts.append(f"peak missed by the refit ({vs}), refined" if ms["missed_mode"] else f"mode confirmed ({vs})")
     if "evidence_converged" in c:
         parts.append("evidence converged" if c["evidence_converged"] else "evidence NOT converged")
     return "; ".join(parts) or "-"
