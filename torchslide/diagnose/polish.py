@@ -5,9 +5,10 @@ a narrow ridge: on an entrainment recording the refit's 90 % interval of kappa w
 z = -1451 at its posterior mean, while the solver gives z = -1364 at kappa = 0.0014 (truth 0.0015). Importance-sampling
 verification cannot see such missing mass (its draws come from the proposal), so the pipeline checks
 the mode directly: a (1+lambda) evolution strategy in the unit cube of the candidate's prior box,
-several starts in one batched solver call per iteration. A search that beats the refit's best run
-by more than a margin means the refit missed its mode; its runs then join the local emulator of
-verify.refine_refit, so the refined posterior is built where the mass is.
+several starts in one batched solver call per iteration. A search that beats the refit's best run,
+or the best of its posterior draws, by more than a margin means the refit missed its mode
+(pipeline.refit_candidate); its runs then join the local emulator of verify.refine_refit, so the
+refined posterior is built where the mass is.
 """
 from __future__ import annotations
 
