@@ -572,13 +572,12 @@ def test_mode_search_starts_from_the_nested_baseline():
     assert Budgets(mode_search_iters=0).mode_search_iters == 0 and _mode_search(ev, cal, Budgets(mode_search_iters=0)) is None
 
 
-def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatch):
-    """A refit whose posterior sits off the peak but whose importance weights are flat there (the
-    verification 'trusts' it: it cannot see mass it never drew): pipeline.refit_candidate's search
-    beats every refit run, the refit is refined with the search's runs, and the kept posterior covers
-    the peak with the right evidence."""
+def _off_peak_refit(flank: bool = False):
+    """(evaluator, refit result) of a 3-D Gaussian posterior peaked at (0.3, 0.55, 0.7) whose refit
+    posterior sits off the peak (k ~ 0.5). The emulator equals the solver's z, so the importance
+    weights on the wrong draws are flat: the first verification is trustworthy, and its log Z (-40) is
+    far from the truth (0). ``flank``: one refit run near the peak (z 0.72 below it)."""
     from torchslide.active import maximin_lhs
-    from torchslide.diagnose import pipeline
 
     d, sig = np.array([0.3, 0.55, 0.7]), np.array([0.01, 0.015, 0.04])
     lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
@@ -597,16 +596,23 @@ def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatc
             x = torch.as_tensor(x, dtype=torch.float64)
             return SimpleNamespace(z=z_of(x), failed=torch.zeros(len(x), dtype=torch.bool))
 
-    ev = Ev()
     rng = np.random.default_rng(0)
     wrong = np.clip(d + [0.03, -0.04, -0.2] + 0.005 * rng.standard_normal((200, 3)), 0, 1)
-    x = np.vstack([maximin_lhs(20, 3, seed=1), wrong[:4]])
-    # the emulator equals the solver's z: flat weights on the wrong draws, so the first verification is
-    # trustworthy, and its log Z (-40) is far from the truth (0)
+    x = np.vstack([maximin_lhs(20, 3, seed=1), wrong[:4]] + ([d + [0.012, 0.0, 0.0]] if flank else []))
     cal = SimpleNamespace(names=["mu", "xi", "k"], x=x, z=z_of(x).numpy(), failed=np.zeros(len(x), bool),
                           bounds=np.array([[0.0] * 3, [1.0] * 3]), samples=wrong, log_evidence=-40.0,
-                          posterior_grid=None, n_runs=len(x),
-                          emulator=SimpleNamespace(mean=lambda t: z_of(t)))
+                          posterior_grid=None, n_runs=len(x), emulator=SimpleNamespace(mean=lambda t: z_of(t)))
+    return Ev(), cal
+
+
+def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatch):
+    """A refit whose posterior sits off the peak but whose importance weights are flat there (the
+    verification 'trusts' it: it cannot see mass it never drew): pipeline.refit_candidate's search
+    beats every refit run, the refit is refined with the search's runs, and the kept posterior covers
+    the peak with the right evidence."""
+    from torchslide.diagnose import pipeline
+
+    ev, cal = _off_peak_refit()
     monkeypatch.setattr(pipeline, "refit", lambda *a, **k: (ev, cal))
     bud = pipeline.Budgets(n_posterior_samples_after=16, refit_refine_rounds=3, refit_grid=(40, 32))
     _, res, _, ver, hist = pipeline.refit_candidate(ev, "entrainment", bud, None, log=lambda s: None)
@@ -669,36 +675,9 @@ def test_refit_candidate_checks_the_search_against_the_posterior_draws(monkeypat
     """A refit with a run on the peak's flank (the search gains little over its best run) whose
     posterior lies off the peak: the search is compared with the best of the posterior draws' runs,
     the refit is flagged and refined, and the kept posterior covers the peak."""
-    from torchslide.active import maximin_lhs
     from torchslide.diagnose import pipeline
 
-    d, sig = np.array([0.3, 0.55, 0.7]), np.array([0.01, 0.015, 0.04])
-    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
-    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
-    z_of = lambda x: lik.log_likelihood(torch.as_tensor(x)) + prior.log_prob(torch.as_tensor(x))
-
-    class Ev:
-        likelihood, prior_ = lik, prior
-
-        def __init__(self):
-            self.prior = prior
-
-        def evaluate(self, x):
-            x = torch.as_tensor(x, dtype=torch.float64)
-            return SimpleNamespace(failed=torch.zeros(len(x), dtype=torch.bool)), x.clone()
-
-        def __call__(self, x):
-            x = torch.as_tensor(x, dtype=torch.float64)
-            return SimpleNamespace(z=z_of(x), failed=torch.zeros(len(x), dtype=torch.bool))
-
-    ev = Ev()
-    rng = np.random.default_rng(0)
-    wrong = np.clip(d + [0.03, -0.04, -0.2] + 0.005 * rng.standard_normal((200, 3)), 0, 1)
-    flank = d + [0.012, 0.0, 0.0]                                 # z 0.72 below the peak's
-    x = np.vstack([maximin_lhs(20, 3, seed=1), wrong[:4], flank])
-    cal = SimpleNamespace(names=["mu", "xi", "k"], x=x, z=z_of(x).numpy(), failed=np.zeros(len(x), bool),
-                          bounds=np.array([[0.0] * 3, [1.0] * 3]), samples=wrong, log_evidence=-40.0,
-                          posterior_grid=None, n_runs=len(x), emulator=SimpleNamespace(mean=lambda t: z_of(t)))
+    ev, cal = _off_peak_refit(flank=True)
     monkeypatch.setattr(pipeline, "refit", lambda *a, **k: (ev, cal))
     bud = pipeline.Budgets(n_posterior_samples_after=16, refit_refine_rounds=3, refit_grid=(40, 32))
     _, res, _, ver, hist = pipeline.refit_candidate(ev, "entrainment", bud, None, log=lambda s: None)
