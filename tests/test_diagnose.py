@@ -515,6 +515,26 @@ def test_harness_skips_strengths_beyond_a_switch_range():
     assert out_of_range("null", 3.0) is None and out_of_range("low_friction_patch", 2.0) is None
 
 
+def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
+    """``harness --cellsize 20`` runs its cases on a 20 m inversion grid (recordings at 10 m); the
+    default stays 40 m; saved cases are skipped on a rerun."""
+    import experiments.hidden_physics.harness as H
+
+    calls = []
+
+    def fake(sc, seed, out, cellsize=40.0, **kw):
+        calls.append((sc, seed, cellsize))
+        out.mkdir(parents=True, exist_ok=True)
+        (out / f"{sc}_s{seed}.json").write_text("{}")
+        return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
+
+    monkeypatch.setattr(H, "run_case", fake)
+    assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a")]) == 0
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert calls == [("null", 3, 20.0), ("null", 3, 40.0)]
+
+
 def test_local_search_climbs_to_a_mode_the_refit_missed():
     """polish.local_search from runs that missed a narrow 3-D peak (the best run ~0.1 away): it finds
     a point far better than every earlier run, near the peak, inside the box, in batched calls."""
@@ -732,3 +752,39 @@ def test_params_snaps_a_grid_interval_to_the_prior_bound():
                                                    "map": {"k": ax[-1]}})
     p = _params(cal)["k"]
     assert p["hdi90"][1] == 1.0 and p["hdr90"][1] == 1.0 and 0.87 < p["hdi90"][0] < 1.0
+
+
+def test_page_section_of_the_finer_grid_probe(tmp_path):
+    """make_page's 20 m probe section: one row per saved case with what was found, the strict-success
+    check, the candidates' lower-bound 2 ln BF and the true switch's interval, and the thresholds from
+    the probe's own null seeds."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _finer_grid_section
+
+    th = Thresholds(bf_min=13.6, located_min=10.3)
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+    ys = dict(_cand("yield_stress", 76.2), param="tau_y", parameters={"tau_y": par(3.3, 2.82, 3.7)})
+    mi = dict(_cand("mu_i", 54.5), param="mu_i", parameters={"mu_i": par(0.28, 0.16, 0.34)})
+    for c, v in ((ys, 76.2), (mi, 54.5)):
+        c["two_ln_bf_lower"] = v
+    diag = lambda verdict, name, cands, margin: {
+        "verdict": verdict, "missing_physics": name, "candidates": cands, "located": [],
+        "decision": {"two_ln_bf_over_runner_up": margin}, "fit_before": {"misfit": 100.0},
+        "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}
+    cases = {"yield_stress_s0": {"scenario": "yield_stress", "seed": 0, "truth": {"term": "yield_stress", "tau_y": 3.0},
+                                 "true_term_covered_hdr90": True,
+                                 "diagnosis": diag("missing_physics", "yield_stress", [ys, mi], 20.8)},
+             "null_s100": {"scenario": "null", "seed": 100, "truth": {"term": None}, "true_term_covered_hdr90": None,
+                           "diagnosis": diag("no_missing_physics", None, [mi], None)}}
+    for k, c in cases.items():
+        (tmp_path / f"{k}.json").write_text(json.dumps(c))
+    (tmp_path / "null_calib").mkdir()
+    (tmp_path / "null_calib" / "thresholds.json").write_text(json.dumps({"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 10.9,
+                                                                           "max_located": 8.2}],
+                                                          "thresholds": asdict(th)}))
+    text = "\n".join(_finer_grid_section(tmp_path))
+    assert "bf_min 13.6" in text and "located_min 10.3" in text
+    assert "| yield_stress_s0 | yield_stress | True | yield_stress 76.2, mu_i 54.5 | 20.8 | 3.3, [2.82, 3.7] (3) |" in text
+    assert "| null_s100 | none | True | mu_i 54.5 | - | - |" in text
+    assert _finer_grid_section(tmp_path / "absent") == []

@@ -1,5 +1,5 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--model-error N] [--thresholds FILE]``.
+[--model-error N] [--thresholds FILE] [--cellsize M]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
@@ -111,6 +111,9 @@ def main(argv=None) -> int:
                    help="Budgets.model_error_runs: the grid's approximation error from this many run pairs "
                         "(0: off; default: Budgets' default, 12)")
     p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
+    p.add_argument("--cellsize", type=float, default=40.0,
+                   help="inversion cell size, m (the recordings use half of it); thresholds.json was set at 40 m, "
+                        "so another cell size needs its own null seeds (calibrate_thresholds --results) and --out")
     a = p.parse_args(argv)
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
@@ -128,7 +131,7 @@ def main(argv=None) -> int:
                     print(f"=== {tag}: skipped, {beyond}", flush=True)
                     continue
                 print(f"=== {tag}", flush=True)
-                c = run_case(sc, seed, out, strength=strength, budgets=bud, thresholds=th,
+                c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
                              log=lambda s: print(s, flush=True))
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
                       f"({c['wall_s']:.0f} s)", flush=True)

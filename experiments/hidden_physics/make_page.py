@@ -270,6 +270,66 @@ def _switch_bias_section() -> list[str]:
     return L + [""]
 
 
+def _own_model_error_section() -> list[str]:
+    f = HERE / "_work" / "own_model_error.json"
+    if not f.exists():
+        return []
+    rows = json.loads(f.read_text())
+    L = ["## A candidate-specific model error? (experiments/hidden_physics/own_model_error.py)", "",
+         "Every likelihood carries the pilot baseline's approximation error of the grid (drawn at switch = 0). "
+         "The alternative, each candidate with the error drawn at its own refit posterior (12 run pairs, 40 m "
+         "against 20 m cells), measured on saved cases: the largest ln posterior a Nelder-Mead search on the "
+         "solver reaches from the refit's mean under each error. It would help only if it raised the true "
+         "term more than the others.", "",
+         "| case | candidate | best ln posterior, pilot error | best ln posterior, own error | gain |",
+         "|---|---|---|---|---|"]
+    for r in rows:
+        L.append(f"| {r['case']} | {r['candidate']} | {r['best_z_pilot']:.1f} | {r['best_z_own']:.1f} | "
+                 f"{r['gain']:+.1f} |")
+    return L + [""]
+
+
+def _finer_grid_section(d=None) -> list[str]:
+    """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
+    ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds in d/null_calib
+    (d/null_calib/thresholds.json, written by ``calibrate_thresholds --results d/null_calib --out
+    d/null_calib/thresholds.json --apply d``)."""
+    d = Path(d) if d is not None else HERE / "_work" / "cs20"
+    cases = [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))]
+    if not cases:
+        return []
+    thf = d / "null_calib" / "thresholds.json"
+    th = json.loads(thf.read_text()) if thf.exists() else None
+    nulls = th["null_cases"] if th else []
+    L = ["## Probe: inversion on 20 m cells (recordings on 10 m)", "",
+         "`harness --cellsize 20`, same scenarios, seeds, noise, budgets and method as above; only the grids are "
+         "halved. A few cases only (about 5 times the solver cost per run on this CPU), so this is a probe of "
+         "whether the failing scenarios are a resolution limit, not a result with the targets' 5 seeds. "
+         + (f"Thresholds from the null seeds {[c['case'] for c in nulls]} at 20 m, same rule as above "
+            f"(largest lower-bound 2 ln BF {[round(c['max_two_ln_bf_lower'], 1) for c in nulls]}): "
+            f"bf_min {th['thresholds']['bf_min']:.1f}, located_min {th['thresholds']['located_min']:.1f}."
+            if th else "No 20 m null seeds yet: verdicts use the 40 m thresholds."), "",
+         "| case | found | strict success | lower 2 ln BF per candidate | margin over runner-up | true switch: mean, "
+         "90 % HDI (truth) |", "|---|---|---|---|---|---|"]
+    for c in cases:
+        j = c["diagnosis"]
+        bfs = ", ".join(f"{x['name']} {x['two_ln_bf_lower']:.1f}" for x in
+                        sorted(j["candidates"], key=lambda x: -(x.get("two_ln_bf_lower") or -1e9))
+                        if x.get("two_ln_bf_lower") is not None)
+        m = j["decision"].get("two_ln_bf_over_runner_up")
+        sw = ""
+        t = c["truth"].get("term")
+        x = next((x for x in j["candidates"] if x["name"] == t), None)
+        if x is not None:
+            p = x["parameters"][x["param"]]
+            lo, hi = p.get("hdi90", p["hdr90"])
+            sw = f"{p['mean']:.3g}, [{lo:.3g}, {hi:.3g}] ({c['truth'][x['param']]:g})"
+        L.append(f"| {c['scenario']}_s{c['seed']} | {found_label(c)} | "
+                 f"{strict_success(c)} | {bfs} | "
+                 f"{'-' if m is None else f'{m:.1f}'} | {sw or '-'} |")
+    return L + [""]
+
+
 def _shown(path: Path, base: Path) -> str:
     """``path`` relative to the page's folder when it lies below it (no machine-specific prefix)."""
     try:
@@ -375,6 +435,8 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _changes_section() if changes else []
     L += _effect_size_section()
     L += _switch_bias_section()
+    L += _own_model_error_section()
+    L += _finer_grid_section()
     walls = [c["wall_s"] for c in cases]
     nref = [sum(1 for x in c["diagnosis"]["candidates"] if x.get("log_bayes_factor") is not None) for c in cases]
     L += ["## Cost", "", f"Wall time per case (one core, OMP_NUM_THREADS=1; two cases ran in parallel on a shared "
