@@ -772,10 +772,10 @@ def test_page_section_of_the_finer_grid_probe(tmp_path):
         "verdict": verdict, "missing_physics": name, "candidates": cands, "located": [],
         "decision": {"two_ln_bf_over_runner_up": margin}, "fit_before": {"misfit": 100.0},
         "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}
-    cases = {"yield_stress_s0": {"scenario": "yield_stress", "seed": 0, "truth": {"term": "yield_stress", "tau_y": 3.0},
+    cases = {"yield_stress_s0": {"scenario": "yield_stress", "seed": 0, "wall_s": 600.0, "truth": {"term": "yield_stress", "tau_y": 3.0},
                                  "true_term_covered_hdr90": True,
                                  "diagnosis": diag("missing_physics", "yield_stress", [ys, mi], 20.8)},
-             "null_s100": {"scenario": "null", "seed": 100, "truth": {"term": None}, "true_term_covered_hdr90": None,
+             "null_s100": {"scenario": "null", "seed": 100, "wall_s": 720.0, "truth": {"term": None}, "true_term_covered_hdr90": None,
                            "diagnosis": diag("no_missing_physics", None, [mi], None)}}
     for k, c in cases.items():
         (tmp_path / f"{k}.json").write_text(json.dumps(c))
@@ -784,7 +784,7 @@ def test_page_section_of_the_finer_grid_probe(tmp_path):
                                                                            "max_located": 8.2}],
                                                           "thresholds": asdict(th)}))
     text = "\n".join(_finer_grid_section(tmp_path))
-    assert "bf_min 13.6" in text and "located_min 10.3" in text
+    assert "bf_min 13.6" in text and "located_min 10.3" in text and "median wall time per case 11 min" in text
     assert "| yield_stress_s0 | yield_stress | True | yield_stress 76.2, mu_i 54.5 | 20.8 | 3.3, [2.82, 3.7] (3) |" in text
     assert "| null_s100 | none | True | mu_i 54.5 | - | - |" in text
     assert _finer_grid_section(tmp_path / "absent") == []

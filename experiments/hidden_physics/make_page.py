@@ -303,7 +303,8 @@ def _finer_grid_section(d=None) -> list[str]:
     nulls = th["null_cases"] if th else []
     L = ["## Probe: inversion on 20 m cells (recordings on 10 m)", "",
          "`harness --cellsize 20`, same scenarios, seeds, noise, budgets and method as above; only the grids are "
-         "halved. A few cases only (about 5 times the solver cost per run on this CPU), so this is a probe of "
+         "halved. A few cases only (median wall time per case "
+         f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min), so this is a probe of "
          "whether the failing scenarios are a resolution limit, not a result with the targets' 5 seeds. "
          + (f"Thresholds from the null seeds {[c['case'] for c in nulls]} at 20 m, same rule as above "
             f"(largest lower-bound 2 ln BF {[round(c['max_two_ln_bf_lower'], 1) for c in nulls]}): "
