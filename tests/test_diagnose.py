@@ -265,6 +265,16 @@ def test_decide_ambiguous_and_null_like():
     # two candidates pass every check within margin_min: no name
     d = decide([_cand("earth_pressure", 60.0), _cand("curvature", 57.0)], loc, base, 100.0, th)
     assert d["verdict"] == "unexplained" and d["ambiguous"]
+    # a runner-up within margin_min that passes the evidence check but fails another one (here its
+    # Savage-Dickey sign) still blocks the name (the evidence does not separate them); the pre-session-8
+    # rule (close_needs_all_checks) named the leader
+    close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
+    d = decide(close, loc, base, 100.0, th)
+    assert d["verdict"] == "unexplained" and d["ambiguous"] and d["competitors"] == ["earth_pressure"]
+    assert decide(close, loc, base, 100.0, th, close_needs_all_checks=True)["missing_physics"] == "curvature"
+    # ... but one below the evidence threshold does not
+    weak = [_cand("curvature", 24.0), _cand("earth_pressure", 19.0, two_ln_bf_lower=17.0)]
+    assert decide(weak, loc, base, 100.0, th)["missing_physics"] == "curvature"
     # evidence gain without a significant located mismatch and without explaining it: null-like
     keep = {"items": [{"before": 7.0, "after": 6.9}], "max_after": 6.9, "explained": 0.03}
     d = decide([_cand("curvature", 25.0, located_rescored=keep)], [{"standardised_residual": 7.0}], base, 100.0, th)
@@ -369,6 +379,36 @@ def test_cli_diagnose_keys(tmp_path):
                        ("mode_search_iters = -1", "mode_search_iters"),
                        ("ess_min = 0.5", "ess_min"), ("waic_min = 'x'", "waic_min")):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
+        with pytest.raises(ConfigError, match=msg):
+            load_diagnose_config(q)
+
+
+def test_cli_fine_terrain_for_the_model_error(tmp_path):
+    """[diagnose] fine_terrain: a [terrain]-like table on cells model_error_factor times smaller reaches the
+    evaluator as a FineTerrain; another grid, another factor or another release volume stop with an
+    error naming the key, before any run."""
+    from torchslide.commands.diagnose import load_diagnose_config, make_evaluator
+    from torchslide.config import ConfigError
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    opts = "options = { theta_deg = 30.0, slope_length = 500.0, runout_length = 700.0, width = 300.0 }"
+
+    def table(cellsize=25.0, volume=1.0e5):
+        return (f'["entrainment"]\nfine_terrain = {{ synthetic = "inclined_plane", cellsize = {cellsize}, {opts}, '
+                f'release = {{ centre = [250.0, 150.0], radii = [120.0, 100.0], volume = {volume} }} }}')
+
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=table())
+    cfg = load_diagnose_config(p)
+    ft = cfg.extra["diagnose"]["fine_terrain"]
+    assert ft.dem.cellsize == 25.0 and ft.dem.shape == (2 * dem.ny, 2 * dem.nx)
+    assert math.isclose(float(ft.release.sum()) * 25.0**2, 1.0e5, rel_tol=1e-9)
+    assert make_evaluator(cfg).fine_terrain is ft
+    p0, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]')
+    assert load_diagnose_config(p0).extra["diagnose"]["fine_terrain"] is None
+    for kw, msg in ((dict(cellsize=30.0), r"fine_terrain.*cellsize 30 m must divide"),
+                    (dict(cellsize=12.5), r"fine_terrain: its cells are 4 times smaller.*model_error_factor is 2"),
+                    (dict(volume=2.0e5), r"fine_terrain: release volume 2e\+05 m3 differs")):
+        q, _ = _setup(tmp_path, grid=dem.shape, candidates=table(**kw))
         with pytest.raises(ConfigError, match=msg):
             load_diagnose_config(q)
 
@@ -506,6 +546,23 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert (j["verdict"], j["missing_physics"]) == (direct["verdict"], direct["missing_physics"]) == ("unexplained", None)
     assert j["decision_as_run"]["missing_physics"] == "entrainment" and j["thresholds"] == asdict(new)
     assert apply_thresholds(tmp_path, asdict(new)) == 0
+    # --force: a case decided with these thresholds under the old rule (a close runner-up failing only its
+    # Savage-Dickey sign did not block the name) is re-decided with the current rule; a thresholds file
+    # next to the cases is skipped
+    close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
+    d1 = decide(close, loc, {"ess": 5.0}, 100.0, old, close_needs_all_checks=True)
+    assert d1["missing_physics"] == "curvature"
+    case = {"diagnosis": {"verdict": d1["verdict"], "missing_physics": d1["missing_physics"], "candidates": close,
+                          "located": loc, "decision": dict(d1, baseline_verification={"ess": 5.0}),
+                          "fit_before": {"misfit": 100.0}, "thresholds": asdict(old)}}
+    rule = tmp_path / "rule"
+    rule.mkdir()
+    (rule / "low_friction_patch_s1.json").write_text(json.dumps(case))
+    (rule / "thresholds.json").write_text(json.dumps({"thresholds": asdict(old)}))
+    assert apply_thresholds(rule, asdict(old)) == 0
+    assert apply_thresholds(rule, asdict(old), force=True) == 1
+    j = json.loads((rule / "low_friction_patch_s1.json").read_text())["diagnosis"]
+    assert (j["verdict"], j["missing_physics"]) == ("unexplained", None)
 
 
 def test_harness_skips_strengths_beyond_a_switch_range():
@@ -516,23 +573,25 @@ def test_harness_skips_strengths_beyond_a_switch_range():
 
 
 def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
-    """``harness --cellsize 20`` runs its cases on a 20 m inversion grid (recordings at 10 m); the
-    default stays 40 m; saved cases are skipped on a rerun."""
+    """``harness --cellsize 20`` runs its cases on a 20 m inversion grid (recordings at 10 m), with
+    --device / --max-batch / --fine-terrain passed on; the defaults stay 40 m, cpu, 16, off; saved cases
+    are skipped on a rerun."""
     import experiments.hidden_physics.harness as H
 
     calls = []
 
     def fake(sc, seed, out, cellsize=40.0, **kw):
-        calls.append((sc, seed, cellsize))
+        calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"]))
         out.mkdir(parents=True, exist_ok=True)
         (out / f"{sc}_s{seed}.json").write_text("{}")
         return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
 
     monkeypatch.setattr(H, "run_case", fake)
-    assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a")]) == 0
+    assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
+                   "--device", "cuda", "--max-batch", "64", "--fine-terrain"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
-    assert calls == [("null", 3, 20.0), ("null", 3, 40.0)]
+    assert calls == [("null", 3, 20.0, "cuda", 64, True), ("null", 3, 40.0, "cpu", 16, False)]
 
 
 def test_local_search_climbs_to_a_mode_the_refit_missed():
@@ -788,3 +847,29 @@ def test_page_section_of_the_finer_grid_probe(tmp_path):
     assert "| yield_stress_s0 | yield_stress | True | yield_stress 76.2, mu_i 54.5 | 20.8 | 3.3, [2.82, 3.7] (3) |" in text
     assert "| null_s100 | none | True | mu_i 54.5 | - | - |" in text
     assert _finer_grid_section(tmp_path / "absent") == []
+
+
+def test_page_section_of_the_grid_convergence_study(tmp_path):
+    """make_page's grid-convergence section: a row per scenario and cell size (the finest without rms),
+    the terrain / numerics split and the noise-free switch scan's best switch against the truth."""
+    import json
+    from experiments.hidden_physics.make_page import _grid_convergence_section
+
+    peak = lambda h: {"g1:h": h, "g1:speed": 13.7, "g2:h": 2.28, "g2:speed": 0.2}
+    rms = {"deposit": 0.196, "g1:h": 1.84, "g1:speed": 2.3, "g2:h": 0.54, "g2:speed": 0.14}
+    d = {"sizes": [40.0, 5.0],
+         "convergence": {"null": {"40.0": {"peak": peak(3.32), "runout_x": 1300.0, "wall_s": 1.0, "rms_vs_finest": rms},
+                                  "5.0": {"peak": peak(7.68), "runout_x": 1335.0, "wall_s": 40.0, "rms_vs_finest": None}}},
+         "terrain_split": {"40m_vs_20m_terrain": rms, "20m_on_bilinear_40m_dem_vs_20m_terrain": dict(rms, **{"g1:h": 1.34})},
+         "switch_scan": {"20": {"earth_pressure": {
+             "switch": "earth_pressure", "truth": 1.0, "best_switch": 0.25, "k_eff": 90.0,
+             "rows": [{"switch": s, "best_misfit": m, "best_mu": 0.23, "best_xi": 500.0, "misfit_at_true_mu_xi": m + 50}
+                      for s, m in ((0.0, 87.2), (0.25, 78.0), (1.0, 198.9))]}}}}
+    f = tmp_path / "gc.json"
+    f.write_text(json.dumps(d))
+    text = "\n".join(_grid_convergence_section(f))
+    assert "| null | 40 | 3.32 | 13.7 | 2.28 | 1300 | 1.84 | 0.196 |" in text
+    assert "| null | 5 | 7.68 | 13.7 | 2.28 | 1335 | - | - |" in text
+    assert "| 40 m cells | 0.196 | 1.84 | 2.30 | 0.54 |" in text and "| 0.196 | 1.34 | 2.30 | 0.54 |" in text
+    assert "| 20 | earth_pressure | 1 | 0.25 | 78.0 | 198.9 | 87.2 |" in text
+    assert _grid_convergence_section(tmp_path / "absent.json") == []

@@ -9,8 +9,8 @@ import torch
 
 from torchslide.bayes import Prior, Uniform
 from torchslide.diagnose import DiagnosisEvaluator
-from torchslide.diagnose.model_error import (ModelError, approximation_error, coarsen_result, fine_predictions,
-                                             refine_dem, repeat_cells)
+from torchslide.diagnose.model_error import (FineTerrain, ModelError, approximation_error, coarsen_result,
+                                             fine_predictions, refine_dem, repeat_cells)
 from torchslide.observe import Observation
 from torchslide.observe_series import SeriesObservation
 from torchslide.solver import SolverConfig, simulate
@@ -101,6 +101,53 @@ def test_approximation_error_is_the_fine_minus_coarse_difference():
     assert s["n"] == 3 and set(s["blocks"]) == {"deposit", "g1:h", "final_volume"}
     with pytest.raises(ValueError, match="at least 2"):
         approximation_error(ev, x[:1])
+
+
+def _fine_terrain(ev, factor=2):
+    """The same inclined plane as _case() sampled on cells ``factor`` times smaller, its own release."""
+    dem_f, rel_f = _case(ev.dem.cellsize / factor)
+    return FineTerrain(dem_f, rel_f)
+
+
+def test_fine_terrain_replaces_the_refined_dem_in_the_finer_runs():
+    """With a FineTerrain the finer runs use its DEM and release, not the bilinear refinement of the
+    coarse ones: the sampled terrain of _case() at 20 m differs from the refined 40 m one at the foot of
+    the slope (the curved transition), so the predictions differ; a copy keeps the fine terrain."""
+    ev = _evaluator()
+    ft = _fine_terrain(ev)
+    assert ft.factor_for(ev.dem) == 2
+    assert np.abs(ft.dem.z - refine_dem(ev.dem, 2).z).max() > 0.1
+    ev_ft = ev._copy(fine_terrain=ft)
+    x = np.array([[0.3, 500.0]])
+    with_ft, failed = fine_predictions(ev_ft, x, 2)
+    refined, _ = fine_predictions(ev, x, 2)
+    assert not failed.any()
+    assert np.abs(with_ft[0] - refined[0]).max() > 1e-3
+    from torchslide.physics import Params
+    res = simulate(ft.dem, ft.release, Params.make(mu=0.3, xi=500.0), t_end=40.0, gauges=list(ev.gauges),
+                   config=SolverConfig())
+    direct, _, _ = ev.predict(coarsen_result(res, ev.dem, 2))
+    assert np.allclose(with_ft[0], direct.numpy()[0])
+    assert ev_ft.with_model_error(None).fine_terrain is ft
+    with pytest.raises(ValueError, match="differs from the fine terrain"):
+        fine_predictions(ev_ft, x, 4)
+
+
+def test_fine_terrain_on_another_grid_is_refused_before_any_run():
+    ev = _evaluator()
+    ft = _fine_terrain(ev)
+    with pytest.raises(ValueError, match=r"fine_terrain.dem: shape"):
+        ev._copy(fine_terrain=FineTerrain(ft.dem.__class__(ft.dem.z[:, :-1], ft.dem.cellsize), ft.release[:, :-1]))
+    with pytest.raises(ValueError, match=r"fine_terrain.dem: cellsize 15"):
+        ev._copy(fine_terrain=FineTerrain(ft.dem.__class__(np.zeros((10, 10)), 15.0), np.zeros((10, 10))))
+    with pytest.raises(ValueError, match=r"lower-left corner"):
+        ev._copy(fine_terrain=FineTerrain(ft.dem.__class__(ft.dem.z, ft.dem.cellsize, xll=5.0), ft.release))
+    with pytest.raises(ValueError, match=r"fine_terrain.release: shape"):
+        ev._copy(fine_terrain=FineTerrain(ft.dem, ft.release[:-1]))
+    bad = ft.release.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(ValueError, match=r"fine_terrain.release: contains non-finite"):
+        ev._copy(fine_terrain=FineTerrain(ft.dem, bad))
 
 
 def test_grid_model_error_from_a_pilot_calibration(tmp_path):

@@ -58,10 +58,11 @@ def thresholds_from_null(stats: dict) -> dict:
             "waic_min": 6.0, "margin_min": 6.0, "explain_min": 0.5, "ess_min": 2.0, "z_threshold": 3.0}
 
 
-def apply_thresholds(results, th: dict) -> int:
+def apply_thresholds(results, th: dict, force: bool = False) -> int:
     """Re-decide the saved cases in ``results`` with thresholds ``th`` (see the module doc) and
     recompute their coverage check (harness.coverage); returns the number of cases whose verdict or
-    named term changed."""
+    named term changed. ``force``: also the cases already decided with ``th`` (after a change of the
+    decision rule in torchslide/diagnose/decide.py)."""
     from torchslide.diagnose.decide import Thresholds, decide
 
     from .harness import coverage
@@ -69,6 +70,8 @@ def apply_thresholds(results, th: dict) -> int:
     changed = 0
     for p in sorted(Path(results).glob("*.json")):
         case = json.loads(p.read_text())
+        if "diagnosis" not in case:      # e.g. a thresholds.json kept next to the cases
+            continue
         j = case["diagnosis"]
         # the coverage check as harness.coverage does it now (with the tolerance for a grid's last
         # cell edge); the value it was run with is kept
@@ -78,7 +81,7 @@ def apply_thresholds(results, th: dict) -> int:
                                                 case.get("true_term_covered_equal_tailed90")])
             case["true_term_covered_hdr90"], case["true_term_covered_equal_tailed90"] = cov
             p.write_text(json.dumps(case, indent=1))
-        if j["thresholds"] == th:
+        if j["thresholds"] == th and not force:
             continue
         cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
         d = decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
@@ -98,6 +101,8 @@ def main(argv=None) -> int:
     p.add_argument("--results", default=str(HERE / "_work" / "null_calib_v8"))
     p.add_argument("--out", default=str(HERE / "thresholds.json"))
     p.add_argument("--apply", default=None, help="harness results folder to re-decide with the new thresholds")
+    p.add_argument("--force", action="store_true",
+                   help="with --apply: re-decide every case, also those already at these thresholds (rule change)")
     a = p.parse_args(argv)
     st = null_statistics(a.results)
     if not st["cases"]:
@@ -107,7 +112,7 @@ def main(argv=None) -> int:
                                        "null_cases": st["cases"], "thresholds": th}, indent=1))
     print(json.dumps(th))
     if a.apply:
-        n = apply_thresholds(a.apply, th)
+        n = apply_thresholds(a.apply, th, force=a.force)
         print(f"re-decided the cases in {a.apply} with these thresholds: {n} verdict(s) changed")
     return 0
 

@@ -1,5 +1,5 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--model-error N] [--thresholds FILE] [--cellsize M]``.
+[--model-error N] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--device cuda] [--max-batch N]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
@@ -72,16 +72,18 @@ def coverage(diag: dict, truth: dict) -> tuple:
 
 
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
-             budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None) -> dict:
+             budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None,
+             fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
     rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength)
-    ev = make_evaluator(rec, cellsize=cellsize)
+    ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
     d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
-    case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "truth": rec.truth,
+    case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize,
+            "fine_terrain": fine_terrain, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
@@ -114,7 +116,14 @@ def main(argv=None) -> int:
     p.add_argument("--cellsize", type=float, default=40.0,
                    help="inversion cell size, m (the recordings use half of it); thresholds.json was set at 40 m, "
                         "so another cell size needs its own null seeds (calibrate_thresholds --results) and --out")
+    p.add_argument("--fine-terrain", action="store_true",
+                   help="give the diagnosis the terrain on the recording grid for the model error's finer runs "
+                        "(scenarios.make_evaluator(fine_terrain=True)); needs its own null seeds and --out")
+    p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
+    p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     a = p.parse_args(argv)
+    if a.max_batch < 1:
+        p.error(f"--max-batch must be >= 1, got {a.max_batch}")
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
     bud = {"model_error_runs": a.model_error} if a.model_error is not None else None
@@ -132,6 +141,7 @@ def main(argv=None) -> int:
                     continue
                 print(f"=== {tag}", flush=True)
                 c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
+                             fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
                              log=lambda s: print(s, flush=True))
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
                       f"({c['wall_s']:.0f} s)", flush=True)

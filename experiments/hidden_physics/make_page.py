@@ -289,6 +289,52 @@ def _own_model_error_section() -> list[str]:
     return L + [""]
 
 
+def _grid_convergence_section(f: Path | None = None) -> list[str]:
+    """From grid_convergence.py's JSON: gauge peaks per cell size, the terrain / numerics split of the
+    40 m error, and the noise-free switch scan."""
+    f = f or HERE / "_work" / "grid_convergence.json"
+    if not f.exists():
+        return []
+    d = json.loads(f.read_text())
+    L = ["## Grid convergence on the harness terrain (experiments/hidden_physics/grid_convergence.py)", "",
+         "Noise-free runs at the true mu, xi, each hidden term at strength 1, nominal volume. Peak flow height "
+         "(m) at the two gauges and the run-out (largest x with > 0.1 m of deposit) per cell size; rms: the "
+         "difference from the finest run of the g1 height series (m) and of the deposit map on 40 m cells (m).", "",
+         "| scenario | cells, m | g1 peak h | g1 peak speed | g2 peak h | run-out x, m | rms g1:h vs finest | "
+         "rms deposit vs finest |", "|---|---|---|---|---|---|---|---|"]
+    for sc, rows in d.get("convergence", {}).items():
+        for cs, r in rows.items():
+            rms = r["rms_vs_finest"]
+            L.append(f"| {sc} | {float(cs):g} | {r['peak']['g1:h']:.2f} | {r['peak']['g1:speed']:.1f} | "
+                     f"{r['peak']['g2:h']:.2f} | {r['runout_x']:.0f} | "
+                     f"{'-' if rms is None else format(rms['g1:h'], '.2f')} | "
+                     f"{'-' if rms is None else format(rms['deposit'], '.3f')} |")
+    ts = d.get("terrain_split")
+    if ts:
+        a, b = ts["40m_vs_20m_terrain"], ts["20m_on_bilinear_40m_dem_vs_20m_terrain"]
+        L += ["", "Where the 40 m grid's error against the 20 m recording grid comes from (null, rms of the "
+                  "difference from the 20 m run on the terrain itself):", "",
+              "| run | deposit, m | g1:h, m | g1:speed, m/s | g2:h, m |", "|---|---|---|---|---|",
+              f"| 40 m cells | {a['deposit']:.3f} | {a['g1:h']:.2f} | {a['g1:speed']:.2f} | {a['g2:h']:.2f} |",
+              f"| 20 m cells on the 40 m DEM interpolated bilinearly (the model error's finer run) | "
+              f"{b['deposit']:.3f} | {b['g1:h']:.2f} | {b['g1:speed']:.2f} | {b['g2:h']:.2f} |"]
+    scan = d.get("switch_scan", {})
+    if scan:
+        L += ["", "Noise-free switch scan: the recording on cells half the inversion size against inversion runs "
+                  "with the true term at a ladder of switch values (best of a 3 x 3 box of mu, xi around the "
+                  "truth per value); the whitened misfit without model error. The best switch is what even a "
+                  "perfect inference would find on that grid.", "",
+              "| inversion cells, m | scenario | truth | best switch | misfit at best | misfit at truth | "
+              "misfit at switch 0 |", "|---|---|---|---|---|---|---|"]
+        for cs, rows in scan.items():
+            for sc, r in rows.items():
+                by = {x["switch"]: x for x in r["rows"]}
+                best = by[r["best_switch"]]
+                L.append(f"| {float(cs):g} | {sc} | {r['truth']:g} | {r['best_switch']:g} | {best['best_misfit']:.1f} | "
+                         f"{by[r['truth']]['best_misfit']:.1f} | {by[0.0]['best_misfit']:.1f} |")
+    return L + [""]
+
+
 def _finer_grid_section(d=None) -> list[str]:
     """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
     ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds in d/null_calib
@@ -438,6 +484,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _switch_bias_section()
     L += _own_model_error_section()
     L += _finer_grid_section()
+    L += _grid_convergence_section()
     walls = [c["wall_s"] for c in cases]
     nref = [sum(1 for x in c["diagnosis"]["candidates"] if x.get("log_bayes_factor") is not None) for c in cases]
     L += ["## Cost", "", f"Wall time per case (one core, OMP_NUM_THREADS=1; two cases ran in parallel on a shared "

@@ -15,6 +15,7 @@ import numpy as np
 from torchslide.observe import Observation
 from torchslide.observe_series import SeriesObservation
 from torchslide.physics import Params
+from torchslide.terrain.grid import DEM
 from torchslide.solver import SolverConfig, simulate
 from torchslide.terrain.synthetic import _bends, channel_with_bends, release_from_shape
 
@@ -126,11 +127,24 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     return Recording(scenario, seed, strength, truth, vf, obs, hf)
 
 
-def make_evaluator(rec: Recording, cellsize: float = 40.0, max_batch: int = 16):
+def make_evaluator(rec: Recording, cellsize: float = 40.0, max_batch: int = 16, fine_terrain: bool = False,
+                   device: str = "cpu"):
+    """The diagnosis' evaluator on ``cellsize`` m cells (nominal release volume), its solver runs on
+    ``device`` ("cpu", "cuda", ...; the recordings are made on the CPU). ``fine_terrain``: give
+    it the terrain on cells half as large (the recording grid's surface, nominal release, no hidden
+    term) for the model error's finer runs, as a user coarsening a finer DEM for the inversion would."""
     from torchslide.bayes import Prior, Uniform
     from torchslide.diagnose import DiagnosisEvaluator
+    from torchslide.diagnose.model_error import FineTerrain
     dem, erod = terrain(cellsize)
     prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0)})
+    ft = None
+    if fine_terrain:
+        dem_f, erod_f = terrain(cellsize / 2)
+        ny, nx = 2 * dem.ny, 2 * dem.nx  # the finer grid's extent rounds up by a cell: keep the coarse extent
+        dem_f = DEM(dem_f.z[:ny, :nx], dem_f.cellsize, xll=dem_f.xll, yll=dem_f.yll)
+        ft = FineTerrain(dem_f, release(dem_f, V_NOMINAL), erodible_depth=erod_f[:ny, :nx])
     return DiagnosisEvaluator(dem=dem, release=release(dem, V_NOMINAL), observations=rec.observations, prior=prior,
                               t_end=T_END, gauges=gauges(), erodible_depth=erod,
-                              solver_config=SolverConfig(**SOLVER), max_batch=max_batch)
+                              solver_config=SolverConfig(**SOLVER), max_batch=max_batch, fine_terrain=ft,
+                              device=device)

@@ -29,6 +29,11 @@ and a [diagnose] section::
     baseline_refine_rounds = 3   # rounds refining the baseline's verified evidence
     model_error_runs = 12        # > 0: the grid's approximation error (runs on cells model_error_factor times
     model_error_factor = 2       #     smaller at this many pilot posterior draws) enters every likelihood; 0: off
+    # fine_terrain = { dem = "dem_5m.asc", release = "release_5m.asc", erodible = "erodible_5m.asc" }
+                                 # optional: the terrain on cells model_error_factor times smaller (same
+                                 #     lower-left corner, shape x factor; keys as in [terrain]) for the model
+                                 #     error's finer runs, e.g. the LiDAR DEM the inversion DEM was coarsened
+                                 #     from; default: the inversion DEM interpolated bilinearly
     mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
                                  #     is refined with its runs); 0: off
     top_k = 2                    # candidates refitted
@@ -66,7 +71,7 @@ _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
              "mode_search_iters", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
-_DIAG_KEYS = {"candidates", "seed", *_INT_KEYS, *_THRESHOLD_KEYS}
+_DIAG_KEYS = {"candidates", "seed", "fine_terrain", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
 def diagnose_defaults() -> dict:
@@ -171,7 +176,41 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] explain_min is a fraction in [0, 1], got {c['explain_min']!r}")
     if c["ess_min"] < 1.0:
         raise ConfigError(f"{path}: [diagnose] ess_min must be >= 1 (an effective number of draws), got {c['ess_min']!r}")
+    c["fine_terrain"] = _parse_fine_terrain(table.get("fine_terrain"), cfg, c["model_error_factor"])
     return c
+
+
+def _parse_fine_terrain(t: Any, cfg: Config, factor: int):
+    """[diagnose] fine_terrain -> torchslide.diagnose.model_error.FineTerrain (None when not given): parsed
+    as a [terrain] table, checked to be the inversion grid refined ``factor`` times (errors name the key)."""
+    from ..config import _parse_terrain
+    from ..diagnose.model_error import FineTerrain
+
+    if t is None:
+        return None
+    where = "[diagnose] fine_terrain"
+    if not isinstance(t, dict):
+        raise ConfigError(f"{cfg.path}: {where} must be a table like [terrain] (dem, release, erodible), got {t!r}")
+    try:
+        tc = _parse_terrain(t, cfg.path)
+    except ConfigError as e:
+        raise ConfigError(str(e).replace("[terrain]", where)) from None
+    ft = FineTerrain(tc.dem, tc.release, erodible_depth=tc.erodible_depth)
+    try:
+        f = ft.factor_for(cfg.terrain.dem)
+    except ValueError as e:
+        raise ConfigError(f"{cfg.path}: {where}: {e}") from None
+    if f != factor:
+        raise ConfigError(f"{cfg.path}: {where}: its cells are {f} times smaller than the inversion grid's, "
+                          f"model_error_factor is {factor}")
+    if (tc.erodible_depth is None) != (cfg.terrain.erodible_depth is None):
+        raise ConfigError(f"{cfg.path}: {where}: give an erodible depth raster in both [terrain] and {where}, or in "
+                          f"neither")
+    v_f, v_c = tc.release_volume, cfg.terrain.release_volume
+    if abs(v_f - v_c) > 0.05 * v_c:
+        raise ConfigError(f"{cfg.path}: {where}: release volume {v_f:.4g} m3 differs from [terrain]'s {v_c:.4g} m3 "
+                          f"by more than 5 %")
+    return ft
 
 
 SECTIONS = {"prior": parse_prior, "observations": parse_observations, "calibration": parse_calibration,
@@ -201,7 +240,8 @@ def make_evaluator(cfg: Config):
             dem=cfg.terrain.dem, release=cfg.terrain.release, observations=cfg.extra["observations"], prior=prior,
             fixed=fixed, t_end=cfg.run.t_end, gauges=[(g.name, g.x, g.y) for g in cfg.gauges],
             erodible_depth=cfg.terrain.erodible_depth, solver_config=cfg.solver_config(), dtype=cfg.run.torch_dtype,
-            device=cfg.run.device, max_batch=cfg.extra["calibration"]["max_batch"])
+            device=cfg.run.device, max_batch=cfg.extra["calibration"]["max_batch"],
+            fine_terrain=cfg.extra["diagnose"].get("fine_terrain"))
     except ValueError as e:
         if type(e).__name__ == "TerrainError":
             raise

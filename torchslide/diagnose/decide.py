@@ -18,7 +18,9 @@ Rules:
 
 1. The candidate with the largest verified 2 ln BF is named ("missing_physics") when it passes all
    checks and nothing else competes with it:
-   * no other candidate that also passes all checks is within ``margin_min`` of its 2 ln BF, and
+   * no other candidate that also passes ``evidence`` is within ``margin_min`` of its 2 ln BF (the
+     issue's "2 ln BF >= 6 over the runner-up"; a close runner-up that fails another check, e.g. its
+     Savage-Dickey sign, still means the evidence does not separate the two), and
    * no other candidate that passes ``explains`` explains a larger fraction of the located mismatch
      (the evidence and the located structure must point at the same term).
    Otherwise "unexplained" with ``ambiguous`` = True and the competitors listed (never a guess
@@ -91,12 +93,14 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
 
 
 def decide(candidates: list, located_before: list, baseline: dict, misfit_before: float, th: Thresholds,
-           competitor_needs_evidence: bool = False) -> dict:
+           competitor_needs_evidence: bool = False, close_needs_all_checks: bool = False) -> dict:
     """candidates: refitted candidates with the verify statistics (see pipeline); baseline: the baseline's
     verified-evidence dict. Returns {verdict, missing_physics, ambiguous, reason, checks, ...}.
     ``competitor_needs_evidence`` (default False = the rule in the module doc): a candidate that explains
     more of the located mismatch blocks the name only when it also passes ``evidence`` (a post-hoc
-    variant, see experiments/hidden_physics/make_page.py)."""
+    variant, see experiments/hidden_physics/make_page.py). ``close_needs_all_checks`` (default False): the
+    rule before session 8, where a runner-up within margin_min blocked the name only when it passed every
+    check (it let a 20 m out-of-library case be named curvature, 4.3 ahead of earth pressure)."""
     scored = sorted([c for c in candidates if c.get("log_bayes_factor") is not None
                      and np.isfinite(c["log_bayes_factor"])], key=lambda c: -c["log_bayes_factor"])
     sig_before = significant(located_before, th)
@@ -117,7 +121,9 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         failed = [k for k, v in ck.items() if not v]
         if not failed:
             ex_best = _explained(best)
-            close = [c["name"] for c in scored[1:] if all(out["checks"][c["name"]].values())
+            close = [c["name"] for c in scored[1:]
+                     if (all(out["checks"][c["name"]].values()) if close_needs_all_checks
+                         else out["checks"][c["name"]]["evidence"])
                      and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
                       and _explained(c) > ex_best
@@ -125,7 +131,7 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
             if close or better:
                 why = []
                 if close:
-                    why.append(f"{', '.join(close)} also pass(es) every check within 2 ln BF {th.margin_min}")
+                    why.append(f"{', '.join(close)} also pass(es) the evidence check within 2 ln BF {th.margin_min}")
                 if better:
                     why.append(f"{', '.join(better)} explain(s) more of the located mismatch "
                                f"({', '.join(f'{_explained(c):.2f}' for c in scored if c['name'] in better)} vs "

@@ -54,13 +54,19 @@ class DiagnosisEvaluator(LandslideEvaluator):
     the grid). With it the likelihood is N(d - eps_bar | y, diag(sigma_eff^2) + Gamma_eps) (full
     covariance); ``data`` is then d - eps_bar and ``sigma`` / ``sigma_raw`` include Gamma_eps's
     diagonal (what the per-value checks, localisation and WAIC use); ``data_recorded`` is d.
+
+    ``fine_terrain``: an optional torchslide.diagnose.model_error.FineTerrain, the terrain on finer cells
+    for the model error's finer runs (validated here: an exact refinement of ``dem``).
     """
 
     model_error: object = None
+    fine_terrain: object = None
 
     def __post_init__(self) -> None:
         if not self.observations:
             raise ValueError("at least one observation is needed")
+        if self.fine_terrain is not None:
+            self.fine_terrain.factor_for(self.dem)
         gauge_names = [g[0] for g in self.gauges]
         for o in self.observations:
             if isinstance(o, SeriesObservation):

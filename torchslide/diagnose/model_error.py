@@ -17,9 +17,12 @@ finer grid produces and the inversion grid cannot is then no longer read as miss
 parameter that the grid biases gets a wider interval.
 
 The finer run uses the DEM interpolated bilinearly to the finer cell centres, the release thickness,
-erodible depth and friction scale repeated on the f x f sub-cells (same volumes), and the same gauges.
-Its rasters are block-averaged back onto the inversion grid (h_final, h_max, v_max, bed change;
-arrival time: block minimum), so every observation predicts from it as from an inversion run.
+erodible depth and friction scale repeated on the f x f sub-cells (same volumes), and the same gauges;
+or, when the user has the terrain at the finer resolution (a LiDAR DEM coarsened for the inversion),
+that terrain (:class:`FineTerrain`): then eps also carries what the coarse DEM loses of the terrain (a
+channel two cells wide is shallower and wider on 40 m cells than on 20 m ones), usually the larger
+part of the error. Its rasters are block-averaged back onto the inversion grid (h_final, h_max, v_max,
+bed change; arrival time: block minimum), so every observation predicts from it as from an inversion run.
 """
 from __future__ import annotations
 
@@ -55,6 +58,53 @@ def repeat_cells(a, f: int):
         return None
     a = np.asarray(a, dtype=np.float64)
     return np.repeat(np.repeat(a, f, axis=0), f, axis=1)
+
+
+@dataclass
+class FineTerrain:
+    """The terrain on cells ``factor`` times smaller than the inversion grid, same extent.
+
+    dem: the finer DEM (ny f, nx f); release: (ny f, nx f) release thickness, m; erodible_depth and
+    mu_scale: (ny f, nx f) or None (None: the coarse fields repeated on the sub-cells).
+    """
+
+    dem: DEM
+    release: np.ndarray
+    erodible_depth: np.ndarray | None = None
+    mu_scale: np.ndarray | None = None
+
+    def factor_for(self, coarse: DEM) -> int:
+        """The refinement factor against ``coarse``; ValueError naming the field unless the grid is an
+        exact f-fold refinement (f >= 2 integer, same lower-left corner, shape (ny f, nx f))."""
+        f = coarse.cellsize / self.dem.cellsize
+        if abs(f - round(f)) > 1e-9 * f or round(f) < 2:
+            raise ValueError(f"fine_terrain.dem: cellsize {self.dem.cellsize:g} m must divide the inversion cellsize "
+                             f"{coarse.cellsize:g} m by an integer >= 2")
+        f = int(round(f))
+        if self.dem.shape != (coarse.ny * f, coarse.nx * f):
+            raise ValueError(f"fine_terrain.dem: shape {self.dem.shape} must be {(coarse.ny * f, coarse.nx * f)} "
+                             f"(the inversion grid {coarse.shape} refined {f} times)")
+        tol = 1e-6 * coarse.cellsize
+        if abs(self.dem.xll - coarse.xll) > tol or abs(self.dem.yll - coarse.yll) > tol:
+            raise ValueError(f"fine_terrain.dem: lower-left corner ({self.dem.xll:g}, {self.dem.yll:g}) must be the "
+                             f"inversion grid's ({coarse.xll:g}, {coarse.yll:g})")
+        for name in ("release", "erodible_depth", "mu_scale"):
+            a = getattr(self, name)
+            if a is None:
+                continue
+            a = np.asarray(a)
+            if a.shape != self.dem.shape:
+                raise ValueError(f"fine_terrain.{name}: shape {a.shape} must be the fine DEM's {self.dem.shape}")
+            if not np.all(np.isfinite(a)):
+                raise ValueError(f"fine_terrain.{name}: contains non-finite values")
+        return f
+
+    def fields(self, evaluator) -> tuple:
+        """(release, erodible_depth, mu_scale) on the fine grid (coarse fields repeated where not given)."""
+        f = self.factor_for(evaluator.dem)
+        erod = self.erodible_depth if self.erodible_depth is not None else repeat_cells(evaluator.erodible_depth, f)
+        mus = self.mu_scale if self.mu_scale is not None else repeat_cells(evaluator.mu_scale, f)
+        return np.asarray(self.release, dtype=np.float64), erod, mus
 
 
 def _blocks(t: torch.Tensor, f: int) -> torch.Tensor:
@@ -123,13 +173,22 @@ def _predictions(evaluator, x, run) -> tuple[np.ndarray, np.ndarray]:
 
 def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """(predictions (n, k), failed (n,)) of the finer-grid model at the (n, p) parameter sets ``x``,
-    in the evaluator's observable order."""
+    in the evaluator's observable order. With ``evaluator.fine_terrain`` (a FineTerrain) its terrain
+    and fields, and its own factor (``factor`` must agree); else the coarse ones refined ``factor`` times."""
     from ..solver import simulate
 
-    dem_f = refine_dem(evaluator.dem, factor)
-    rel_f = repeat_cells(evaluator.release, factor)
-    erod_f = repeat_cells(evaluator.erodible_depth, factor)
-    mus_f = repeat_cells(evaluator.mu_scale, factor)
+    ft = getattr(evaluator, "fine_terrain", None)
+    if ft is not None:
+        f = ft.factor_for(evaluator.dem)
+        if f != factor:
+            raise ValueError(f"model_error_factor {factor} differs from the fine terrain's refinement factor {f}")
+        dem_f = ft.dem
+        rel_f, erod_f, mus_f = ft.fields(evaluator)
+    else:
+        dem_f = refine_dem(evaluator.dem, factor)
+        rel_f = repeat_cells(evaluator.release, factor)
+        erod_f = repeat_cells(evaluator.erodible_depth, factor)
+        mus_f = repeat_cells(evaluator.mu_scale, factor)
 
     def run(xb):
         res = simulate(dem_f, rel_f, evaluator.params(xb), t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
