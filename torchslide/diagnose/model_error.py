@@ -99,9 +99,9 @@ class FineTerrain:
                 raise ValueError(f"fine_terrain.{name}: contains non-finite values")
         return f
 
-    def fields(self, evaluator) -> tuple:
-        """(release, erodible_depth, mu_scale) on the fine grid (coarse fields repeated where not given)."""
-        f = self.factor_for(evaluator.dem)
+    def fields(self, evaluator, f: int) -> tuple:
+        """(release, erodible_depth, mu_scale) on the fine grid; the evaluator's coarse fields repeated on
+        the f x f sub-cells where not given (``f``: factor_for(evaluator.dem))."""
         erod = self.erodible_depth if self.erodible_depth is not None else repeat_cells(evaluator.erodible_depth, f)
         mus = self.mu_scale if self.mu_scale is not None else repeat_cells(evaluator.mu_scale, f)
         return np.asarray(self.release, dtype=np.float64), erod, mus
@@ -183,7 +183,7 @@ def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndar
         if f != factor:
             raise ValueError(f"model_error_factor {factor} differs from the fine terrain's refinement factor {f}")
         dem_f = ft.dem
-        rel_f, erod_f, mus_f = ft.fields(evaluator)
+        rel_f, erod_f, mus_f = ft.fields(evaluator, f)
     else:
         dem_f = refine_dem(evaluator.dem, factor)
         rel_f = repeat_cells(evaluator.release, factor)
