@@ -594,6 +594,68 @@ def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     assert calls == [("null", 3, 20.0, "cuda", 64, True), ("null", 3, 40.0, "cpu", 16, False)]
 
 
+def test_harness_terrain_variants(tmp_path, monkeypatch):
+    """scenarios.TERRAINS: ``harness --terrain resolved`` runs its cases on the wider channel with the
+    smooth transition and the larger release, and restores the default (narrow) afterwards; an unknown
+    variant is refused naming it."""
+    import experiments.hidden_physics.harness as H
+    from experiments.hidden_physics import scenarios as S
+
+    seen = []
+
+    def fake(sc, seed, out, cellsize=40.0, **kw):
+        dem, _ = S.terrain(cellsize)
+        rel = S.release(dem, S.V_NOMINAL)
+        seen.append((S.TERRAIN, S.GEOM["channel_halfwidth"], S.GEOM.get("transition", 0.0), int((rel > 0).sum())))
+        return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
+
+    monkeypatch.setattr(H, "run_case", fake)
+    assert H.main(["--terrain", "resolved", "--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path)]) == 0
+    assert H.main(["--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path)]) == 0
+    (r, hw_r, tr_r, n_r), (n, hw_n, tr_n, n_n) = seen
+    assert (r, hw_r, tr_r, n) == ("resolved", 100.0, 300.0, "narrow") and (hw_n, tr_n) == (40.0, 0.0)
+    assert n_r > 3 * n_n  # release radius 120 m against 60 m
+    assert S.TERRAIN == "narrow" and S.RELEASE_RADIUS == 60.0
+    with pytest.raises(ValueError, match="unknown variant 'wide'"):
+        S.use_terrain("wide")
+    with pytest.raises(SystemExit):
+        H.main(["--terrain", "wide", "--out", str(tmp_path)])
+
+
+def test_page_section_of_the_resolved_terrain_run(tmp_path):
+    """make_page's resolved-terrain section: the targets per scenario (strict successes, what was found),
+    a row per case, and the thresholds from that run's own null seeds."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _resolved_terrain_section
+
+    th = Thresholds(bf_min=12.5, located_min=9.0)
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+    mi = dict(_cand("mu_i", 30.2), param="mu_i", parameters={"mu_i": par(0.21, 0.12, 0.3)}, two_ln_bf_lower=30.2)
+    ep = dict(_cand("earth_pressure", 14.0), param="earth_pressure",
+              parameters={"earth_pressure": par(0.5, 0.2, 0.7)}, two_ln_bf_lower=14.0)
+    diag = lambda verdict, name, cands, margin: {
+        "verdict": verdict, "missing_physics": name, "candidates": cands, "located": [],
+        "decision": {"two_ln_bf_over_runner_up": margin}, "fit_before": {"misfit": 100.0},
+        "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}
+    mk = lambda seed, cover, d: {"scenario": "mu_i", "seed": seed, "strength": 1.0, "wall_s": 300.0,
+                                 "truth": {"term": "mu_i", "mu_i": 0.2}, "true_term_covered_hdr90": cover, "diagnosis": d}
+    cases = {"mu_i_s0": mk(0, True, diag("missing_physics", "mu_i", [mi, ep], 16.2)),
+             "mu_i_s1": mk(1, True, diag("unexplained", None, [mi, ep], 2.0)),
+             "mu_i_s0_x0.5": dict(mk(0, True, diag("missing_physics", "mu_i", [mi], None)), strength=0.5)}
+    for k, c in cases.items():
+        (tmp_path / f"{k}.json").write_text(json.dumps(c))
+    (tmp_path / "null_calib").mkdir()
+    (tmp_path / "null_calib" / "thresholds.json").write_text(json.dumps(
+        {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 10.0, "max_located": 7.2}], "thresholds": asdict(th)}))
+    text = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json"))
+    assert "bf_min 12.5" in text and "located_min 9.0" in text
+    assert "| mu_i | 2 | 1 | mu_i 1, unexplained 1 | >= 4 of 5 |" in text
+    assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3] (0.2) |" in text
+    assert "| mu_i_s1 | unexplained | False |" in text and "x0.5" not in text
+    assert _resolved_terrain_section(tmp_path / "absent") == []
+
+
 def test_local_search_climbs_to_a_mode_the_refit_missed():
     """polish.local_search from runs that missed a narrow 3-D peak (the best run ~0.1 away): it finds
     a point far better than every earlier run, near the peak, inside the box, in batched calls."""

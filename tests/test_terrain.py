@@ -196,6 +196,28 @@ def test_inclined_plane_and_parabola_formulas():
     assert np.isfinite(ch.z).all() and ch.z[:, 0].min() > ch.z[:, -1].max()
 
 
+def test_channel_transition_keeps_the_bed_curvature_bounded_as_cells_shrink():
+    """channel_with_bends(transition=T): the slope-to-run-out kink becomes a C1 blend whose bed
+    curvature along the thalweg is tan(theta) / T on every grid; without it the kink's discrete
+    curvature grows as 1 / cellsize. Away from the blend both surfaces are the same."""
+    tan = math.tan(math.radians(25.0))
+    geom = dict(slope_length=1200.0, runout_length=500.0, width=600.0, amplitude=80.0)
+    peak = {}
+    for cs in (40.0, 20.0, 10.0):
+        for T in (0.0, 300.0):
+            dem = channel_with_bends(cs, transition=T, **geom)
+            row = dem.z[dem.ny // 2]
+            curv = np.diff(row, 2) / cs**2  # along x, past the bends and the channel's fade-out
+            x = dem.x_centres()[1:-1]
+            window = (x > 1230) & (x < 1340) if T else (x > 1170) & (x < 1230)
+            peak[cs, T] = float(curv[window].max())
+            far = (np.abs(dem.x_centres() - 1200.0) > 160.0 + cs)
+            np.testing.assert_allclose(dem.z[:, far], channel_with_bends(cs, **geom).z[:, far], atol=1e-9)
+    for cs in (40.0, 20.0, 10.0):
+        assert peak[cs, 300.0] == pytest.approx(tan / 300.0, rel=0.05)
+    assert peak[10.0, 0.0] > 3.5 * peak[40.0, 0.0] > 3.5 * tan / 300.0
+
+
 def test_release_from_shape_volume_any_resolution():
     for cs in (5.0, 10.0, 25.0):
         dem = inclined_plane(30.0, cellsize=cs, slope_length=600, runout_length=200, width=400)

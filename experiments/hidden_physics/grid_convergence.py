@@ -1,5 +1,5 @@
 """Does the solver converge on the harness terrain, and where does the inversion grid's error come from?
-``python -m experiments.hidden_physics.grid_convergence [--sizes 40,20,10,5] [--scenarios ...] [--out FILE]``
+``python -m experiments.hidden_physics.grid_convergence [--sizes 40,20,10,5] [--scenarios ...] [--terrain T] [--out FILE]``
 
 Noise-free runs (true mu, xi; each scenario's hidden term at strength 1; nominal release volume) of
 experiments/hidden_physics/scenarios.py on cells of every size in ``--sizes``. For every scenario and
@@ -33,6 +33,7 @@ from torchslide.observe_series import interp_series
 from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 
+from . import scenarios
 from .scenarios import (DT_OBS, SCENARIOS, SOLVER, SWITCH, T_END, TRUE_BASE, V_NOMINAL, block_average, gauges,
                         make_evaluator, make_recording, mu_scale_patch, release, terrain)
 
@@ -144,8 +145,13 @@ def main(argv=None) -> int:
     a.add_argument("--sizes", default="40,20,10,5", help="cell sizes, m, coarse to fine (each divides 40)")
     a.add_argument("--scenarios", default=",".join(SCENARIOS))
     a.add_argument("--switch-scan", default="", help="comma-separated inversion cell sizes for the switch scan")
-    a.add_argument("--out", default=str(HERE / "_work" / "grid_convergence.json"))
+    a.add_argument("--terrain", default="narrow", choices=sorted(scenarios.TERRAINS), help="scenarios.TERRAINS variant")
+    a.add_argument("--out", default=None, help="default _work/grid_convergence.json (narrow), "
+                   "_work/grid_convergence_<terrain>.json otherwise")
     args = a.parse_args(argv)
+    if args.out is None:
+        args.out = str(HERE / "_work" / ("grid_convergence.json" if args.terrain == "narrow"
+                                         else f"grid_convergence_{args.terrain}.json"))
     sizes = [float(s) for s in args.sizes.split(",") if s]
     if any(abs(40.0 / s - round(40.0 / s)) > 1e-9 for s in sizes):
         raise SystemExit(f"--sizes: every size must divide 40 m, got {args.sizes}")
@@ -153,9 +159,11 @@ def main(argv=None) -> int:
     bad = [s for s in scen if s not in SCENARIOS]
     if bad:
         raise SystemExit(f"--scenarios: unknown {bad} (known: {', '.join(SCENARIOS)})")
-    res = {"sizes": sizes, "convergence": convergence(scen, sizes) if len(sizes) > 1 else {},
-           "terrain_split": terrain_split(),
-           "switch_scan": {s: switch_scan(float(s), scen) for s in args.switch_scan.split(",") if s}}
+    with scenarios.terrain_variant(args.terrain):
+        res = {"terrain": args.terrain, "sizes": sizes,
+               "convergence": convergence(scen, sizes) if len(sizes) > 1 else {},
+               "terrain_split": terrain_split(),
+               "switch_scan": {s: switch_scan(float(s), scen) for s in args.switch_scan.split(",") if s}}
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(res, indent=1))
     print("wrote", args.out)

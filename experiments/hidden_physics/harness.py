@@ -1,5 +1,6 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--model-error N] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--device cuda] [--max-batch N]``.
+[--model-error N] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
+[--max-batch N]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
@@ -21,7 +22,8 @@ import numpy as np
 from torchslide.diagnose import Budgets, Thresholds, diagnose
 from torchslide.physics import CANDIDATES
 
-from .scenarios import SCENARIOS, SWITCH, make_evaluator, make_recording
+from . import scenarios
+from .scenarios import SCENARIOS, SWITCH, TERRAINS, make_evaluator, make_recording, terrain_variant
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
@@ -82,7 +84,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
-    case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize,
+    case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
             "fine_terrain": fine_terrain, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
@@ -119,11 +121,18 @@ def main(argv=None) -> int:
     p.add_argument("--fine-terrain", action="store_true",
                    help="give the diagnosis the terrain on the recording grid for the model error's finer runs "
                         "(scenarios.make_evaluator(fine_terrain=True)); needs its own null seeds and --out")
+    p.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS),
+                   help="terrain variant (scenarios.TERRAINS); another than narrow needs its own null seeds and --out")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     a = p.parse_args(argv)
     if a.max_batch < 1:
         p.error(f"--max-batch must be >= 1, got {a.max_batch}")
+    with terrain_variant(a.terrain):
+        return _run_all(a)
+
+
+def _run_all(a) -> int:
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
     bud = {"model_error_runs": a.model_error} if a.model_error is not None else None

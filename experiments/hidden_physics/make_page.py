@@ -289,14 +289,15 @@ def _own_model_error_section() -> list[str]:
     return L + [""]
 
 
-def _grid_convergence_section(f: Path | None = None) -> list[str]:
+def _grid_convergence_section(f: Path | None = None, heading: str = "## Grid convergence on the harness terrain"
+                              ) -> list[str]:
     """From grid_convergence.py's JSON: gauge peaks per cell size, the terrain / numerics split of the
     40 m error, and the noise-free switch scan."""
     f = f or HERE / "_work" / "grid_convergence.json"
     if not f.exists():
         return []
     d = json.loads(f.read_text())
-    L = ["## Grid convergence on the harness terrain (experiments/hidden_physics/grid_convergence.py)", "",
+    L = [f"{heading} (experiments/hidden_physics/grid_convergence.py)", "",
          "Noise-free runs at the true mu, xi, each hidden term at strength 1, nominal volume. Peak flow height "
          "(m) at the two gauges and the run-out (largest x with > 0.1 m of deposit) per cell size; rms: the "
          "difference from the finest run of the g1 height series (m) and of the deposit map on 40 m cells (m).", "",
@@ -335,28 +336,28 @@ def _grid_convergence_section(f: Path | None = None) -> list[str]:
     return L + [""]
 
 
-def _finer_grid_section(d=None) -> list[str]:
-    """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
-    ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds in d/null_calib
-    (d/null_calib/thresholds.json, written by ``calibrate_thresholds --results d/null_calib --out
-    d/null_calib/thresholds.json --apply d``)."""
-    d = Path(d) if d is not None else HERE / "_work" / "cs20"
+def _variant_cases(d: Path):
+    """(cases, thresholds dict or None) of a variant run saved in ``d``, re-decided with thresholds from its
+    own null seeds in d/null_calib (d/null_calib/thresholds.json, written by ``calibrate_thresholds
+    --results d/null_calib --out d/null_calib/thresholds.json --apply d``)."""
     cases = [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))]
-    if not cases:
-        return []
     thf = d / "null_calib" / "thresholds.json"
-    th = json.loads(thf.read_text()) if thf.exists() else None
-    nulls = th["null_cases"] if th else []
-    L = ["## Probe: inversion on 20 m cells (recordings on 10 m)", "",
-         "`harness --cellsize 20`, same scenarios, seeds, noise, budgets and method as above; only the grids are "
-         "halved. A few cases only (median wall time per case "
-         f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min), so this is a probe of "
-         "whether the failing scenarios are a resolution limit, not a result with the targets' 5 seeds. "
-         + (f"Thresholds from the null seeds {[c['case'] for c in nulls]} at 20 m, same rule as above "
+    return cases, (json.loads(thf.read_text()) if thf.exists() else None)
+
+
+def _thresholds_sentence(th, where: str) -> str:
+    if not th:
+        return "No null seeds of its own yet: verdicts use the 40 m narrow-channel thresholds."
+    nulls = th["null_cases"]
+    return (f"Thresholds from the null seeds {[c['case'] for c in nulls]} {where}, same rule as above "
             f"(largest lower-bound 2 ln BF {[round(c['max_two_ln_bf_lower'], 1) for c in nulls]}): "
-            f"bf_min {th['thresholds']['bf_min']:.1f}, located_min {th['thresholds']['located_min']:.1f}."
-            if th else "No 20 m null seeds yet: verdicts use the 40 m thresholds."), "",
-         "| case | found | strict success | lower 2 ln BF per candidate | margin over runner-up | true switch: mean, "
+            f"bf_min {th['thresholds']['bf_min']:.1f}, located_min {th['thresholds']['located_min']:.1f}.")
+
+
+def _case_rows(cases) -> list[str]:
+    """Per-case table of a variant run: what was found, the strict-success check, every candidate's
+    lower-bound 2 ln BF, the margin over the runner-up and the true switch's mean and 90 % HDI."""
+    L = ["| case | found | strict success | lower 2 ln BF per candidate | margin over runner-up | true switch: mean, "
          "90 % HDI (truth) |", "|---|---|---|---|---|---|"]
     for c in cases:
         j = c["diagnosis"]
@@ -374,7 +375,56 @@ def _finer_grid_section(d=None) -> list[str]:
         L.append(f"| {c['scenario']}_s{c['seed']} | {found_label(c)} | "
                  f"{strict_success(c)} | {bfs} | "
                  f"{'-' if m is None else f'{m:.1f}'} | {sw or '-'} |")
-    return L + [""]
+    return L
+
+
+def _finer_grid_section(d=None) -> list[str]:
+    """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
+    ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds (:func:`_variant_cases`)."""
+    d = Path(d) if d is not None else HERE / "_work" / "cs20"
+    cases, th = _variant_cases(d)
+    if not cases:
+        return []
+    L = ["## Probe: inversion on 20 m cells (recordings on 10 m)", "",
+         "`harness --cellsize 20`, same scenarios, seeds, noise, budgets and method as above; only the grids are "
+         "halved. A few cases only (median wall time per case "
+         f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min), so this is a probe of "
+         "whether the failing scenarios are a resolution limit, not a result with the targets' 5 seeds. "
+         + _thresholds_sentence(th, "at 20 m"), ""]
+    return L + _case_rows(cases) + [""]
+
+
+def _resolved_terrain_section(d=None, gc=None) -> list[str]:
+    """The harness on the "resolved" terrain (scenarios.TERRAINS; ``harness --terrain resolved``): its
+    cases in ``d`` (default _work/resolved/results; null seeds in d/null_calib), the targets per
+    scenario, every case, and the grid convergence on that terrain (``gc``, default
+    _work/grid_convergence_resolved.json)."""
+    d = Path(d) if d is not None else HERE / "_work" / "resolved" / "results"
+    cases, th = _variant_cases(d)
+    if not cases:
+        return []
+    cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
+    per = defaultdict(list)
+    for c in cases:
+        per[c["scenario"]].append(c)
+    from .scenarios import TERRAINS
+    (gn, rn, xn), (gr, rr, xr) = TERRAINS["narrow"], TERRAINS["resolved"]
+    L = ["## The harness on a terrain the 40 m grid resolves (`harness --terrain resolved`)", "",
+         "Same scenarios, seeds, noise, budgets, grids (inversion 40 m, recordings 20 m) and method as above, on "
+         f"the `resolved` variant of scenarios.py: channel half-width {gr['channel_halfwidth']:g} m instead of "
+         f"{gn['channel_halfwidth']:g} m, the slope-to-run-out kink replaced by a {gr['transition']:g} m parabolic "
+         f"transition, release radius {rr:g} m instead of {rn:g} m (same volume), gauge g2 at x = {xr:g} m "
+         f"instead of {xn:g} m (at the deposit's front there). " + _thresholds_sentence(th, "on this terrain"), "",
+         "| scenario | cases | strict successes | found (count) | target |", "|---|---|---|---|---|"]
+    for sc, cs in per.items():
+        found = defaultdict(int)
+        for c in cs:
+            found[found_label(c)] += 1
+        L.append(f"| {sc} | {len(cs)} | {sum(strict_success(c) for c in cs)} | "
+                 f"{', '.join(f'{k} {v}' for k, v in sorted(found.items()))} | >= 4 of 5 |")
+    L += [""] + _case_rows(cases) + [""]
+    gc = Path(gc) if gc is not None else HERE / "_work" / "grid_convergence_resolved.json"
+    return L + _grid_convergence_section(gc, heading="### Grid convergence on the resolved terrain")
 
 
 def _shown(path: Path, base: Path) -> str:
@@ -485,6 +535,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _own_model_error_section()
     L += _finer_grid_section()
     L += _grid_convergence_section()
+    L += _resolved_terrain_section()
     walls = [c["wall_s"] for c in cases]
     nref = [sum(1 for x in c["diagnosis"]["candidates"] if x.get("log_bayes_factor") is not None) for c in cases]
     L += ["## Cost", "", f"Wall time per case (one core, OMP_NUM_THREADS=1; two cases ran in parallel on a shared "

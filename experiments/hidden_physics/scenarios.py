@@ -1,13 +1,26 @@
 """Blind hidden-physics scenarios: recordings from a finer grid with a hidden term, noise and a release error.
 
 Terrain: a short S-bend channel (torchslide.terrain.synthetic.channel_with_bends, 1200 m slope + 500 m
-run-out, 600 m wide). The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of
-``cellsize / 2`` (same analytic surface), their deposit map block-averaged onto the inversion grid.
+run-out, 600 m wide), in one of two variants (``TERRAINS``; select with :func:`use_terrain`, the
+harness' ``--terrain``):
+
+* ``"narrow"`` (the default): a channel of half-width 40 m with a sharp slope-to-run-out kink and a
+  release of radius 60 m, i.e. two 40 m cells across the channel. experiments/hidden_physics/
+  grid_convergence.py shows that the solver does not converge on it down to 5 m cells.
+* ``"resolved"``: half-width 100 m, the kink replaced by a 300 m parabolic transition, a release of
+  radius 120 m, and gauge g2 at x = 1150 m (in the transition) instead of 1300 m (at the deposit's
+  front, where the front's position on the grid decides what it records): what a 40 m grid resolves
+  (null, noise-free peak heights on 40 / 20 / 10 m cells: g1 2.37 / 2.29 / 2.40 m against 3.32 /
+  6.23 / 7.49 m on "narrow"; g2 6.24 / 5.71 / 5.74 m against 2.28 / 1.06 / 5.80 m).
+
+The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of ``cellsize / 2``
+(same analytic surface), their deposit map block-averaged onto the inversion grid.
 The true release volume differs from the nominal one by a factor U(0.9, 1.1) (unknown to the
 inversion; its final_volume sigma is 10 % of the nominal volume).
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +32,15 @@ from torchslide.terrain.grid import DEM
 from torchslide.solver import SolverConfig, simulate
 from torchslide.terrain.synthetic import _bends, channel_with_bends, release_from_shape
 
-GEOM = dict(slope_length=1200.0, runout_length=500.0, width=600.0, amplitude=80.0, channel_halfwidth=40.0)
+_COMMON = dict(slope_length=1200.0, runout_length=500.0, width=600.0, amplitude=80.0)
+# terrain variant -> (channel_with_bends keywords, release radius m, x of gauge g2 m)
+TERRAINS = {
+    "narrow": (dict(_COMMON, channel_halfwidth=40.0), 60.0, 1300.0),
+    "resolved": (dict(_COMMON, channel_halfwidth=100.0, transition=300.0), 120.0, 1150.0),
+}
+GEOM = dict(TERRAINS["narrow"][0])
+RELEASE_RADIUS, G2_X = TERRAINS["narrow"][1:]
+TERRAIN = "narrow"
 TRUE_BASE = {"mu": 0.25, "xi": 500.0}
 V_NOMINAL = 2.0e5
 T_END = 90.0
@@ -40,13 +61,37 @@ SWITCH = {"entrainment": "kappa", "curvature": "curvature", "earth_pressure": "e
           "yield_stress": "tau_y", "mu_i": "mu_i"}
 
 
+def use_terrain(name: str) -> str:
+    """Make ``name`` (a key of ``TERRAINS``) the terrain of every function of this module; returns the
+    variant it replaces."""
+    global TERRAIN, RELEASE_RADIUS, G2_X
+    if name not in TERRAINS:
+        raise ValueError(f"terrain: unknown variant {name!r} (known: {', '.join(TERRAINS)})")
+    previous = TERRAIN
+    geom, RELEASE_RADIUS, G2_X = TERRAINS[name]
+    GEOM.clear()
+    GEOM.update(geom)
+    TERRAIN = name
+    return previous
+
+
+@contextmanager
+def terrain_variant(name: str):
+    """``with terrain_variant("resolved"): ...`` -- :func:`use_terrain` for the block, restored after."""
+    previous = use_terrain(name)
+    try:
+        yield
+    finally:
+        use_terrain(previous)
+
+
 def yc(x):
     L = GEOM["slope_length"]
     return 0.5 * GEOM["width"] + float(_bends(x, 0.15 * L, 0.85 * L, GEOM["amplitude"]))
 
 
 def gauges():
-    return [("g1", 700.0, yc(700.0)), ("g2", 1300.0, yc(1300.0))]
+    return [("g1", 700.0, yc(700.0)), ("g2", G2_X, yc(G2_X))]
 
 
 def terrain(cellsize: float):
@@ -58,7 +103,7 @@ def terrain(cellsize: float):
 
 
 def release(dem, volume: float):
-    return release_from_shape(dem, (150.0, yc(150.0)), 60.0, volume=volume)
+    return release_from_shape(dem, (150.0, yc(150.0)), RELEASE_RADIUS, volume=volume)
 
 
 def mu_scale_patch(dem):

@@ -96,14 +96,20 @@ def inclined_plane(theta_deg: float = 30.0, cellsize: float = 10.0, *, slope_len
     Domain: x in [0, slope_length + runout_length], y in [0, width].
     """
     X, _ = _grid(slope_length + runout_length, width, cellsize)
+    return DEM(z=_slope_then_flat(X, slope_length, theta_deg, transition), cellsize=cellsize)
+
+
+def _slope_then_flat(X: np.ndarray, slope_length: float, theta_deg: float, transition: float) -> np.ndarray:
+    """z = tan(theta) (slope_length - x) for x < slope_length, 0 beyond (m); ``transition`` > 0 (m) replaces
+    the kink by a parabolic blend of that horizontal length centred on it (C1; bed curvature
+    tan(theta) / transition, 1/m, over the blend)."""
     tan = math.tan(math.radians(theta_deg))
     s = slope_length - X
     z = tan * np.maximum(s, 0.0)
     if transition > 0:
         a = 0.5 * transition
-        blend = np.abs(s) < a
-        z = np.where(blend, tan * (s + a) ** 2 / (4 * a), z)
-    return DEM(z=z, cellsize=cellsize)
+        z = np.where(np.abs(s) < a, tan * (s + a) ** 2 / (4 * a), z)
+    return z
 
 
 PARABOLA_C = 1000.0
@@ -144,19 +150,21 @@ def _bends(x, x0: float, x1: float, amplitude: float):
 def channel_with_bends(cellsize: float = 10.0, *, theta_deg: float = 25.0, slope_length: float = 2000.0,
                        runout_length: float = 800.0, width: float = 1200.0, channel_depth: float = 20.0,
                        channel_halfwidth: float = 40.0, amplitude: float = 150.0,
-                       side_slope_deg: float = 10.0) -> DEM:
+                       side_slope_deg: float = 10.0, transition: float = 0.0) -> DEM:
     """An inclined channel with two bends (an S) falling towards +x, then a flat run-out.
 
     Thalweg: y_c(x) = width/2 + _bends(x, 0.15 L, 0.85 L, amplitude), elevation tan(theta) (L - x) for
     x < L (L = slope_length), 0 beyond. Cross-section at distance d = y - y_c: a Gaussian channel
     ``channel_depth (1 - exp(-(d/w)^2))`` plus valley sides ``tan(side_slope) |d|`` (smoothed).
-    The channel fades out over the last 10 % of the slope.
+    The channel fades out over the last 10 % of the slope. ``transition`` > 0 (m): the slope-to-run-out
+    kink becomes a parabolic blend of that horizontal length (as in :func:`inclined_plane`), so that
+    the bed curvature there does not grow as the cells shrink.
     """
     X, Y = _grid(slope_length + runout_length, width, cellsize)
     L = slope_length
     yc = 0.5 * width + _bends(X, 0.15 * L, 0.85 * L, amplitude)
     d = Y - yc
-    z0 = math.tan(math.radians(theta_deg)) * np.maximum(L - X, 0.0)
+    z0 = _slope_then_flat(X, L, theta_deg, transition)
     depth = channel_depth * (1.0 - _smoothstep(X, 0.9 * L, L))
     c = 50.0
     z = z0 + depth * (1.0 - np.exp(-((d / channel_halfwidth) ** 2))) \
