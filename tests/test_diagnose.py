@@ -622,6 +622,29 @@ def test_harness_terrain_variants(tmp_path, monkeypatch):
         H.main(["--terrain", "wide", "--out", str(tmp_path)])
 
 
+def test_own_model_error_remakes_a_case_on_its_terrain(tmp_path, monkeypatch):
+    """own_model_error re-makes a saved case on the terrain variant it was run on (the case's "terrain",
+    narrow for older cases), restores the default after, and merges its rows into --out."""
+    import json
+    from experiments.hidden_physics import own_model_error as O
+    from experiments.hidden_physics import scenarios as S
+
+    seen = []
+
+    def fake(a, case):
+        seen.append(S.TERRAIN)
+        return [{"case": a.case, "candidate": "mu_i", "gain": 1.0}]
+
+    monkeypatch.setattr(O, "_rows", fake)
+    (tmp_path / "mu_i_s0.json").write_text(json.dumps({"scenario": "mu_i", "seed": 0, "terrain": "resolved"}))
+    (tmp_path / "mu_i_s1.json").write_text(json.dumps({"scenario": "mu_i", "seed": 1}))
+    out = tmp_path / "rows.json"
+    for c in ("mu_i_s0", "mu_i_s1", "mu_i_s0"):
+        assert O.main(["--case", c, "--results", str(tmp_path), "--out", str(out)]) == 0
+    assert seen == ["resolved", "narrow", "resolved"] and S.TERRAIN == "narrow"
+    assert sorted(r["case"] for r in json.loads(out.read_text())) == ["mu_i_s0", "mu_i_s1"]
+
+
 def test_page_section_of_the_resolved_terrain_run(tmp_path):
     """make_page's resolved-terrain section: the targets per scenario (strict successes, what was found),
     a row per case, and the thresholds from that run's own null seeds."""

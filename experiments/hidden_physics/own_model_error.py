@@ -1,5 +1,6 @@
 """Would a candidate-specific model error separate the terms? ``python -m experiments.hidden_physics.own_model_error
-[--case yield_stress_s1] [--candidates yield_stress,mu_i,earth_pressure] [--out FILE]``
+[--case yield_stress_s1] [--results DIR] [--candidates yield_stress,mu_i,earth_pressure] [--out FILE]``
+(the case is re-made on the terrain variant it was run on, scenarios.TERRAINS)
 
 The diagnosis puts one approximation error of the grid into every likelihood: the pilot baseline's
 (torchslide.diagnose.model_error, drawn at the switch = 0). A term whose effect depends strongly on
@@ -34,7 +35,7 @@ from torchslide.diagnose.pipeline import grid_model_error
 from torchslide.diagnose.refit import candidate_evaluator
 
 from .harness import HARNESS_BUDGETS
-from .scenarios import make_evaluator, make_recording
+from .scenarios import make_evaluator, make_recording, terrain_variant
 
 HERE = Path(__file__).parent
 
@@ -61,6 +62,16 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(HERE / "_work" / "own_model_error.json"))
     a = p.parse_args(argv)
     case = json.loads((Path(a.results) / f"{a.case}.json").read_text())
+    with terrain_variant(case.get("terrain", "narrow")):  # the terrain the case was run on
+        rows = _rows(a, case)
+    out = Path(a.out)
+    old = json.loads(out.read_text()) if out.exists() else []
+    old = [r for r in old if not (r["case"] == a.case and r["candidate"] in {x["candidate"] for x in rows})]
+    out.write_text(json.dumps(old + rows, indent=1))
+    return 0
+
+
+def _rows(a, case) -> list[dict]:
     sc, seed = case["scenario"], int(case["seed"])
     rec = make_recording(sc, seed, cellsize=case["cellsize"])
     ev = make_evaluator(rec, cellsize=case["cellsize"])
@@ -78,7 +89,8 @@ def main(argv=None) -> int:
         b = np.asarray(ev_c.prior.bounds, float)
         x = np.clip(mean + sd * rng.standard_normal((12, len(mean))), b[0], b[1])
         me_own = approximation_error(ev_c, x)
-        row = {"case": a.case, "truth": rec.truth, "candidate": c, "names": names}
+        row = {"case": a.case, "terrain": case.get("terrain", "narrow"), "truth": rec.truth, "candidate": c,
+               "names": names}
         for tag, e in (("pilot", candidate_evaluator(ev_pilot, c)), ("own", ev_c.with_model_error(me_own))):
             z, xb = best_log_posterior(e, mean, np.maximum(sd, 1e-6), a.evals)
             row[f"best_z_{tag}"], row[f"best_x_{tag}"] = z, xb.tolist()
@@ -86,11 +98,7 @@ def main(argv=None) -> int:
         print(f"{c:15s} best ln posterior: pilot error {row['best_z_pilot']:.1f}, own error {row['best_z_own']:.1f} "
               f"(gain {row['gain']:+.1f})", flush=True)
         rows.append(row)
-    out = Path(a.out)
-    old = json.loads(out.read_text()) if out.exists() else []
-    old = [r for r in old if not (r["case"] == a.case and r["candidate"] in {x["candidate"] for x in rows})]
-    out.write_text(json.dumps(old + rows, indent=1))
-    return 0
+    return rows
 
 
 if __name__ == "__main__":
