@@ -378,15 +378,16 @@ def _case_rows(cases) -> list[str]:
     return L
 
 
-def _finer_grid_section(d=None) -> list[str]:
+def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cells (recordings on 10 m)",
+                        command: str = "harness --cellsize 20") -> list[str]:
     """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
     ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds (:func:`_variant_cases`)."""
     d = Path(d) if d is not None else HERE / "_work" / "cs20"
     cases, th = _variant_cases(d)
     if not cases:
         return []
-    L = ["## Probe: inversion on 20 m cells (recordings on 10 m)", "",
-         "`harness --cellsize 20`, same scenarios, seeds, noise, budgets and method as above; only the grids are "
+    L = [heading, "",
+         f"`{command}`, same scenarios, seeds, noise, budgets and method as above; only the grids are "
          "halved. A few cases only (median wall time per case "
          f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min), so this is a probe of "
          "whether the failing scenarios are a resolution limit, not a result with the targets' 5 seeds. "
@@ -394,11 +395,11 @@ def _finer_grid_section(d=None) -> list[str]:
     return L + _case_rows(cases) + [""]
 
 
-def _resolved_terrain_section(d=None, gc=None) -> list[str]:
+def _resolved_terrain_section(d=None, gc=None, d20=None) -> list[str]:
     """The harness on the "resolved" terrain (scenarios.TERRAINS; ``harness --terrain resolved``): its
     cases in ``d`` (default _work/resolved/results; null seeds in d/null_calib), the targets per
-    scenario, every case, and the grid convergence on that terrain (``gc``, default
-    _work/grid_convergence_resolved.json)."""
+    scenario, every case, the grid convergence on that terrain (``gc``, default
+    _work/grid_convergence_resolved.json) and the probe on 20 m cells (``d20``, default _work/resolved20)."""
     d = Path(d) if d is not None else HERE / "_work" / "resolved" / "results"
     cases, th = _variant_cases(d)
     if not cases:
@@ -424,7 +425,10 @@ def _resolved_terrain_section(d=None, gc=None) -> list[str]:
                  f"{', '.join(f'{k} {v}' for k, v in sorted(found.items()))} | >= 4 of 5 |")
     L += [""] + _case_rows(cases) + [""]
     gc = Path(gc) if gc is not None else HERE / "_work" / "grid_convergence_resolved.json"
-    return L + _grid_convergence_section(gc, heading="### Grid convergence on the resolved terrain")
+    d20 = Path(d20) if d20 is not None else HERE / "_work" / "resolved20"
+    return (L + _grid_convergence_section(gc, heading="### Grid convergence on the resolved terrain")
+            + _finer_grid_section(d20, heading="### Probe: the resolved terrain on 20 m cells (recordings on 10 m)",
+                                  command="harness --terrain resolved --cellsize 20"))
 
 
 def _shown(path: Path, base: Path) -> str:
