@@ -643,6 +643,29 @@ def test_own_model_error_remakes_a_case_on_its_terrain(tmp_path, monkeypatch):
         assert O.main(["--case", c, "--results", str(tmp_path), "--out", str(out)]) == 0
     assert seen == ["resolved", "narrow", "resolved"] and S.TERRAIN == "narrow"
     assert sorted(r["case"] for r in json.loads(out.read_text())) == ["mu_i_s0", "mu_i_s1"]
+    monkeypatch.setattr(O, "HERE", tmp_path / "here")
+    (tmp_path / "here" / "_work").mkdir(parents=True)
+    for c in ("mu_i_s0", "mu_i_s1"):  # default --out: one file per terrain
+        assert O.main(["--case", c, "--results", str(tmp_path)]) == 0
+    assert [r["case"] for r in json.loads((tmp_path / "here" / "_work" / "own_model_error_resolved.json").read_text())] == ["mu_i_s0"]
+    assert [r["case"] for r in json.loads((tmp_path / "here" / "_work" / "own_model_error.json").read_text())] == ["mu_i_s1"]
+
+
+def test_page_section_of_the_own_model_error_rows_of_both_terrains(tmp_path):
+    """make_page's own-model-error section reads own_model_error.json (narrow; older rows carry no
+    terrain) and own_model_error_<terrain>.json, with the true switch at the best under each error."""
+    import json
+    from experiments.hidden_physics.make_page import _own_model_error_section
+
+    row = lambda case, c, zp, zo, xp, xo, **kw: dict(case=case, candidate=c, best_z_pilot=zp, best_z_own=zo, gain=zo - zp,
+                                                     best_x_pilot=[0.28, 800.0, xp], best_x_own=[0.26, 600.0, xo], **kw)
+    (tmp_path / "own_model_error.json").write_text(json.dumps([row("yield_stress_s1", "mu_i", -10.0, -5.2, 0.1, 0.12)]))
+    (tmp_path / "own_model_error_resolved.json").write_text(json.dumps(
+        [row("earth_pressure_s0", "earth_pressure", -1346.6, -1341.2, 0.51, 0.7218, terrain="resolved")]))
+    text = "\n".join(_own_model_error_section(tmp_path))
+    assert "| narrow | yield_stress_s1 | mu_i | -10.0 | -5.2 | +4.8 | 0.1 -> 0.12 |" in text
+    assert "| resolved | earth_pressure_s0 | earth_pressure | -1346.6 | -1341.2 | +5.4 | 0.51 -> 0.722 |" in text
+    assert _own_model_error_section(tmp_path / "absent") == []
 
 
 def test_page_section_of_the_resolved_terrain_run(tmp_path):
@@ -676,6 +699,7 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     assert "| mu_i | 2 | 1 | mu_i 1, unexplained 1 | >= 4 of 5 |" in text
     assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3] (0.2) |" in text
     assert "| mu_i_s1 | unexplained | False |" in text and "x0.5" not in text
+    assert "Median wall time per case 300 s." in text
     assert _resolved_terrain_section(tmp_path / "absent") == []
     probe = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path))
     assert "### Probe: the resolved terrain on 20 m cells" in probe and "`harness --terrain resolved --cellsize 20`" in probe

@@ -270,22 +270,25 @@ def _switch_bias_section() -> list[str]:
     return L + [""]
 
 
-def _own_model_error_section() -> list[str]:
-    f = HERE / "_work" / "own_model_error.json"
-    if not f.exists():
+def _own_model_error_section(work: Path | None = None) -> list[str]:
+    """own_model_error.py's rows from ``work`` (default _work): own_model_error.json (cases on the narrow
+    terrain) and own_model_error_<terrain>.json (other variants)."""
+    work = Path(work) if work is not None else HERE / "_work"
+    rows = [r for f in sorted(work.glob("own_model_error*.json")) for r in json.loads(f.read_text())]
+    if not rows:
         return []
-    rows = json.loads(f.read_text())
     L = ["## A candidate-specific model error? (experiments/hidden_physics/own_model_error.py)", "",
          "Every likelihood carries the pilot baseline's approximation error of the grid (drawn at switch = 0). "
          "The alternative, each candidate with the error drawn at its own refit posterior (12 run pairs, 40 m "
          "against 20 m cells), measured on saved cases: the largest ln posterior a Nelder-Mead search on the "
          "solver reaches from the refit's mean under each error. It would help only if it raised the true "
          "term more than the others.", "",
-         "| case | candidate | best ln posterior, pilot error | best ln posterior, own error | gain |",
-         "|---|---|---|---|---|"]
+         "| terrain | case | candidate | best ln posterior, pilot error | best ln posterior, own error | gain | "
+         "switch at the best, pilot -> own error |", "|---|---|---|---|---|---|---|"]
     for r in rows:
-        L.append(f"| {r['case']} | {r['candidate']} | {r['best_z_pilot']:.1f} | {r['best_z_own']:.1f} | "
-                 f"{r['gain']:+.1f} |")
+        sw = (f"{r['best_x_pilot'][-1]:.3g} -> {r['best_x_own'][-1]:.3g}" if "best_x_own" in r else "-")
+        L.append(f"| {r.get('terrain', 'narrow')} | {r['case']} | {r['candidate']} | {r['best_z_pilot']:.1f} | "
+                 f"{r['best_z_own']:.1f} | {r['gain']:+.1f} | {sw} |")
     return L + [""]
 
 
@@ -415,7 +418,8 @@ def _resolved_terrain_section(d=None, gc=None, d20=None) -> list[str]:
          f"the `resolved` variant of scenarios.py: channel half-width {gr['channel_halfwidth']:g} m instead of "
          f"{gn['channel_halfwidth']:g} m, the slope-to-run-out kink replaced by a {gr['transition']:g} m parabolic "
          f"transition, release radius {rr:g} m instead of {rn:g} m (same volume), gauge g2 at x = {xr:g} m "
-         f"instead of {xn:g} m (at the deposit's front there). " + _thresholds_sentence(th, "on this terrain"), "",
+         f"instead of {xn:g} m (at the deposit's front there). Median wall time per case "
+         f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), "",
          "| scenario | cases | strict successes | found (count) | target |", "|---|---|---|---|---|"]
     for sc, cs in per.items():
         found = defaultdict(int)

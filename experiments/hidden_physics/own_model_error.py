@@ -16,7 +16,8 @@ likelihood with the error drawn at *its own* posterior, is measured here on a sa
 
 If the own error raised the true term's best ln posterior more than the others', it would help to
 tell them apart; if it raises all of them (or the wrong ones more), it would not. Rows are written to
---out (default _work/own_model_error.json).
+--out (default _work/own_model_error.json, _work/own_model_error_<terrain>.json for a case on another
+terrain variant).
 """
 from __future__ import annotations
 
@@ -59,12 +60,15 @@ def main(argv=None) -> int:
     p.add_argument("--results", default=str(HERE / "_work" / "results"))
     p.add_argument("--candidates", default="yield_stress,mu_i,earth_pressure")
     p.add_argument("--evals", type=int, default=80)
-    p.add_argument("--out", default=str(HERE / "_work" / "own_model_error.json"))
+    p.add_argument("--out", default=None, help="default _work/own_model_error.json for a case on the narrow "
+                   "terrain, _work/own_model_error_<terrain>.json otherwise (the results page reads both)")
     a = p.parse_args(argv)
     case = json.loads((Path(a.results) / f"{a.case}.json").read_text())
-    with terrain_variant(case.get("terrain", "narrow")):  # the terrain the case was run on
+    terrain = case.get("terrain", "narrow")
+    with terrain_variant(terrain):  # the terrain the case was run on
         rows = _rows(a, case)
-    out = Path(a.out)
+    out = Path(a.out) if a.out else HERE / "_work" / (
+        "own_model_error.json" if terrain == "narrow" else f"own_model_error_{terrain}.json")
     old = json.loads(out.read_text()) if out.exists() else []
     old = [r for r in old if not (r["case"] == a.case and r["candidate"] in {x["candidate"] for x in rows})]
     out.write_text(json.dumps(old + rows, indent=1))
