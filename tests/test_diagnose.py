@@ -357,6 +357,10 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     assert "Verdict" in md and "mu_i" in md
     # the refit was refined (grid posterior, no MCMC samples): the posterior figure must still be drawn
     assert any("trusted" in h for h in c["evidence_history"])
+    # the baseline mode check ran on the refit's nested points and says what it found
+    mc = j["decision"]["baseline_mode_check"]
+    assert mc["nested_points"] >= 1 and "improvement" in mc and "missed_mode" in mc
+    assert "evidence from the" in md
     # the default path: the grid's approximation error (2 run pairs here) and the mode search ran
     n_lin = 3 if j["screening"]["linear_opt"]["mu_i"] else 0
     assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + n_lin + 12
@@ -762,6 +766,24 @@ def test_mode_search_starts_from_the_nested_baseline():
     assert Budgets(mode_search_iters=0).mode_search_iters == 0 and _mode_search(ev, cal, Budgets(mode_search_iters=0)) is None
 
 
+class _GaussianEvaluator:
+    """A toy diagnosis evaluator whose 'solver' predicts y = x: ``ev(x)`` gives z = ln L + ln prior,
+    ``evaluate`` the predictions (posterior_predictive, verified_evidence); ``calls`` the batch sizes."""
+
+    def __init__(self, lik, prior):
+        self.likelihood, self.prior, self.calls = lik, prior, []
+
+    def evaluate(self, x):
+        x = torch.as_tensor(x, dtype=torch.float64)
+        return SimpleNamespace(failed=torch.zeros(len(x), dtype=torch.bool)), x.clone()
+
+    def __call__(self, x):
+        x = torch.as_tensor(x, dtype=torch.float64)
+        self.calls.append(len(x))
+        return SimpleNamespace(z=self.likelihood.log_likelihood(x) + self.prior.log_prob(x),
+                               failed=torch.zeros(len(x), dtype=torch.bool))
+
+
 def _off_peak_refit(flank: bool = False):
     """(evaluator, refit result) of a 3-D Gaussian posterior peaked at (0.3, 0.55, 0.7) whose refit
     posterior sits off the peak (k ~ 0.5). The emulator equals the solver's z, so the importance
@@ -774,25 +796,13 @@ def _off_peak_refit(flank: bool = False):
     prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
     z_of = lambda x: lik.log_likelihood(torch.as_tensor(x)) + prior.log_prob(torch.as_tensor(x))
 
-    class Ev:
-        def __init__(self):
-            self.likelihood, self.prior = lik, prior
-
-        def evaluate(self, x):
-            x = torch.as_tensor(x, dtype=torch.float64)
-            return SimpleNamespace(failed=torch.zeros(len(x), dtype=torch.bool)), x.clone()
-
-        def __call__(self, x):
-            x = torch.as_tensor(x, dtype=torch.float64)
-            return SimpleNamespace(z=z_of(x), failed=torch.zeros(len(x), dtype=torch.bool))
-
     rng = np.random.default_rng(0)
     wrong = np.clip(d + [0.03, -0.04, -0.2] + 0.005 * rng.standard_normal((200, 3)), 0, 1)
     x = np.vstack([maximin_lhs(20, 3, seed=1), wrong[:4]] + ([d + [0.012, 0.0, 0.0]] if flank else []))
     cal = SimpleNamespace(names=["mu", "xi", "k"], x=x, z=z_of(x).numpy(), failed=np.zeros(len(x), bool),
                           bounds=np.array([[0.0] * 3, [1.0] * 3]), samples=wrong, log_evidence=-40.0,
                           posterior_grid=None, n_runs=len(x), emulator=SimpleNamespace(mean=lambda t: z_of(t)))
-    return Ev(), cal
+    return _GaussianEvaluator(lik, prior), cal
 
 
 def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatch):
@@ -1023,3 +1033,47 @@ def test_grid_convergence_script_on_two_grids(tmp_path):
     assert any(l.startswith("| null | 40 |") for l in _grid_convergence_section(out))
     with pytest.raises(SystemExit, match="divide 40"):
         grid_convergence.main(["--sizes", "40,30", "--out", str(out)])
+
+
+def test_baseline_mode_check_refines_a_baseline_that_missed_its_mode():
+    """The baseline's runs sit on a secondary slope far below the peak that a refit (nesting the
+    baseline) found with its switch near 0: pipeline.baseline_mode_check runs the refits' nested points
+    in the baseline model, flags the missed mode and refines the baseline from all runs, whose verified
+    log Z is then right (the Gaussian likelihood integrates to 1 over the unit box); with the peak
+    already among the baseline's runs nothing is refined."""
+    from torchslide.diagnose.pipeline import Budgets, baseline_mode_check, nested_points
+
+    d, sig = np.array([0.3, 0.55]), np.array([0.01, 0.015])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0)})
+    ev = _GaussianEvaluator(lik, prior)
+    calls = ev.calls
+    rng = np.random.default_rng(0)
+    xb = np.clip([0.7, 0.2] + 0.05 * rng.standard_normal((20, 2)), 0, 1)       # the baseline's runs: off the peak
+    zb = ev(xb).z.numpy()
+    # two refits (switch = last column, prior box [0, 1]): one has a run near the peak with its switch
+    # at 0.03, its best run (switch 0.6) is elsewhere
+    xr = np.array([[0.31, 0.56, 0.03], [0.6, 0.3, 0.6], [0.9, 0.9, 0.05]])
+    zr = np.array([-5.0, 0.0, -50.0])
+    cal_r = SimpleNamespace(x=xr, z=zr, failed=np.zeros(3, bool), bounds=np.array([[0.0] * 3, [1.0] * 3]))
+    cal_q = SimpleNamespace(x=xr[[2]], z=zr[[2]], failed=np.zeros(1, bool), bounds=np.array([[0.0] * 3, [1.0] * 3]))
+    pts = nested_points({"a": (None, cal_r), "b": (None, cal_q)}, 2)
+    assert pts.shape == (3, 2) and any(np.allclose(p, [0.31, 0.56]) for p in pts)
+    bud = Budgets(mode_search_iters=2, mode_search_pop=4, n_posterior_samples=16, baseline_refine_rounds=3,
+                  baseline_grid_size=120)
+    calls.clear()
+    out = baseline_mode_check(ev, (xb, zb), {"a": (None, cal_r), "b": (None, cal_q)}, bud, log=lambda s: None)
+    assert calls[:3] == [3, 8, 8]                      # the nested points in one call, then the search's batches
+    assert out["missed_mode"] and out["improvement"] > 100
+    assert abs(out["verification"]["log_evidence"]) < 0.5 and out["verification"]["ess"] >= 0.3 * 16
+    assert len(out["predictive"].x) == 16
+    # the refined posterior as the report shows it (pipeline._params of verify.grid_result)
+    from torchslide.diagnose.pipeline import _params
+    from torchslide.diagnose.verify import grid_result
+    par = _params(grid_result(out["proposal"], ["mu", "xi"], np.array([[0.0, 0.0], [1.0, 1.0]])))
+    for n, v, sg in zip(("mu", "xi"), d, sig):
+        assert abs(par[n]["mean"] - v) < sg and par[n]["hdi90"][0] < v < par[n]["hdi90"][1]
+    # the peak among the baseline's runs already: no mode missed, nothing refined
+    xb2 = np.vstack([xb, d])
+    out2 = baseline_mode_check(ev, (xb2, ev(xb2).z.numpy()), {"a": (None, cal_r)}, bud, log=lambda s: None)
+    assert not out2["missed_mode"] and "verification" not in out2 and out2["improvement"] <= bud.mode_margin

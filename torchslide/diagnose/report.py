@@ -125,6 +125,14 @@ def write_markdown(j: dict, figures: list[str]) -> str:
                  f"{[round(v, 5) for v in p.get('hdi90', p['hdr90'])] if p else '-'} | {_refit_check(c)} |")
     fb, fa = j["fit_before"], j["fit_after"]
     L += ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
+    src = (j["decision"].get("baseline_verification") or {}).get("source")
+    mc = j["decision"].get("baseline_mode_check") or {}
+    if src:
+        L[-1] += f"; evidence from the {src}"
+    if mc.get("missed_mode"):
+        L.append(f"- baseline mode check: a run at the refits' nested points beat every baseline run by "
+                 f"{_fmt(mc.get('improvement'), '{:.1f}')} in ln posterior; the refined baseline's log Z is "
+                 f"{_fmt(mc.get('log_evidence'), '{:.2f}')} ({'adopted' if mc.get('adopted') else 'not adopted'})")
     if fa:
         L.append(f"- after ({fa.get('model')}): log Z {_fmt(fa['log_evidence'], '{:.2f}')}, misfit {_fmt(fa['misfit'], '{:.1f}')}")
     L += ["", "| observable | before | after |", "|---|---|---|"]

@@ -420,10 +420,6 @@ def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: 
     Returns (result, predictive, verification dict): ``result`` is a
     CalibrationResult-like namespace (grid posterior on the zoomed box, the summary / HDIs from it,
     every run in x / z, the original global emulator kept for the beta = 0 slice check)."""
-    from types import SimpleNamespace
-
-    from ..posterior import summarise_grid
-
     start = cal_c
     b = _bounds_of(cal_c)
     lo, hi = b[0, -1], b[1, -1]
@@ -453,9 +449,7 @@ def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: 
         log(f"[diagnose] refit: posterior against the unsampled upper bound of {cal_c.names[-1]}: "
             f"{probes} probe run(s) there, emulator refitted")
     if probes or n_extra:
-        p0 = _local_proposal(X0, Z0, b, coarse=grid[0], fine=grid[1])
-        start = SimpleNamespace(x=X0, z=Z0, failed=np.zeros(len(X0), bool), bounds=b,
-                                emulator=SimpleNamespace(mean=p0.log_fn))
+        start = runs_start(X0, Z0, b, coarse=grid[0], fine=grid[1])
     prop, pred, ver, hist = refine_baseline(ev_c, start, M, seed=seed, max_rounds=max_rounds, log=log,
                                             coarse=grid[0], fine=grid[1], label="refit", **kw)
     hist[0]["bound_probes"] = probes
@@ -466,10 +460,32 @@ def refine_refit(ev_c, cal_c, M: int, seed: int = 0, max_rounds: int = 2, grid: 
     new = ~np.any(np.all(np.isclose(pred.x[:, None, :], X[None, :, :]), axis=2), axis=1) if len(pred.x) else []
     if len(pred.x):
         X, Z = np.vstack([X, pred.x[new]]), np.concatenate([Z, z_last[new]])
-    summ = summarise_grid(prop.posterior_grid, prop.grid_axes, list(cal_c.names), prop.log_evidence).to_dict()
-    res = SimpleNamespace(names=list(cal_c.names), bounds=np.asarray(cal_c.bounds, float), samples=None,
-                          posterior_grid=prop.posterior_grid, grid_axes=prop.grid_axes, zoom_bounds=prop.bounds,
-                          log_evidence=float(prop.log_evidence), summary=summ, emulator=cal_c.emulator,
-                          x=X, z=Z, failed=np.zeros(len(X), bool), n_runs=int(len(X)),
-                          log_evidence_global_emulator=float(cal_c.log_evidence), refine_history=hist)
+    res = grid_result(prop, cal_c.names, cal_c.bounds, emulator=cal_c.emulator, x=X, z=Z,
+                      failed=np.zeros(len(X), bool), n_runs=int(len(X)),
+                      log_evidence_global_emulator=float(cal_c.log_evidence), refine_history=hist)
     return res, pred, ver
+
+
+def runs_start(X, Z, bounds, coarse: int = 160, fine: int = 120):
+    """A CalibrationResult-like start for refine_baseline built from solver runs alone: X (n, p), Z (n,)
+    (finite), the local GP of _local_proposal as its emulator mean."""
+    from types import SimpleNamespace
+
+    b = np.asarray(bounds, float)
+    p0 = _local_proposal(X, Z, b, coarse=coarse, fine=fine)
+    return SimpleNamespace(x=X, z=Z, failed=np.zeros(len(X), bool), bounds=b, emulator=SimpleNamespace(mean=p0.log_fn))
+
+
+def grid_result(prop, names, bounds, **extra):
+    """A CalibrationResult-like namespace of a zoomed grid proposal ``prop`` (zoom_proposal): its grid
+    posterior, the summary (mean, MAP, 90 % HDR per parameter) and log evidence, over the prior ``bounds``
+    (2, p) of the parameters ``names``; ``extra`` attributes are added (runs, emulator, history)."""
+    from types import SimpleNamespace
+
+    from ..posterior import summarise_grid
+
+    summ = summarise_grid(prop.posterior_grid, prop.grid_axes, list(names), prop.log_evidence).to_dict()
+    return SimpleNamespace(**dict(dict(names=list(names), bounds=np.asarray(bounds, float), samples=None,
+                                       posterior_grid=prop.posterior_grid, grid_axes=prop.grid_axes,
+                                       zoom_bounds=prop.bounds, log_evidence=float(prop.log_evidence),
+                                       summary=summ), **extra))
