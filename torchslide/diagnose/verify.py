@@ -485,7 +485,7 @@ def grid_result(prop, names, bounds, **extra):
     from ..posterior import summarise_grid
 
     summ = summarise_grid(prop.posterior_grid, prop.grid_axes, list(names), prop.log_evidence).to_dict()
-    return SimpleNamespace(**dict(dict(names=list(names), bounds=np.asarray(bounds, float), samples=None,
-                                       posterior_grid=prop.posterior_grid, grid_axes=prop.grid_axes,
-                                       zoom_bounds=prop.bounds, log_evidence=float(prop.log_evidence),
-                                       summary=summ), **extra))
+    fields = dict(names=list(names), bounds=np.asarray(bounds, float), samples=None, posterior_grid=prop.posterior_grid,
+                  grid_axes=prop.grid_axes, zoom_bounds=prop.bounds, log_evidence=float(prop.log_evidence), summary=summ)
+    fields.update(extra)
+    return SimpleNamespace(**fields)
