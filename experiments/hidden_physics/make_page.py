@@ -202,7 +202,7 @@ def _changes_section() -> list[str]:
     return ["## Method changes since the previous page (made before this run's null calibration and evaluation)", "",
             "* **Baseline mode check** (pipeline.baseline_mode_check, Budgets.baseline_mode_check, on by default). "
             "Every candidate nests the baseline, and the refits explore (mu, xi) with more runs than the baseline's "
-            "24. Their best runs (the best overall and the best with the switch in the lowest 10 % of its prior box), "
+            "16 (harness budgets). Their best runs (the best overall and the best with the switch in the lowest 10 % of its prior box), "
             "with the switch dropped, are now run in the baseline model, and a local search on the solver "
             "(polish.local_search, the refits' budget) continues from the best of all baseline runs. A run that beats "
             "every baseline run by more than 3 in ln posterior means the baseline's posterior sat on a secondary "

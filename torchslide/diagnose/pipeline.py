@@ -344,7 +344,7 @@ def baseline_mode_check(evaluator, runs, refits: dict, bud: Budgets, log=print) 
     (nested_points) are run in the baseline model, and polish.local_search continues from the best of
     all baseline runs. When a run beats every earlier baseline run (``runs`` = (X (n, p), Z (n,)): the
     calibration's, its refinement's and the predictive runs) by more than ``mode_margin`` in ln
-    posterior, the baseline's proposal provably missed mass (on the long mu-xi ridge 24 runs can settle on
+    posterior, the baseline's proposal provably missed mass (on the long mu-xi ridge a 16-24-run calibration can settle on
     a secondary peak: on a null recording of the harness, mu 0.31, xi 990, best z 17.8 below that of
     mu 0.25, xi 405, a point the refits had found): its
     posterior is refined again (verify.refine_baseline) from all runs, the new ones included. Returns a
