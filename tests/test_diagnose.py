@@ -698,15 +698,21 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     (tmp_path / "null_calib").mkdir()
     (tmp_path / "null_calib" / "thresholds.json").write_text(json.dumps(
         {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 10.0, "max_located": 7.2}], "thresholds": asdict(th)}))
-    text = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent"))
+    text = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent",
+                                                d20_check=tmp_path / "absent"))
     assert "bf_min 12.5" in text and "located_min 9.0" in text
     assert "| mu_i | 2 | 1 | mu_i 1, unexplained 1 | >= 4 of 5 |" in text
     assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3] (0.2) |" in text
     assert "| mu_i_s1 | unexplained | False |" in text and "x0.5" not in text
     assert "Median wall time per case 300 s." in text
     assert _resolved_terrain_section(tmp_path / "absent") == []
-    probe = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path))
+    probe = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path,
+                                                 d20_check=tmp_path / "absent"))
     assert "### Probe: the resolved terrain on 20 m cells" in probe and "`harness --terrain resolved --cellsize 20`" in probe
+    assert "re-run with the baseline mode check" not in probe
+    rerun = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent",
+                                                 d20_check=tmp_path))
+    assert "### The same probe's cases re-run with the baseline mode check" in rerun and "resolved20_modecheck" in rerun
 
 
 def test_local_search_climbs_to_a_mode_the_refit_missed():

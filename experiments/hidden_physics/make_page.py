@@ -385,7 +385,7 @@ def _case_rows(cases) -> list[str]:
 
 
 def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cells (recordings on 10 m)",
-                        command: str = "harness --cellsize 20") -> list[str]:
+                        command: str = "harness --cellsize 20", note: str = "") -> list[str]:
     """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
     ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds (:func:`_variant_cases`)."""
     d = Path(d) if d is not None else HERE / "_work" / "cs20"
@@ -397,15 +397,16 @@ def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cell
          "halved. A few cases only (median wall time per case "
          f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min), so this is a probe of "
          "whether the failing scenarios are a resolution limit, not a result with the targets' 5 seeds. "
-         + _thresholds_sentence(th, "at 20 m"), ""]
+         + _thresholds_sentence(th, "at 20 m"), ""] + ([note, ""] if note else [])
     return L + _case_rows(cases) + [""]
 
 
-def _resolved_terrain_section(d=None, gc=None, d20=None) -> list[str]:
+def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None) -> list[str]:
     """The harness on the "resolved" terrain (scenarios.TERRAINS; ``harness --terrain resolved``): its
     cases in ``d`` (default _work/resolved/results; null seeds in d/null_calib), the targets per
     scenario, every case, the grid convergence on that terrain (``gc``, default
-    _work/grid_convergence_resolved.json) and the probe on 20 m cells (``d20``, default _work/resolved20)."""
+    _work/grid_convergence_resolved.json), the probe on 20 m cells (``d20``, default _work/resolved20)
+    and its cases re-run with the baseline mode check (``d20_check``, default _work/resolved20_modecheck)."""
     d = Path(d) if d is not None else HERE / "_work" / "resolved" / "results"
     cases, th = _variant_cases(d)
     if not cases:
@@ -433,9 +434,14 @@ def _resolved_terrain_section(d=None, gc=None, d20=None) -> list[str]:
     L += [""] + _case_rows(cases) + [""]
     gc = Path(gc) if gc is not None else HERE / "_work" / "grid_convergence_resolved.json"
     d20 = Path(d20) if d20 is not None else HERE / "_work" / "resolved20"
+    d20_check = Path(d20_check) if d20_check is not None else HERE / "_work" / "resolved20_modecheck"
     return (L + _grid_convergence_section(gc, heading="### Grid convergence on the resolved terrain")
             + _finer_grid_section(d20, heading="### Probe: the resolved terrain on 20 m cells (recordings on 10 m)",
-                                  command="harness --terrain resolved --cellsize 20"))
+                                  command="harness --terrain resolved --cellsize 20")
+            + _finer_grid_section(d20_check, heading="### The same probe's cases re-run with the baseline mode check",
+                                  command="harness --terrain resolved --cellsize 20 --out "
+                                          "experiments/hidden_physics/_work/resolved20_modecheck",
+                                  note="Unlike the probe above, these ran with the baseline mode check (session 10)."))
 
 
 def _shown(path: Path, base: Path) -> str:
