@@ -1083,3 +1083,15 @@ def test_baseline_mode_check_refines_a_baseline_that_missed_its_mode():
     xb2 = np.vstack([xb, d])
     out2 = baseline_mode_check(ev, (xb2, ev(xb2).z.numpy()), {"a": (None, cal_r)}, bud, log=lambda s: None)
     assert not out2["missed_mode"] and "verification" not in out2 and out2["improvement"] <= bud.mode_margin
+
+
+def test_refined_baseline_is_adopted_only_when_larger_beyond_noise_and_reliable():
+    from torchslide.diagnose.pipeline import adopt_refined_baseline
+
+    old = {"log_evidence": -100.0, "se": 0.3, "ess": 6.0}
+    new = lambda lz, se=0.4, ess=8.0: {"log_evidence": lz, "se": se, "ess": ess}
+    assert adopt_refined_baseline(new(-95.0), old, 16, 2.0)                # +5, noise 2 x 0.5 = 1
+    assert not adopt_refined_baseline(new(-99.5), old, 16, 2.0)            # +0.5: within the noise
+    assert not adopt_refined_baseline(new(-95.0, se=3.0), old, 16, 2.0)    # +5 but noise 6
+    assert not adopt_refined_baseline(new(-95.0, ess=1.5), old, 16, 2.0)   # ESS below ess_min
+    assert not adopt_refined_baseline(new(-95.0), old, 1, 2.0)             # a single draw

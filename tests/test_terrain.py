@@ -216,6 +216,9 @@ def test_channel_transition_keeps_the_bed_curvature_bounded_as_cells_shrink():
     for cs in (40.0, 20.0, 10.0):
         assert peak[cs, 300.0] == pytest.approx(tan / 300.0, rel=0.05)
     assert peak[10.0, 0.0] > 3.5 * peak[40.0, 0.0] > 3.5 * tan / 300.0
+    for bad in (-10.0, float("nan"), 5000.0):
+        with pytest.raises(ValueError, match="transition"):
+            channel_with_bends(40.0, transition=bad, **geom)
 
 
 def test_release_from_shape_volume_any_resolution():

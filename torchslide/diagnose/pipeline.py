@@ -384,6 +384,15 @@ def baseline_mode_check(evaluator, runs, refits: dict, bud: Budgets, log=print) 
     return out
 
 
+def adopt_refined_baseline(v_new: dict, v_old: dict, n_draws: int, ess_min: float) -> bool:
+    """Does the mode check's refined baseline evidence ``v_new`` replace ``v_old`` (verification dicts:
+    log_evidence, se, ess)? The old proposal provably missed mass (a run beat all of its runs by more
+    than mode_margin), so the new estimate replaces it when it is larger beyond the noise of both
+    (2 x the combined bootstrap se) and rests on more than one draw and an ESS >= ``ess_min``."""
+    gap = v_new["log_evidence"] - v_old["log_evidence"]
+    return bool(n_draws > 1 and v_new["ess"] >= ess_min and gap > 2 * math.hypot(v_new["se"], v_old["se"]))
+
+
 def _linear_starts(scr: ScreenResult, c: str, names, factors=(0.5, 1.0, 2.0)):
     """(n, p_c) points on the line from the baseline mode to the screening's linearised optimum of
     candidate ``c`` (ScreenResult.linear_opt) at ``factors`` of the step; None when it has none."""
@@ -521,13 +530,8 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
             v_m = base_check.pop("verification")
             p_m = base_check.pop("predictive")
             prop_m = base_check.pop("proposal")
-            gap = v_m["log_evidence"] - base_ver["log_evidence"]
-            # the old proposal provably missed mass (a run beats all of its runs by more than
-            # mode_margin); the new estimate replaces it when larger beyond the noise of both and
-            # resting on at least ess_min draws
-            base_check["adopted"] = bool(len(p_m.draws) > 1 and v_m["ess"] >= th.ess_min and
-                                         gap > 2 * math.hypot(v_m["se"], base_ver["se"]))
-            base_check["log_evidence_gain"] = float(gap)
+            base_check["adopted"] = adopt_refined_baseline(v_m, base_ver, len(p_m.draws), th.ess_min)
+            base_check["log_evidence_gain"] = float(v_m["log_evidence"] - base_ver["log_evidence"])
             if base_check["adopted"]:
                 base_ver, pred, base_source = v_m, p_m, "baseline refined from the refits' nested points"
                 baseline_refined = grid_result(prop_m, evaluator.prior.names, evaluator.prior.bounds.numpy())

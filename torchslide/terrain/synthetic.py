@@ -103,6 +103,9 @@ def _slope_then_flat(X: np.ndarray, slope_length: float, theta_deg: float, trans
     """z = tan(theta) (slope_length - x) for x < slope_length, 0 beyond (m); ``transition`` > 0 (m) replaces
     the kink by a parabolic blend of that horizontal length centred on it (C1; bed curvature
     tan(theta) / transition, 1/m, over the blend)."""
+    if not (math.isfinite(transition) and 0.0 <= transition <= 2.0 * slope_length):
+        raise ValueError(f"transition: need 0 <= transition <= 2 * slope_length ({2.0 * slope_length:g} m), "
+                         f"got {transition!r}")
     tan = math.tan(math.radians(theta_deg))
     s = slope_length - X
     z = tan * np.maximum(s, 0.0)
