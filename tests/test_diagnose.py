@@ -1085,6 +1085,49 @@ def test_baseline_mode_check_refines_a_baseline_that_missed_its_mode():
     assert not out2["missed_mode"] and "verification" not in out2 and out2["improvement"] <= bud.mode_margin
 
 
+def test_refit_recheck_refines_a_refit_below_the_refined_baseline():
+    """After the baseline was refined to a peak the refit never sampled (the refit's posterior sits
+    elsewhere on the ridge), pipeline.refit_recheck runs the new baseline's best points in the
+    candidate's model with the switch at 0, finds them far above every posterior draw, and refines the
+    refit from them: its verified log Z is then right and its switch interval reaches 0. A refit whose
+    draws already cover those points is left as it is."""
+    from torchslide.diagnose import pipeline
+    from torchslide.diagnose.predictive import posterior_predictive
+    from torchslide.diagnose.verify import verified_evidence
+
+    d, sig = np.array([0.3, 0.55, 0.0]), np.array([0.01, 0.015, 0.05])
+    lik = GaussianLikelihood(torch.tensor(d), sigma=torch.tensor(sig))
+    prior = Prior({"mu": Uniform(0.0, 1.0), "xi": Uniform(0.0, 1.0), "k": Uniform(0.0, 1.0)})
+    ev = _GaussianEvaluator(lik, prior)
+    z_of = lambda x: ev(x).z
+    rng = np.random.default_rng(1)
+    wrong = np.clip([0.36, 0.45, 0.3] + 0.005 * rng.standard_normal((200, 3)), 0, 1)   # another ridge peak
+    from torchslide.active import maximin_lhs
+    x = np.vstack([maximin_lhs(20, 3, seed=2), wrong[:4]])
+    cal = SimpleNamespace(names=["mu", "xi", "k"], x=x, z=z_of(x).numpy(), failed=np.zeros(len(x), bool),
+                          bounds=np.array([[0.0] * 3, [1.0] * 3]), samples=wrong, log_evidence=-60.0,
+                          posterior_grid=None, n_runs=len(x), emulator=SimpleNamespace(mean=lambda t: z_of(t)))
+    p_c = posterior_predictive(ev, wrong[:16])
+    ver = verified_evidence(ev, cal, p_c.x, p_c.draws, seed=0)
+    assert ver["log_evidence"] < -20                           # the first estimate missed the peak
+    hist = [{"n_runs": len(x), "log_evidence": ver["log_evidence"], "kept": True}]
+    bud = pipeline.Budgets(n_posterior_samples_after=16, refit_refine_rounds=3, refit_grid=(40, 32),
+                           mode_search_iters=2, mode_search_pop=4)
+    pts = np.array([[0.301, 0.552], [0.297, 0.548]])          # the refined baseline's best runs
+    res, p_r, v_r, h_r, out = pipeline.refit_recheck(ev, cal, p_c, ver, hist, pts, bud, log=lambda s: None)
+    assert out["refined"] and out["gap_to_draws"] > 30 and out["log_evidence_before"] == ver["log_evidence"]
+    # normalised Gaussian truncated to k >= 0 (half its mass): log Z = ln 0.5
+    assert abs(v_r["log_evidence"] - np.log(0.5)) < 0.5 and out["log_evidence"] == v_r["log_evidence"]
+    assert not h_r[0]["kept"] and all(h.get("recheck") for h in h_r[1:]) and len(h_r) > 1
+    par = pipeline._params(res)
+    assert par["k"]["hdi90"][0] <= 0.01 and par["mu"]["hdi90"][0] < 0.3 < par["mu"]["hdi90"][1]
+    # the re-checked refit's draws already reach the points: nothing is refined
+    _, _, v2, h2, out2 = pipeline.refit_recheck(ev, res, p_r, v_r, h_r, pts, bud, log=lambda s: None)
+    assert not out2["refined"] and out2["gap_to_draws"] <= bud.mode_margin and v2 is v_r and h2 is h_r
+    assert not pipeline.refit_recheck(ev, cal, p_c, ver, hist, pts, pipeline.Budgets(refit_refine_rounds=0),
+                                      log=lambda s: None)[4]["refined"]
+
+
 def test_refined_baseline_is_adopted_only_when_larger_beyond_noise_and_reliable():
     from torchslide.diagnose.pipeline import adopt_refined_baseline
 

@@ -19,7 +19,9 @@ evidence cross-checked on the beta = 0 slices of the ``slice_top`` best refits -
 local search from them; a run that beats every baseline run by more than ``mode_margin`` means the
 baseline's posterior sat on a secondary peak of the mu-xi ridge, and it is refined from all runs; in the
 40 m harness it fired in 18 of 40 cases and raised the baseline's verified log Z by 3 to 46, by which
-every Bayes factor had been too high) -> verdict (torchslide.diagnose.decide).
+every Bayes factor had been too high) -> when the baseline changed, every refit re-checked at its best
+points (refit_recheck: run with the switch at 0; a refit whose posterior draws they beat by more than
+``mode_margin`` is refined from them) -> verdict (torchslide.diagnose.decide).
 """
 from __future__ import annotations
 
@@ -70,6 +72,9 @@ class Budgets:
     baseline_mode_check: bool = True   # the baseline run at the refits' nested points (best runs, switch dropped)
                                        # + a local search from them; one that beats every baseline run by more
                                        # than mode_margin: the baseline missed its mode -> refined from all runs
+    refit_recheck: bool = True         # after the baseline changed (mode check or slice adopted): every refit run
+                                       # at the new baseline's best points with its switch at 0; one whose best
+                                       # posterior draw they beat by more than mode_margin is refined from them
     model_error_runs: int = 12         # > 0: approximation error of the grid (model_error) sampled at this many
                                        # posterior draws of a pilot baseline calibration, in the likelihood of
                                        # every model; 0: off
@@ -384,6 +389,55 @@ def baseline_mode_check(evaluator, runs, refits: dict, bud: Budgets, log=print) 
     return out
 
 
+def refit_recheck(ev_c, cal_c, p_c, ver: dict, history: list, points, bud: Budgets, log=print, name: str = ""):
+    """Re-check a refit against a baseline that changed after it was made. The refit's mode search
+    started from the first baseline's best runs; when the baseline was then refined to a peak elsewhere
+    on the mu-xi ridge (baseline_mode_check), the candidate, which nests the baseline, can sit far below
+    its own nested baseline there (20 m probe, curvature s1: every candidate 7-18 ln below the refined
+    baseline). ``points`` (n, p) of the new baseline (its best runs) are run in the candidate's model
+    with the switch at its lower bound (= the nested baseline); when the best of them beats the best of
+    the refit's posterior draws' runs (``p_c``: where its mass is) by more than ``mode_margin``, the
+    refit missed that peak: polish.local_search continues from all of its runs and these, and the refit
+    is refined (verify.refine_refit, local emulator) with the draws', the points' and the search's runs.
+    The refined estimate replaces the first one, whose proposal provably missed mass.
+    Returns (result, predictive, verification, history, summary dict)."""
+    b = np.asarray(cal_c.bounds, float)
+    pts = np.asarray(points, float)
+    out = {"points": int(len(pts)), "gap_to_draws": None, "refined": False}
+    if not len(pts) or bud.refit_refine_rounds <= 0:
+        return cal_c, p_c, ver, history, out
+    xb = np.hstack([pts, np.full((len(pts), 1), b[0, -1])])
+    r = ev_c(torch.as_tensor(xb))
+    zb = np.where(r.failed.detach().cpu().numpy(), -np.inf, r.z.detach().cpu().numpy().astype(float))
+    zdraw = solver_z(ev_c, p_c)
+    fin = np.isfinite(zdraw)
+    zd_max = float(zdraw[fin].max()) if fin.any() else -np.inf
+    out["gap_to_draws"] = float(np.max(zb) - zd_max) if np.isfinite(np.max(zb)) else None
+    if out["gap_to_draws"] is None or out["gap_to_draws"] <= bud.mode_margin:
+        return cal_c, p_c, ver, history, out
+    log(f"[diagnose] refit {name}: the refined baseline's best points (switch 0) beat its best posterior draw "
+        f"by {out['gap_to_draws']:.1f} in ln posterior: refining it from them")
+    ok = ~np.asarray(cal_c.failed, bool) & np.isfinite(np.asarray(cal_c.z, float))
+    good = np.isfinite(zb)
+    X = np.vstack([np.asarray(cal_c.x, float)[ok], p_c.x[fin], xb[good]])
+    Z = np.concatenate([np.asarray(cal_c.z, float)[ok], zdraw[fin], zb[good]])
+    ls = local_search(ev_c, X, Z, b, n_iter=max(1, bud.mode_search_iters), pop=bud.mode_search_pop,
+                      seed=bud.seed + 17)
+    xe = np.vstack([p_c.x[fin], xb[good], ls["x"]])
+    ze = np.concatenate([zdraw[fin], zb[good], ls["z"]])
+    r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(xe, ze))
+    for h in history:
+        h["kept"] = False
+    for h in r_hist:
+        h["recheck"] = True
+    out.update(refined=True, search_runs=int(len(ls["z"])), best_z=float(max(ls["best_z"], np.max(zb))),
+               log_evidence_before=float(ver["log_evidence"]), log_evidence=float(r_ver["log_evidence"]),
+               ess=float(r_ver["ess"]))
+    log(f"[diagnose] refit {name} re-checked: log Z {ver['log_evidence']:.2f} -> {r_ver['log_evidence']:.2f} "
+        f"(ESS {r_ver['ess']:.1f}/{r_ver['n_draws']})")
+    return r_cal, r_p, r_ver, history + r_hist, out
+
+
 def adopt_refined_baseline(v_new: dict, v_old: dict, n_draws: int, ess_min: float) -> bool:
     """Does the mode check's refined baseline evidence ``v_new`` replace ``v_old`` (verification dicts:
     log_evidence, se, ess)? The old proposal provably missed mass (a run beat all of its runs by more
@@ -540,6 +594,19 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
         loc = localise(evaluator, pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
         elpd_b = waic(evaluator, pred.draws)
         misfit_before = evaluator.misfit(pred.mean)
+    rechecks = {}
+    if bud.refit_recheck and base_source != "baseline calibration" and len(pred.x):
+        # the refits' searches started from the first baseline's best runs: re-check them at the new one's
+        zq = solver_z(evaluator, pred)
+        pts = pred.x[np.argsort(-np.where(np.isfinite(zq), zq, -np.inf))[:2]]
+        if base_check and base_check.get("best_x") is not None:
+            pts = np.vstack([pts, np.asarray(base_check["best_x"], float)[None]])
+        for c in top:
+            ev_c, cal_c = refits[c]
+            ver, history = raw[c]
+            cal_c, p_c, ver, history, rechecks[c] = refit_recheck(ev_c, cal_c, preds_after[c], ver, history, pts,
+                                                                  bud, log, name=c)
+            refits[c], preds_after[c], raw[c] = (ev_c, cal_c), p_c, (ver, history)
     for c in top:
         ev_c, cal_c = refits[c]
         p_c = preds_after[c]
@@ -562,7 +629,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                "two_ln_bf_lower": 2 * lbf - 4 * se_tot, "evidence_se": ver["se"], "ess": ver["ess"],
                "ess_fraction": ver["ess_fraction"], "evidence_history": history,
                "evidence_converged": bool(ver.get("converged", _trusted(ver, bud))),
-               "mode_search": history[0].get("mode_search"),
+               "mode_search": history[0].get("mode_search"), "refit_recheck": rechecks.get(c),
                "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
                "delta_waic": 2 * (el["elpd"] - elpd_b["elpd"]), "located_rescored": rs,
                "misfit_after": misfit_c, "screening_score": scr.scores[c], "mimic": scr.mimic[c],

@@ -90,6 +90,10 @@ def _refit_check(c: dict) -> str:
         gap = ms.get("gap_to_draws")
         vs = f"search {ms['improvement']:+.1f} over its runs" + ("" if gap is None else f", {gap:+.1f} over its draws")
         parts.append(f"peak missed by the refit ({vs}), refined" if ms["missed_mode"] else f"mode confirmed ({vs})")
+    rc = c.get("refit_recheck")
+    if rc and rc.get("refined"):
+        parts.append(f"re-checked at the refined baseline (its points {rc['gap_to_draws']:+.1f} over the draws), "
+                     f"log Z {rc['log_evidence_before']:.2f} -> {rc['log_evidence']:.2f}")
     if "evidence_converged" in c:
         parts.append("evidence converged" if c["evidence_converged"] else "evidence NOT converged")
     return "; ".join(parts) or "-"
