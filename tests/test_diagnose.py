@@ -715,6 +715,47 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     assert "### The same probe's cases re-run with the baseline mode check" in rerun and "resolved20_modecheck" in rerun
 
 
+def test_report_cell_says_which_refits_the_recheck_refined():
+    from torchslide.diagnose.report import _refit_check
+
+    c = {"log_evidence": -110.0, "evidence_converged": True,
+         "mode_search": {"improvement": 1.0, "gap_to_draws": 0.5, "missed_mode": False},
+         "refit_recheck": {"refined": True, "gap_to_draws": 12.3, "log_evidence_before": -125.0, "log_evidence": -110.0}}
+    cell = _refit_check(c)
+    assert "re-checked at the refined baseline (its points +12.3 over the draws), log Z -125.00 -> -110.00" in cell
+    assert "re-checked" not in _refit_check(dict(c, refit_recheck={"refined": False, "gap_to_draws": 1.0}))
+    assert "re-checked" not in _refit_check(dict(c, refit_recheck=None))
+
+
+def test_page_section_of_the_refit_recheck(tmp_path):
+    """make_page's refit re-check section: one row per case the re-check ran on, with the refits it
+    refined (ln Z before -> after) and the case's outcome before (the earlier run's file) and now;
+    cases it did not run on (no refit_recheck key, or None everywhere) are left out."""
+    import json
+    from experiments.hidden_physics.make_page import _recheck_section
+
+    par = {"mu_i": {"mean": 0.2, "hdr90": [0.1, 0.3], "hdi90": [0.1, 0.3]}}
+    rc = {"refined": True, "gap_to_draws": 9.0, "log_evidence_before": -120.0, "log_evidence": -112.5}
+    diag = lambda cands, name: {"verdict": "missing_physics" if name else "no_missing_physics", "missing_physics": name,
+                                "candidates": cands, "located": [], "fit_before": {"misfit": 100.0},
+                                "fit_after": {"misfit": 60.0}, "decision": {"two_ln_bf_over_runner_up": 20.0}}
+    mk = lambda seed, d: {"scenario": "mu_i", "seed": seed, "strength": 1.0, "truth": {"term": "mu_i"},
+                          "true_term_covered_hdr90": True, "diagnosis": d}
+    now = mk(1, diag([dict(_cand("mu_i", 52.0), parameters=par, refit_recheck=rc),
+                      dict(_cand("curvature", 3.0), refit_recheck={"refined": False, "gap_to_draws": 1.0})], "mu_i"))
+    old = mk(1, diag([_cand("mu_i", 12.0), _cand("curvature", 3.0)], None))
+    prev = tmp_path / "prev"
+    prev.mkdir()
+    (prev / "mu_i_s1.json").write_text(json.dumps(old))
+    untouched = mk(2, diag([dict(_cand("mu_i", 1.0), refit_recheck=None)], None))
+    text = "\n".join(_recheck_section([now, untouched, mk(3, diag([_cand("mu_i", 1.0)], None))], prev))
+    assert "Cases it ran on: 1; refits it refined: 1 of 2; verdicts changed against the earlier run: 1." in text
+    assert "lower-bound 2 ln BF of any candidate in these cases: 1.0 before, 1.0 now." in text
+    assert "| mu_i_s1 | mu_i | mu_i -120.0 -> -112.5 | none; mu_i 10.0; False | mu_i; mu_i 50.0; True |" in text
+    assert "mu_i_s2" not in text and "mu_i_s3" not in text
+    assert _recheck_section([untouched], prev) == []
+
+
 def test_local_search_climbs_to_a_mode_the_refit_missed():
     """polish.local_search from runs that missed a narrow 3-D peak (the best run ~0.1 away): it finds
     a point far better than every earlier run, near the peak, inside the box, in batched calls."""

@@ -200,6 +200,14 @@ def _posthoc_section(cases) -> list[str]:
 def _changes_section() -> list[str]:
     """What changed in the method since the previous results page (hand-written text, no numbers)."""
     return ["## Method changes since the previous page (made before this run's null calibration and evaluation)", "",
+            "* **Refit re-check** (session 11; pipeline.refit_recheck, Budgets.refit_recheck, on by default). When "
+            "the baseline changed after the refits (the mode check below, or a beta = 0 slice adopted), every refit "
+            "is run at the new baseline's best points with its switch at 0 and refined from them when they beat its "
+            "best posterior draw by more than 3 in ln posterior: a candidate nests the baseline, so its evidence can "
+            "only fall below the baseline's by the switch's Occam factor, not by tens (the 20 m probe's curvature s1: "
+            "every candidate 7-18 ln below the refined baseline). It never runs when the baseline stayed the "
+            "calibration's, so only the cases (and null calibration seeds) whose baseline changed were re-run "
+            "with it; the others are the previous run's files. See the section after this one.",
             "* **Baseline mode check** (pipeline.baseline_mode_check, Budgets.baseline_mode_check, on by default). "
             "Every candidate nests the baseline, and the refits explore (mu, xi) with more runs than the baseline's "
             "16 (harness budgets). Their best runs (the best overall and the best with the switch in the lowest 10 % of its prior box), "
@@ -214,7 +222,8 @@ def _changes_section() -> list[str]:
             "null calibration seed 103: curvature 27.0). The threshold bf_min itself did not move (47.4): it "
             "is set by null calibration seed 101's earth-pressure gain of 37.9, whose switch interval [0.3, 0.7] "
             "stays away from 0 (the grid's real error, not a baseline failure).",
-            "* The report says where the baseline's evidence came from and what the mode check found.",
+            "* The report says where the baseline's evidence came from, what the mode check found and which refits "
+            "the re-check refined.",
             "* Unchanged from the previous page: the grid's approximation error in every likelihood "
             "(model_error_runs = 12), the refits' mode search (from their best runs, the nested baseline and the "
             "screening's linearised optimum; missed when it beats the best posterior draw by more than 3), the "
@@ -225,7 +234,60 @@ def _changes_section() -> list[str]:
             "those thresholds (calibrate_thresholds --apply). Each case JSON keeps the verdict it was run with "
             "under 'decision_as_run'.",
             "* The sections below on the resolved terrain, the 20 m probes, the switch-bias study and the "
-            "per-candidate model error were run with the previous method (no baseline mode check).", ""]
+            "per-candidate model error were run with the previous method (no baseline mode check, no refit re-check).", ""]
+
+
+def _best_lower(case) -> tuple:
+    """(name, lower-bound 2 ln BF) of the case's candidate with the largest lower bound."""
+    c = [x for x in case["diagnosis"]["candidates"] if x.get("two_ln_bf_lower") is not None]
+    b = max(c, key=lambda x: x["two_ln_bf_lower"], default=None)
+    return (b["name"], b["two_ln_bf_lower"]) if b else ("-", None)
+
+
+def _recheck_section(cases, prev: Path | None = None) -> list[str]:
+    """The refit re-check (pipeline.refit_recheck) on the cases it ran on (those whose baseline changed
+    after the refits): per case the refits it refined (ln Z before -> after) and the case's outcome
+    against the saved earlier result of the same case in ``prev`` (default _work/results_v9)."""
+    prev = Path(prev) if prev is not None else HERE / "_work" / "results_v9"
+    rows, n_ran, n_ref, n_fit, changed, low_old, low_new = [], 0, 0, 0, 0, [], []
+    lows = lambda case: [x["two_ln_bf_lower"] for x in case["diagnosis"]["candidates"]
+                         if x.get("two_ln_bf_lower") is not None]
+    for c in cases:
+        cands = c["diagnosis"]["candidates"]
+        if not any("refit_recheck" in x for x in cands):
+            continue
+        ran = [x for x in cands if x.get("refit_recheck")]
+        if not ran:
+            continue
+        n_ran += 1
+        tag = f"{c['scenario']}_s{c['seed']}" + ("" if c["strength"] == 1.0 else f"_x{c['strength']:g}")
+        refined = ", ".join(f"{x['name']} {x['refit_recheck']['log_evidence_before']:.1f} -> "
+                            f"{x['refit_recheck']['log_evidence']:.1f}" for x in ran if x["refit_recheck"].get("refined"))
+        old = json.loads((prev / f"{tag}.json").read_text()) if (prev / f"{tag}.json").exists() else None
+        n_ref += sum(bool(x["refit_recheck"].get("refined")) for x in ran)
+        n_fit += len(ran)
+        low_new += lows(c)
+        if old is not None:
+            low_old += lows(old)
+            changed += (old["diagnosis"]["verdict"], old["diagnosis"]["missing_physics"]) != (
+                c["diagnosis"]["verdict"], c["diagnosis"]["missing_physics"])
+        fmt = lambda case: (f"{found_label(case)}; {_best_lower(case)[0]} "
+                            f"{_best_lower(case)[1]:.1f}; {strict_success(case)}" if case else "-")
+        rows.append(f"| {tag} | {true_label(c)} | {refined or 'none'} | {fmt(old)} | {fmt(c)} |")
+    if not n_ran:
+        return []
+    return ["## Refit re-check at the refined baseline (pipeline.refit_recheck)", "",
+            "The refits' mode searches start from the first baseline's best runs. When the baseline is then "
+            "refined elsewhere on the mu-xi ridge (the mode check, or a beta = 0 slice adopted), each refit is run at "
+            "the new baseline's best points with its switch at 0 (its nested baseline) and refined from them when "
+            "they beat its best posterior draw by more than 3 in ln posterior. It runs only in cases whose baseline "
+            "changed; only those were re-run (the others' code path is unchanged). Columns 'before' and 'now': "
+            "found; candidate with the largest lower-bound 2 ln BF and that bound; strict success (the verdicts "
+            "of both under their own run's thresholds).", "",
+            f"Cases it ran on: {n_ran}; refits it refined: {n_ref} of {n_fit}; verdicts changed against the "
+            f"earlier run: {changed}. The lowest lower-bound 2 ln BF of any candidate in these cases: "
+            + (f"{min(low_old):.1f} before, " if low_old else "") + f"{min(low_new, default=float('nan')):.1f} now.", "",
+            "| case | truth | refits refined (ln Z before -> after) | before | now |", "|---|---|---|---|---|"] + rows + [""]
 
 
 def _effect_size_section() -> list[str]:
@@ -547,6 +609,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         L += ["", f"Resulting thresholds: {t['thresholds']}.", ""]
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _changes_section() if changes else []
+    L += _recheck_section(cases) if changes else []
     L += _effect_size_section()
     L += _switch_bias_section()
     L += _own_model_error_section()
