@@ -361,6 +361,11 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     mc = j["decision"]["baseline_mode_check"]
     assert mc["nested_points"] >= 1 and "improvement" in mc and "missed_mode" in mc
     assert "evidence from the" in md
+    # subset consistency: one entry per observation, and its table in the report
+    sc = j["subset_consistency"]
+    assert sorted(e["block"] for e in sc) == sorted(j["fit_before"]["residuals"]) and len(sc) >= 2
+    assert all(e["df"] >= 0 and 0 <= e["p_value"] <= 1 and e["statistic"] >= 0 for e in sc)
+    assert "subset consistency" in md
     # the default path: the grid's approximation error (2 run pairs here) and the mode search ran
     n_lin = 3 if j["screening"]["linear_opt"]["mu_i"] else 0
     assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + n_lin + 12
@@ -699,7 +704,7 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     (tmp_path / "null_calib" / "thresholds.json").write_text(json.dumps(
         {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 10.0, "max_located": 7.2}], "thresholds": asdict(th)}))
     text = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent",
-                                                d20_check=tmp_path / "absent"))
+                                                d20_check=tmp_path / "absent", d20_recheck=tmp_path / "absent"))
     assert "bf_min 12.5" in text and "located_min 9.0" in text
     assert "| mu_i | 2 | 1 | mu_i 1, unexplained 1 | >= 4 of 5 |" in text
     assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3] (0.2) |" in text
@@ -707,12 +712,15 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     assert "Median wall time per case 300 s." in text
     assert _resolved_terrain_section(tmp_path / "absent") == []
     probe = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path,
-                                                 d20_check=tmp_path / "absent"))
+                                                 d20_check=tmp_path / "absent", d20_recheck=tmp_path / "absent"))
     assert "### Probe: the resolved terrain on 20 m cells" in probe and "`harness --terrain resolved --cellsize 20`" in probe
     assert "re-run with the baseline mode check" not in probe
     rerun = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent",
-                                                 d20_check=tmp_path))
+                                                 d20_check=tmp_path, d20_recheck=tmp_path / "absent"))
     assert "### The same probe's cases re-run with the baseline mode check" in rerun and "resolved20_modecheck" in rerun
+    rerun2 = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent",
+                                                  d20_check=tmp_path / "absent", d20_recheck=tmp_path))
+    assert "### Two of them re-run with the refit re-check" in rerun2 and "resolved20_recheck" in rerun2
 
 
 def test_report_cell_says_which_refits_the_recheck_refined():
@@ -1179,3 +1187,67 @@ def test_refined_baseline_is_adopted_only_when_larger_beyond_noise_and_reliable(
     assert not adopt_refined_baseline(new(-95.0, se=3.0), old, 16, 2.0)    # +5 but noise 6
     assert not adopt_refined_baseline(new(-95.0, ess=1.5), old, 16, 2.0)   # ESS below ess_min
     assert not adopt_refined_baseline(new(-95.0), old, 1, 2.0)             # a single draw
+
+
+def test_subset_consistency_flags_the_observation_that_wants_other_parameters():
+    """consistency.subset_consistency on a linear-Gaussian model: with consistent data T_b follows
+    chi2(df) (mean df, ~1 % flagged at alpha 0.01 before Bonferroni); when one observation is made
+    with other parameters it is flagged, and it alone wants those parameters while the rest wants the
+    truth; a scalar observation (rank 1 of p = 2) has df 1 and no 'wants'."""
+    from types import SimpleNamespace as NS
+    from torchslide.diagnose.consistency import subset_consistency
+
+    rng = np.random.default_rng(0)
+    blocks = [NS(name="deposit", slice=slice(0, 30)), NS(name="g1", slice=slice(30, 50)), NS(name="volume", slice=slice(50, 51))]
+    A = rng.standard_normal((51, 2))
+    x_true, x0 = np.array([0.2, 500.0]), np.array([0.2, 500.0])
+    scale = np.array([0.01, 20.0])                      # whitened sensitivity per unit of mu, xi
+    J = A / scale                                        # d y / d x, whitened
+    Ts, flagged = {b.name: [] for b in blocks}, 0
+    for s in range(400):
+        r = rng.standard_normal(51)                      # data = truth + noise, linearised at the truth
+        out = {e["block"]: e for e in subset_consistency(blocks, J, r, ["mu", "xi"], x0)}
+        for n in Ts:
+            Ts[n].append(out[n]["statistic"])
+        flagged += sum(e["conflict"] for e in out.values())
+    assert abs(np.mean(Ts["deposit"]) - 2) < 0.35 and abs(np.mean(Ts["volume"]) - 1) < 0.25
+    assert flagged <= 12                                 # 1200 tests at 0.01 / 3
+    assert out["volume"]["df"] == 1 and out["volume"]["wants"] is None and out["deposit"]["df"] == 2
+    # the gauge made with mu 0.23, xi 420: flagged, and each side wants its own parameters
+    x_g = np.array([0.23, 420.0])
+    r = 0.05 * rng.standard_normal(51)
+    r[30:50] += J[30:50] @ (x_g - x0)
+    res = subset_consistency(blocks, J, r, ["mu", "xi"], x0)
+    assert res[0]["block"] == "g1" and res[0]["conflict"] and res[0]["p_value"] < 1e-6
+    assert abs(res[0]["wants"]["mu"] - 0.23) < 0.002 and abs(res[0]["wants"]["xi"] - 420) < 5
+    assert abs(res[0]["rest_wants"]["mu"] - 0.2) < 0.002
+    with pytest.raises(ValueError, match="do not match"):
+        subset_consistency(blocks, J[:, :1], r, ["mu", "xi"], x0)
+
+
+def test_page_section_of_the_subset_consistency(tmp_path):
+    """make_page's subset-consistency section: per scenario the cases with a disagreeing observation
+    and which, per case the flagged observations with what they want; absent file: no section."""
+    import json
+    from experiments.hidden_physics.make_page import _consistency_section
+
+    row = lambda b, T, p, conflict, wants=None: {"block": b, "k": 45, "statistic": T, "df": 2, "p_value": p,
+                                                 "conflict": conflict, "wants": wants, "rest_wants": None}
+    d = {"mu_i_s0": {"scenario": "mu_i", "seed": 0, "truth": "mu_i",
+                     "rows": [row("g1:speed", 30.0, 3e-7, True, {"mu": 0.25, "xi": 300.0}), row("deposit", 1.0, 0.6, False)]},
+         "null_s0": {"scenario": "null", "seed": 0, "truth": None, "rows": [row("deposit", 2.0, 0.37, False)]}}
+    (tmp_path / "c.json").write_text(json.dumps(d))
+    text = "\n".join(_consistency_section(tmp_path / "c.json", tmp_path / "absent.json"))
+    assert "| mu_i | 1 | 1 | g1:speed 1 | - |" in text and "| null | 1 | 0 | - | - |" in text
+    assert "| mu_i_s0 | mu_i | g1:speed (T 30.0, df 2, wants mu 0.25, xi 300) | 3e-07 |" in text
+    assert "| null_s0 | none | - | 0.37 |" in text
+    assert _consistency_section(tmp_path / "absent.json") == []
+    # null calibration seeds: g1:speed reached 20 there -> 30 > 1.25 x 20 is above null; 24 would not be
+    null = {"null_s100": {"scenario": "null", "seed": 100, "truth": None, "rows": [row("g1:speed", 20.0, 1e-4, True)]}}
+    (tmp_path / "n.json").write_text(json.dumps(null))
+    text = "\n".join(_consistency_section(tmp_path / "c.json", tmp_path / "n.json"))
+    assert "| mu_i | 1 | 1 | g1:speed 1 | 1 |" in text and "g1:speed [above null] (T 30.0" in text
+    d["mu_i_s0"]["rows"][0]["statistic"] = 24.0
+    (tmp_path / "c.json").write_text(json.dumps(d))
+    text = "\n".join(_consistency_section(tmp_path / "c.json", tmp_path / "n.json"))
+    assert "| mu_i | 1 | 1 | g1:speed 1 | 0 |" in text and "[above null]" not in text

@@ -21,7 +21,8 @@ baseline's posterior sat on a secondary peak of the mu-xi ridge, and it is refin
 40 m harness it fired in 18 of 40 cases and raised the baseline's verified log Z by 3 to 46, by which
 every Bayes factor had been too high) -> when the baseline changed, every refit re-checked at its best
 points (refit_recheck: run with the switch at 0; a refit whose posterior draws they beat by more than
-``mode_margin`` is refined from them) -> verdict (torchslide.diagnose.decide).
+``mode_margin`` is refined from them) -> subset consistency at the final baseline (consistency.py: which
+observation wants other parameters than the rest; reported, not part of the verdict) -> verdict (torchslide.diagnose.decide).
 """
 from __future__ import annotations
 
@@ -35,6 +36,7 @@ import numpy as np
 import torch
 
 from ..physics import CANDIDATES
+from .consistency import subset_consistency
 from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
@@ -119,6 +121,7 @@ class Diagnosis:
     evaluator: object = None
     model_error: dict | None = None
     baseline_refined: object = None     # the baseline posterior that replaced the calibration's (mode check)
+    consistency: list | None = None     # consistency.subset_consistency at the final baseline (None: not computable)
 
     @property
     def missing_physics(self):
@@ -155,6 +158,7 @@ class Diagnosis:
             "thresholds": self.thresholds.to_json(),
             "timings": self.timings,
             "model_error": self.model_error,
+            "subset_consistency": self.consistency,
         })
 
 
@@ -645,6 +649,22 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                              "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
                              "parameters": {}, "not_refit": "screening score below the top_k"})
     T["refit_s"] = time.perf_counter() - t0
+    # subset consistency at the final baseline: the screening's linearisation when the baseline stayed
+    # the calibration's, else p + 1 runs at the refined baseline's best run
+    t0 = time.perf_counter()
+    scr_c = scr
+    if base_source != "baseline calibration" and len(pred.x):
+        zq = solver_z(evaluator, pred)
+        scr_c = screen(evaluator, pred.x[int(np.argmax(np.where(np.isfinite(zq), zq, -np.inf)))], [])
+    consistency = None
+    if scr_c.jacobian is not None:
+        names_b = list(evaluator.prior.names)
+        consistency = subset_consistency(evaluator.blocks, scr_c.jacobian, scr_c.residual, names_b,
+                                         [scr_c.x0[n] for n in names_b])
+        flagged = [e["block"] for e in consistency if e["conflict"]]
+        log("[diagnose] subset consistency: " + (f"{', '.join(flagged)} disagree(s) with the rest about "
+                                                 f"{', '.join(names_b)}" if flagged else "no observation disagrees"))
+    T["consistency_s"] = time.perf_counter() - t0
     fit_before = _fit(evaluator, pred, loc, base_ver["log_evidence"])
     fit_before["log_evidence_emulator"] = baseline.log_evidence
     dec = decide(cand_out, loc.located, base_ver, misfit_before, th)
@@ -670,4 +690,5 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     return Diagnosis(verdict=dec["verdict"], decision=dec, baseline=baseline, predictive=pred, localisation=loc,
                      screening=scr, refits=refits, candidates=cand_out, fit_before=fit_before, fit_after=fit_after,
                      after_predictive=after_pred, after_localisation=after_loc, thresholds=th, timings=T,
-                     evaluator=evaluator, model_error=model_error, baseline_refined=baseline_refined)
+                     evaluator=evaluator, model_error=model_error, baseline_refined=baseline_refined,
+                     consistency=consistency)

@@ -116,6 +116,19 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")
     if not j["located"]:
         L.append("| (nothing located) | | |")
+    sc = j.get("subset_consistency")
+    if sc:
+        fmtw = lambda w: ", ".join(f"{k} {v:.4g}" for k, v in w.items()) if w else "-"
+        L += ["", "## Do the observations agree on the baseline's parameters? (subset consistency)", "",
+              "Each observation against all the others, linearised at the baseline (torchslide/diagnose/"
+              "consistency.py): T is the chi-square a common parameter shift costs over separate ones, ~ chi2(df) "
+              "when the model is right; 'disagrees' at p < 0.01 / number of observations. A diagnostic of where, "
+              "not part of the verdict.", "",
+              "| observation | values | T | df | p | disagrees | it alone wants | the rest wants |",
+              "|---|---|---|---|---|---|---|---|"]
+        for e in sc:
+            L.append(f"| {e['block']} | {e['k']} | {e['statistic']:.1f} | {e['df']} | {e['p_value']:.2g} | "
+                     f"{'yes' if e['conflict'] else 'no'} | {fmtw(e['wants'])} | {fmtw(e['rest_wants'])} |")
     L += ["", "## Candidates", "",
           "'refit check': the local search on the solver after the refit (a gain of more than the margin over every "
           "refit run: the refit's runs had not sampled the peak, so it was refined with the search's runs) and whether the "

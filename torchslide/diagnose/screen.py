@@ -11,7 +11,9 @@ what re-tuning the baseline parameters cannot mimic, each candidate gets
 
 the chi-square reduction a small positive switch buys after the baseline parameters re-tune (a
 one-sided score test; 0 when the residual points the other way). ``mimic`` = 1 - |s_c|^2 / |J_c|^2
-is the fraction of the candidate's signature that mu, xi can reproduce.
+is the fraction of the candidate's signature that mu, xi can reproduce. ``jacobian`` (A) and
+``residual`` (r) are kept for the subset-consistency test (consistency.py); with no candidates the
+call is just that: p + 1 runs.
 
 ``linear_opt``: the linearised optimum of every candidate, the joint least-squares solution of
 r = A db + J_c beta (beta > 0; None otherwise) as a point {name: value} of the candidate's model
@@ -40,6 +42,8 @@ class ScreenResult:
     linear_opt: dict = field(default_factory=dict)
     n_members: int = 0
     failed: list = field(default_factory=list)
+    jacobian: np.ndarray | None = None   # (k, p) whitened d y / d x of the baseline parameters at x0
+    residual: np.ndarray | None = None   # (k,) whitened residual (d - y(x0)) / sigma
 
     def to_json(self) -> dict:
         return {"x0": self.x0, "ranking": self.ranking,
@@ -112,7 +116,8 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
         lin[c] = _linear_opt(A, Jc, r, names, base, bounds, CANDIDATES[c])
     ranking = sorted(candidates, key=lambda c: -scores[c])
     return ScreenResult(x0=base, scores=scores, mimic=mimic, norms=norms, effects=effects, ranking=ranking,
-                        linear_opt=lin, n_members=len(members), failed=[int(i) for i in np.nonzero(failed)[0]])
+                        linear_opt=lin, n_members=len(members), failed=[int(i) for i in np.nonzero(failed)[0]],
+                        jacobian=None if failed[: 1 + len(names)].any() else A, residual=r)
 
 
 def _linear_opt(A: np.ndarray, Jc: np.ndarray, r: np.ndarray, names, base: dict, bounds: np.ndarray, cd):
