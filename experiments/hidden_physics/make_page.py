@@ -326,10 +326,12 @@ def _consistency_section(f: Path | None = None, null_f: Path | None = None) -> l
     L = ["## Subset consistency on the saved cases (experiments/hidden_physics/consistency_check.py)", "",
          "Does one observation want other baseline parameters than the rest? torchslide/diagnose/consistency.py, "
          "linearised at the case's baseline with the grid's approximation error in the whitening, recomputed for "
-         "the saved cases (the diagnosis now reports it; it is not part of the verdict, and no threshold of it was "
-         "set on null data). An observation 'disagrees' at p < 0.01 / 6 (Bonferroni over the 6 observations)"
+         "the saved cases (the diagnosis now reports it; it is not part of the verdict). An observation 'disagrees' "
+         "at p < 0.01 / 6 (Bonferroni over the 6 observations; the chi-square p-value assumes the linearised model "
+         "and the error model, and was not calibrated on null data)"
          + (("; 'above null': its T also exceeds 1.25 x the largest the null calibration seeds gave that observation "
-             "(" + ", ".join(f"{b} {v:.1f}" for b, v in sorted(t_null.items())) + ")") if t_null else "") + ".", "",
+             "(" + ", ".join(f"{b} {v:.1f}" for b, v in sorted(t_null.items())) + "; an experiment of this page, "
+             "not in the diagnosis)") if t_null else "") + ".", "",
          "| scenario | cases | with an observation that disagrees | which (count) | above null |",
          "|---|---|---|---|---|"]
     for sc, (n, k, which, a) in per.items():

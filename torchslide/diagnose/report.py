@@ -123,7 +123,8 @@ def write_markdown(j: dict, figures: list[str]) -> str:
               "Each observation against all the others, linearised at the baseline (torchslide/diagnose/"
               "consistency.py): T is the chi-square a common parameter shift costs over separate ones, ~ chi2(df) "
               "when the model is right; 'disagrees' at p < 0.01 / number of observations. A diagnostic of where, "
-              "not part of the verdict.", "",
+              "not part of the verdict; its p-values are not calibrated on null data, and a coarse grid's own error "
+              "can make an observation disagree where nothing is missing.", "",
               "| observation | values | T | df | p | disagrees | it alone wants | the rest wants |",
               "|---|---|---|---|---|---|---|---|"]
         for e in sc:
