@@ -1251,3 +1251,20 @@ def test_page_section_of_the_subset_consistency(tmp_path):
     (tmp_path / "c.json").write_text(json.dumps(d))
     text = "\n".join(_consistency_section(tmp_path / "c.json", tmp_path / "n.json"))
     assert "| mu_i | 1 | 1 | g1:speed 1 | 0 |" in text and "[above null]" not in text
+
+
+def test_consistency_check_point_and_skips(tmp_path):
+    """consistency_check linearises where the pipeline does (the mode check's best run when the refined
+    baseline was adopted, else the screening's x0) and skips what is not a strength-1 case."""
+    import json
+    from experiments.hidden_physics.consistency_check import linearisation_point, main
+
+    case = {"diagnosis": {"decision": {"baseline_mode_check": {"adopted": True, "best_x": [0.25, 405.0]}},
+                          "screening": {"x0": {"mu": 0.31, "xi": 990.0}}}, "strength": 1.0}
+    assert linearisation_point(case) == ([0.25, 405.0], "mode check's best run")
+    case["diagnosis"]["decision"]["baseline_mode_check"]["adopted"] = False
+    assert linearisation_point(case) == ([0.31, 990.0], "screening x0")
+    (tmp_path / "thresholds.json").write_text(json.dumps({"thresholds": {}}))
+    (tmp_path / "mu_i_s0_x0.5.json").write_text(json.dumps(dict(case, strength=0.5)))
+    out = tmp_path / "c.json"
+    assert main(["--results", str(tmp_path), "--out", str(out)]) == 0 and not out.exists()

@@ -12,7 +12,8 @@ pipeline takes the refined baseline's best posterior-predictive run, which the c
     python -m experiments.hidden_physics.consistency_check --results experiments/hidden_physics/_work/results \
         --out experiments/hidden_physics/_work/consistency.json
 
-Cases already in --out are skipped (resumable). Only strength-1 cases of the narrow 40 m harness.
+Cases already in --out are skipped (resumable). Strength-1 cases only; each case's own terrain
+variant and cell size (case["terrain"], case["cellsize"]).
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ from torchslide.diagnose.pipeline import grid_model_error
 from torchslide.diagnose.screen import screen
 
 from .harness import HARNESS_BUDGETS
-from .scenarios import make_evaluator, make_recording
+from .scenarios import make_evaluator, make_recording, terrain_variant
 
 
 def linearisation_point(case: dict) -> tuple[list, str]:
@@ -42,13 +43,14 @@ def linearisation_point(case: dict) -> tuple[list, str]:
 
 def check_case(case: dict, log=lambda s: None) -> dict:
     """The subset-consistency rows of one saved harness case (see the module doc)."""
-    rec = make_recording(case["scenario"], case["seed"], cellsize=case["cellsize"], strength=case["strength"])
-    ev = make_evaluator(rec, cellsize=case["cellsize"])
-    bud = Budgets(**{**HARNESS_BUDGETS, "seed": case["seed"]})
-    with tempfile.TemporaryDirectory(prefix="consistency_") as tmp:
-        ev_me, _ = grid_model_error(ev, bud, tmp, log=log)
-    x, where = linearisation_point(case)
-    scr = screen(ev_me, x, [])
+    with terrain_variant(case.get("terrain", "narrow")):
+        rec = make_recording(case["scenario"], case["seed"], cellsize=case["cellsize"], strength=case["strength"])
+        ev = make_evaluator(rec, cellsize=case["cellsize"])
+        bud = Budgets(**{**HARNESS_BUDGETS, "seed": case["seed"]})
+        with tempfile.TemporaryDirectory(prefix="consistency_") as tmp:
+            ev_me, _ = grid_model_error(ev, bud, tmp, log=log)
+        x, where = linearisation_point(case)
+        scr = screen(ev_me, x, [])
     if scr.jacobian is None:
         return {"point": x, "point_from": where, "rows": None, "failed": True}
     names = list(ev_me.prior.names)
@@ -68,9 +70,9 @@ def main(argv=None) -> int:
     for f in sorted(Path(a.results).glob("*.json")):
         case = json.loads(f.read_text())
         tag = f.stem
-        if case["strength"] != 1.0 or tag in done or (want and tag not in want):
+        if "diagnosis" not in case:          # e.g. a null-calibration folder's thresholds.json
             continue
-        if case.get("terrain", "narrow") != "narrow" or case.get("cellsize", 40.0) != 40.0:
+        if case["strength"] != 1.0 or tag in done or (want and tag not in want):
             continue
         r = check_case(case)
         r.update(scenario=case["scenario"], seed=case["seed"], truth=case["truth"].get("term"))

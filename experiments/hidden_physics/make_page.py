@@ -290,7 +290,9 @@ def _recheck_section(cases, prev: Path | None = None) -> list[str]:
             "| case | truth | refits refined (ln Z before -> after) | before | now |", "|---|---|---|---|---|"] + rows + [""]
 
 
-def _consistency_section(f: Path | None = None, null_f: Path | None = None) -> list[str]:
+def _consistency_section(f: Path | None = None, null_f: Path | None = None,
+                         heading: str = "## Subset consistency on the saved cases "
+                                        "(experiments/hidden_physics/consistency_check.py)") -> list[str]:
     """Subset consistency on the saved cases (consistency_check.py -> _work/consistency.json): per
     scenario how many cases have an observation that disagrees with the rest, and which; with the
     null calibration seeds' file (``null_f``, default _work/consistency_null_calib.json) also how
@@ -323,7 +325,7 @@ def _consistency_section(f: Path | None = None, null_f: Path | None = None) -> l
                        + (", rest " + ", ".join(f"{k} {v:.3g}" for k, v in e["rest_wants"].items())
                           if e["rest_wants"] else "") + ")" for e in flagged)
         rows.append(f"| {tag} | {r['truth'] or 'none'} | {fl or '-'} | {'-' if best is None else f'{best:.2g}'} |")
-    L = ["## Subset consistency on the saved cases (experiments/hidden_physics/consistency_check.py)", "",
+    L = [heading, "",
          "Does one observation want other baseline parameters than the rest? torchslide/diagnose/consistency.py, "
          "linearised at the case's baseline with the grid's approximation error in the whitening, recomputed for "
          "the saved cases (the diagnosis now reports it; it is not part of the verdict). An observation 'disagrees' "
@@ -670,6 +672,9 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _changes_section() if changes else []
     L += _recheck_section(cases) if changes else []
     L += _consistency_section()
+    L += _consistency_section(HERE / "_work" / "consistency_resolved.json",
+                              HERE / "_work" / "consistency_resolved_null_calib.json",
+                              heading="### The same on the resolved terrain's saved cases (`harness --terrain resolved`)")
     L += _effect_size_section()
     L += _switch_bias_section()
     L += _own_model_error_section()
