@@ -132,6 +132,11 @@ def test_small_harness(tmp_path):
         for cand in j["candidates"]:
             assert {"name", "log_evidence", "log_bayes_factor", "screening_score", "parameters"} <= set(cand)
     assert cases["entrainment"]["diagnosis"]["screening"]["ranking"][0] == "entrainment"
+    assert all(c["fine_factor"] == 2 for c in cases.values())     # recordings on cells half the inversion's
+    from experiments.hidden_physics.harness import main as harness_main
+    with pytest.raises(SystemExit):
+        harness_main(["--fine-factor", "0", "--out", str(tmp_path / "never")])
+    assert not (tmp_path / "never").exists()
     assert cases["null"]["diagnosis"]["missing_physics"] != "yield_stress"
     # a refit whose first verified evidence is not trustworthy is refined (rounds with 'trusted' keys,
     # pipeline._refine), not left as it is
@@ -583,24 +588,24 @@ def test_harness_skips_strengths_beyond_a_switch_range():
 
 def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     """``harness --cellsize 20`` runs its cases on a 20 m inversion grid (recordings at 10 m), with
-    --device / --max-batch / --fine-terrain passed on; the defaults stay 40 m, cpu, 16, off; saved cases
-    are skipped on a rerun."""
+    --device / --max-batch / --fine-terrain / --fine-factor passed on; the defaults stay 40 m, cpu, 16,
+    off, 2; saved cases are skipped on a rerun."""
     import experiments.hidden_physics.harness as H
 
     calls = []
 
     def fake(sc, seed, out, cellsize=40.0, **kw):
-        calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"]))
+        calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"], kw["fine_factor"]))
         out.mkdir(parents=True, exist_ok=True)
         (out / f"{sc}_s{seed}.json").write_text("{}")
         return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
 
     monkeypatch.setattr(H, "run_case", fake)
     assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
-                   "--device", "cuda", "--max-batch", "64", "--fine-terrain"]) == 0
+                   "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
-    assert calls == [("null", 3, 20.0, "cuda", 64, True), ("null", 3, 40.0, "cpu", 16, False)]
+    assert calls == [("null", 3, 20.0, "cuda", 64, True, 1), ("null", 3, 40.0, "cpu", 16, False, 2)]
 
 
 def test_harness_terrain_variants(tmp_path, monkeypatch):

@@ -75,17 +75,17 @@ def coverage(diag: dict, truth: dict) -> tuple:
 
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None,
-             fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16) -> dict:
+             fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16, fine_factor: int = 2) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
-    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength)
+    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor)
     ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
     d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
-            "fine_terrain": fine_terrain, "truth": rec.truth,
+            "fine_terrain": fine_terrain, "fine_factor": fine_factor, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
@@ -123,11 +123,17 @@ def main(argv=None) -> int:
                         "(scenarios.make_evaluator(fine_terrain=True)); needs its own null seeds and --out")
     p.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS),
                    help="terrain variant (scenarios.TERRAINS); another than narrow needs its own null seeds and --out")
+    p.add_argument("--fine-factor", type=int, default=2,
+                   help="recording grid = inversion cells / this (the issue's harness: 2). 1 is the control without "
+                        "discretisation error (the 'inverse crime': use it with --model-error 0, its own null seeds "
+                        "and --out)")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     a = p.parse_args(argv)
     if a.max_batch < 1:
         p.error(f"--max-batch must be >= 1, got {a.max_batch}")
+    if a.fine_factor < 1:
+        p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
     with terrain_variant(a.terrain):
         return _run_all(a)
 
@@ -151,7 +157,7 @@ def _run_all(a) -> int:
                 print(f"=== {tag}", flush=True)
                 c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
                              fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
-                             log=lambda s: print(s, flush=True))
+                             fine_factor=a.fine_factor, log=lambda s: print(s, flush=True))
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
                       f"({c['wall_s']:.0f} s)", flush=True)
     return 0
