@@ -1273,3 +1273,30 @@ def test_consistency_check_point_and_skips(tmp_path):
     (tmp_path / "mu_i_s0_x0.5.json").write_text(json.dumps(dict(case, strength=0.5)))
     out = tmp_path / "c.json"
     assert main(["--results", str(tmp_path), "--out", str(out)]) == 0 and not out.exists()
+
+
+def test_page_section_of_the_control_run(tmp_path):
+    """make_page's control section (harness --fine-factor 1 --model-error 0): targets per scenario and a
+    row per case, with the thresholds from the control's own null seeds (d/null_calib)."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _control_section
+
+    th = Thresholds(bf_min=9.5, located_min=8.0)
+    par = {"mean": 3.1, "hdr90": [2.6, 3.5], "hdi90": [2.6, 3.5]}
+    ys = dict(_cand("yield_stress", 40.0), param="tau_y", parameters={"tau_y": par}, two_ln_bf_lower=40.0)
+    case = {"scenario": "yield_stress", "seed": 0, "strength": 1.0, "wall_s": 120.0, "fine_factor": 1,
+            "truth": {"term": "yield_stress", "tau_y": 3.0}, "true_term_covered_hdr90": True,
+            "diagnosis": {"verdict": "missing_physics", "missing_physics": "yield_stress", "candidates": [ys],
+                          "located": [], "decision": {"two_ln_bf_over_runner_up": 30.0},
+                          "fit_before": {"misfit": 90.0}, "fit_after": {"misfit": 40.0}, "thresholds": asdict(th)}}
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "yield_stress_s0.json").write_text(json.dumps(case))
+    (tmp_path / "null_calib").mkdir()
+    (tmp_path / "null_calib" / "thresholds.json").write_text(json.dumps(
+        {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 7.6, "max_located": 5.0}], "thresholds": asdict(th)}))
+    text = "\n".join(_control_section(tmp_path))
+    assert "--fine-factor 1 --model-error 0" in text and "bf_min 9.5" in text
+    assert "| yield_stress | 1 | 1 | yield_stress 1 | >= 4 of 5 |" in text
+    assert "| yield_stress_s0 | yield_stress | True | yield_stress 40.0 | 30.0 | 3.1, [2.6, 3.5] (3) |" in text
+    assert _control_section(tmp_path / "absent") == []

@@ -515,6 +515,40 @@ def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cell
     return L + _case_rows(cases) + [""]
 
 
+def _targets_table(cases) -> list[str]:
+    """Per scenario: cases, strict successes, what was found (count), the target."""
+    per = defaultdict(list)
+    for c in cases:
+        per[c["scenario"]].append(c)
+    L = ["| scenario | cases | strict successes | found (count) | target |", "|---|---|---|---|---|"]
+    for sc, cs in per.items():
+        found = defaultdict(int)
+        for c in cs:
+            found[found_label(c)] += 1
+        L.append(f"| {sc} | {len(cs)} | {sum(strict_success(c) for c in cs)} | "
+                 f"{', '.join(f'{k} {v}' for k, v in sorted(found.items()))} | >= 4 of 5 |")
+    return L
+
+
+def _control_section(d=None) -> list[str]:
+    """The control without discretisation error (``harness --fine-factor 1 --model-error 0``: recordings
+    on the inversion grid itself, no grid error in the likelihood) in ``d`` (default _work/control_ff1;
+    its null seeds in d/null_calib, verdicts re-decided with their thresholds)."""
+    d = Path(d) if d is not None else HERE / "_work" / "control_ff1"
+    cases, th = _variant_cases(d / "results")
+    if not cases:
+        return []
+    if th is None and (d / "null_calib" / "thresholds.json").exists():
+        th = json.loads((d / "null_calib" / "thresholds.json").read_text())
+    return (["## Control: recordings on the inversion grid itself (`harness --fine-factor 1 --model-error 0`)", "",
+             "Same scenarios, seeds, noise, release-volume error, budgets and method as the main run, but the "
+             "recordings are made on the 40 m inversion grid (no discretisation error between data and model: the "
+             "'inverse crime' the issue forbids for the real test) and the grid's approximation error is off. It "
+             "separates what the method cannot do from what the 40 m grid hides. Median wall time per case "
+             f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "of this control"), ""]
+            + _targets_table(cases) + [""] + _case_rows(cases) + [""])
+
+
 def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_recheck=None) -> list[str]:
     """The harness on the "resolved" terrain (scenarios.TERRAINS; ``harness --terrain resolved``): its
     cases in ``d`` (default _work/resolved/results; null seeds in d/null_calib), the targets per
@@ -527,9 +561,6 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
     if not cases:
         return []
     cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
-    per = defaultdict(list)
-    for c in cases:
-        per[c["scenario"]].append(c)
     from .scenarios import TERRAINS
     (gn, rn, xn), (gr, rr, xr) = TERRAINS["narrow"], TERRAINS["resolved"]
     L = ["## The harness on a terrain the 40 m grid resolves (`harness --terrain resolved`)", "",
@@ -538,15 +569,8 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
          f"{gn['channel_halfwidth']:g} m, the slope-to-run-out kink replaced by a {gr['transition']:g} m parabolic "
          f"transition, release radius {rr:g} m instead of {rn:g} m (same volume), gauge g2 at x = {xr:g} m "
          f"instead of {xn:g} m (at the deposit's front there). Median wall time per case "
-         f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), "",
-         "| scenario | cases | strict successes | found (count) | target |", "|---|---|---|---|---|"]
-    for sc, cs in per.items():
-        found = defaultdict(int)
-        for c in cs:
-            found[found_label(c)] += 1
-        L.append(f"| {sc} | {len(cs)} | {sum(strict_success(c) for c in cs)} | "
-                 f"{', '.join(f'{k} {v}' for k, v in sorted(found.items()))} | >= 4 of 5 |")
-    L += [""] + _case_rows(cases) + [""]
+         f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), ""]
+    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
     gc = Path(gc) if gc is not None else HERE / "_work" / "grid_convergence_resolved.json"
     d20 = Path(d20) if d20 is not None else HERE / "_work" / "resolved20"
     d20_check = Path(d20_check) if d20_check is not None else HERE / "_work" / "resolved20_modecheck"
@@ -671,6 +695,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _changes_section() if changes else []
     L += _recheck_section(cases) if changes else []
+    L += _control_section()
     L += _consistency_section()
     L += _consistency_section(HERE / "_work" / "consistency_resolved.json",
                               HERE / "_work" / "consistency_resolved_null_calib.json",
