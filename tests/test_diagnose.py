@@ -595,17 +595,20 @@ def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     calls = []
 
     def fake(sc, seed, out, cellsize=40.0, **kw):
-        calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"], kw["fine_factor"]))
+        calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"], kw["fine_factor"],
+                      kw["budgets"]))
         out.mkdir(parents=True, exist_ok=True)
         (out / f"{sc}_s{seed}.json").write_text("{}")
         return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
 
     monkeypatch.setattr(H, "run_case", fake)
     assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
-                   "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1"]) == 0
+                   "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1",
+                   "--model-error", "0", "--mode-search-iters", "12"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
-    assert calls == [("null", 3, 20.0, "cuda", 64, True, 1), ("null", 3, 40.0, "cpu", 16, False, 2)]
+    assert calls == [("null", 3, 20.0, "cuda", 64, True, 1, {"model_error_runs": 0, "mode_search_iters": 12}),
+                     ("null", 3, 40.0, "cpu", 16, False, 2, None)]
 
 
 def test_harness_terrain_variants(tmp_path, monkeypatch):

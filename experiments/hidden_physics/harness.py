@@ -114,6 +114,9 @@ def main(argv=None) -> int:
     p.add_argument("--model-error", type=int, default=None,
                    help="Budgets.model_error_runs: the grid's approximation error from this many run pairs "
                         "(0: off; default: Budgets' default, 12)")
+    p.add_argument("--mode-search-iters", type=int, default=None,
+                   help="Budgets.mode_search_iters: iterations of each refit's local search on the solver (default: "
+                        "Budgets' default); another value needs its own null seeds and --out")
     p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
     p.add_argument("--cellsize", type=float, default=40.0,
                    help="inversion cell size, m (the recordings use half of it); thresholds.json was set at 40 m, "
@@ -141,7 +144,8 @@ def main(argv=None) -> int:
 def _run_all(a) -> int:
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
-    bud = {"model_error_runs": a.model_error} if a.model_error is not None else None
+    bud = {k: v for k, v in (("model_error_runs", a.model_error), ("mode_search_iters", a.mode_search_iters))
+           if v is not None} or None
     out = Path(a.out)
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
     for seed in seeds:
