@@ -1303,3 +1303,18 @@ def test_page_section_of_the_control_run(tmp_path):
     assert "| yield_stress | 1 | 1 | yield_stress 1 | >= 4 of 5 |" in text
     assert "| yield_stress_s0 | yield_stress | True | yield_stress 40.0 | 30.0 | 3.1, [2.6, 3.5] (3) |" in text
     assert _control_section(tmp_path / "absent") == []
+
+
+def test_ridge_probe_scores_truth_mean_and_best_and_searches(tmp_path):
+    """ridge_probe on a control case (recording on the inversion grid): z at the truth, the refit's
+    mean and best run, and a search that never ends below its start."""
+    from experiments.hidden_physics.ridge_probe import probe
+
+    par = lambda v: {"mean": v, "hdr90": [v, v]}
+    case = {"scenario": "mu_i", "seed": 0, "cellsize": 40.0, "fine_factor": 1, "truth": {"term": "mu_i", "mu_i": 0.2},
+            "diagnosis": {"candidates": [{"name": "mu_i", "best_x": [0.23, 800.0, 0.33],
+                                          "parameters": {"mu": par(0.24), "xi": par(700.0), "mu_i": par(0.3)}}]}}
+    r = probe(case, "mu_i", iters=1)
+    assert r["names"] == ["mu", "xi", "mu_i"] and r["truth"] == [0.25, 500.0, 0.2]
+    assert all(np.isfinite([r["z_truth"], r["z_mean"], r["z_best_run"]]))
+    assert r["search_best_z"] >= r["z_best_run"] - 1e-9 and len(r["running_best"]) == 1

@@ -530,23 +530,25 @@ def _targets_table(cases) -> list[str]:
     return L
 
 
-def _control_section(d=None) -> list[str]:
+def _control_section(d=None, heading: str = "## Control: recordings on the inversion grid itself "
+                                           "(`harness --fine-factor 1 --model-error 0`)", note: str = "") -> list[str]:
     """The control without discretisation error (``harness --fine-factor 1 --model-error 0``: recordings
     on the inversion grid itself, no grid error in the likelihood) in ``d`` (default _work/control_ff1;
-    its null seeds in d/null_calib, verdicts re-decided with their thresholds)."""
+    its null seeds in d/null_calib, verdicts re-decided with their thresholds); ``note``: a paragraph
+    after the description (e.g. a variant's budget)."""
     d = Path(d) if d is not None else HERE / "_work" / "control_ff1"
     cases, th = _variant_cases(d / "results")
     if not cases:
         return []
     if th is None and (d / "null_calib" / "thresholds.json").exists():
         th = json.loads((d / "null_calib" / "thresholds.json").read_text())
-    return (["## Control: recordings on the inversion grid itself (`harness --fine-factor 1 --model-error 0`)", "",
+    return ([heading, "",
              "Same scenarios, seeds, noise, release-volume error, budgets and method as the main run, but the "
              "recordings are made on the 40 m inversion grid (no discretisation error between data and model: the "
              "'inverse crime' the issue forbids for the real test) and the grid's approximation error is off. It "
              "separates what the method cannot do from what the 40 m grid hides. Median wall time per case "
              f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "of this control"), ""]
-            + _targets_table(cases) + [""] + _case_rows(cases) + [""])
+            + ([note, ""] if note else []) + _targets_table(cases) + [""] + _case_rows(cases) + [""])
 
 
 def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_recheck=None) -> list[str]:
@@ -696,6 +698,10 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _changes_section() if changes else []
     L += _recheck_section(cases) if changes else []
     L += _control_section()
+    L += _control_section(HERE / "_work" / "control_ff1_ms12",
+                          heading="### The control with a longer mode search (`--mode-search-iters 12`)",
+                          note="Each refit's local search on the solver runs 12 iterations instead of 4 (the rest "
+                               "unchanged). Its thresholds are the control's above (null seeds run with 4).")
     L += _consistency_section()
     L += _consistency_section(HERE / "_work" / "consistency_resolved.json",
                               HERE / "_work" / "consistency_resolved_null_calib.json",
