@@ -134,8 +134,9 @@ def test_small_harness(tmp_path):
     assert cases["entrainment"]["diagnosis"]["screening"]["ranking"][0] == "entrainment"
     assert all(c["fine_factor"] == 2 for c in cases.values())     # recordings on cells half the inversion's
     from experiments.hidden_physics.harness import main as harness_main
-    with pytest.raises(SystemExit):
-        harness_main(["--fine-factor", "0", "--out", str(tmp_path / "never")])
+    for bad in (["--fine-factor", "0"], ["--mode-search-iters", "-1"]):
+        with pytest.raises(SystemExit):
+            harness_main(bad + ["--out", str(tmp_path / "never")])
     assert not (tmp_path / "never").exists()
     assert cases["null"]["diagnosis"]["missing_physics"] != "yield_stress"
     # a refit whose first verified evidence is not trustworthy is refined (rounds with 'trusted' keys,

@@ -44,7 +44,8 @@ def linearisation_point(case: dict) -> tuple[list, str]:
 def check_case(case: dict, log=lambda s: None) -> dict:
     """The subset-consistency rows of one saved harness case (see the module doc)."""
     with terrain_variant(case.get("terrain", "narrow")):
-        rec = make_recording(case["scenario"], case["seed"], cellsize=case["cellsize"], strength=case["strength"])
+        rec = make_recording(case["scenario"], case["seed"], cellsize=case["cellsize"], strength=case["strength"],
+                             fine_factor=case.get("fine_factor", 2))
         ev = make_evaluator(rec, cellsize=case["cellsize"])
         bud = Budgets(**{**HARNESS_BUDGETS, "seed": case["seed"]})
         with tempfile.TemporaryDirectory(prefix="consistency_") as tmp:

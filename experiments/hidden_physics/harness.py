@@ -137,6 +137,8 @@ def main(argv=None) -> int:
         p.error(f"--max-batch must be >= 1, got {a.max_batch}")
     if a.fine_factor < 1:
         p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
+    if a.mode_search_iters is not None and a.mode_search_iters < 0:
+        p.error(f"--mode-search-iters must be >= 0, got {a.mode_search_iters}")
     with terrain_variant(a.terrain):
         return _run_all(a)
 
