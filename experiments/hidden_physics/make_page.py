@@ -697,7 +697,13 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _changes_section() if changes else []
     L += _recheck_section(cases) if changes else []
-    L += _control_section()
+    L += _control_section(note="Where the refits stop (`python -m experiments.hidden_physics.ridge_probe --case "
+                               "_work/control_ff1/results/<case>.json --candidate <term>`: a 16-iteration local search "
+                               "on the solver from the refit's best run): on mu_i s1 it climbs from z -1299.6 to "
+                               "-1293.3 at mu 0.243, xi 492, mu_i 0.212 (the truth 0.25, 500, 0.2 scores -1293.6; the "
+                               "refit's interval was [0.316, 0.36]); on yield_stress s0 from -1307.9 to -1297.8 at "
+                               "tau_y 4.4, mu 0.166, xi 225 (the truth scores -1296.5): a long ridge the refit sampled "
+                               "at one end. Curvature and the control's evaluation null seeds were not run (time).")
     L += _control_section(HERE / "_work" / "control_ff1_ms12",
                           heading="### The control with a longer mode search (`--mode-search-iters 12`)",
                           note="Each refit's local search on the solver runs 12 iterations instead of 4 (the rest "
