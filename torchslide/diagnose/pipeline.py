@@ -451,6 +451,12 @@ def adopt_refined_baseline(v_new: dict, v_old: dict, n_draws: int, ess_min: floa
     return bool(n_draws > 1 and v_new["ess"] >= ess_min and gap > 2 * math.hypot(v_new["se"], v_old["se"]))
 
 
+def _best_draws(evaluator, pred: Predictive, n: int) -> np.ndarray:
+    """(n, p) the ``n`` posterior-predictive draws of ``pred`` with the largest solver z (failed last)."""
+    z = solver_z(evaluator, pred)
+    return pred.x[np.argsort(-np.where(np.isfinite(z), z, -np.inf))[:n]]
+
+
 def _linear_starts(scr: ScreenResult, c: str, names, factors=(0.5, 1.0, 2.0)):
     """(n, p_c) points on the line from the baseline mode to the screening's linearised optimum of
     candidate ``c`` (ScreenResult.linear_opt) at ``factors`` of the step; None when it has none."""
@@ -544,8 +550,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
     top = [c for c in scr.ranking][: bud.top_k]
     # the two best baseline runs (the refits' local searches also start from them, switch at 0)
-    zb = solver_z(evaluator, pred)
-    base_best = pred.x[np.argsort(-np.where(np.isfinite(zb), zb, -np.inf))[:2]] if len(pred.x) else None
+    base_best = _best_draws(evaluator, pred, 2) if len(pred.x) else None
     refits, cand_out, preds_after = {}, [], {}
     misfit_before = evaluator.misfit(pred.mean)
     t0 = time.perf_counter()
@@ -601,8 +606,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     rechecks = {}
     if bud.refit_recheck and base_source != "baseline calibration" and len(pred.x):
         # the refits' searches started from the first baseline's best runs: re-check them at the new one's
-        zq = solver_z(evaluator, pred)
-        pts = pred.x[np.argsort(-np.where(np.isfinite(zq), zq, -np.inf))[:2]]
+        pts = _best_draws(evaluator, pred, 2)
         if base_check and base_check.get("best_x") is not None:
             pts = np.vstack([pts, np.asarray(base_check["best_x"], float)[None]])
         for c in top:
@@ -654,8 +658,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     t0 = time.perf_counter()
     scr_c = scr
     if base_source != "baseline calibration" and len(pred.x):
-        zq = solver_z(evaluator, pred)
-        scr_c = screen(evaluator, pred.x[int(np.argmax(np.where(np.isfinite(zq), zq, -np.inf)))], [])
+        scr_c = screen(evaluator, _best_draws(evaluator, pred, 1)[0], [])
     consistency = None
     if scr_c.jacobian is not None:
         names_b = list(evaluator.prior.names)
