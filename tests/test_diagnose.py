@@ -384,14 +384,14 @@ def test_cli_diagnose_keys(tmp_path):
     from torchslide.config import ConfigError
     from torchslide.terrain.synthetic import inclined_plane
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
-    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nwaic_min = 4\nexplain_min = 0.6\ness_min = 3\nrefit_refine_rounds = 0')
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nwaic_min = 4\nexplain_min = 0.6\ness_min = 3\nrefit_refine_rounds = 0\nprofile_top = 0')
     dg = load_diagnose_config(p).extra["diagnose"]
     assert (dg["waic_min"], dg["explain_min"], dg["ess_min"], dg["bf_min"]) == (4.0, 0.6, 3.0, 6.0)
-    assert dg["refit_refine_rounds"] == 0 and dg["baseline_refine_rounds"] == 3
+    assert dg["refit_refine_rounds"] == 0 and dg["baseline_refine_rounds"] == 3 and dg["profile_top"] == 0
     for extra, msg in (("bf_minimum = 3", "unknown key 'bf_minimum'"), ("explain_min = 2", "explain_min"),
                        ("refit_refine_rounds = -1", "refit_refine_rounds"),
                        ("model_error_runs = 1", "model_error_runs"), ("model_error_factor = 1", "model_error_factor"),
-                       ("mode_search_iters = -1", "mode_search_iters"),
+                       ("mode_search_iters = -1", "mode_search_iters"), ("profile_top = -1", "profile_top"),
                        ("ess_min = 0.5", "ess_min"), ("waic_min = 'x'", "waic_min")):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
         with pytest.raises(ConfigError, match=msg):
@@ -662,11 +662,11 @@ def test_own_model_error_remakes_a_case_on_its_terrain(tmp_path, monkeypatch):
     assert seen == ["resolved", "narrow", "resolved"] and S.TERRAIN == "narrow"
     assert sorted(r["case"] for r in json.loads(out.read_text())) == ["mu_i_s0", "mu_i_s1"]
     monkeypatch.setattr(O, "HERE", tmp_path / "here")
-    (tmp_path / "here" / "_work").mkdir(parents=True)
+    (tmp_path / "here" / "results").mkdir(parents=True)
     for c in ("mu_i_s0", "mu_i_s1"):  # default --out: one file per terrain
         assert O.main(["--case", c, "--results", str(tmp_path)]) == 0
-    assert [r["case"] for r in json.loads((tmp_path / "here" / "_work" / "own_model_error_resolved.json").read_text())] == ["mu_i_s0"]
-    assert [r["case"] for r in json.loads((tmp_path / "here" / "_work" / "own_model_error.json").read_text())] == ["mu_i_s1"]
+    assert [r["case"] for r in json.loads((tmp_path / "here" / "results" / "own_model_error_resolved.json").read_text())] == ["mu_i_s0"]
+    assert [r["case"] for r in json.loads((tmp_path / "here" / "results" / "own_model_error.json").read_text())] == ["mu_i_s1"]
 
 
 def test_page_section_of_the_own_model_error_rows_of_both_terrains(tmp_path):
@@ -771,6 +771,9 @@ def test_page_section_of_the_refit_recheck(tmp_path):
     assert "| mu_i_s1 | mu_i | mu_i -120.0 -> -112.5 | none; mu_i 10.0; False | mu_i; mu_i 50.0; True |" in text
     assert "mu_i_s2" not in text and "mu_i_s3" not in text
     assert _recheck_section([untouched], prev) == []
+    alone = "\n".join(_recheck_section([now]))                 # no earlier run: no 'before' column
+    assert "| mu_i_s1 | mu_i | mu_i -120.0 -> -112.5 | mu_i; mu_i 50.0; True |" in alone
+    assert "verdicts changed" not in alone and "| before |" not in alone
 
 
 def test_local_search_climbs_to_a_mode_the_refit_missed():
@@ -1319,3 +1322,35 @@ def test_ridge_probe_scores_truth_mean_and_best_and_searches(tmp_path):
     assert r["names"] == ["mu", "xi", "mu_i"] and r["truth"] == [0.25, 500.0, 0.2]
     assert all(np.isfinite([r["z_truth"], r["z_mean"], r["z_best_run"]]))
     assert r["search_best_z"] >= r["z_best_run"] - 1e-9 and len(r["running_best"]) == 1
+
+
+def test_page_sections_of_the_profile_and_of_a_run_against_an_earlier_one(tmp_path):
+    """make_page's profile section (one row per refit the profile refined: interval and ln Z before ->
+    after, the truth for the true term) and the comparison with an earlier run of the same cases
+    (strict successes, right verdicts and coverage before -> now per scenario)."""
+    import json
+    from experiments.hidden_physics.make_page import _profile_section, _versus_section
+
+    par = {"tau_y": {"mean": 3.2, "hdr90": [2.8, 3.6], "hdi90": [2.8, 3.6]}}
+    prof = [{"refined": True, "adopted": True, "interval_before": [4.6, 5.0], "interval_after": [3.1, 3.7],
+             "log_evidence_before": -1307.0, "log_evidence_refined": -1298.6},
+            {"refined": True, "adopted": True, "interval_before": [3.1, 3.7], "interval_after": [2.8, 3.6],
+             "log_evidence_before": -1298.6, "log_evidence_refined": -1298.1}]
+    diag = lambda cands, name: {"verdict": "missing_physics" if name else "no_missing_physics", "missing_physics": name,
+                                "candidates": cands, "located": [], "fit_before": {"misfit": 100.0},
+                                "fit_after": {"misfit": 60.0}, "decision": {"two_ln_bf_over_runner_up": 20.0}}
+    mk = lambda seed, d, cov: {"scenario": "yield_stress", "seed": seed, "strength": 1.0,
+                               "truth": {"term": "yield_stress", "tau_y": 3.0}, "true_term_covered_hdr90": cov,
+                               "diagnosis": d}
+    now = mk(0, diag([dict(_cand("yield_stress", 60.0), param="tau_y", parameters=par, profile=prof),
+                      dict(_cand("mu_i", 20.0), param="mu_i", profile=[{"refined": False}])], "yield_stress"), True)
+    text = "\n".join(_profile_section([now, mk(1, diag([_cand("yield_stress", 60.0)], None), False)]))
+    assert "Refits profiled: 2; refined: 1; refinement adopted: 1." in text
+    assert "| yield_stress_s0 | yield_stress | 2 | [4.6, 5] -> [2.8, 3.6] | -1307.0 -> -1298.1 | 3 |" in text
+    assert _profile_section([mk(1, diag([_cand("yield_stress", 60.0)], None), False)]) == []
+    prev = tmp_path / "prev"
+    prev.mkdir()
+    (prev / "yield_stress_s0.json").write_text(json.dumps(mk(0, diag([_cand("yield_stress", 60.0)], "mu_i"), False)))
+    v = "\n".join(_versus_section([now, mk(1, diag([], None), False)], prev, "## Versus", "what"))
+    assert "| yield_stress | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in v and v.startswith("## Versus")
+    assert _versus_section([now], tmp_path / "none", "## Versus", "what") == []

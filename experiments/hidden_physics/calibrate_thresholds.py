@@ -1,8 +1,8 @@
 """Set the decision thresholds on null data: ``python -m experiments.hidden_physics.calibrate_thresholds [--results DIR]``.
 
 Input: harness results of the *null* scenario on calibration seeds that are NOT the reported ones
-(default: _work/null_calib_v8, made with ``harness --seed-list 100,101,102,103,104 --scenarios null
---out experiments/hidden_physics/_work/null_calib_v8``; v8: re-run after the refits' mode check also
+(default: results/null_calib, made with ``harness --seed-list 100,101,102,103,104 --scenarios null
+--out experiments/hidden_physics/results/null_calib``; v8: re-run after the refits' mode check also
 starts from the screening's linearised optimum and compares the search with the refit's posterior
 draws, not only its runs; v7: re-run after the grid's approximation error
 became the default (Budgets.model_error_runs = 12) and every refit is followed by a local search on
@@ -98,7 +98,7 @@ def apply_thresholds(results, th: dict, force: bool = False) -> int:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--results", default=str(HERE / "_work" / "null_calib_v8"))
+    p.add_argument("--results", default=str(HERE / "results" / "null_calib"))
     p.add_argument("--out", default=str(HERE / "thresholds.json"))
     p.add_argument("--apply", default=None, help="harness results folder to re-decide with the new thresholds")
     p.add_argument("--force", action="store_true",

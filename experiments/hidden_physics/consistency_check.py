@@ -9,8 +9,8 @@ linearisation (screen.screen with no candidates: p + 1 runs) is made at the poin
 the screening's x0 when the baseline stayed the calibration's, else the mode check's best run (the
 pipeline takes the refined baseline's best posterior-predictive run, which the case file does not keep).
 
-    python -m experiments.hidden_physics.consistency_check --results experiments/hidden_physics/_work/results \
-        --out experiments/hidden_physics/_work/consistency.json
+    python -m experiments.hidden_physics.consistency_check --results experiments/hidden_physics/results/harness \
+        --out experiments/hidden_physics/results/consistency.json
 
 Cases already in --out are skipped (resumable). Strength-1 cases only; each case's own terrain
 variant and cell size (case["terrain"], case["cellsize"]).
@@ -61,8 +61,8 @@ def check_case(case: dict, log=lambda s: None) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--results", default=str(Path(__file__).parent / "_work" / "results"))
-    p.add_argument("--out", default=str(Path(__file__).parent / "_work" / "consistency.json"))
+    p.add_argument("--results", default=str(Path(__file__).parent / "results" / "harness"))
+    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "consistency.json"))
     p.add_argument("--cases", default="", help="comma-separated case tags (default: all strength-1 cases)")
     a = p.parse_args(argv)
     out = Path(a.out)

@@ -40,7 +40,7 @@ def _flat(rec, ev):
 
 def main(argv=None) -> int:
     a = argparse.ArgumentParser()
-    a.add_argument("--out", default=str(HERE / "_work" / "effect_size.json"))
+    a.add_argument("--out", default=str(HERE / "results" / "effect_size.json"))
     a.add_argument("--seed", type=int, default=0)
     args = a.parse_args(argv)
     kw = dict(noise_scale=0.0, volume_factor=1.0)

@@ -15,7 +15,7 @@ size against inversion runs at the true mu, xi and on a 3 x 3 box around them (m
 for a ladder of the true term's switch; the whitened misfit (the likelihood's sigmas, no model error)
 of the best (mu, xi) per switch value. When the best switch is far from the truth even without noise,
 no inference method on that grid can recover it: the grid decides.
-Results go to ``--out`` (default _work/grid_convergence.json); the results page reads them.
+Results go to ``--out`` (default results/grid_convergence.json); the results page reads them.
 """
 from __future__ import annotations
 
@@ -146,11 +146,11 @@ def main(argv=None) -> int:
     a.add_argument("--scenarios", default=",".join(SCENARIOS))
     a.add_argument("--switch-scan", default="", help="comma-separated inversion cell sizes for the switch scan")
     a.add_argument("--terrain", default="narrow", choices=sorted(scenarios.TERRAINS), help="scenarios.TERRAINS variant")
-    a.add_argument("--out", default=None, help="default _work/grid_convergence.json (narrow), "
-                   "_work/grid_convergence_<terrain>.json otherwise")
+    a.add_argument("--out", default=None, help="default results/grid_convergence.json (narrow), "
+                   "results/grid_convergence_<terrain>.json otherwise")
     args = a.parse_args(argv)
     if args.out is None:
-        args.out = str(HERE / "_work" / ("grid_convergence.json" if args.terrain == "narrow"
+        args.out = str(HERE / "results" / ("grid_convergence.json" if args.terrain == "narrow"
                                          else f"grid_convergence_{args.terrain}.json"))
     sizes = [float(s) for s in args.sizes.split(",") if s]
     if any(abs(40.0 / s - round(40.0 / s)) > 1e-9 for s in sizes):

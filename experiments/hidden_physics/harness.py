@@ -4,8 +4,9 @@
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
-gauge series). Cases already saved are skipped, so the run can be resumed; make_page.py builds the
-results page from whatever finished.
+gauge series). Cases already saved are skipped, so the run can be resumed, and a case being run is marked
+DIR/<case>.running, so several processes can share one DIR; make_page.py builds the results page
+from whatever finished.
 
 Decision thresholds: read from ``thresholds.json`` next to this file when it exists (written by
 calibrate_thresholds.py from *separate* null seeds 100-104), else torchslide.diagnose.Thresholds().
@@ -106,7 +107,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--out", default=str(Path(__file__).parent / "_work" / "results"))
+    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "harness"))
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--seed-list", default=None, help="comma-separated seeds (overrides --seeds)")
     p.add_argument("--scenarios", default=",".join(SCENARIOS))
@@ -143,6 +144,18 @@ def main(argv=None) -> int:
         return _run_all(a)
 
 
+def _claim(out: Path, tag: str) -> Path | None:
+    """Mark case ``tag`` as taken by this process (``out/<tag>.running``, created atomically) so that
+    several harness processes on one ``out`` share the cases; None when another process holds it."""
+    out.mkdir(parents=True, exist_ok=True)
+    f = out / f"{tag}.running"
+    try:
+        f.open("x").close()
+    except FileExistsError:
+        return None
+    return f
+
+
 def _run_all(a) -> int:
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
@@ -160,10 +173,18 @@ def _run_all(a) -> int:
                 if beyond:
                     print(f"=== {tag}: skipped, {beyond}", flush=True)
                     continue
+                claim = _claim(out, tag)
+                if claim is None:
+                    print(f"=== {tag}: skipped, another process holds {out / (tag + '.running')} "
+                          "(delete it if that process is gone)", flush=True)
+                    continue
                 print(f"=== {tag}", flush=True)
-                c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
-                             fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
-                             fine_factor=a.fine_factor, log=lambda s: print(s, flush=True))
+                try:
+                    c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
+                                 fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
+                                 fine_factor=a.fine_factor, log=lambda s: print(s, flush=True))
+                finally:
+                    claim.unlink(missing_ok=True)
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
                       f"({c['wall_s']:.0f} s)", flush=True)
     return 0

@@ -93,7 +93,7 @@ def _figs(cases, out: Path) -> list[str]:
                             textcoords="offset points", xytext=(3, 3))
         files.append(_save_rate_plot(fig, ax, out / "detection_vs_strength.png",
                                      "effect strength (x nominal; small numbers: cases)", "detection rate"))
-    eff = HERE / "_work" / "effect_size.json"
+    eff = HERE / "results" / "effect_size.json"
     if by and eff.exists():
         # the same detection rates against the *measured* effect at strength 1 (effect_size.py): the part of
         # the term's effect that mu, xi cannot mimic, in units of the grid's discretisation error
@@ -247,8 +247,9 @@ def _best_lower(case) -> tuple:
 def _recheck_section(cases, prev: Path | None = None) -> list[str]:
     """The refit re-check (pipeline.refit_recheck) on the cases it ran on (those whose baseline changed
     after the refits): per case the refits it refined (ln Z before -> after) and the case's outcome
-    against the saved earlier result of the same case in ``prev`` (default _work/results_v9)."""
-    prev = Path(prev) if prev is not None else HERE / "_work" / "results_v9"
+    against the saved earlier result of the same case in ``prev`` (a folder of case files; None: no
+    comparison)."""
+    prev = Path(prev) if prev is not None else None
     rows, n_ran, n_ref, n_fit, changed, low_old, low_new = [], 0, 0, 0, 0, [], []
     lows = lambda case: [x["two_ln_bf_lower"] for x in case["diagnosis"]["candidates"]
                          if x.get("two_ln_bf_lower") is not None]
@@ -263,7 +264,7 @@ def _recheck_section(cases, prev: Path | None = None) -> list[str]:
         tag = f"{c['scenario']}_s{c['seed']}" + ("" if c["strength"] == 1.0 else f"_x{c['strength']:g}")
         refined = ", ".join(f"{x['name']} {x['refit_recheck']['log_evidence_before']:.1f} -> "
                             f"{x['refit_recheck']['log_evidence']:.1f}" for x in ran if x["refit_recheck"].get("refined"))
-        old = json.loads((prev / f"{tag}.json").read_text()) if (prev / f"{tag}.json").exists() else None
+        old = json.loads((prev / f"{tag}.json").read_text()) if prev and (prev / f"{tag}.json").exists() else None
         n_ref += sum(bool(x["refit_recheck"].get("refined")) for x in ran)
         n_fit += len(ran)
         low_new += lows(c)
@@ -273,7 +274,8 @@ def _recheck_section(cases, prev: Path | None = None) -> list[str]:
                 c["diagnosis"]["verdict"], c["diagnosis"]["missing_physics"])
         fmt = lambda case: (f"{found_label(case)}; {_best_lower(case)[0]} "
                             f"{_best_lower(case)[1]:.1f}; {strict_success(case)}" if case else "-")
-        rows.append(f"| {tag} | {true_label(c)} | {refined or 'none'} | {fmt(old)} | {fmt(c)} |")
+        rows.append(f"| {tag} | {true_label(c)} | {refined or 'none'} | " + (f"{fmt(old)} | " if prev else "")
+                    + f"{fmt(c)} |")
     if not n_ran:
         return []
     return ["## Refit re-check at the refined baseline (pipeline.refit_recheck)", "",
@@ -281,25 +283,99 @@ def _recheck_section(cases, prev: Path | None = None) -> list[str]:
             "refined elsewhere on the mu-xi ridge (the mode check, or a beta = 0 slice adopted), each refit is run at "
             "the new baseline's best points with its switch at 0 (its nested baseline) and refined from them when "
             "they beat its best posterior draw by more than 3 in ln posterior. It runs only in cases whose baseline "
-            "changed; only those were re-run (the others' code path is unchanged). Columns 'before' and 'now': "
-            "found; candidate with the largest lower-bound 2 ln BF and that bound; strict success (the verdicts "
-            "of both under their own run's thresholds).", "",
-            f"Cases it ran on: {n_ran}; refits it refined: {n_ref} of {n_fit}; verdicts changed against the "
-            f"earlier run: {changed}. The lowest lower-bound 2 ln BF of any candidate in these cases: "
+            "changed. Column 'outcome': found; candidate with the largest lower-bound 2 ln BF and that bound; "
+            "strict success" + (f" ('before': the same case in {_shown(prev, HERE)}, under its own run's "
+                                "thresholds)" if prev else "") + ".", "",
+            f"Cases it ran on: {n_ran}; refits it refined: {n_ref} of {n_fit}"
+            + (f"; verdicts changed against the earlier run: {changed}" if prev else "")
+            + ". The lowest lower-bound 2 ln BF of any candidate in these cases: "
             + (f"{min(low_old):.1f} before, " if low_old else "") + f"{min(low_new, default=float('nan')):.1f} now.", "",
-            "| case | truth | refits refined (ln Z before -> after) | before | now |", "|---|---|---|---|---|"] + rows + [""]
+            "| case | truth | refits refined (ln Z before -> after) | " + ("before | " if prev else "") + "outcome |",
+            "|---|---|---|" + ("---|" if prev else "") + "---|"] + rows + [""]
+
+
+def _profile_section(cases) -> list[str]:
+    """The profile along the switch (pipeline.profile_refit) in the saved cases: how many refits it
+    ran on, refined and adopted; per refit it refined, the switch's 90 % interval before -> after, its
+    ln Z before -> after and, for the true term, the truth."""
+    rows, n_prof, n_ref, n_take = [], 0, 0, 0
+    for c in cases:
+        tag = f"{c['scenario']}_s{c['seed']}" + ("" if c["strength"] == 1.0 else f"_x{c['strength']:g}")
+        for x in c["diagnosis"]["candidates"]:
+            rounds = x.get("profile") or []
+            if not rounds:
+                continue
+            n_prof += 1
+            ref = [r for r in rounds if r.get("refined")]
+            n_ref += bool(ref)
+            took = [r for r in ref if r.get("adopted")]
+            n_take += bool(took)
+            if not ref:
+                continue
+            first, last = ref[0], (took[-1] if took else ref[-1])
+            iv = lambda v: f"[{v[0]:.3g}, {v[1]:.3g}]"
+            truth = c["truth"].get(x["param"]) if c["truth"].get("term") == x["name"] else None
+            rows.append(f"| {tag} | {x['name']} | {len(rounds)} | {iv(first['interval_before'])} -> "
+                        f"{iv(last['interval_after'])}{'' if took else ' (not adopted)'} | "
+                        f"{first['log_evidence_before']:.1f} -> {last['log_evidence_refined']:.1f} | "
+                        f"{'-' if truth is None else f'{truth:g}'} |")
+    if not n_prof:
+        return []
+    return ["## Profile along the switch (pipeline.profile_refit)", "",
+            "The refits with the largest verified evidence above the baseline's (at most two per case) are "
+            "profiled along their switch: on a ladder of switch values around the refit's 90 % interval (extended "
+            "where the profile stays high), the best z = ln L + ln prior over (mu, xi) by a local search on the "
+            "solver with the switch held (torchslide/diagnose/profile.py). A profile optimum whose importance "
+            "weight (its z minus the log density the refit's draws come from) exceeds the mean weight of the "
+            "posterior draws' runs by more than 1 in ln, or any value more than 3 above the best draw, means the "
+            "posterior gives part of the ridge too little mass: the refit is refined with the profile's runs "
+            "(local emulator, zoomed grid posterior, verified) and profiled again, at most three times.", "",
+            f"Refits profiled: {n_prof}; refined: {n_ref}; refinement adopted: {n_take}.", "",
+            "| case | candidate | profile rounds | switch 90 % interval before -> after | ln Z before -> after | "
+            "truth |", "|---|---|---|---|---|---|"] + rows + [""]
+
+
+def _versus_section(cases, prev: Path, heading: str, what: str) -> list[str]:
+    """Per scenario, this run against an earlier run of the same cases in ``prev`` (``what`` says how it
+    differs): strict successes, the true term named, its 90 % HDI covering the truth; [] when ``prev``
+    holds none of them."""
+    prev = Path(prev)
+    per = defaultdict(lambda: [0, 0, 0, 0, 0, 0, 0])
+    for c in cases:
+        tag = f"{c['scenario']}_s{c['seed']}" + ("" if c["strength"] == 1.0 else f"_x{c['strength']:g}")
+        f = prev / f"{tag}.json"
+        if c["strength"] != 1.0 or not f.exists():
+            continue
+        o = json.loads(f.read_text())
+        r = per[c["scenario"]]
+        r[0] += 1
+        r[1] += strict_success(o)
+        r[2] += strict_success(c)
+        r[3] += found_label(o) == true_label(o)
+        r[4] += found_label(c) == true_label(c)
+        r[5] += bool(o.get("true_term_covered_hdr90"))
+        r[6] += bool(c.get("true_term_covered_hdr90"))
+    if not per:
+        return []
+    L = [heading, "", what, "",
+         "| scenario | cases | strict successes (before -> now) | right verdict (before -> now) | "
+         "true switch in 90 % HDI (before -> now) |", "|---|---|---|---|---|"]
+    for sc, (n, s0, s1, f0, f1, c0, c1) in per.items():
+        cov = "-" if sc in ("null", "low_friction_patch") else f"{c0} -> {c1}"
+        L.append(f"| {sc} | {n} | {s0} -> {s1} | {f0} -> {f1} | {cov} |")
+    return L + [""]
 
 
 def _consistency_section(f: Path | None = None, null_f: Path | None = None,
                          heading: str = "## Subset consistency on the saved cases "
                                         "(experiments/hidden_physics/consistency_check.py)") -> list[str]:
-    """Subset consistency on the saved cases (consistency_check.py -> _work/consistency.json): per
+    """Subset consistency on the saved cases (consistency_check.py -> results/consistency.json): per
     scenario how many cases have an observation that disagrees with the rest, and which; with the
-    null calibration seeds' file (``null_f``, default _work/consistency_null_calib.json) also how
+    null calibration seeds' file (``null_f``, default results/consistency_null_calib.json) also how
     many stay above 1.25 x the largest statistic the null seeds gave that observation (the rule the
     decision's thresholds follow)."""
-    f = Path(f) if f is not None else HERE / "_work" / "consistency.json"
-    null_f = Path(null_f) if null_f is not None else HERE / "_work" / "consistency_null_calib.json"
+    f = Path(f) if f is not None else HERE / "results" / "consistency.json"
+    null_f = Path(null_f) if null_f is not None else HERE / "results" / "consistency_null_calib.json"
     if not f.exists():
         return []
     d = json.loads(f.read_text())
@@ -343,7 +419,7 @@ def _consistency_section(f: Path | None = None, null_f: Path | None = None,
 
 
 def _effect_size_section() -> list[str]:
-    f = HERE / "_work" / "effect_size.json"
+    f = HERE / "results" / "effect_size.json"
     if not f.exists():
         return []
     e = json.loads(f.read_text())
@@ -364,7 +440,7 @@ def _effect_size_section() -> list[str]:
 def _switch_bias_section() -> list[str]:
     rows = []
     for name in ("switch_bias.json", "switch_bias_v2.json"):   # earlier versions, then this one
-        f = HERE / "_work" / name
+        f = HERE / "results" / name
         if f.exists():
             rows += json.loads(f.read_text())
     if not rows:
@@ -388,9 +464,9 @@ def _switch_bias_section() -> list[str]:
 
 
 def _own_model_error_section(work: Path | None = None) -> list[str]:
-    """own_model_error.py's rows from ``work`` (default _work): own_model_error.json (cases on the narrow
+    """own_model_error.py's rows from ``work`` (default results): own_model_error.json (cases on the narrow
     terrain) and own_model_error_<terrain>.json (other variants)."""
-    work = Path(work) if work is not None else HERE / "_work"
+    work = Path(work) if work is not None else HERE / "results"
     rows = [r for f in sorted(work.glob("own_model_error*.json")) for r in json.loads(f.read_text())]
     if not rows:
         return []
@@ -413,7 +489,7 @@ def _grid_convergence_section(f: Path | None = None, heading: str = "## Grid con
                               ) -> list[str]:
     """From grid_convergence.py's JSON: gauge peaks per cell size, the terrain / numerics split of the
     40 m error, and the noise-free switch scan."""
-    f = f or HERE / "_work" / "grid_convergence.json"
+    f = f or HERE / "results" / "grid_convergence.json"
     if not f.exists():
         return []
     d = json.loads(f.read_text())
@@ -501,8 +577,8 @@ def _case_rows(cases) -> list[str]:
 def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cells (recordings on 10 m)",
                         command: str = "harness --cellsize 20", note: str = "") -> list[str]:
     """The probe at a finer inversion grid (harness --cellsize 20, recordings at 10 m): its cases in
-    ``d`` (default _work/cs20), re-decided with thresholds from its own null seeds (:func:`_variant_cases`)."""
-    d = Path(d) if d is not None else HERE / "_work" / "cs20"
+    ``d`` (default results/cs20), re-decided with thresholds from its own null seeds (:func:`_variant_cases`)."""
+    d = Path(d) if d is not None else HERE / "results" / "cs20"
     cases, th = _variant_cases(d)
     if not cases:
         return []
@@ -533,10 +609,10 @@ def _targets_table(cases) -> list[str]:
 def _control_section(d=None, heading: str = "## Control: recordings on the inversion grid itself "
                                            "(`harness --fine-factor 1 --model-error 0`)", note: str = "") -> list[str]:
     """The control without discretisation error (``harness --fine-factor 1 --model-error 0``: recordings
-    on the inversion grid itself, no grid error in the likelihood) in ``d`` (default _work/control_ff1;
+    on the inversion grid itself, no grid error in the likelihood) in ``d`` (default results/control_ff1;
     its null seeds in d/null_calib, verdicts re-decided with their thresholds); ``note``: a paragraph
     after the description (e.g. a variant's budget)."""
-    d = Path(d) if d is not None else HERE / "_work" / "control_ff1"
+    d = Path(d) if d is not None else HERE / "results" / "control_ff1"
     cases, th = _variant_cases(d / "results")
     if not cases:
         return []
@@ -553,12 +629,12 @@ def _control_section(d=None, heading: str = "## Control: recordings on the inver
 
 def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_recheck=None) -> list[str]:
     """The harness on the "resolved" terrain (scenarios.TERRAINS; ``harness --terrain resolved``): its
-    cases in ``d`` (default _work/resolved/results; null seeds in d/null_calib), the targets per
+    cases in ``d`` (default results/resolved/results; null seeds in d/null_calib), the targets per
     scenario, every case, the grid convergence on that terrain (``gc``, default
-    _work/grid_convergence_resolved.json), the probe on 20 m cells (``d20``, default _work/resolved20)
-    and its cases re-run with the baseline mode check (``d20_check``, default _work/resolved20_modecheck)
-    and then also with the refit re-check (``d20_recheck``, default _work/resolved20_recheck)."""
-    d = Path(d) if d is not None else HERE / "_work" / "resolved" / "results"
+    results/grid_convergence_resolved.json), the probe on 20 m cells (``d20``, default results/resolved20)
+    and its cases re-run with the baseline mode check (``d20_check``, default results/resolved20_modecheck)
+    and then also with the refit re-check (``d20_recheck``, default results/resolved20_recheck)."""
+    d = Path(d) if d is not None else HERE / "results" / "resolved" / "results"
     cases, th = _variant_cases(d)
     if not cases:
         return []
@@ -573,20 +649,20 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
          f"instead of {xn:g} m (at the deposit's front there). Median wall time per case "
          f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), ""]
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    gc = Path(gc) if gc is not None else HERE / "_work" / "grid_convergence_resolved.json"
-    d20 = Path(d20) if d20 is not None else HERE / "_work" / "resolved20"
-    d20_check = Path(d20_check) if d20_check is not None else HERE / "_work" / "resolved20_modecheck"
-    d20_recheck = Path(d20_recheck) if d20_recheck is not None else HERE / "_work" / "resolved20_recheck"
+    gc = Path(gc) if gc is not None else HERE / "results" / "grid_convergence_resolved.json"
+    d20 = Path(d20) if d20 is not None else HERE / "results" / "resolved20"
+    d20_check = Path(d20_check) if d20_check is not None else HERE / "results" / "resolved20_modecheck"
+    d20_recheck = Path(d20_recheck) if d20_recheck is not None else HERE / "results" / "resolved20_recheck"
     return (L + _grid_convergence_section(gc, heading="### Grid convergence on the resolved terrain")
             + _finer_grid_section(d20, heading="### Probe: the resolved terrain on 20 m cells (recordings on 10 m)",
                                   command="harness --terrain resolved --cellsize 20")
             + _finer_grid_section(d20_check, heading="### The same probe's cases re-run with the baseline mode check",
                                   command="harness --terrain resolved --cellsize 20 --out "
-                                          "experiments/hidden_physics/_work/resolved20_modecheck",
+                                          "experiments/hidden_physics/results/resolved20_modecheck",
                                   note="Unlike the probe above, these ran with the baseline mode check (session 10).")
             + _finer_grid_section(d20_recheck, heading="### Two of them re-run with the refit re-check",
                                   command="harness --terrain resolved --cellsize 20 --out "
-                                          "experiments/hidden_physics/_work/resolved20_recheck",
+                                          "experiments/hidden_physics/results/resolved20_recheck",
                                   note="With the baseline mode check and the refit re-check (session 11). On "
                                        "curvature s1 the mode check moved the baseline (+35.0 in ln posterior) and "
                                        "the re-check then refined all five refits: the candidates' lower bounds "
@@ -697,20 +773,10 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _changes_section() if changes else []
     L += _recheck_section(cases) if changes else []
-    L += _control_section(note="Where the refits stop (`python -m experiments.hidden_physics.ridge_probe --case "
-                               "_work/control_ff1/results/<case>.json --candidate <term>`: a 16-iteration local search "
-                               "on the solver from the refit's best run): on mu_i s1 it climbs from z -1299.6 to "
-                               "-1293.3 at mu 0.243, xi 492, mu_i 0.212 (the truth 0.25, 500, 0.2 scores -1293.6; the "
-                               "refit's interval was [0.316, 0.36]); on yield_stress s0 from -1307.9 to -1297.8 at "
-                               "tau_y 4.4, mu 0.166, xi 225 (the truth scores -1296.5): a long ridge the refit sampled "
-                               "at one end. Curvature and the control's evaluation null seeds were not run (time).")
-    L += _control_section(HERE / "_work" / "control_ff1_ms12",
-                          heading="### The control with a longer mode search (`--mode-search-iters 12`)",
-                          note="Each refit's local search on the solver runs 12 iterations instead of 4 (the rest "
-                               "unchanged). Its thresholds are the control's above (null seeds run with 4).")
+    L += _control_section()
     L += _consistency_section()
-    L += _consistency_section(HERE / "_work" / "consistency_resolved.json",
-                              HERE / "_work" / "consistency_resolved_null_calib.json",
+    L += _consistency_section(HERE / "results" / "consistency_resolved.json",
+                              HERE / "results" / "consistency_resolved_null_calib.json",
                               heading="### The same on the resolved terrain's saved cases (`harness --terrain resolved`)")
     L += _effect_size_section()
     L += _switch_bias_section()
@@ -741,7 +807,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
-    p.add_argument("--results", default=str(HERE / "_work" / "results"))
+    p.add_argument("--results", default=str(HERE / "results" / "harness"))
     p.add_argument("--out", default=str(HERE))
     p.add_argument("--thresholds", default=None, help="null-calibration file shown (default thresholds.json)")
     p.add_argument("--note", default="", help="paragraph under the title")

@@ -16,7 +16,7 @@ likelihood with the error drawn at *its own* posterior, is measured here on a sa
 
 If the own error raised the true term's best ln posterior more than the others', it would help to
 tell them apart; if it raises all of them (or the wrong ones more), it would not. Rows are written to
---out (default _work/own_model_error.json, _work/own_model_error_<terrain>.json for a case on another
+--out (default results/own_model_error.json, results/own_model_error_<terrain>.json for a case on another
 terrain variant).
 """
 from __future__ import annotations
@@ -57,17 +57,17 @@ def best_log_posterior(ev, x0: np.ndarray, scale: np.ndarray, evals: int) -> tup
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--case", default="yield_stress_s1", help="<scenario>_s<seed> of a saved strength-1 harness case")
-    p.add_argument("--results", default=str(HERE / "_work" / "results"))
+    p.add_argument("--results", default=str(HERE / "results" / "harness"))
     p.add_argument("--candidates", default="yield_stress,mu_i,earth_pressure")
     p.add_argument("--evals", type=int, default=80)
-    p.add_argument("--out", default=None, help="default _work/own_model_error.json for a case on the narrow "
-                   "terrain, _work/own_model_error_<terrain>.json otherwise (the results page reads both)")
+    p.add_argument("--out", default=None, help="default results/own_model_error.json for a case on the narrow "
+                   "terrain, results/own_model_error_<terrain>.json otherwise (the results page reads both)")
     a = p.parse_args(argv)
     case = json.loads((Path(a.results) / f"{a.case}.json").read_text())
     terrain = case.get("terrain", "narrow")
     with terrain_variant(terrain):  # the terrain the case was run on
         rows = _rows(a, case)
-    out = Path(a.out) if a.out else HERE / "_work" / (
+    out = Path(a.out) if a.out else HERE / "results" / (
         "own_model_error.json" if terrain == "narrow" else f"own_model_error_{terrain}.json")
     old = json.loads(out.read_text()) if out.exists() else []
     old = [r for r in old if not (r["case"] == a.case and r["candidate"] in {x["candidate"] for x in rows})]

@@ -6,7 +6,7 @@ z = ln L + ln prior is evaluated at the truth, at the refit's posterior mean and
 polish.local_search runs ``--iters`` iterations of 6 moves from the best run (initial step 0.05 of the
 prior box per axis).
 
-    python -m experiments.hidden_physics.ridge_probe --case experiments/hidden_physics/_work/control_ff1/results/mu_i_s1.json --candidate mu_i
+    python -m experiments.hidden_physics.ridge_probe --case experiments/hidden_physics/results/control_ff1/results/mu_i_s1.json --candidate mu_i
 """
 from __future__ import annotations
 

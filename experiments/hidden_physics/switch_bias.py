@@ -9,7 +9,7 @@ bias comes from the discretisation difference (model error), not from the calibr
 ``--method new`` (default) is exactly the pipeline's refit of one candidate
 (torchslide.diagnose.pipeline.refit_candidate: bound probe, refinement of untrustworthy evidence);
 ``old`` the refit of two versions ago (MCMC posterior of the emulator, continued to n_total_max when
-untrusted). Rows are appended to --out (default _work/switch_bias_v2.json; _work/switch_bias.json
+untrusted). Rows are appended to --out (default results/switch_bias_v2.json; results/switch_bias.json
 holds the rows of the earlier versions) with their method and version; a (scenario, seed, grid,
 method) row already there is not recomputed.
 """
@@ -77,7 +77,7 @@ def main(argv=None) -> int:
     a = argparse.ArgumentParser()
     a.add_argument("--scenarios", default="earth_pressure,curvature")
     a.add_argument("--seeds", default="0,1")
-    a.add_argument("--out", default=str(HERE / "_work" / "switch_bias_v2.json"))
+    a.add_argument("--out", default=str(HERE / "results" / "switch_bias_v2.json"))
     a.add_argument("--grids", default="1,2", help="recording grid factors (fine_factor) to run")
     a.add_argument("--model-error", type=int, default=0,
                    help="new method only: approximation error of the grid from this many run pairs (0: off)")

@@ -36,6 +36,8 @@ and a [diagnose] section::
                                  #     from; default: the inversion DEM interpolated bilinearly
     mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
                                  #     is refined with its runs); 0: off
+    profile_top = 2              # refits (largest verified evidence above the baseline's) profiled along their
+                                 #     switch; refined where the profile finds ridge mass they missed; 0: off
     top_k = 2                    # candidates refitted
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
@@ -69,7 +71,7 @@ HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, 
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
-             "mode_search_iters", "top_k", "batch_size", "n_perm")
+             "mode_search_iters", "profile_top", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", *_INT_KEYS, *_THRESHOLD_KEYS}
 
@@ -153,7 +155,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] unknown candidate(s) {bad} (known: {', '.join(CANDIDATES)})")
     for k in _INT_KEYS:
         low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
-               "model_error_factor": 2}.get(k, 1)
+               "profile_top": 0, "model_error_factor": 2}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
@@ -269,7 +271,7 @@ def run(args: argparse.Namespace) -> int:
                   baseline_refine_rounds=dg["baseline_refine_rounds"],
                   refit_refine_rounds=dg["refit_refine_rounds"], model_error_runs=dg["model_error_runs"],
                   model_error_factor=dg["model_error_factor"], mode_search_iters=dg["mode_search_iters"],
-                  batch_size=dg["batch_size"], top_k=dg["top_k"],
+                  profile_top=dg["profile_top"], batch_size=dg["batch_size"], top_k=dg["top_k"],
                   n_perm=dg["n_perm"], seed=dg["seed"])
     th = Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
     out = Path(args.out)

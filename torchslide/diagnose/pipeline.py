@@ -41,9 +41,10 @@ from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
-from .verify import (grid_result, hdi_from_grid, hdi_interval, needs_bound_probe, refine_baseline, refine_refit,
-                     rescore, runs_start, savage_dickey, slice_proposal, solver_z, verified_evidence, waic)
+from .verify import (grid_result, hdi_from_grid, hdi_interval, logmeanexp, needs_bound_probe, refine_baseline,
+                     refine_refit, rescore, runs_start, savage_dickey, slice_proposal, solver_z, verified_evidence, waic)
 from .polish import local_search
+from .profile import sampling_log_density, switch_profile
 from .screen import ScreenResult, screen
 
 
@@ -88,6 +89,19 @@ class Budgets:
                                        # mode: refined with those runs
     mode_search_pop: int = 6           # ... moves per start and iteration (2 starts; one batched call per iteration)
     mode_margin: float = 3.0
+    profile_top: int = 2               # refits profiled along their switch (profile.switch_profile): this many with
+                                       # the largest verified evidence among those above the baseline's (0: off);
+                                       # the profile's runs join a re-refinement when it finds mass the posterior
+                                       # missed (pipeline.profile_refit)
+    profile_rounds: int = 3            # ... profile + refinement repeated (around the refined posterior) while the
+                                       # profile still finds mass outside it, at most this many times
+    profile_values: int = 5            # ... switch values of its ladder
+    profile_iters: int = 2             # ... local-search iterations (mode_search_pop moves) per value, switch held
+    profile_extend: int = 2            # ... extra values per side where the ridge goes on beyond the ladder
+    profile_drop: float = 2.0          # ... "goes on": profile within this of its maximum
+    profile_outside: float = 1.0       # ... a profile optimum whose importance weight exceeds the mean of the
+                                       # posterior draws' by more than this (ln) lies where the proposal has
+                                       # too little mass: refine
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -442,6 +456,68 @@ def refit_recheck(ev_c, cal_c, p_c, ver: dict, history: list, points, bud: Budge
     return r_cal, r_p, r_ver, history + r_hist, out
 
 
+def profile_refit(ev_c, cal_c, p_c, ver: dict, history: list, bud: Budgets, log=print, name: str = ""):
+    """Profile the refit along its switch (profile.switch_profile) and refine it with the profile's runs
+    when the profile finds mass its posterior missed. Test: the importance weight z - ln q of each
+    profile optimum (q: what the refit's draws come from, profile.sampling_log_density) against the mean weight of
+    its posterior draws' runs (the verified evidence's); more than ``profile_outside`` above it in ln
+    means the proposal gives that stretch of the ridge e^1 or more times too little mass (a point
+    outside its grid: infinitely too little). Also when a profile value beats the best draw by more than
+    ``mode_margin`` (a missed peak). The refinement (verify.refine_refit: local emulator on all runs,
+    zoomed grid posterior, verified) replaces the first estimate when it missed a peak, or when the
+    new one is trustworthy or has the larger ESS. Returns (result, predictive, verification, history,
+    summary)."""
+    b = np.asarray(cal_c.bounds, float)
+    draws = posterior_samples(cal_c, 400, seed=bud.seed + 19)
+    par = _params(cal_c)[cal_c.names[-1]]
+    prof = switch_profile(ev_c, draws, par["hdi90"], b, n_values=bud.profile_values, n_iter=bud.profile_iters,
+                          pop=bud.mode_search_pop, extend=bud.profile_extend, drop=bud.profile_drop,
+                          seed=bud.seed + 23)
+    zdraw = solver_z(ev_c, p_c)
+    fin = np.isfinite(zdraw)
+    zd_max = float(zdraw[fin].max()) if fin.any() else -np.inf
+    pz = prof["z"]
+    lw_d = zdraw[fin] - sampling_log_density(cal_c, p_c.x[fin]) if fin.any() else np.zeros(0)
+    lw_d = lw_d[np.isfinite(lw_d)]
+    lw_p = pz - sampling_log_density(cal_c, prof["x"])
+    excess = (float(np.max(lw_p[np.isfinite(pz)]) - logmeanexp(lw_d)) if len(lw_d) and np.isfinite(pz).any()
+              else None)
+    gap_all = float(np.max(pz) - zd_max)
+    lo_i, hi_i = par["hdi90"]
+    out = {"switch": prof["switch"].tolist(), "z": [float(v) if np.isfinite(v) else None for v in pz],
+           "log_weight_excess": [None if not np.isfinite(v) else float(v - logmeanexp(lw_d)) for v in lw_p]
+           if len(lw_d) else None, "runs": int(len(prof["runs_z"])), "interval_before": [float(lo_i), float(hi_i)],
+           "best_draw_z": zd_max, "max_log_weight_excess": excess, "gap": gap_all, "refined": False}
+    log(f"[diagnose] refit {name}: profile along {cal_c.names[-1]} "
+        + ", ".join(f"{s:.3g}: {z:.1f}" for s, z in zip(prof["switch"], pz)) + f" (best posterior draw {zd_max:.1f}; "
+        f"largest importance weight over the draws' mean: {excess if excess is None else round(excess, 2)} in ln)")
+    missed = gap_all > bud.mode_margin
+    if not (missed or (excess is not None and excess > bud.profile_outside)) or bud.refit_refine_rounds <= 0:
+        return cal_c, p_c, ver, history, out
+    good = np.isfinite(prof["runs_z"])
+    xe = np.vstack([p_c.x[fin], prof["runs_x"][good]])
+    ze = np.concatenate([zdraw[fin], prof["runs_z"][good]])
+    log(f"[diagnose] refit {name}: the profile finds mass outside its posterior: refining with its runs")
+    r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(xe, ze))
+    take = missed or _trusted(r_ver, bud) or r_ver["ess"] >= ver["ess"]
+    out.update(refined=True, adopted=bool(take), log_evidence_before=float(ver["log_evidence"]),
+               log_evidence_refined=float(r_ver["log_evidence"]), ess=float(r_ver["ess"]),
+               interval_after=_params(r_cal)[cal_c.names[-1]]["hdi90"])
+    log(f"[diagnose] refit {name} after the profile: log Z {ver['log_evidence']:.2f} -> {r_ver['log_evidence']:.2f} "
+        f"(ESS {r_ver['ess']:.1f}/{r_ver['n_draws']}), {cal_c.names[-1]} 90 % interval "
+        f"[{lo_i:.3g}, {hi_i:.3g}] -> [{out['interval_after'][0]:.3g}, {out['interval_after'][1]:.3g}]"
+        + ("" if take else ": kept the first estimate"))
+    for h in r_hist:
+        h["profile"] = True
+    if not take:
+        for h in r_hist:
+            h["kept"] = False
+        return cal_c, p_c, ver, history + r_hist, out
+    for h in history:
+        h["kept"] = False
+    return r_cal, r_p, r_ver, history + r_hist, out
+
+
 def adopt_refined_baseline(v_new: dict, v_old: dict, n_draws: int, ess_min: float) -> bool:
     """Does the mode check's refined baseline evidence ``v_new`` replace ``v_old`` (verification dicts:
     log_evidence, se, ess)? The old proposal provably missed mass (a run beat all of its runs by more
@@ -615,6 +691,20 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
             cal_c, p_c, ver, history, rechecks[c] = refit_recheck(ev_c, cal_c, preds_after[c], ver, history, pts,
                                                                   bud, log, name=c)
             refits[c], preds_after[c], raw[c] = (ev_c, cal_c), p_c, (ver, history)
+    profiles = {}
+    if bud.profile_top > 0:
+        # the refits that may be named or be the runner-up, profiled along their switch (ridges)
+        above = [c for c in top if raw[c][0]["log_evidence"] > base_ver["log_evidence"]]
+        for c in sorted(above, key=lambda c: -raw[c][0]["log_evidence"])[: bud.profile_top]:
+            ev_c, cal_c = refits[c]
+            ver, history = raw[c]
+            p_c, profiles[c] = preds_after[c], []
+            for _ in range(bud.profile_rounds):
+                cal_c, p_c, ver, history, pr = profile_refit(ev_c, cal_c, p_c, ver, history, bud, log, name=c)
+                profiles[c].append(pr)
+                if not (pr["refined"] and pr.get("adopted")):
+                    break
+            refits[c], preds_after[c], raw[c] = (ev_c, cal_c), p_c, (ver, history)
     for c in top:
         ev_c, cal_c = refits[c]
         p_c = preds_after[c]
@@ -638,6 +728,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                "ess_fraction": ver["ess_fraction"], "evidence_history": history,
                "evidence_converged": bool(ver.get("converged", _trusted(ver, bud))),
                "mode_search": history[0].get("mode_search"), "refit_recheck": rechecks.get(c),
+               "profile": profiles.get(c),
                "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
                "delta_waic": 2 * (el["elpd"] - elpd_b["elpd"]), "located_rescored": rs,
                "misfit_after": misfit_c, "screening_score": scr.scores[c], "mimic": scr.mimic[c],

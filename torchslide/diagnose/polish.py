@@ -28,8 +28,8 @@ def _best_starts(X: np.ndarray, Z: np.ndarray, n: int, min_dist: float) -> list[
     return picked
 
 
-def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, pop: int = 8, n_starts: int = 2,
-                 step0=None, seed: int = 0) -> dict:
+def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, pop: int = 8, n_starts: int | None = 2,
+                 step0=None, seed: int = 0, hold=None) -> dict:
     """Batched (1+lambda) local search of z = ln L + ln prior (the solver's, not the emulator's).
 
     ``ev_c``: the candidate's evaluator (callable on (n, p) points, returns .z, .failed).
@@ -38,7 +38,9 @@ def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, po
     (default 0.05); each start keeps its own step, x1.5 after an improving iteration, x0.5 after one
     that did not improve. Each iteration: ``pop`` Gaussian moves per start, the first of them the
     start's last improving move repeated (a ridge is followed rather than re-found), all starts in
-    one call of ``ev_c``. Returns {x (m, p), z (m,), best_x, best_z, start_z, improvement}, with
+    one call of ``ev_c``. ``n_starts``: the best runs (pairwise >= 0.05 apart in the unit cube) the
+    search starts from; None: every finite run of ``X`` is a start. ``hold``: (p,) bool, axes kept at
+    each start's value (a search in the others: a profile, see profile.py). Returns {x (m, p), z (m,), best_x, best_z, start_z, improvement}, with
     improvement = best_z - max(Z) (> 0: the search found a better point than every earlier run).
     """
     b = np.asarray(bounds, float)
@@ -52,7 +54,8 @@ def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, po
     rng = np.random.default_rng(seed)
     p = b.shape[1]
     step = np.full(p, 0.05) if step0 is None else np.clip(np.asarray(step0, float), 1e-4, 0.25)
-    starts = _best_starts(U, Z, n_starts, min_dist=0.05)
+    starts = list(range(len(U))) if n_starts is None else _best_starts(U, Z, n_starts, min_dist=0.05)
+    free = np.ones(p) if hold is None else (~np.asarray(hold, bool)).astype(float)
     cur_u = [U[i].copy() for i in starts]
     cur_z = [float(Z[i]) for i in starts]
     steps = [step.copy() for _ in starts]
@@ -62,7 +65,7 @@ def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, po
     for _ in range(n_iter):
         cand = []
         for k in range(len(cur_u)):
-            d = rng.standard_normal((pop, p)) * steps[k]
+            d = rng.standard_normal((pop, p)) * steps[k] * free
             if np.any(moves[k]):
                 d[0] = moves[k]
             cand.append(np.clip(cur_u[k] + d, 0.0, 1.0))

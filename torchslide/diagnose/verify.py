@@ -48,6 +48,21 @@ def logmeanexp(a: np.ndarray) -> float:
     return m + math.log(float(np.mean(np.exp(a - m))))
 
 
+def proposal_log_density(cal, x: np.ndarray) -> np.ndarray:
+    """(n,) the unnormalised log density, in z units (ln L + ln prior), of the proposal that
+    posterior_samples(cal) draws from, at points ``x`` (n, p): for a grid posterior, ln of the
+    piecewise-constant grid density of the nearest cell + log evidence (beyond the zoomed grid: its
+    edge cell, which lies ~25 below the peak, so a point there weighs heavily only where z is high);
+    else the emulator's mean. The importance log weight of a solver run at x is z(x) minus this."""
+    x = np.atleast_2d(np.asarray(x, float))
+    if getattr(cal, "samples", None) is None and cal.posterior_grid is not None:
+        dens = np.asarray(cal.posterior_grid, float)
+        idx = tuple(np.clip(np.rint((x[:, d] - ax[0]) / (ax[1] - ax[0])).astype(int), 0, len(ax) - 1)
+                    if len(ax) > 1 else np.zeros(len(x), int) for d, ax in enumerate(cal.grid_axes))
+        return np.log(np.maximum(dens[idx], 1e-300)) + float(cal.log_evidence)
+    return cal.emulator.mean(torch.as_tensor(x)).detach().numpy()
+
+
 def verified_evidence(evaluator, cal, x: np.ndarray, draws: np.ndarray, n_boot: int = 200, seed: int = 0) -> dict:
     """Verified log evidence of ``cal`` from solver runs ``draws`` (M, k) at posterior draws ``x`` (M, p)."""
     x = np.asarray(x, float)
@@ -59,15 +74,7 @@ def verified_evidence(evaluator, cal, x: np.ndarray, draws: np.ndarray, n_boot: 
         return out
     z = (evaluator.likelihood.log_likelihood(torch.as_tensor(draws)) +
          evaluator.prior.log_prob(torch.as_tensor(x))).numpy()
-    if getattr(cal, "samples", None) is None and cal.posterior_grid is not None:
-        # grid posterior (p <= 2): the draws come from the piecewise-constant grid density q itself
-        dens = np.asarray(cal.posterior_grid, float)
-        idx = tuple(np.clip(np.rint((x[:, d] - ax[0]) / (ax[1] - ax[0])).astype(int), 0, len(ax) - 1)
-                    if len(ax) > 1 else np.zeros(len(x), int) for d, ax in enumerate(cal.grid_axes))
-        g = np.log(np.maximum(dens[idx], 1e-300)) + float(cal.log_evidence)
-    else:
-        g = cal.emulator.mean(torch.as_tensor(x)).detach().numpy()
-    lw = z - g
+    lw = z - proposal_log_density(cal, x)
     ok = np.isfinite(lw)
     lw = lw[ok]
     if lw.size == 0:
