@@ -134,7 +134,7 @@ def test_small_harness(tmp_path):
     assert cases["entrainment"]["diagnosis"]["screening"]["ranking"][0] == "entrainment"
     assert all(c["fine_factor"] == 2 for c in cases.values())     # recordings on cells half the inversion's
     from experiments.hidden_physics.harness import main as harness_main
-    for bad in (["--fine-factor", "0"], ["--mode-search-iters", "-1"]):
+    for bad in (["--fine-factor", "0"], ["--mode-search-iters", "-1"], ["--profile-top", "-1"]):
         with pytest.raises(SystemExit):
             harness_main(bad + ["--out", str(tmp_path / "never")])
     assert not (tmp_path / "never").exists()
@@ -605,11 +605,17 @@ def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     monkeypatch.setattr(H, "run_case", fake)
     assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
                    "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1",
-                   "--model-error", "0", "--mode-search-iters", "12"]) == 0
+                   "--model-error", "0", "--mode-search-iters", "12", "--profile-top", "5"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
-    assert calls == [("null", 3, 20.0, "cuda", 64, True, 1, {"model_error_runs": 0, "mode_search_iters": 12}),
+    assert calls == [("null", 3, 20.0, "cuda", 64, True, 1,
+                      {"model_error_runs": 0, "mode_search_iters": 12, "profile_top": 5}),
                      ("null", 3, 40.0, "cpu", 16, False, 2, None)]
+    # a case another process holds (its .running claim) is skipped; the claim goes when a case ends
+    (tmp_path / "b" / "null_s4.running").write_text("")
+    assert H.main(["--seed-list", "4,5", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert [c[:2] for c in calls[2:]] == [("null", 5)]
+    assert sorted(p.name for p in (tmp_path / "b").glob("*.running")) == ["null_s4.running"]
 
 
 def test_harness_terrain_variants(tmp_path, monkeypatch):
@@ -742,6 +748,15 @@ def test_report_cell_says_which_refits_the_recheck_refined():
     assert "re-checked at the refined baseline (its points +12.3 over the draws), log Z -125.00 -> -110.00" in cell
     assert "re-checked" not in _refit_check(dict(c, refit_recheck={"refined": False, "gap_to_draws": 1.0}))
     assert "re-checked" not in _refit_check(dict(c, refit_recheck=None))
+    pr = [{"refined": True, "adopted": True, "interval_before": [4.99, 5.66], "interval_after": [3.09, 3.69],
+           "log_evidence_before": -1307.03, "log_evidence_refined": -1298.59},
+          {"refined": True, "adopted": True, "interval_before": [3.09, 3.69], "interval_after": [2.3, 4.78],
+           "log_evidence_before": -1298.59, "log_evidence_refined": -1296.88}, {"refined": False}]
+    cell = _refit_check(dict(c, param="tau_y", profile=pr))
+    assert ("profile along tau_y found ridge mass the posterior missed: refined 2x, 90 % interval [4.99, 5.66] -> "
+            "[2.3, 4.78], log Z -1307.03 -> -1296.88") in cell
+    assert "posterior covers the ridge" in _refit_check(dict(c, param="tau_y", profile=[{"refined": False}]))
+    assert "profile" not in _refit_check(c)
 
 
 def test_page_section_of_the_refit_recheck(tmp_path):
@@ -1346,7 +1361,8 @@ def test_page_sections_of_the_profile_and_of_a_run_against_an_earlier_one(tmp_pa
                       dict(_cand("mu_i", 20.0), param="mu_i", profile=[{"refined": False}])], "yield_stress"), True)
     text = "\n".join(_profile_section([now, mk(1, diag([_cand("yield_stress", 60.0)], None), False)]))
     assert "Refits profiled: 2; refined: 1; refinement adopted: 1." in text
-    assert "| yield_stress_s0 | yield_stress | 2 | [4.6, 5] -> [2.8, 3.6] | -1307.0 -> -1298.1 | 3 |" in text
+    assert "| yield_stress_s0 | yield_stress | 2 | [4.6, 5] -> [2.8, 3.6] | -1307.0 -> -1298.1 | 3 | yield_stress; True |" in text
+    assert "The refits with" in text and "The refits with" not in "\n".join(_profile_section([now], describe=False))
     assert _profile_section([mk(1, diag([_cand("yield_stress", 60.0)], None), False)]) == []
     prev = tmp_path / "prev"
     prev.mkdir()

@@ -200,41 +200,30 @@ def _posthoc_section(cases) -> list[str]:
 def _changes_section() -> list[str]:
     """What changed in the method since the previous results page (hand-written text, no numbers)."""
     return ["## Method changes since the previous page (made before this run's null calibration and evaluation)", "",
-            "* **Refit re-check** (session 11; pipeline.refit_recheck, Budgets.refit_recheck, on by default). When "
-            "the baseline changed after the refits (the mode check below, or a beta = 0 slice adopted), every refit "
-            "is run at the new baseline's best points with its switch at 0 and refined from them when they beat its "
-            "best posterior draw by more than 3 in ln posterior: a candidate nests the baseline, so its evidence can "
-            "only fall below the baseline's by the switch's Occam factor, not by tens (the 20 m probe's curvature s1: "
-            "every candidate 7-18 ln below the refined baseline). It never runs when the baseline stayed the "
-            "calibration's, so only the cases (and null calibration seeds) whose baseline changed were re-run "
-            "with it; the others are the previous run's files. See the section after this one.",
-            "* **Baseline mode check** (pipeline.baseline_mode_check, Budgets.baseline_mode_check, on by default). "
-            "Every candidate nests the baseline, and the refits explore (mu, xi) with more runs than the baseline's "
-            "16 (harness budgets). Their best runs (the best overall and the best with the switch in the lowest 10 % of its prior box), "
-            "with the switch dropped, are now run in the baseline model, and a local search on the solver "
-            "(polish.local_search, the refits' budget) continues from the best of all baseline runs. A run that beats "
-            "every baseline run by more than 3 in ln posterior means the baseline's posterior sat on a secondary "
-            "peak of the long mu-xi ridge: it is refined from all runs (verify.refine_baseline) and its verified "
-            "evidence replaces the first when larger beyond the noise of both. On the previous page's cases "
-            "this was common: a candidate whose switch interval reached 0 (the nested baseline itself) out-scored "
-            "the baseline by a lower-bound 2 ln BF of up to 72 (entrainment, kappa in [0, 0.0002], on earth "
-            "pressure s3), on null seeds too (evaluation null s3: earth pressure 36.9, interval [0, 0.29]; "
-            "null calibration seed 103: curvature 27.0). The threshold bf_min itself did not move (47.4): it "
-            "is set by null calibration seed 101's earth-pressure gain of 37.9, whose switch interval [0.3, 0.7] "
-            "stays away from 0 (the grid's real error, not a baseline failure).",
-            "* The report says where the baseline's evidence came from, what the mode check found and which refits "
-            "the re-check refined.",
-            "* Unchanged from the previous page: the grid's approximation error in every likelihood "
-            "(model_error_runs = 12), the refits' mode search (from their best runs, the nested baseline and the "
-            "screening's linearised optimum; missed when it beats the best posterior draw by more than 3), the "
-            "refinement (local emulator, zoomed grid posterior, at most four rounds), the bound probe, all five "
-            "candidates refitted, the beta = 0 slice check, the decision rule.",
-            "* Thresholds were re-derived on the null seeds 100-104 run with this method (calibrate_thresholds.py, "
-            "same rule). The evaluation seeds ran at the same time, and their verdicts were then recomputed with "
-            "those thresholds (calibrate_thresholds --apply). Each case JSON keeps the verdict it was run with "
-            "under 'decision_as_run'.",
-            "* The sections below on the resolved terrain, the 20 m probes, the switch-bias study and the "
-            "per-candidate model error were run with the previous method (no baseline mode check, no refit re-check).", ""]
+            "* **Profile along the switch** (session 12; pipeline.profile_refit, torchslide/diagnose/profile.py, "
+            "Budgets.profile_top = 2, on by default; see the section after the next). A nested candidate's switch "
+            "trades off against mu and xi, so its posterior can be a long curved ridge; the previous page's control "
+            "without grid error (EARLIER.md) had yield-stress intervals scattered on both sides of the truth, each on "
+            "one stretch of the ridge, and a longer search on the solver found the truth scoring above every refit "
+            "run. Now the two refits with the largest verified evidence above the baseline's are profiled: on a "
+            "ladder of switch values around their 90 % interval, a local search on the solver with the switch held "
+            "finds the best z; where the refit's draws give a profile optimum far less mass than the solver says "
+            "it has (importance weight more than e^1 above the draws' mean), the refit is refined with the "
+            "profile's runs and profiled again, at most three times.",
+            "* **Results are kept in git** (results/; a case's .npz only for seed 0, the before/after figure). "
+            "Every case and null calibration seed on this page was run from scratch in session 12. The files of "
+            "the earlier runs lived outside git and were lost with the machine; their pages' sections on other "
+            "grids, terrains and studies are archived as text in [EARLIER.md](EARLIER.md) (run with earlier "
+            "methods).",
+            "* The same cases run with the method without the profile (session 12, as of the previous page: "
+            "results/before_profile, stopped part-way to make room for this run) are compared below.",
+            "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
+            "mode search, their refinement (local emulator, zoomed grid posterior, verified), the bound probe, all "
+            "five candidates refitted, the beta = 0 slice check, the baseline mode check and the refit re-check "
+            "(session 10-11), the decision rule.",
+            "* Thresholds re-derived on the null seeds 100-104 run with this method (calibrate_thresholds.py, same "
+            "rule); evaluation cases that ran before they were known were re-decided with them "
+            "(calibrate_thresholds --apply; each keeps the verdict it was run with under 'decision_as_run').", ""]
 
 
 def _best_lower(case) -> tuple:
@@ -294,10 +283,12 @@ def _recheck_section(cases, prev: Path | None = None) -> list[str]:
             "|---|---|---|" + ("---|" if prev else "") + "---|"] + rows + [""]
 
 
-def _profile_section(cases) -> list[str]:
+def _profile_section(cases, heading: str = "## Profile along the switch (pipeline.profile_refit)",
+                     note: str = "", describe: bool = True) -> list[str]:
     """The profile along the switch (pipeline.profile_refit) in the saved cases: how many refits it
     ran on, refined and adopted; per refit it refined, the switch's 90 % interval before -> after, its
-    ln Z before -> after and, for the true term, the truth."""
+    ln Z before -> after, for the true term the truth, and the case's outcome (found; strict success).
+    ``note``: a paragraph after the description (``describe``: the method's; off for a second table)."""
     rows, n_prof, n_ref, n_take = [], 0, 0, 0
     for c in cases:
         tag = f"{c['scenario']}_s{c['seed']}" + ("" if c["strength"] == 1.0 else f"_x{c['strength']:g}")
@@ -318,21 +309,21 @@ def _profile_section(cases) -> list[str]:
             rows.append(f"| {tag} | {x['name']} | {len(rounds)} | {iv(first['interval_before'])} -> "
                         f"{iv(last['interval_after'])}{'' if took else ' (not adopted)'} | "
                         f"{first['log_evidence_before']:.1f} -> {last['log_evidence_refined']:.1f} | "
-                        f"{'-' if truth is None else f'{truth:g}'} |")
+                        f"{'-' if truth is None else f'{truth:g}'} | {found_label(c)}; {strict_success(c)} |")
     if not n_prof:
         return []
-    return ["## Profile along the switch (pipeline.profile_refit)", "",
-            "The refits with the largest verified evidence above the baseline's (at most two per case) are "
+    what = ("The refits with the largest verified evidence above the baseline's (at most two per case) are "
             "profiled along their switch: on a ladder of switch values around the refit's 90 % interval (extended "
             "where the profile stays high), the best z = ln L + ln prior over (mu, xi) by a local search on the "
             "solver with the switch held (torchslide/diagnose/profile.py). A profile optimum whose importance "
             "weight (its z minus the log density the refit's draws come from) exceeds the mean weight of the "
             "posterior draws' runs by more than 1 in ln, or any value more than 3 above the best draw, means the "
             "posterior gives part of the ridge too little mass: the refit is refined with the profile's runs "
-            "(local emulator, zoomed grid posterior, verified) and profiled again, at most three times.", "",
+            "(local emulator, zoomed grid posterior, verified) and profiled again, at most three times.")
+    return [heading, "", *([what, ""] if describe else []), *([note, ""] if note else []),
             f"Refits profiled: {n_prof}; refined: {n_ref}; refinement adopted: {n_take}.", "",
             "| case | candidate | profile rounds | switch 90 % interval before -> after | ln Z before -> after | "
-            "truth |", "|---|---|---|---|---|---|"] + rows + [""]
+            "truth | case: found; strict success |", "|---|---|---|---|---|---|---|"] + rows + [""]
 
 
 def _versus_section(cases, prev: Path, heading: str, what: str) -> list[str]:
@@ -772,6 +763,22 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         L += ["", f"Resulting thresholds: {t['thresholds']}.", ""]
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _changes_section() if changes else []
+    L += _versus_section(cases, HERE / "results" / "before_profile",
+                         "## This run against the same cases without the profile (results/before_profile)",
+                         "The cases of this page that also ran, in session 12, with the method without the profile "
+                         "along the switch (everything else equal; that run's thresholds: the previous page's, "
+                         "thresholds of this run's own null seeds here). 'Right verdict': the true term named, "
+                         "'nothing missing' for the nulls, 'unexplained' for the out-of-library term.") if changes else []
+    L += _profile_section(cases) if changes else []
+    L += (_profile_section([json.loads(p.read_text()) for p in sorted((HERE / "results" / "control_profile_probe")
+                                                                    .glob("*.json"))],
+                          heading="### The profile on the control without grid error (probe)",
+                          note="`harness --fine-factor 1 --model-error 0` (recordings on the inversion grid, no grid "
+                               "error in the likelihood: the control of EARLIER.md, whose yield-stress refits missed "
+                               "the truth in 5 of 5 seeds) with the profile; one seed, run while it was developed "
+                               "(results/control_profile_probe; verdict with bf_min 6 and located_min 8, the "
+                               "thresholds the control's own null seeds gave, EARLIER.md).", describe=False)
+          if changes else [])
     L += _recheck_section(cases) if changes else []
     L += _control_section()
     L += _consistency_section()

@@ -81,7 +81,8 @@ def write_figures(diag, out: Path) -> list[str]:
 
 
 def _refit_check(c: dict) -> str:
-    """One cell: the mode search's outcome and the evidence's convergence ('-' when not refitted)."""
+    """One cell: the mode search's outcome, the re-check and the profile along the switch when they
+    refined the refit, and the evidence's convergence ('-' when not refitted)."""
     if c.get("log_evidence") is None:
         return "-"
     ms = c.get("mode_search")
@@ -94,6 +95,15 @@ def _refit_check(c: dict) -> str:
     if rc and rc.get("refined"):
         parts.append(f"re-checked at the refined baseline (its points {rc['gap_to_draws']:+.1f} over the draws), "
                      f"log Z {rc['log_evidence_before']:.2f} -> {rc['log_evidence']:.2f}")
+    pr = c.get("profile") or []
+    took = [r for r in pr if r.get("refined") and r.get("adopted")]
+    if took:
+        a, b = took[0]["interval_before"], took[-1]["interval_after"]
+        parts.append(f"profile along {c.get('param', 'the switch')} found ridge mass the posterior missed: refined "
+                     f"{len(took)}x, 90 % interval [{a[0]:.3g}, {a[1]:.3g}] -> [{b[0]:.3g}, {b[1]:.3g}], log Z "
+                     f"{took[0]['log_evidence_before']:.2f} -> {took[-1]['log_evidence_refined']:.2f}")
+    elif pr:
+        parts.append(f"profile along {c.get('param', 'the switch')}: posterior covers the ridge")
     if "evidence_converged" in c:
         parts.append("evidence converged" if c["evidence_converged"] else "evidence NOT converged")
     return "; ".join(parts) or "-"
