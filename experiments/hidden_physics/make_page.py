@@ -638,7 +638,9 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
          f"{gn['channel_halfwidth']:g} m, the slope-to-run-out kink replaced by a {gr['transition']:g} m parabolic "
          f"transition, release radius {rr:g} m instead of {rn:g} m (same volume), gauge g2 at x = {xr:g} m "
          f"instead of {xn:g} m (at the deposit's front there). Median wall time per case "
-         f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), ""]
+         f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), "",
+         "The same terrain with the method before the profile along the switch (sessions 9-10) is archived in "
+         "EARLIER.md under the same heading.", ""]
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
     gc = Path(gc) if gc is not None else HERE / "results" / "grid_convergence_resolved.json"
     d20 = Path(d20) if d20 is not None else HERE / "results" / "resolved20"
@@ -762,6 +764,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         L += [f"| {r['case']} | {r['max_two_ln_bf_lower']:.1f} | {r['max_located']:.1f} |" for r in t["null_cases"]]
         L += ["", f"Resulting thresholds: {t['thresholds']}.", ""]
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
+    L += _resolved_terrain_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",
@@ -779,6 +782,14 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
                                "(results/control_profile_probe; verdict with bf_min 6 and located_min 8, the "
                                "thresholds the control's own null seeds gave, EARLIER.md).", describe=False)
           if changes else [])
+    top5 = [json.loads(p.read_text()) for p in sorted((HERE / "results" / "profile_top5_probe").glob("*.json"))]
+    if changes and top5:
+        L += _profile_section(top5, heading="### Probe: every refit above the baseline profiled (`--profile-top 5`)",
+                              note="`harness --scenarios yield_stress --profile-top 5` on this page's terrain "
+                                   "(results/profile_top5_probe; thresholds of this page): on seed 0 yield stress was "
+                                   "the third refit and so was not profiled by the default (two). Is the narrow "
+                                   "terrain's miss the profile's budget or the grid?", describe=False)
+        L += _case_rows(top5) + [""]
     L += _recheck_section(cases) if changes else []
     L += _control_section()
     L += _consistency_section()
@@ -790,7 +801,6 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _own_model_error_section()
     L += _finer_grid_section()
     L += _grid_convergence_section()
-    L += _resolved_terrain_section()
     walls = [c["wall_s"] for c in cases]
     nref = [sum(1 for x in c["diagnosis"]["candidates"] if x.get("log_bayes_factor") is not None) for c in cases]
     L += ["## Cost", "", f"Wall time per case (one core, OMP_NUM_THREADS=1; two cases ran in parallel on a shared "
