@@ -1370,3 +1370,13 @@ def test_page_sections_of_the_profile_and_of_a_run_against_an_earlier_one(tmp_pa
     v = "\n".join(_versus_section([now, mk(1, diag([], None), False)], prev, "## Versus", "what"))
     assert "| yield_stress | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in v and v.startswith("## Versus")
     assert _versus_section([now], tmp_path / "none", "## Versus", "what") == []
+    # the --profile-top probe's section: the profile's rows and the per-case table of its saved cases
+    from experiments.hidden_physics.make_page import _profile_top_probe_section
+    probe = tmp_path / "probe"
+    probe.mkdir()
+    assert _profile_top_probe_section(probe) == []
+    (probe / "yield_stress_s0.json").write_text(json.dumps(now))
+    p = "\n".join(_profile_top_probe_section(probe))
+    assert p.startswith("### Probe: every refit above the baseline profiled (`--profile-top 5`)")
+    assert "| yield_stress_s0 | yield_stress | 2 | [4.6, 5] -> [2.8, 3.6] |" in p and "The refits with" not in p
+    assert "| yield_stress_s0 | yield_stress | True |" in p           # _case_rows: found, strict success

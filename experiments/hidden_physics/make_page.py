@@ -211,7 +211,8 @@ def _changes_section() -> list[str]:
             "it has (importance weight more than e^1 above the draws' mean), the refit is refined with the "
             "profile's runs and profiled again, at most three times.",
             "* **Results are kept in git** (results/; a case's .npz only for seed 0, the before/after figure). "
-            "Every case and null calibration seed on this page was run from scratch in session 12. The files of "
+            "Every case and null calibration seed on this page was run from scratch in session 12 (the strength "
+            "cases, the resolved terrain and the probes in session 13). The files of "
             "the earlier runs lived outside git and were lost with the machine; their pages' sections on other "
             "grids, terrains and studies are archived as text in [EARLIER.md](EARLIER.md) (run with earlier "
             "methods).",
@@ -324,6 +325,21 @@ def _profile_section(cases, heading: str = "## Profile along the switch (pipelin
             f"Refits profiled: {n_prof}; refined: {n_ref}; refinement adopted: {n_take}.", "",
             "| case | candidate | profile rounds | switch 90 % interval before -> after | ln Z before -> after | "
             "truth | case: found; strict success |", "|---|---|---|---|---|---|---|"] + rows + [""]
+
+
+def _profile_top_probe_section(d: Path | None = None) -> list[str]:
+    """The probe with every refit above the baseline profiled (``harness --profile-top 5``; its cases in
+    ``d``, default results/profile_top5_probe): what the profile did per refit and each case's outcome;
+    [] when there are no cases."""
+    d = Path(d) if d is not None else HERE / "results" / "profile_top5_probe"
+    cases = [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))]
+    if not cases:
+        return []
+    return _profile_section(cases, heading="### Probe: every refit above the baseline profiled (`--profile-top 5`)",
+                            note="`harness --scenarios yield_stress --profile-top 5` on this page's terrain "
+                                 f"({_shown(d, HERE)}; thresholds of this page): on seed 0 yield stress was the third "
+                                 "refit and so was not profiled by the default (two). Is the narrow terrain's miss "
+                                 "the profile's budget or the grid?", describe=False) + _case_rows(cases) + [""]
 
 
 def _versus_section(cases, prev: Path, heading: str, what: str) -> list[str]:
@@ -782,14 +798,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
                                "(results/control_profile_probe; verdict with bf_min 6 and located_min 8, the "
                                "thresholds the control's own null seeds gave, EARLIER.md).", describe=False)
           if changes else [])
-    top5 = [json.loads(p.read_text()) for p in sorted((HERE / "results" / "profile_top5_probe").glob("*.json"))]
-    if changes and top5:
-        L += _profile_section(top5, heading="### Probe: every refit above the baseline profiled (`--profile-top 5`)",
-                              note="`harness --scenarios yield_stress --profile-top 5` on this page's terrain "
-                                   "(results/profile_top5_probe; thresholds of this page): on seed 0 yield stress was "
-                                   "the third refit and so was not profiled by the default (two). Is the narrow "
-                                   "terrain's miss the profile's budget or the grid?", describe=False)
-        L += _case_rows(top5) + [""]
+    L += _profile_top_probe_section() if changes else []
     L += _recheck_section(cases) if changes else []
     L += _control_section()
     L += _consistency_section()

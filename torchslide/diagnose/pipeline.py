@@ -462,8 +462,8 @@ def profile_refit(ev_c, cal_c, p_c, ver: dict, history: list, bud: Budgets, log=
     profile optimum (q: what the refit's draws come from, profile.sampling_log_density) against the mean weight of
     its posterior draws' runs (the verified evidence's); more than ``profile_outside`` above it in ln
     means the proposal gives that stretch of the ridge e^1 or more times too little mass (a point
-    beyond a zoomed grid is weighed against the grid's edge cell, verify.proposal_log_density). Also when a profile value beats the best draw by more than
-    ``mode_margin`` (a missed peak). The refinement (verify.refine_refit: local emulator on all runs,
+    beyond a zoomed grid is weighed against the grid's edge cell, verify.proposal_log_density). Also
+    when a profile value beats the best draw by more than ``mode_margin`` (a missed peak). The refinement (verify.refine_refit: local emulator on all runs,
     zoomed grid posterior, verified) replaces the first estimate when it missed a peak, or when the
     new one is trustworthy or has the larger ESS. Returns (result, predictive, verification, history,
     summary)."""
