@@ -164,3 +164,42 @@ def test_grid_model_error_from_a_pilot_calibration(tmp_path):
     assert np.all((me.x >= ev.prior.bounds[0].numpy()) & (me.x <= ev.prior.bounds[1].numpy()))
     with pytest.raises(ValueError, match="baseline must be calibrated here"):
         diagnose(ev, ["mu_i"], bud, baseline=object(), workdir=tmp_path)
+
+
+def test_release_volume_error_enters_the_covariance_through_its_jacobian():
+    """release_sd > 0: J = dy/d(relative volume) by central differences at the same draws. Without
+    entrainment the final volume is the release volume (mass conservation), so its row of J is V and its
+    variance grows by (s_V V)^2; the deposit map gains variance too, the grid part is unchanged."""
+    from torchslide.diagnose.model_error import release_jacobian
+
+    ev = _evaluator()
+    x = np.array([[0.3, 500.0], [0.35, 800.0], [0.32, 600.0]])
+    V = float(ev.release.sum() * ev.dem.cellsize**2)
+    me0 = approximation_error(ev, x, factor=2)
+    me = approximation_error(ev, x, factor=2, release_sd=0.05)
+    assert me.release_jacobian.shape == (3, ev.k) and me.release_sd == 0.05
+    fv = ev.block("final_volume").slice
+    assert np.allclose(me.release_jacobian[:, fv], V, rtol=1e-3)   # up to float32 and outflow
+    assert np.allclose(me.samples, me0.samples) and np.allclose(me.grid_covariance, me0.covariance)
+    added = np.diag(me.covariance - me0.covariance)
+    assert math.isclose(added[fv][0], (0.05 * V) ** 2, rel_tol=2e-3)
+    dep = ev.block("deposit").slice
+    assert added[dep].max() > 0 and np.all(added >= -1e-12)
+    s = me.summary(ev.blocks)
+    assert s["release_sd"] == 0.05 and math.isclose(s["blocks"]["final_volume"]["rms_sd_release"], 0.05 * V, rel_tol=1e-3)
+    assert "release_sd" not in me0.summary(ev.blocks)
+    # the likelihood carries it: a prediction off by the volume's sd costs less with it
+    ev_me, ev_me0 = ev.with_model_error(me), ev.with_model_error(me0)
+    assert ev_me.sigma[fv][0] > ev_me0.sigma[fv][0]
+    with pytest.raises(ValueError, match=r"release_volume_sd must be in \(0, 0.5\)"):
+        release_jacobian(ev, x, 0.7)
+
+
+def test_release_volume_sd_needs_the_model_error_runs(tmp_path):
+    from torchslide.diagnose import Budgets, diagnose
+
+    ev = _evaluator()
+    with pytest.raises(ValueError, match="release_volume_sd = 0.05 needs model_error_runs >= 2"):
+        diagnose(ev, ["mu_i"], Budgets(model_error_runs=0, release_volume_sd=0.05), workdir=tmp_path)
+    with pytest.raises(ValueError, match=r"release_volume_sd must be in \[0, 0.5\)"):
+        diagnose(ev, ["mu_i"], Budgets(release_volume_sd=-0.1), workdir=tmp_path)

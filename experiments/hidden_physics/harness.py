@@ -1,5 +1,5 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--model-error N] [--mode-search-iters N] [--profile-top N] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
+[--model-error N] [--mode-search-iters N] [--profile-top N] [--release-volume-sd S] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
 [--max-batch N]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
@@ -121,6 +121,10 @@ def main(argv=None) -> int:
     p.add_argument("--profile-top", type=int, default=None,
                    help="Budgets.profile_top: refits profiled along their switch (default: Budgets' default); "
                         "another value needs its own null seeds and --out")
+    p.add_argument("--release-volume-sd", type=float, default=None,
+                   help="Budgets.release_volume_sd: the release volume's relative sd given to the diagnosis (the "
+                        "recordings' release error U(0.9, 1.1) has sd 0.1/sqrt(3) = 0.0577; default: Budgets' "
+                        "default, 0); another value needs its own null seeds and --out")
     p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
     p.add_argument("--cellsize", type=float, default=40.0,
                    help="inversion cell size, m (the recordings use half of it); thresholds.json was set at 40 m, "
@@ -143,6 +147,8 @@ def main(argv=None) -> int:
         p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
     if a.mode_search_iters is not None and a.mode_search_iters < 0:
         p.error(f"--mode-search-iters must be >= 0, got {a.mode_search_iters}")
+    if a.release_volume_sd is not None and not 0 <= a.release_volume_sd < 0.5:
+        p.error(f"--release-volume-sd must be in [0, 0.5), got {a.release_volume_sd}")
     if a.profile_top is not None and a.profile_top < 0:
         p.error(f"--profile-top must be >= 0, got {a.profile_top}")
     with terrain_variant(a.terrain):
@@ -165,7 +171,8 @@ def _run_all(a) -> int:
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
     bud = {k: v for k, v in (("model_error_runs", a.model_error), ("mode_search_iters", a.mode_search_iters),
-                             ("profile_top", a.profile_top)) if v is not None} or None
+                             ("profile_top", a.profile_top), ("release_volume_sd", a.release_volume_sd))
+           if v is not None} or None
     out = Path(a.out)
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
     for seed in seeds:

@@ -34,6 +34,9 @@ and a [diagnose] section::
                                  #     lower-left corner, shape x factor; keys as in [terrain]) for the model
                                  #     error's finer runs, e.g. the LiDAR DEM the inversion DEM was coarsened
                                  #     from; default: the inversion DEM interpolated bilinearly
+    release_volume_sd = 0.0      # > 0: the release volume's relative sd (e.g. 0.1 for a scar depth known to
+                                 #     +-10 %), marginalised in every likelihood with the grid's error (needs
+                                 #     model_error_runs >= 2); 0: the release volume is taken as exact
     mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
                                  #     is refined with its runs); 0: off
     profile_top = 2              # refits (largest verified evidence above the baseline's) profiled along their
@@ -73,7 +76,7 @@ _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
              "mode_search_iters", "profile_top", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
-_DIAG_KEYS = {"candidates", "seed", "fine_terrain", *_INT_KEYS, *_THRESHOLD_KEYS}
+_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
 def diagnose_defaults() -> dict:
@@ -82,7 +85,8 @@ def diagnose_defaults() -> dict:
     from ..physics import CANDIDATES
 
     b, t = Budgets(), Thresholds()
-    return {"candidates": list(CANDIDATES), "seed": b.seed, **{k: getattr(b, k) for k in _INT_KEYS},
+    return {"candidates": list(CANDIDATES), "seed": b.seed, "release_volume_sd": b.release_volume_sd,
+            **{k: getattr(b, k) for k in _INT_KEYS},
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 _VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
              "deposit_map": {"kind", "file", "sigma", "corr_length", "name"},
@@ -165,6 +169,13 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     if c["model_error_runs"] == 1:
         raise ConfigError(f"{path}: [diagnose] model_error_runs must be 0 (off) or >= 2 (a covariance needs two "
                           f"run pairs), got 1")
+    v = c["release_volume_sd"]
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 <= v < 0.5:
+        raise ConfigError(f"{path}: [diagnose] release_volume_sd must be a relative sd in [0, 0.5), got {v!r}")
+    if v > 0 and c["model_error_runs"] < 2:
+        raise ConfigError(f"{path}: [diagnose] release_volume_sd = {v!r} needs model_error_runs >= 2 (its effect is "
+                          f"taken at the pilot's posterior draws), got {c['model_error_runs']}")
+    c["release_volume_sd"] = float(v)
     if c["n_total_max"] < c["n_total"]:
         raise ConfigError(f"{path}: [diagnose] n_total_max ({c['n_total_max']}) must be >= n_total ({c['n_total']})")
     for k in _THRESHOLD_KEYS:
@@ -271,7 +282,8 @@ def run(args: argparse.Namespace) -> int:
                   baseline_refine_rounds=dg["baseline_refine_rounds"],
                   refit_refine_rounds=dg["refit_refine_rounds"], model_error_runs=dg["model_error_runs"],
                   model_error_factor=dg["model_error_factor"], mode_search_iters=dg["mode_search_iters"],
-                  profile_top=dg["profile_top"], batch_size=dg["batch_size"], top_k=dg["top_k"],
+                  profile_top=dg["profile_top"], release_volume_sd=dg["release_volume_sd"],
+                  batch_size=dg["batch_size"], top_k=dg["top_k"],
                   n_perm=dg["n_perm"], seed=dg["seed"])
     th = Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
     out = Path(args.out)

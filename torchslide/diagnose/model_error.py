@@ -23,6 +23,16 @@ that terrain (:class:`FineTerrain`): then eps also carries what the coarse DEM l
 channel two cells wide is shallower and wider on 40 m cells than on 20 m ones), usually the larger
 part of the error. Its rasters are block-averaged back onto the inversion grid (h_final, h_max, v_max,
 bed change; arrival time: block minimum), so every observation predicts from it as from an inversion run.
+
+The release volume is an input known only to a relative standard deviation s_V (a back-analysed scar's
+depth); the same enhanced error model marginalises it. With y linearised in the relative volume error
+delta ~ (0, s_V^2), y(V (1 + delta)) ~ y(V) + delta J, so
+
+    Gamma = Gamma_eps + s_V^2 (1/m) sum_i J_i J_i^T,   J_i = (y(V (1 + a), theta_i) - y(V (1 - a), theta_i)) / (2 a)
+
+(central differences on the inversion grid at the same m = n draws, a = sqrt(3) s_V: the end points of
+a uniform error with that sd). Without it, a term that changes the volume (entrainment) absorbs the
+release's error into its own parameter with an interval that does not allow for it.
 """
 from __future__ import annotations
 
@@ -130,11 +140,15 @@ class ModelError:
 
     samples: (n, k) eps_i = y_fine(theta_i) - y_coarse(theta_i) in the flat observable order of the
     evaluator; x: (n, p) the parameter sets theta_i; factor: the refinement factor f.
+    release_jacobian: (m, k) J_i = dy / d(relative release volume) at m parameter sets, observable units
+    per unit relative volume, or None; release_sd: s_V, the release volume's relative sd (0: none).
     """
 
     samples: np.ndarray
     x: np.ndarray
     factor: int
+    release_jacobian: np.ndarray | None = None
+    release_sd: float = 0.0
 
     @property
     def mean(self) -> np.ndarray:
@@ -142,21 +156,41 @@ class ModelError:
         return self.samples.mean(axis=0)
 
     @property
-    def covariance(self) -> np.ndarray:
-        """(k, k) Gamma_eps, the sample covariance (zero for n = 1)."""
+    def grid_covariance(self) -> np.ndarray:
+        """(k, k) Gamma_eps, the sample covariance of the grid's error (zero for n = 1)."""
         s = self.samples
         if len(s) < 2:
             return np.zeros((s.shape[1], s.shape[1]))
         c = s - s.mean(axis=0)
         return c.T @ c / (len(s) - 1)
 
+    @property
+    def release_covariance(self) -> np.ndarray:
+        """(k, k) s_V^2 (1/m) sum_i J_i J_i^T, the release volume's error (zero without it)."""
+        k = self.samples.shape[1]
+        J = self.release_jacobian
+        if J is None or self.release_sd <= 0:
+            return np.zeros((k, k))
+        return self.release_sd**2 * (J.T @ J) / len(J)
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """(k, k) Gamma = Gamma_eps + the release volume's part (module doc)."""
+        return self.grid_covariance + self.release_covariance
+
     def summary(self, blocks) -> dict:
         """Per observation block: rms of eps_bar and of the per-value sd (the size of what is absorbed)."""
-        sd = np.sqrt(np.diag(self.covariance))
+        sd = np.sqrt(np.diag(self.grid_covariance))
+        sd_v = np.sqrt(np.diag(self.release_covariance))
         m = self.mean
-        return {"n": int(len(self.samples)), "factor": int(self.factor),
-                "blocks": {b.name: {"rms_mean": float(np.sqrt(np.mean(m[b.slice] ** 2))),
-                                    "rms_sd": float(np.sqrt(np.mean(sd[b.slice] ** 2)))} for b in blocks}}
+        out = {"n": int(len(self.samples)), "factor": int(self.factor),
+               "blocks": {b.name: {"rms_mean": float(np.sqrt(np.mean(m[b.slice] ** 2))),
+                                   "rms_sd": float(np.sqrt(np.mean(sd[b.slice] ** 2)))} for b in blocks}}
+        if self.release_jacobian is not None and self.release_sd > 0:
+            out["release_sd"] = float(self.release_sd)
+            for b in blocks:
+                out["blocks"][b.name]["rms_sd_release"] = float(np.sqrt(np.mean(sd_v[b.slice] ** 2)))
+        return out
 
 
 def _predictions(evaluator, x, run) -> tuple[np.ndarray, np.ndarray]:
@@ -199,15 +233,35 @@ def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndar
     return _predictions(evaluator, x, run)
 
 
-def approximation_error(evaluator, x: np.ndarray, factor: int = 2) -> ModelError:
+def release_jacobian(evaluator, x: np.ndarray, release_sd: float) -> tuple[np.ndarray, np.ndarray]:
+    """(J (n, k), ok (n,)): central differences of the predictions at the (n, p) parameter sets ``x``
+    in the relative release volume, J_i = (y(V (1 + a)) - y(V (1 - a))) / (2 a), a = sqrt(3) release_sd
+    (module doc), on the inversion grid; ok is False where a run failed."""
+    if not 0 < release_sd < 0.5:
+        raise ValueError(f"release_volume_sd must be in (0, 0.5) (a relative sd), got {release_sd!r}")
+    a = float(np.sqrt(3.0) * release_sd)
+    rel = np.asarray(evaluator.release, dtype=np.float64)
+    up, up_failed = _predictions(evaluator, x, evaluator._copy(release=rel * (1 + a)).simulate)
+    dn, dn_failed = _predictions(evaluator, x, evaluator._copy(release=rel * (1 - a)).simulate)
+    return (up - dn) / (2 * a), ~(up_failed | dn_failed)
+
+
+def approximation_error(evaluator, x: np.ndarray, factor: int = 2, release_sd: float = 0.0) -> ModelError:
     """Sample eps = y_fine - y_coarse at the (n, p) parameter sets ``x`` (n >= 2; members failing on
-    either grid are dropped)."""
+    either grid are dropped); ``release_sd`` > 0: also the release volume's relative sd, its Jacobian
+    taken at the same sets (:func:`release_jacobian`)."""
     x = np.asarray(x, dtype=np.float64)
     if len(x) < 2:
         raise ValueError(f"the approximation error needs at least 2 parameter sets, got {len(x)}")
     coarse, c_failed = _predictions(evaluator, x, evaluator.simulate)
     fine, f_failed = fine_predictions(evaluator, x, factor)
     ok = ~(c_failed | f_failed)
+    J = None
+    if release_sd > 0:
+        J, j_ok = release_jacobian(evaluator, x, release_sd)
+        ok &= j_ok
+        J = J[ok]
     if ok.sum() < 2:
         raise RuntimeError(f"the approximation error needs 2 runs that succeed on both grids, got {int(ok.sum())}")
-    return ModelError(samples=fine[ok] - coarse[ok], x=x[ok], factor=int(factor))
+    return ModelError(samples=fine[ok] - coarse[ok], x=x[ok], factor=int(factor), release_jacobian=J,
+                      release_sd=float(release_sd))

@@ -82,6 +82,8 @@ class Budgets:
                                        # posterior draws of a pilot baseline calibration, in the likelihood of
                                        # every model; 0: off
     model_error_factor: int = 2        # ... against runs on cells this many times smaller
+    release_volume_sd: float = 0.0     # > 0: the release volume's relative sd, marginalised in the same
+                                       # likelihoods (model_error module doc; needs model_error_runs >= 2)
     mode_search_iters: int = 4         # refits: iterations of polish.local_search on the solver from the refit's
                                        # best runs, the nested baseline's and the screening's linearised optimum
                                        # (0: off); a search that beats every refit run, or the refit's best
@@ -554,10 +556,13 @@ def grid_model_error(evaluator, bud: Budgets, workdir, log=print):
                                 seed=bud.seed, mcmc_steps=bud.mcmc_steps, checkpoint=Path(workdir) / "pilot.pt",
                                 grid_size=bud.baseline_grid_size)
     x = posterior_samples(pilot, bud.model_error_runs, seed=bud.seed + 5)
-    me = approximation_error(evaluator, x, bud.model_error_factor)
+    me = approximation_error(evaluator, x, bud.model_error_factor, release_sd=bud.release_volume_sd)
     s = me.summary(evaluator.blocks)
     log(f"[diagnose] approximation error of the grid from {s['n']} run pairs (x{s['factor']} finer): " +
         ", ".join(f"{k} rms mean {v['rms_mean']:.3g} sd {v['rms_sd']:.3g}" for k, v in s["blocks"].items()))
+    if "release_sd" in s:
+        log(f"[diagnose] release volume error (relative sd {s['release_sd']:.3g}), rms sd: " +
+            ", ".join(f"{k} {v['rms_sd_release']:.3g}" for k, v in s["blocks"].items()))
     return evaluator.with_model_error(me), me
 
 
@@ -586,6 +591,11 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     t0 = time.perf_counter()
     M = bud.n_posterior_samples
     model_error = None
+    if not 0 <= bud.release_volume_sd < 0.5:
+        raise ValueError(f"release_volume_sd must be in [0, 0.5) (a relative sd), got {bud.release_volume_sd!r}")
+    if bud.release_volume_sd > 0 and bud.model_error_runs < 2:
+        raise ValueError(f"release_volume_sd = {bud.release_volume_sd:g} needs model_error_runs >= 2 (its Jacobian is "
+                         f"taken at the pilot's posterior draws), got model_error_runs = {bud.model_error_runs}")
     if bud.model_error_runs > 0:
         if baseline is not None:
             raise ValueError("model_error_runs > 0 changes the likelihood: the baseline must be calibrated here, "
