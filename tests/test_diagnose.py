@@ -388,7 +388,13 @@ def test_cli_diagnose_keys(tmp_path):
     dg = load_diagnose_config(p).extra["diagnose"]
     assert (dg["waic_min"], dg["explain_min"], dg["ess_min"], dg["bf_min"]) == (4.0, 0.6, 3.0, 6.0)
     assert dg["refit_refine_rounds"] == 0 and dg["baseline_refine_rounds"] == 3 and dg["profile_top"] == 0
+    assert dg["release_volume_sd"] == 0.0
+    q, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nrelease_volume_sd = 0.05')
+    assert load_diagnose_config(q).extra["diagnose"]["release_volume_sd"] == 0.05
     for extra, msg in (("bf_minimum = 3", "unknown key 'bf_minimum'"), ("explain_min = 2", "explain_min"),
+                       ("release_volume_sd = 0.6", r"release_volume_sd must be a relative sd in \[0, 0.5\), got 0.6"),
+                       ("release_volume_sd = 'x'", "release_volume_sd must be"),
+                       ("release_volume_sd = 0.1\nmodel_error_runs = 0", "release_volume_sd = 0.1 needs model_error_runs >= 2"),
                        ("refit_refine_rounds = -1", "refit_refine_rounds"),
                        ("model_error_runs = 1", "model_error_runs"), ("model_error_factor = 1", "model_error_factor"),
                        ("mode_search_iters = -1", "mode_search_iters"), ("profile_top = -1", "profile_top"),
@@ -736,6 +742,40 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     rerun2 = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path / "absent",
                                                   d20_check=tmp_path / "absent", d20_recheck=tmp_path))
     assert "### Two of them re-run with the refit re-check" in rerun2 and "resolved20_recheck" in rerun2
+
+
+def test_page_section_of_the_release_volume_run(tmp_path):
+    """make_page's section of the resolved terrain run with the release volume's error: the sd the cases
+    ran with (from their model-error summary), the targets, a row per case with that run's own
+    thresholds, and the comparison with the same cases of the run without it."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _release_volume_section
+
+    th = Thresholds(bf_min=10.5, located_min=8.0)
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+    en = lambda lo, hi: dict(_cand("entrainment", 150.0), param="kappa", parameters={"kappa": par(0.0014, lo, hi)},
+                             two_ln_bf_lower=150.0)
+    diag = lambda cand, sd: {"verdict": "missing_physics", "missing_physics": "entrainment", "candidates": [cand],
+                             "located": [], "decision": {"two_ln_bf_over_runner_up": 140.0},
+                             "fit_before": {"misfit": 100.0}, "fit_after": {"misfit": 60.0}, "thresholds": asdict(th),
+                             "model_error": {"n": 12, "factor": 2, **({"release_sd": sd} if sd else {})}}
+    mk = lambda cover, d: {"scenario": "entrainment", "seed": 4, "strength": 1.0, "wall_s": 250.0,
+                           "truth": {"term": "entrainment", "kappa": 0.0015}, "true_term_covered_hdr90": cover,
+                           "diagnosis": d}
+    now, before = tmp_path / "now", tmp_path / "before"
+    for d in (now / "null_calib", before):
+        d.mkdir(parents=True)
+    (now / "entrainment_s4.json").write_text(json.dumps(mk(True, diag(en(0.0012, 0.0016), 0.0577))))
+    (before / "entrainment_s4.json").write_text(json.dumps(mk(False, diag(en(0.0011, 0.00141), None))))
+    (now / "null_calib" / "thresholds.json").write_text(json.dumps(
+        {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 9.0, "max_located": 6.0}], "thresholds": asdict(th)}))
+    text = "\n".join(_release_volume_section(now, before))
+    assert "Budgets.release_volume_sd, 0.0577" in text and "bf_min 10.5" in text
+    assert "| entrainment | 1 | 1 | entrainment 1 | >= 4 of 5 |" in text
+    assert "| entrainment_s4 | entrainment | True | entrainment 150.0 | 140.0 | 0.0014, [0.0012, 0.0016] (0.0015) |" in text
+    assert "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in text
+    assert _release_volume_section(tmp_path / "absent", before) == []
 
 
 def test_report_cell_says_which_refits_the_recheck_refined():

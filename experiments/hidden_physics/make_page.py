@@ -216,6 +216,9 @@ def _changes_section() -> list[str]:
             "the earlier runs lived outside git and were lost with the machine; their pages' sections on other "
             "grids, terrains and studies are archived as text in [EARLIER.md](EARLIER.md) (run with earlier "
             "methods).",
+            "* **The release volume's error in the likelihood, as an option** (session 14; Budgets.release_volume_sd, "
+            "default 0, so the main run above is unchanged). The resolved terrain was re-run with it, with its own "
+            "null seeds (section 'The resolved terrain with the release volume's error in the likelihood').",
             "* The same cases run with the method without the profile (session 12, as of the previous page: "
             "results/before_profile, stopped part-way to make room for this run) are compared below.",
             "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
@@ -686,6 +689,37 @@ def _shown(path: Path, base: Path) -> str:
         return str(path)
 
 
+def _release_volume_section(d=None, prev=None) -> list[str]:
+    """The resolved terrain re-run with the release volume's error marginalised (``harness --terrain
+    resolved --release-volume-sd 0.0577``, Budgets.release_volume_sd): its cases in ``d`` (default
+    results/resolved_vol/results; null seeds in d/../null_calib, thresholds in d/null_calib after
+    ``calibrate_thresholds --apply``), the targets, every case and the same cases without it (``prev``,
+    default results/resolved/results)."""
+    d = Path(d) if d is not None else HERE / "results" / "resolved_vol" / "results"
+    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
+    cases, th = _variant_cases(d)
+    cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
+    if not cases:
+        return []
+    sds = sorted({c["diagnosis"].get("model_error", {}).get("release_sd") for c in cases} - {None})
+    L = ["## The resolved terrain with the release volume's error in the likelihood (`--release-volume-sd 0.0577`)", "",
+         "The recordings' release volume is the nominal one times U(0.9, 1.1), which the diagnosis is not told. "
+         "Until this run it entered only the final volume's sigma (10 % of the nominal volume); every other "
+         "observable was compared with runs of the nominal release as if it were exact. Here the diagnosis is "
+         f"given the release volume's relative sd (Budgets.release_volume_sd, {', '.join(f'{v:g}' for v in sds) or '-'}: "
+         "the sd of that uniform error, as a user who knows the scar depth to +-10 % would give it). It is "
+         "marginalised like the grid's error: its covariance s_V^2 J J^T (J the sensitivity of every observable "
+         "to the relative volume, central differences at the pilot's 12 draws) is added to every likelihood "
+         "(torchslide.diagnose.model_error). Same scenarios, seeds, noise, grids and method otherwise; own null "
+         f"seeds. Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+         + _thresholds_sentence(th, "run with it"), ""]
+    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
+    L += _versus_section(cases, prev, "### Against the same cases without it (results/resolved/results)",
+                         "'Before': the resolved-terrain run of the previous section (session 13, release volume "
+                         "taken as exact); 'now': with its error. Each with thresholds from its own null seeds.")
+    return L
+
+
 def build_page(results, out=None, thresholds_file=None, note: str = "", changes: bool = True) -> Path:
     """The results page (out/README.md + out/figures) of the harness cases in ``results``;
     ``thresholds_file``: the null calibration shown (default thresholds.json here); ``note``: a
@@ -781,6 +815,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         L += ["", f"Resulting thresholds: {t['thresholds']}.", ""]
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _resolved_terrain_section()
+    L += _release_volume_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",
