@@ -750,7 +750,7 @@ def test_page_section_of_the_release_volume_run(tmp_path):
     thresholds, and the comparison with the same cases of the run without it."""
     import json
     from dataclasses import asdict
-    from experiments.hidden_physics.make_page import _release_volume_section
+    from experiments.hidden_physics.make_page import _release_volume_narrow_section, _release_volume_section
 
     th = Thresholds(bf_min=10.5, located_min=8.0)
     par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
@@ -775,7 +775,11 @@ def test_page_section_of_the_release_volume_run(tmp_path):
     assert "| entrainment | 1 | 1 | entrainment 1 | >= 4 of 5 |" in text
     assert "| entrainment_s4 | entrainment | True | entrainment 150.0 | 140.0 | 0.0014, [0.0012, 0.0016] (0.0015) |" in text
     assert "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in text
+    assert "### Against the same cases without it" in text
     assert _release_volume_section(tmp_path / "absent", before) == []
+    narrow = "\n".join(_release_volume_narrow_section(now, before))
+    assert narrow.startswith("### Probe: the narrow terrain") and "#### Against the same cases without it" in narrow
+    assert "the main run at the top of this page" in narrow and "| entrainment | 1 | 0 -> 1 |" in narrow
 
 
 def test_report_cell_says_which_refits_the_recheck_refined():

@@ -689,12 +689,25 @@ def _shown(path: Path, base: Path) -> str:
         return str(path)
 
 
-def _release_volume_section(d=None, prev=None) -> list[str]:
-    """The resolved terrain re-run with the release volume's error marginalised (``harness --terrain
-    resolved --release-volume-sd 0.0577``, Budgets.release_volume_sd): its cases in ``d`` (default
-    results/resolved_vol/results; null seeds in d/../null_calib, thresholds in d/null_calib after
-    ``calibrate_thresholds --apply``), the targets, every case and the same cases without it (``prev``,
-    default results/resolved/results)."""
+_RELEASE_VOLUME_TEXT = (
+    "The recordings' release volume is the nominal one times U(0.9, 1.1), which the diagnosis is not told. "
+    "Until this run it entered only the final volume's sigma (10 % of the nominal volume); every other "
+    "observable was compared with runs of the nominal release as if it were exact. Here the diagnosis is "
+    "given the release volume's relative sd (Budgets.release_volume_sd, {sds}: the sd of that uniform error, as a "
+    "user who knows the scar depth to +-10 % would give it). It is marginalised like the grid's error: its "
+    "covariance s_V^2 J J^T (J the sensitivity of every observable to the relative volume, central differences "
+    "at the pilot's 12 draws) is added to every likelihood (torchslide.diagnose.model_error). Same seeds, noise, "
+    "grids and method otherwise; own null seeds.")
+
+
+def _release_volume_section(d=None, prev=None, heading: str | None = None, versus: str | None = None,
+                            note: str = "") -> list[str]:
+    """A harness run with the release volume's error marginalised (``harness --release-volume-sd 0.0577``,
+    Budgets.release_volume_sd): its cases in ``d`` (default results/resolved_vol/results, the resolved
+    terrain; null seeds and, after ``calibrate_thresholds --apply``, thresholds in d/null_calib), the targets,
+    every case and the same cases without it (``prev``, default results/resolved/results; ``versus``: the
+    sentence saying what 'before' is); ``heading`` and ``note`` (a paragraph after the description) for
+    another run (the narrow terrain's probe)."""
     d = Path(d) if d is not None else HERE / "results" / "resolved_vol" / "results"
     prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
     cases, th = _variant_cases(d)
@@ -702,22 +715,31 @@ def _release_volume_section(d=None, prev=None) -> list[str]:
     if not cases:
         return []
     sds = sorted({c["diagnosis"].get("model_error", {}).get("release_sd") for c in cases} - {None})
-    L = ["## The resolved terrain with the release volume's error in the likelihood (`--release-volume-sd 0.0577`)", "",
-         "The recordings' release volume is the nominal one times U(0.9, 1.1), which the diagnosis is not told. "
-         "Until this run it entered only the final volume's sigma (10 % of the nominal volume); every other "
-         "observable was compared with runs of the nominal release as if it were exact. Here the diagnosis is "
-         f"given the release volume's relative sd (Budgets.release_volume_sd, {', '.join(f'{v:g}' for v in sds) or '-'}: "
-         "the sd of that uniform error, as a user who knows the scar depth to +-10 % would give it). It is "
-         "marginalised like the grid's error: its covariance s_V^2 J J^T (J the sensitivity of every observable "
-         "to the relative volume, central differences at the pilot's 12 draws) is added to every likelihood "
-         "(torchslide.diagnose.model_error). Same scenarios, seeds, noise, grids and method otherwise; own null "
-         f"seeds. Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
-         + _thresholds_sentence(th, "run with it"), ""]
+    heading = heading or ("## The resolved terrain with the release volume's error in the likelihood "
+                          "(`--release-volume-sd 0.0577`)")
+    versus = versus or ("'Before': the resolved-terrain run of the previous section (session 13, release volume "
+                        "taken as exact); 'now': with its error. Each with thresholds from its own null seeds.")
+    L = [heading, "", _RELEASE_VOLUME_TEXT.format(sds=", ".join(f"{v:g}" for v in sds) or "-")
+         + f" Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+         + _thresholds_sentence(th, "run with it"), ""] + ([note, ""] if note else [])
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    L += _versus_section(cases, prev, "### Against the same cases without it (results/resolved/results)",
-                         "'Before': the resolved-terrain run of the previous section (session 13, release volume "
-                         "taken as exact); 'now': with its error. Each with thresholds from its own null seeds.")
+    L += _versus_section(cases, prev, f"{heading.split(' ')[0]}# Against the same cases without it ({_shown(prev, HERE)})",
+                         versus)
     return L
+
+
+def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
+    """The narrow terrain's probe with the release volume's error (``harness --release-volume-sd 0.0577
+    --scenarios entrainment,earth_pressure``, null seeds 100-104): cases in ``d`` (default
+    results/narrow_vol/results) against the main run (``prev``, default results/harness)."""
+    return _release_volume_section(
+        d if d is not None else HERE / "results" / "narrow_vol" / "results",
+        prev if prev is not None else HERE / "results" / "harness",
+        heading="### Probe: the narrow terrain with the release volume's error (`--release-volume-sd 0.0577`)",
+        versus="'Before': the main run at the top of this page (release volume taken as exact); 'now': with its "
+               "error. Each with thresholds from its own null seeds.",
+        note="Only the scenarios the main run found (entrainment, earth pressure), seeds 0-3 (seed 4 did not fit "
+             "in session 14), and the null seeds 100-104 were run: a probe of whether the option keeps them.")
 
 
 def build_page(results, out=None, thresholds_file=None, note: str = "", changes: bool = True) -> Path:
@@ -816,6 +838,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _resolved_terrain_section()
     L += _release_volume_section()
+    L += _release_volume_narrow_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",

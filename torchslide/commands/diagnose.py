@@ -34,9 +34,9 @@ and a [diagnose] section::
                                  #     lower-left corner, shape x factor; keys as in [terrain]) for the model
                                  #     error's finer runs, e.g. the LiDAR DEM the inversion DEM was coarsened
                                  #     from; default: the inversion DEM interpolated bilinearly
-    release_volume_sd = 0.0      # > 0: the release volume's relative sd (e.g. 0.1 for a scar depth known to
-                                 #     +-10 %), marginalised in every likelihood with the grid's error (needs
-                                 #     model_error_runs >= 2); 0: the release volume is taken as exact
+    release_volume_sd = 0.0      # > 0: the release volume's relative sd (e.g. 0.058 for a volume known to
+                                 #     +-10 %, the sd of that uniform error), marginalised in every likelihood
+                                 #     with the grid's error (needs model_error_runs >= 2); 0: taken as exact
     mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
                                  #     is refined with its runs); 0: off
     profile_top = 2              # refits (largest verified evidence above the baseline's) profiled along their

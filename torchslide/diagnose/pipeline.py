@@ -2,7 +2,8 @@
 
 [Budgets.model_error_runs > 0 (default 12): the grid's approximation error from a pilot calibration's
 posterior draws run on the inversion grid and on finer cells (grid_model_error, model_error), with
-Budgets.release_volume_sd > 0 also the release volume's error, put in every model's likelihood] -> baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
+Budgets.release_volume_sd > 0 also the release volume's error, put in every model's likelihood]
+-> baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
 zoomed grid posterior, local emulator refits with the verification runs until the verified evidence is
 trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batch screening -> refits
 of the top_k candidates, each followed by a local search on the solver from its best runs
