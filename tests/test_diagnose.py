@@ -345,7 +345,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
     tiny = ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
             'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
-            'model_error_runs = 2\nmode_search_iters = 1\n'
+            'model_error_runs = 2\nmode_search_iters = 1\nrelease_volume_sd = 0.05\n'
             '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
     out = tmp_path / "out"
@@ -375,6 +375,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     # the default path: the grid's approximation error (2 run pairs here) and the mode search ran
     n_lin = 3 if j["screening"]["linear_opt"]["mu_i"] else 0
     assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + n_lin + 12
+    assert j["model_error"]["release_sd"] == 0.05     # [diagnose] release_volume_sd reached the likelihood
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())
 
