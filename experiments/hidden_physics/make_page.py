@@ -738,8 +738,9 @@ def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
         heading="### Probe: the narrow terrain with the release volume's error (`--release-volume-sd 0.0577`)",
         versus="'Before': the main run at the top of this page (release volume taken as exact); 'now': with its "
                "error. Each with thresholds from its own null seeds.",
-        note="Only the scenarios the main run found (entrainment, earth pressure), seeds 0-3 (seed 4 did not fit "
-             "in session 14), and the null seeds 100-104 were run: a probe of whether the option keeps them.")
+        note="Only the scenarios the main run found (entrainment, earth pressure), seeds 0-4 (seeds 0-3 in session "
+             "14, seed 4 in session 15), and the null seeds 100-104 were run: a probe of whether the option keeps "
+             "them.")
 
 
 def build_page(results, out=None, thresholds_file=None, note: str = "", changes: bool = True) -> Path:
