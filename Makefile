@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test test-all bench bench-solver bench-inference clean
+.PHONY: venv demo diagnose-demo test test-all bench bench-solver bench-inference clean
 
 venv: $(STAMP)
 
@@ -18,6 +18,13 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(PY) -m experiments.demo --out demo_out
+
+# The diagnose CLI on files: one blind harness case (entrainment, seed 1) written as DEM / maps / gauge CSVs
+# + diagnose.toml (experiments/hidden_physics/export_case.py), then `torchslide diagnose` on them.
+diagnose-demo: $(STAMP)
+	$(PY) -m experiments.hidden_physics.export_case entrainment 1 --out diagnose_demo
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(VENV)/bin/torchslide diagnose diagnose_demo/diagnose.toml \
+		--out diagnose_demo/diagnosis
 
 # Tests run on every core (pytest-xdist), one torch thread per worker.
 test: $(STAMP)
@@ -38,4 +45,4 @@ bench-inference: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m bench.bench_inference --quick --seeds 5 --out bench/results/inference.json
 
 clean:
-	rm -rf $(VENV) demo_out .pytest_cache
+	rm -rf $(VENV) demo_out diagnose_demo .pytest_cache

@@ -1425,3 +1425,78 @@ def test_page_sections_of_the_profile_and_of_a_run_against_an_earlier_one(tmp_pa
     assert p.startswith("### Probe: every refit above the baseline profiled (`--profile-top 5`)")
     assert "| yield_stress_s0 | yield_stress | 2 | [4.6, 5] -> [2.8, 3.6] |" in p and "The refits with" not in p
     assert "| yield_stress_s0 | yield_stress | True |" in p           # _case_rows: found, strict success
+
+
+def test_export_case_gives_the_cli_the_harness_case(tmp_path):
+    """experiments.hidden_physics.export_case: the files and diagnose.toml it writes give the CLI the
+    harness' case exactly: the same data, sigmas, terrain, release, erodible depth, gauges, prior,
+    solver settings, the same z at a parameter point, and the harness' budgets and thresholds (so
+    `torchslide diagnose` on them is the harness case); the truth is kept apart."""
+    import json
+    import torch
+    from experiments.hidden_physics import export_case, scenarios
+    from experiments.hidden_physics.harness import HARNESS_BUDGETS, harness_thresholds
+    from torchslide.commands.diagnose import budgets_and_thresholds, load_diagnose_config
+    from torchslide.commands.diagnose import make_evaluator as cli_evaluator
+    from torchslide.diagnose import Budgets
+
+    with scenarios.terrain_variant("resolved"):
+        assert export_case.main(["yield_stress", "2", "--out", str(tmp_path), "--terrain", "resolved"]) == 0
+        harness_ev = scenarios.make_evaluator(scenarios.make_recording("yield_stress", 2))
+    cfg = load_diagnose_config(tmp_path / "diagnose.toml")
+    ev = cli_evaluator(cfg)
+    assert [b.name for b in ev.blocks] == [b.name for b in harness_ev.blocks]
+    for attr in ("data", "sigma", "release", "erodible_depth"):
+        assert np.array_equal(getattr(ev, attr), getattr(harness_ev, attr)), attr
+    assert np.array_equal(ev.dem.z, harness_ev.dem.z) and ev.dem.cellsize == harness_ev.dem.cellsize
+    assert ev.gauges == harness_ev.gauges and ev.prior.names == harness_ev.prior.names
+    assert ev.solver_config == harness_ev.solver_config and ev.t_end == harness_ev.t_end
+    x = torch.tensor([[0.27, 600.0]], dtype=torch.float64)
+    assert float(ev(x).z[0]) == float(harness_ev(x).z[0])
+    bud, th = budgets_and_thresholds(cfg)
+    assert bud == Budgets(**HARNESS_BUDGETS, seed=2) and th == harness_thresholds()
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["truth"]["tau_y"] == 3.0 and truth["terrain"] == "resolved"
+    text = (tmp_path / "diagnose.toml").read_text()
+    assert "tau_y" not in text and not any("yield" in l for l in text.splitlines() if l.startswith("#"))
+
+
+def test_page_section_of_the_finer_grid_profile(tmp_path):
+    """make_page's finer-grid profile section: per case the best switch on each grid and both profiles
+    relative to their maximum; absent file: no section."""
+    import json
+    from experiments.hidden_physics.make_page import _finer_grid_profile_section
+
+    row = {"terrain": "resolved", "case": "earth_pressure_s0", "candidate": "earth_pressure", "param": "earth_pressure",
+           "truth": 1.0, "refit_hdr90": [0.35, 0.625],
+           "profiles": {"inversion_grid": {"switch": [0.5, 0.75, 1.0], "z": [-1308.5, -1308.3, -1310.0], "best": 0.75},
+                        "finer_grid": {"switch": [0.5, 0.75, 1.0], "z": [-1302.0, -1325.8, -1344.0], "best": 0.5}}}
+    f = tmp_path / "fgp.json"
+    f.write_text(json.dumps([row]))
+    text = "\n".join(_finer_grid_profile_section(f))
+    assert ("| resolved | earth_pressure_s0 | earth_pressure | 1 | [0.35, 0.625] | 0.75 | 0.5 | "
+            "0.5: -0.2, 0.75: 0.0, 1: -1.7 | 0.5: 0.0, 0.75: -23.8, 1: -42.0 |") in text
+    assert _finer_grid_profile_section(tmp_path / "absent.json") == []
+
+
+@pytest.mark.slow
+def test_cli_on_an_exported_case_reproduces_the_saved_harness_case(tmp_path):
+    """`torchslide diagnose` on export_case's files of narrow entrainment seed 1 gives the saved harness
+    result (results/harness/entrainment_s1.json): same verdict and named term, every candidate's 2 ln BF
+    and the named term's interval as saved (to allow for another machine's floating point). About 5 min."""
+    import json
+    from pathlib import Path
+    from experiments.hidden_physics import export_case
+
+    export_case.main(["entrainment", "1", "--out", str(tmp_path)])
+    assert main(["diagnose", str(tmp_path / "diagnose.toml"), "--out", str(tmp_path / "diag"), "--quiet"]) == 0
+    got = json.loads((tmp_path / "diag" / "report.json").read_text())
+    saved = json.loads((Path(export_case.__file__).parent / "results" / "harness" / "entrainment_s1.json")
+                       .read_text())["diagnosis"]
+    assert (got["verdict"], got["missing_physics"]) == (saved["verdict"], saved["missing_physics"]) == (
+        "missing_physics", "entrainment")
+    bf = {c["name"]: c["two_ln_bf"] for c in saved["candidates"]}
+    for c in got["candidates"]:
+        assert abs(c["two_ln_bf"] - bf[c["name"]]) < 1.0, c["name"]
+    iv = lambda d: next(c for c in d["candidates"] if c["name"] == "entrainment")["parameters"]["kappa"]["hdr90"]
+    assert np.allclose(iv(got), iv(saved), rtol=0.05)

@@ -495,6 +495,37 @@ def _own_model_error_section(work: Path | None = None) -> list[str]:
     return L + [""]
 
 
+def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
+    """finer_grid_profile.py's rows (default results/finer_grid_profile.json): per saved case, the
+    profile along the switch on the inversion grid and on cells half as large over the same DEM."""
+    f = Path(f) if f is not None else HERE / "results" / "finer_grid_profile.json"
+    if not f.exists():
+        return []
+    rows = json.loads(f.read_text())
+    L = ["## Probe: would a finer grid over the same DEM correct the switch? "
+         "(experiments/hidden_physics/finer_grid_profile.py)", "",
+         "Saved cases' refits profiled along the switch (profile.switch_profile: 5 values around the refit's 90 % "
+         "interval, the best ln L + ln prior over (mu, xi) at each by a local search on the solver), with the "
+         "measurement errors alone in the likelihood, on the inversion grid (40 m) and on 20 m cells over the "
+         "same 40 m DEM interpolated bilinearly (model_error.fine_run, what the grid's model error compares "
+         "with). If the 40 m solver caused the switch's bias, the finer grid would move the profile's maximum "
+         "towards the truth. 'Profile': the best ln L + ln prior at each switch value minus the largest.", "",
+         "| terrain | case | candidate | truth | refit's 90 % interval | best switch, 40 m | best switch, 20 m "
+         "on the 40 m DEM | profile, 40 m | profile, 20 m on the 40 m DEM |", "|---|---|---|---|---|---|---|---|---|"]
+
+    def prof(p):
+        z = np.asarray(p["z"], float)
+        return ", ".join(f"{s:.3g}: {v - z.max():.1f}" for s, v in zip(p["switch"], z))
+
+    for r in rows:
+        a, b = r["profiles"]["inversion_grid"], r["profiles"]["finer_grid"]
+        lo, hi = r["refit_hdr90"]
+        truth = "-" if r["truth"] is None else f"{r['truth']:.3g}"
+        L.append(f"| {r['terrain']} | {r['case']} | {r['candidate']} | {truth} | [{lo:.3g}, {hi:.3g}] | "
+                 f"{a['best']:.3g} | {b['best']:.3g} | {prof(a)} | {prof(b)} |")
+    return L + [""]
+
+
 def _grid_convergence_section(f: Path | None = None, heading: str = "## Grid convergence on the harness terrain"
                               ) -> list[str]:
     """From grid_convergence.py's JSON: gauge peaks per cell size, the terrain / numerics split of the
@@ -867,6 +898,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _effect_size_section()
     L += _switch_bias_section()
     L += _own_model_error_section()
+    L += _finer_grid_profile_section()
     L += _finer_grid_section()
     L += _grid_convergence_section()
     walls = [c["wall_s"] for c in cases]

@@ -267,25 +267,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
+def budgets_and_thresholds(cfg: Config):
+    """(torchslide.diagnose.Budgets, Thresholds) of a loaded diagnose config: the baseline's budget from
+    [calibration], everything else from [diagnose] (defaults: Budgets() / Thresholds())."""
+    from ..diagnose import Budgets, Thresholds
+
+    cal, dg = cfg.extra["calibration"], cfg.extra["diagnose"]
+    bud = Budgets(baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
+                  **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"])
+    return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
+
+
 def run(args: argparse.Namespace) -> int:
-    from ..diagnose import Budgets, Thresholds, diagnose
+    from ..diagnose import diagnose
     from ..diagnose.report import write_report
 
     cfg = load_diagnose_config(args.config)
     ev = make_evaluator(cfg)
-    cal, dg = cfg.extra["calibration"], cfg.extra["diagnose"]
+    dg = cfg.extra["diagnose"]
     if "entrainment" in dg["candidates"] and cfg.terrain.erodible_depth is None:
         raise ConfigError(f"{cfg.path}: candidate 'entrainment' needs an erodible depth raster ([terrain] erodible)")
-    bud = Budgets(n_posterior_samples=dg["n_posterior_samples"], n_posterior_samples_after=dg["n_posterior_samples_after"],
-                  n_initial=dg["n_initial"], n_total=dg["n_total"], n_total_max=dg["n_total_max"],
-                  baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
-                  baseline_refine_rounds=dg["baseline_refine_rounds"],
-                  refit_refine_rounds=dg["refit_refine_rounds"], model_error_runs=dg["model_error_runs"],
-                  model_error_factor=dg["model_error_factor"], mode_search_iters=dg["mode_search_iters"],
-                  profile_top=dg["profile_top"], release_volume_sd=dg["release_volume_sd"],
-                  batch_size=dg["batch_size"], top_k=dg["top_k"],
-                  n_perm=dg["n_perm"], seed=dg["seed"])
-    th = Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
+    bud, th = budgets_and_thresholds(cfg)
     out = Path(args.out)
     d = diagnose(ev, dg["candidates"], bud, th, log=(lambda s: None) if args.quiet else print)
     write_report(d, out)

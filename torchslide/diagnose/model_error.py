@@ -205,10 +205,11 @@ def _predictions(evaluator, x, run) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(out), np.concatenate(fails)
 
 
-def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """(predictions (n, k), failed (n,)) of the finer-grid model at the (n, p) parameter sets ``x``,
-    in the evaluator's observable order. With ``evaluator.fine_terrain`` (a FineTerrain) its terrain
-    and fields, and its own factor (``factor`` must agree); else the coarse ones refined ``factor`` times."""
+def fine_run(evaluator, x, factor: int = 2):
+    """One solver call for the (n, p) parameter sets ``x`` (n <= evaluator.max_batch) on the finer grid,
+    returned as seen on the evaluator's grid (:func:`coarsen_result`), so every observation predicts from
+    it as from an inversion run. With ``evaluator.fine_terrain`` (a FineTerrain) its terrain and fields
+    and its own factor (``factor`` must agree); else the coarse ones refined ``factor`` times."""
     from ..solver import simulate
 
     ft = getattr(evaluator, "fine_terrain", None)
@@ -223,14 +224,16 @@ def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndar
         rel_f = repeat_cells(evaluator.release, factor)
         erod_f = repeat_cells(evaluator.erodible_depth, factor)
         mus_f = repeat_cells(evaluator.mu_scale, factor)
+    res = simulate(dem_f, rel_f, evaluator.params(x), t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
+                   config=evaluator.solver_config, erodible_depth=erod_f, mu_scale=mus_f, dtype=evaluator.dtype,
+                   device=evaluator.device)
+    return coarsen_result(res, evaluator.dem, factor)
 
-    def run(xb):
-        res = simulate(dem_f, rel_f, evaluator.params(xb), t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
-                       config=evaluator.solver_config, erodible_depth=erod_f, mu_scale=mus_f, dtype=evaluator.dtype,
-                       device=evaluator.device)
-        return coarsen_result(res, evaluator.dem, factor)
 
-    return _predictions(evaluator, x, run)
+def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """(predictions (n, k), failed (n,)) of the finer-grid model (:func:`fine_run`) at the (n, p)
+    parameter sets ``x``, in the evaluator's observable order."""
+    return _predictions(evaluator, x, lambda xb: fine_run(evaluator, xb, factor))
 
 
 def release_jacobian(evaluator, x: np.ndarray, release_sd: float) -> tuple[np.ndarray, np.ndarray]:

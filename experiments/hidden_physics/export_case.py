@@ -1,0 +1,140 @@
+"""Write one harness case as the files a user would bring, with a config for the ``torchslide diagnose`` CLI.
+``python -m experiments.hidden_physics.export_case SCENARIO SEED --out DIR [--terrain narrow|resolved]
+[--strength S] [--thresholds FILE]``, then ``torchslide diagnose DIR/diagnose.toml --out DIR/diagnosis``.
+
+The harness calls torchslide.diagnose from Python. This writes the same case as files:
+
+* ``dem.asc``, ``release.asc`` (nominal volume), ``erodible.asc``: the inversion grid's terrain
+  (ESRI ASCII, 17 significant digits, so they read back bit for bit);
+* ``deposit.asc``: the recorded deposit map (block-averaged from the finer recording grid, with noise);
+* ``g1.csv``, ``g2.csv``: the gauge series (columns t, h, speed);
+* ``diagnose.toml``: [terrain], [model], [run] (the harness solver settings), [[gauges]],
+  [[observations]] (with the harness' sigmas and correlation lengths; the final volume as a scalar),
+  [prior], [calibration] (the baseline's budget) and [diagnose] (harness.HARNESS_BUDGETS, the case's
+  seed and the decision thresholds of ``--thresholds``, default the harness' thresholds.json);
+* ``truth.json``: the answer (scenario, hidden term, its value, the release volume factor). The
+  diagnosis does not read it.
+
+The CLI run on these files is the harness case: the same evaluator (data, sigmas, terrain, gauges,
+prior), budgets and thresholds (tests/test_diagnose.py checks it), so its report can be compared with
+the harness' saved result of the case.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from torchslide.terrain.io import write_asc
+
+from . import scenarios
+from .harness import HARNESS_BUDGETS, LIBRARY, THRESHOLDS_FILE
+from .scenarios import SOLVER, T_END, TERRAINS, V_NOMINAL, gauges, make_recording, release, terrain
+
+EXACT = "%.17g"  # float64 round trip
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, float):
+        return repr(v)
+    return str(v)
+
+
+def _table(name: str, d: dict, array: bool = False) -> list[str]:
+    return [f"[[{name}]]" if array else f"[{name}]"] + [f"{k} = {_toml_value(v)}" for k, v in d.items()] + [""]
+
+
+def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds_file=None,
+                cellsize: float = 40.0) -> Path:
+    """Write the case (module doc) for the current terrain variant (scenarios.use_terrain) to ``out``;
+    returns the config's path. ``thresholds_file``: a thresholds JSON as calibrate_thresholds writes
+    it (default harness.THRESHOLDS_FILE)."""
+    from torchslide.observe import Observation
+    from torchslide.observe_series import SeriesObservation
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength)
+    dem, erod = terrain(cellsize)
+    write_asc(out / "dem.asc", dem.z, dem, fmt=EXACT)
+    write_asc(out / "release.asc", release(dem, V_NOMINAL), dem, fmt=EXACT)
+    write_asc(out / "erodible.asc", erod, dem, fmt=EXACT)
+    obs_tables, series = [], {}
+    for o in rec.observations:
+        if isinstance(o, SeriesObservation) and o.kind == "deposit_map":
+            a = np.full(dem.shape, np.nan)
+            a.ravel()[np.asarray(o.cell_index)] = np.asarray(o.values)
+            write_asc(out / "deposit.asc", a, dem, fmt=EXACT)
+            obs_tables.append({"kind": "deposit_map", "file": "deposit.asc", "name": str(o.name),
+                               "sigma": float(np.asarray(o.sigma)), "corr_length": float(o.corr_length)})
+        elif isinstance(o, SeriesObservation) and o.kind == "gauge_series":
+            series.setdefault(o.gauge, {"t": np.asarray(o.times), "sigma": {}, "corr": float(o.corr_length)})
+            series[o.gauge][o.quantity] = np.asarray(o.values)
+            series[o.gauge]["sigma"][o.quantity] = float(np.asarray(o.sigma))
+        elif isinstance(o, Observation):
+            obs_tables.append({"kind": o.kind, "name": str(o.name), "value": float(o.value), "sigma": float(o.sigma)})
+        else:  # a kind this writer does not know would silently drop data
+            raise ValueError(f"export_case: observation {o.name!r} of kind {o.kind!r} has no file format here")
+    for g, s in series.items():
+        qs = [q for q in ("h", "speed") if q in s]
+        rows = ["t," + ",".join(qs)] + [",".join(EXACT % v for v in (s["t"][i], *(s[q][i] for q in qs)))
+                                        for i in range(len(s["t"]))]
+        (out / f"{g}.csv").write_text("\n".join(rows) + "\n")
+        obs_tables.append({"kind": "gauge_series", "file": f"{g}.csv", "gauge": g, "sigma": s["sigma"],
+                           "corr_time": s["corr"]})
+    # the harness' order: deposit map, gauge series, scalars (the data vector's order)
+    order = {"deposit_map": 0, "gauge_series": 1}
+    obs_tables.sort(key=lambda d: order.get(d["kind"], 2))
+    th = json.loads(Path(thresholds_file or THRESHOLDS_FILE).read_text())["thresholds"]
+    bud = dict(HARNESS_BUDGETS)
+    cal = {"n_initial": bud.pop("baseline_n_initial"), "n_total": bud.pop("baseline_n_total"),
+           "batch_size": bud["batch_size"], "max_batch": 16}
+    L = ["# A blind hidden-physics harness case (the answer is in truth.json, which the diagnosis does not read),",
+         "# written by experiments/hidden_physics/export_case.py. Run:",
+         "#   torchslide diagnose diagnose.toml --out diagnosis", ""]
+    L += _table("terrain", {"dem": "dem.asc", "release": "release.asc", "erodible": "erodible.asc"})
+    L += _table("model", {"rheology": "voellmy", "mu": scenarios.TRUE_BASE["mu"], "xi": scenarios.TRUE_BASE["xi"]})
+    L += _table("run", {"t_end": T_END, "dtype": "float64", **SOLVER})
+    for name, x, y in gauges():
+        L += _table("gauges", {"name": name, "x": float(x), "y": float(y)}, array=True)
+    for d in obs_tables:
+        L += _table("observations", d, array=True)
+    L += _table("prior", {"mu": [0.12, 0.4], "xi": [150.0, 1500.0]})
+    L += _table("calibration", cal)
+    L += _table("diagnose", {"candidates": list(LIBRARY), "seed": int(seed), **bud,
+                             **{k: float(v) for k, v in th.items()}})
+    cfg = out / "diagnose.toml"
+    cfg.write_text("\n".join(L))
+    (out / "truth.json").write_text(json.dumps({"scenario": scenario, "seed": seed, "terrain": scenarios.TERRAIN,
+                                                "strength": strength, "truth": rec.truth,
+                                                "volume_factor": rec.volume_factor}, indent=1))
+    return cfg
+
+
+def main(argv=None) -> int:
+    a = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    a.add_argument("scenario", choices=sorted(scenarios.SCENARIOS))
+    a.add_argument("seed", type=int)
+    a.add_argument("--out", required=True, help="folder for the files and diagnose.toml")
+    a.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
+    a.add_argument("--strength", type=float, default=1.0)
+    a.add_argument("--thresholds", default=None, help="thresholds JSON (default: the harness' thresholds.json)")
+    args = a.parse_args(argv)
+    with scenarios.terrain_variant(args.terrain):
+        cfg = export_case(args.scenario, args.seed, args.out, strength=args.strength, thresholds_file=args.thresholds)
+    print(f"wrote {cfg}; run: torchslide diagnose {cfg} --out {Path(args.out) / 'diagnosis'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
