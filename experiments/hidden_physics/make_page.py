@@ -505,12 +505,12 @@ def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
     L = ["## Probe: would a finer grid over the same DEM correct the switch? "
          "(experiments/hidden_physics/finer_grid_profile.py)", "",
          "Saved cases' refits profiled along the switch (profile.switch_profile: 5 values around the refit's 90 % "
-         "interval, the best ln L + ln prior over (mu, xi) at each by a local search on the solver), with the "
+         "interval, more where the profile stays high at an end; the best ln L + ln prior over (mu, xi) at each by a local search on the solver), with the "
          "measurement errors alone in the likelihood, on the inversion grid (40 m) and on 20 m cells over the "
          "same 40 m DEM interpolated bilinearly (model_error.fine_run, what the grid's model error compares "
          "with). If the 40 m solver caused the switch's bias, the finer grid would move the profile's maximum "
          "towards the truth. 'Profile': the best ln L + ln prior at each switch value minus the largest.", "",
-         "| terrain | case | candidate | truth | refit's 90 % interval | best switch, 40 m | best switch, 20 m "
+         "| terrain | case | candidate | truth | refit's equal-tailed 90 % interval | best switch, 40 m | best switch, 20 m "
          "on the 40 m DEM | profile, 40 m | profile, 20 m on the 40 m DEM |", "|---|---|---|---|---|---|---|---|---|"]
 
     def prof(p):
