@@ -376,6 +376,10 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     n_lin = 3 if j["screening"]["linear_opt"]["mu_i"] else 0
     assert j["model_error"]["n"] == 2 and c["mode_search"]["runs"] == 2 + n_lin + 12
     assert j["model_error"]["release_sd"] == 0.05     # [diagnose] release_volume_sd reached the likelihood
+    # every screened candidate has its detectable switch, and report.md its table
+    dsw = j["screening"]["candidates"]["mu_i"]["detectable_switch"]
+    assert dsw is not None and set(dsw) == {"per_unit", "switch", "within_prior"}
+    assert "## Screening" in md and "detectable from" in md
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())
 
@@ -958,6 +962,56 @@ def test_refit_candidate_refines_a_trusted_refit_that_missed_the_peak(monkeypatc
     assert lo <= 0.7 <= hi
 
 
+def test_detectable_switch_is_the_linear_gaussian_threshold():
+    """screen.detectable_switch on a model linear in (mu, xi, switch): with diagonal noise, a = |P J_c / sigma|
+    and s_det = sqrt(bf_min + 2 ln(a W / sqrt(2 pi))) / a; noise correlated along the term's own effect
+    (a full covariance, as the grid's error gives) raises it; a term that mu alone mimics is never
+    detectable."""
+    from torchslide.bayes import GaussianLikelihood
+    from torchslide.diagnose.screen import detectable_switch, screen
+
+    rng = np.random.default_rng(4)
+    k = 30
+    Jm, Jx = rng.standard_normal(k), rng.standard_normal(k) * 0.01
+    Jc = rng.standard_normal(k) * 20.0
+    x0 = np.array([0.2, 500.0])
+    sig = np.full(k, 0.5)
+
+    class Ev:
+        prior = Prior({"mu": Uniform(0.05, 0.5), "xi": Uniform(100.0, 2000.0)})
+        fixed = {}
+
+        def __init__(self, jc, cov=None):
+            self.jc, self.data, self.sigma = jc, np.zeros(k), sig
+            self.likelihood = (GaussianLikelihood(self.data, sigma=sig) if cov is None
+                               else GaussianLikelihood(self.data, covariance=cov))
+
+        def run_values(self, v):
+            y = np.outer(v["mu"] - x0[0], Jm) + np.outer(v["xi"] - x0[1], Jx) + np.outer(v["kappa"], self.jc)
+            return y, np.zeros(len(v["mu"]), bool)
+
+    ev = Ev(Jc)
+    scr = screen(ev, x0, ["entrainment"])
+    d = detectable_switch(scr, ev, bf_min=10.0)["entrainment"]
+    A = np.column_stack([Jm, Jx]) / sig[:, None]
+    j = Jc / sig
+    a = np.linalg.norm(j - A @ np.linalg.lstsq(A, j, rcond=None)[0])
+    W = 0.02
+    assert abs(d["per_unit"] - a) < 1e-6 * a
+    assert abs(d["switch"] - np.sqrt(10.0 + 2 * np.log(a * W / np.sqrt(2 * np.pi))) / a) < 1e-9
+    assert d["within_prior"] == (d["switch"] <= W)
+    # noise with extra variance along the candidate's own direction: it is harder to see
+    u = Jc / np.linalg.norm(Jc)
+    cov = np.diag(sig**2) + 4.0 * np.outer(u, u)
+    ev_c = Ev(Jc, cov)
+    d_c = detectable_switch(screen(ev_c, x0, ["entrainment"]), ev_c, bf_min=10.0)["entrainment"]
+    assert d_c["switch"] > 1.5 * d["switch"] and d_c["per_unit"] < d["per_unit"]
+    # mimicked by mu: no own effect
+    ev_m = Ev(Jm * 3.0)
+    d_m = detectable_switch(screen(ev_m, x0, ["entrainment"]), ev_m, bf_min=10.0)["entrainment"]
+    assert d_m["per_unit"] < 1e-9 * a and not d_m["within_prior"]
+
+
 def test_screen_linear_optimum_recovers_a_linear_model():
     """screen's linear_opt is the joint least-squares optimum of (baseline re-tune, switch): on a model
     that is linear in (mu, xi, kappa) it is the truth, and _linear_starts puts the f = 1 start there;
@@ -1500,3 +1554,25 @@ def test_cli_on_an_exported_case_reproduces_the_saved_harness_case(tmp_path):
         assert abs(c["two_ln_bf"] - bf[c["name"]]) < 1.0, c["name"]
     iv = lambda d: next(c for c in d["candidates"] if c["name"] == "entrainment")["parameters"]["kappa"]["hdr90"]
     assert np.allclose(iv(got), iv(saved), rtol=0.05)
+
+
+def test_page_section_of_the_detectability_rows(tmp_path):
+    """make_page's detectability section: each candidate's detectable switch ('(beyond)' past its prior,
+    'never' without an own effect) and whether the true term reaches it at its strength."""
+    import json
+    from experiments.hidden_physics.make_page import _detectability_section
+
+    det = lambda s, w: {"per_unit": 1.0, "switch": s, "within_prior": w}
+    rows = [{"terrain": "narrow", "case": "curvature_s0", "true_term": "curvature", "truth": 1.0, "found": None,
+             "bf_min": 48.87, "screening_reproduced": True,
+             "detectable": {"curvature": det(4.46, False), "mu_i": det(0.157, True), "entrainment": det(None, False)}},
+            {"terrain": "resolved", "case": "yield_stress_s0", "true_term": "yield_stress", "truth": 3.0,
+             "found": "yield_stress", "bf_min": 12.1, "screening_reproduced": True,
+             "detectable": {"curvature": det(7.35, False), "mu_i": det(0.088, True), "entrainment": det(0.003, True),
+                            "yield_stress": det(1.61, True)}}]
+    f = tmp_path / "d.json"
+    f.write_text(json.dumps(rows))
+    text = "\n".join(_detectability_section(f))
+    assert "| narrow | curvature_s0 | none | 48.9 | 4.46 (beyond) | 0.157 | never | no (curvature 1) | yes |" in text
+    assert "| resolved | yield_stress_s0 | yield_stress | 12.1 | 7.35 (beyond) | 0.088 | 0.003 | yes (yield_stress 3) | yes |" in text
+    assert _detectability_section(tmp_path / "absent.json") == []

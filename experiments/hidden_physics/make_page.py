@@ -495,6 +495,43 @@ def _own_model_error_section(work: Path | None = None) -> list[str]:
     return L + [""]
 
 
+def _detectability_section(f: Path | None = None) -> list[str]:
+    """detectability.py's rows (default results/detectability.json): per saved case the smallest switch
+    of every candidate that these data could detect on the 40 m grid, against the true term's value."""
+    f = Path(f) if f is not None else HERE / "results" / "detectability.json"
+    if not f.exists():
+        return []
+    rows = json.loads(f.read_text())
+    cands = list(rows[0]["detectable"]) if rows else []
+    L = ["## Which terms could these data name at all? (experiments/hidden_physics/detectability.py)", "",
+         "The diagnosis now reports, per screened candidate, the smallest switch whose own effect (what re-tuning "
+         "mu, xi cannot mimic, whitened by the likelihood's covariance with the grid's error) reaches the evidence "
+         "threshold bf_min: torchslide.diagnose.screen.detectable_switch, linearised over the screening's step at the "
+         "baseline's mode. Recomputed here for saved cases (same pilot model error and baseline mode; "
+         "'screening reproduced': the saved screening scores came out again). '(beyond)': larger than the prior "
+         "allows, so no strength of the term could be named from these data on this grid. 'true term at its "
+         "strength': whether the truth reaches its detectable switch (a necessary condition, linearised; not "
+         "sufficient: the grid's bias and competing terms can still hide it).", "",
+         "| terrain | case | found | bf_min | " + " | ".join(f"{c} from" for c in cands) +
+         " | true term at its strength | screening reproduced |", "|---" * (len(cands) + 6) + "|"]
+    for r in rows:
+        cells = []
+        for c in cands:
+            d = r["detectable"].get(c)
+            if not d:
+                cells.append("-")
+                continue
+            sw = d["switch"]
+            cells.append("never" if sw is None else f"{sw:.3g}" + ("" if d["within_prior"] else " (beyond)"))
+        t, v = r["true_term"], r["truth"]
+        d = r["detectable"].get(t) if t in r["detectable"] else None
+        at = "-" if not d else ("no" if d["switch"] is None or not d["within_prior"] or v < d["switch"]
+                                else "yes") + f" ({t} {v:g})"
+        L.append(f"| {r['terrain']} | {r['case']} | {r['found'] or 'none'} | {r['bf_min']:.1f} | " + " | ".join(cells) +
+                 f" | {at} | {'yes' if r['screening_reproduced'] else 'NO'} |")
+    return L + [""]
+
+
 def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
     """finer_grid_profile.py's rows (default results/finer_grid_profile.json): per saved case, the
     profile along the switch on the inversion grid and on cells half as large over the same DEM."""
@@ -896,6 +933,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
                               HERE / "results" / "consistency_resolved_null_calib.json",
                               heading="### The same on the resolved terrain's saved cases (`harness --terrain resolved`)")
     L += _effect_size_section()
+    L += _detectability_section()
     L += _switch_bias_section()
     L += _own_model_error_section()
     L += _finer_grid_profile_section()

@@ -46,7 +46,7 @@ from .verify import (grid_result, hdi_from_grid, hdi_interval, logmeanexp, needs
                      refine_refit, rescore, runs_start, savage_dickey, slice_proposal, solver_z, verified_evidence, waic)
 from .polish import local_search
 from .profile import sampling_log_density, switch_profile
-from .screen import ScreenResult, screen
+from .screen import ScreenResult, detectable_switch, screen
 
 
 @dataclass
@@ -633,8 +633,13 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     t0 = time.perf_counter()
     x0 = posterior_mode(baseline)
     scr = screen(evaluator, x0, candidates)
+    scr.detectable = detectable_switch(scr, evaluator, th.bf_min)
     T["screen_s"] = time.perf_counter() - t0
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
+    unseen = [f"{c} (from {d['switch']:.3g}; prior up to {CANDIDATES[c].prior[1]:g})"
+              for c, d in scr.detectable.items() if d and not d["within_prior"]]
+    if unseen:
+        log("[diagnose] beyond what these data can detect on this grid (linearised): " + ", ".join(unseen))
     top = [c for c in scr.ranking][: bud.top_k]
     # the two best baseline runs (the refits' local searches also start from them, switch at 0)
     base_best = _best_draws(evaluator, pred, 2) if len(pred.x) else None

@@ -113,6 +113,12 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     L = [f"# Missing-physics diagnosis", "", f"**Verdict: {j['verdict']}**" +
          (f" — missing physics: **{j['missing_physics']}**" if j["missing_physics"] else ""), "",
          f"Reason: {j['decision']['reason']}", ""]
+    unseen = [c for c, v in ((j.get("screening") or {}).get("candidates") or {}).items()
+              if v.get("detectable_switch") and not v["detectable_switch"].get("within_prior")]
+    if unseen:
+        L += [f"Beyond what these data can detect on this grid at any strength in its prior (linearised; see "
+              f"Screening): {', '.join(unseen)}. The verdict says nothing about {'it' if len(unseen) == 1 else 'them'}.",
+              ""]
     if j["decision"].get("ambiguous"):
         L += [f"Ambiguous: competing candidate(s) {', '.join(j['decision'].get('competitors') or [])} "
               f"(see the reason above); no name is given.", ""]
@@ -140,6 +146,25 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         for e in sc:
             L.append(f"| {e['block']} | {e['k']} | {e['statistic']:.1f} | {e['df']} | {e['p_value']:.2g} | "
                      f"{'yes' if e['conflict'] else 'no'} | {fmtw(e['wants'])} | {fmtw(e['rest_wants'])} |")
+    scr = (j.get("screening") or {}).get("candidates") or {}
+    if any("detectable_switch" in v for v in scr.values()):
+        from ..physics import CANDIDATES
+        L += ["", "## Screening", "",
+              "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
+              "smallest switch whose own effect (what re-tuning mu, xi cannot mimic, whitened by the likelihood's "
+              "covariance, the grid's error included) would reach the evidence threshold bf_min, linearised over the "
+              "screening's step (screen.detectable_switch). Beyond the prior range: these data cannot name the term on "
+              "this grid at any strength, so 'nothing missing' does not rule it out. Within it: a weaker term, or one "
+              "the grid biases or another term mimics, can still be missed.", "",
+              "| candidate | screening score | mimic by mu, xi | detectable from | prior range |", "|---|---|---|---|---|"]
+        for c, v in scr.items():
+            d = v.get("detectable_switch") or {}
+            lo, hi = CANDIDATES[c].prior if c in CANDIDATES else (None, None)
+            sw = d.get("switch")
+            det = "-" if not d else ("never (no own effect)" if sw is None else
+                                     f"{sw:.3g}" + ("" if d.get("within_prior") else " (beyond the prior)"))
+            L.append(f"| {c} | {_fmt(v.get('score'), '{:.1f}')} | {_fmt(v.get('mimic'), '{:.2f}')} | {det} | "
+                     f"{'-' if lo is None else f'[{lo:g}, {hi:g}]'} |")
     L += ["", "## Candidates", "",
           "'refit check': the local search on the solver after the refit (a gain of more than the margin over every "
           "refit run: the refit's runs had not sampled the peak, so it was refined with the search's runs) and whether the "

@@ -41,13 +41,16 @@ class ScreenResult:
     ranking: list = field(default_factory=list)
     linear_opt: dict = field(default_factory=dict)
     n_members: int = 0
+    steps: dict = field(default_factory=dict)   # the switch step of every candidate's member
+    detectable: dict = field(default_factory=dict)  # detectable_switch() (set by the pipeline)
     failed: list = field(default_factory=list)
     jacobian: np.ndarray | None = None   # (k, p) whitened d y / d x of the baseline parameters at x0
     residual: np.ndarray | None = None   # (k,) whitened residual (d - y(x0)) / sigma
 
     def to_json(self) -> dict:
         return {"x0": self.x0, "ranking": self.ranking,
-                "candidates": {c: {"score": self.scores[c], "mimic": self.mimic[c], "signature_norm": self.norms[c]}
+                "candidates": {c: {"score": self.scores[c], "mimic": self.mimic[c], "signature_norm": self.norms[c],
+                                   **({"detectable_switch": self.detectable[c]} if c in self.detectable else {})}
                                for c in self.scores}, "linear_opt": self.linear_opt, "n_members": self.n_members,
                 "failed": self.failed}
 
@@ -116,7 +119,7 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
         lin[c] = _linear_opt(A, Jc, r, names, base, bounds, CANDIDATES[c])
     ranking = sorted(candidates, key=lambda c: -scores[c])
     return ScreenResult(x0=base, scores=scores, mimic=mimic, norms=norms, effects=effects, ranking=ranking,
-                        linear_opt=lin, n_members=len(members), failed=[int(i) for i in np.nonzero(failed)[0]],
+                        linear_opt=lin, n_members=len(members), steps={c: steps[c] for c in candidates}, failed=[int(i) for i in np.nonzero(failed)[0]],
                         jacobian=None if failed[: 1 + len(names)].any() else A, residual=r)
 
 
@@ -131,3 +134,55 @@ def _linear_opt(A: np.ndarray, Jc: np.ndarray, r: np.ndarray, names, base: dict,
     out = {n: float(np.clip(base[n] + sol[j], bounds[0, j], bounds[1, j])) for j, n in enumerate(names)}
     out[cd.param] = float(min(beta, cd.prior[1]))
     return out
+
+
+def detectable_switch(scr: ScreenResult, evaluator, bf_min: float) -> dict:
+    """{candidate: smallest switch value these data could detect on this grid} (linearised at x0).
+
+    The screening's sensitivities (baseline J_b = A sigma, candidate J_c = effect / step, raw units) are
+    whitened by the likelihood's own covariance (its Cholesky factor L when it has one: the grid's
+    approximation error is correlated, which the screening's diagonal sigmas ignore), and
+    a = |P L^-1 J_c| (P: the part re-tuning the baseline parameters cannot mimic) is the whitened size
+    of the term's own effect per unit switch. In the linear-Gaussian model with a uniform prior of
+    width W on the switch, the baseline parameters profiled out, a switch s gives
+
+        2 ln BF ~ s^2 a^2 - 2 ln(a W / sqrt(2 pi))        (Laplace; the second term is the Occam factor)
+
+    so the decision threshold ``bf_min`` is reached from s_det = sqrt(bf_min + 2 ln(a W / sqrt(2 pi))) / a
+    (an Occam term below 0, a prior narrower than the likelihood, is taken as 0: the fit's gain s^2 a^2
+    must reach bf_min in any case). A candidate whose s_det exceeds its prior range cannot be named from these
+    data on this grid whatever its strength; below it, a smaller true switch would go unseen. A guide,
+    not a test: a term whose effect is not linear in its switch (a yield stress) can differ from it,
+    and the refits measure the real evidence. Failed members give None.
+    """
+    if scr.jacobian is None:
+        return {c: None for c in scr.scores}
+    lik = evaluator.likelihood
+    chol = None if getattr(lik, "chol", None) is None else lik.chol.detach().cpu().numpy()
+
+    def whiten(v: np.ndarray) -> np.ndarray:
+        if chol is None:
+            return v / np.asarray(evaluator.sigma)[:, None]
+        from scipy.linalg import solve_triangular
+        return solve_triangular(chol, v, lower=True)
+
+    Jb = whiten(scr.jacobian * np.asarray(evaluator.sigma)[:, None])
+    Jbp = np.linalg.pinv(Jb)
+    out = {}
+    for c in scr.scores:
+        eff = scr.effects.get(c)
+        if eff is None or c not in scr.steps:
+            out[c] = None
+            continue
+        jc = whiten((np.asarray(eff) / scr.steps[c])[:, None])
+        s = jc - Jb @ (Jbp @ jc)
+        a = float(np.linalg.norm(s))
+        lo, hi = CANDIDATES[c].prior
+        if a <= 0:
+            out[c] = {"per_unit": 0.0, "switch": math.inf, "within_prior": False}
+            continue
+        occam = 2.0 * math.log(a * (hi - lo) / math.sqrt(2.0 * math.pi))
+        s_det = math.sqrt(bf_min + max(occam, 0.0)) / a
+        out[c] = {"per_unit": a, "switch": s_det, "within_prior": bool(s_det <= hi)}
+    return out
+
