@@ -20,10 +20,11 @@ demo: $(STAMP)
 	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(PY) -m experiments.demo --out demo_out
 
 # The diagnose CLI on files: one blind harness case (entrainment, seed 1) written as DEM / maps / gauge CSVs
-# + diagnose.toml (experiments/hidden_physics/export_case.py), then `torchslide diagnose` on them.
+# + diagnose.toml (experiments/hidden_physics/export_case.py), then `torchslide diagnose` on them; one torch
+# thread, as the harness ran (faster on these small grids, and the saved harness result comes out exactly).
 diagnose-demo: $(STAMP)
 	$(PY) -m experiments.hidden_physics.export_case entrainment 1 --out diagnose_demo
-	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(VENV)/bin/torchslide diagnose diagnose_demo/diagnose.toml \
+	OMP_NUM_THREADS=1 $(VENV)/bin/torchslide diagnose diagnose_demo/diagnose.toml \
 		--out diagnose_demo/diagnosis
 
 # Tests run on every core (pytest-xdist), one torch thread per worker.

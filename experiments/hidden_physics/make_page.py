@@ -524,7 +524,7 @@ def _detectability_section(f: Path | None = None) -> list[str]:
             sw = d["switch"]
             cells.append("never" if sw is None else f"{sw:.3g}" + ("" if d["within_prior"] else " (beyond)"))
         t, v = r["true_term"], r["truth"]
-        d = r["detectable"].get(t) if t in r["detectable"] else None
+        d = r["detectable"].get(t)
         at = "-" if not d else ("no" if d["switch"] is None or not d["within_prior"] or v < d["switch"]
                                 else "yes") + f" ({t} {v:g})"
         L.append(f"| {r['terrain']} | {r['case']} | {r['found'] or 'none'} | {r['bf_min']:.1f} | " + " | ".join(cells) +
@@ -542,8 +542,8 @@ def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
     L = ["## Probe: would a finer grid over the same DEM correct the switch? "
          "(experiments/hidden_physics/finer_grid_profile.py)", "",
          "Saved cases' refits profiled along the switch (profile.switch_profile: 5 values around the refit's 90 % "
-         "interval, more where the profile stays high at an end; the best ln L + ln prior over (mu, xi) at each by a local search on the solver), with the "
-         "measurement errors alone in the likelihood, on the inversion grid (40 m) and on 20 m cells over the "
+         "interval, more where the profile stays high at an end; the best ln L + ln prior over (mu, xi) at each by "
+         "a local search on the solver), with the measurement errors alone in the likelihood, on the inversion grid (40 m) and on 20 m cells over the "
          "same 40 m DEM interpolated bilinearly (model_error.fine_run, what the grid's model error compares "
          "with). If the 40 m solver caused the switch's bias, the finer grid would move the profile's maximum "
          "towards the truth. 'Profile': the best ln L + ln prior at each switch value minus the largest.", "",

@@ -119,7 +119,8 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
         lin[c] = _linear_opt(A, Jc, r, names, base, bounds, CANDIDATES[c])
     ranking = sorted(candidates, key=lambda c: -scores[c])
     return ScreenResult(x0=base, scores=scores, mimic=mimic, norms=norms, effects=effects, ranking=ranking,
-                        linear_opt=lin, n_members=len(members), steps={c: steps[c] for c in candidates}, failed=[int(i) for i in np.nonzero(failed)[0]],
+                        linear_opt=lin, n_members=len(members), steps={c: steps[c] for c in candidates},
+                        failed=[int(i) for i in np.nonzero(failed)[0]],
                         jacobian=None if failed[: 1 + len(names)].any() else A, residual=r)
 
 
