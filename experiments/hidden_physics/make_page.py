@@ -219,6 +219,11 @@ def _changes_section() -> list[str]:
             "* **The release volume's error in the likelihood, as an option** (session 14; Budgets.release_volume_sd, "
             "default 0, so the main run above is unchanged). The resolved terrain was re-run with it, with its own "
             "null seeds (section 'The resolved terrain with the release volume's error in the likelihood').",
+            "* **Reported, not decided on** (session 15): every report now gives each screened candidate's "
+            "detectable switch (screen.detectable_switch; the verdict does not use it). The cases on this page ran "
+            "before it; section 'Which terms could these data name at all?' recomputes it for the seed-0 cases. "
+            "The harness' cases can also be written as user files for the CLI (export_case.py), which reproduces "
+            "a saved case exactly.",
             "* The same cases run with the method without the profile (session 12, as of the previous page: "
             "results/before_profile, stopped part-way to make room for this run) are compared below.",
             "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
