@@ -1511,6 +1511,8 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
     assert bud == Budgets(**HARNESS_BUDGETS, seed=2) and th == harness_thresholds()
     truth = json.loads((tmp_path / "truth.json").read_text())
     assert truth["truth"]["tau_y"] == 3.0 and truth["terrain"] == "resolved"
+    with pytest.raises(SystemExit, match="earth_pressure's switch earth_pressure = 2 beyond its range"):
+        export_case.main(["earth_pressure", "0", "--strength", "2", "--out", str(tmp_path / "x")])
     text = (tmp_path / "diagnose.toml").read_text()
     assert "tau_y" not in text and not any("yield" in l for l in text.splitlines() if l.startswith("#"))
 

@@ -30,7 +30,7 @@ import numpy as np
 from torchslide.terrain.io import write_asc
 
 from . import scenarios
-from .harness import HARNESS_BUDGETS, LIBRARY, THRESHOLDS_FILE
+from .harness import HARNESS_BUDGETS, LIBRARY, THRESHOLDS_FILE, out_of_range
 from .scenarios import SOLVER, T_END, TERRAINS, V_NOMINAL, gauges, make_recording, release, terrain
 
 EXACT = "%.17g"  # float64 round trip
@@ -130,6 +130,9 @@ def main(argv=None) -> int:
     a.add_argument("--strength", type=float, default=1.0)
     a.add_argument("--thresholds", default=None, help="thresholds JSON (default: the harness' thresholds.json)")
     args = a.parse_args(argv)
+    why = out_of_range(args.scenario, args.strength)
+    if why:
+        raise SystemExit(f"--strength {args.strength:g}: {args.scenario}'s {why}")
     with scenarios.terrain_variant(args.terrain):
         cfg = export_case(args.scenario, args.seed, args.out, strength=args.strength, thresholds_file=args.thresholds)
     print(f"wrote {cfg}; run: torchslide diagnose {cfg} --out {Path(args.out) / 'diagnosis'}")
