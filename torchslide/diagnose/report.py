@@ -5,7 +5,6 @@ import json
 from pathlib import Path
 
 
-
 def _fmt(v, f="{:.3g}"):
     return "-" if v is None else f.format(v)
 
