@@ -1578,3 +1578,28 @@ def test_page_section_of_the_detectability_rows(tmp_path):
     assert "| narrow | curvature_s0 | none | 48.9 | 4.46 (beyond) | 0.157 | never | no (curvature 1) | yes |" in text
     assert "| resolved | yield_stress_s0 | yield_stress | 12.1 | 7.35 (beyond) | 0.088 | 0.003 | yes (yield_stress 3) | yes |" in text
     assert _detectability_section(tmp_path / "absent.json") == []
+
+
+def test_design_check_section_and_extra_gauges(tmp_path):
+    """scenarios.extra_gauges adds gauges g3, ... (recorded like g1, g2) only inside its block; make_page's
+    design-check section gives per design the median detectable switch over the seeds with its range,
+    '(beyond)' past the prior's end."""
+    import json
+    from experiments.hidden_physics import scenarios
+    from experiments.hidden_physics.make_page import _design_check_section
+
+    with scenarios.extra_gauges([1200.0]):
+        g = scenarios.gauges()
+        assert [n for n, _, _ in g] == ["g1", "g2", "g3"] and g[2][1] == 1200.0
+        names = [str(o.name) for o in scenarios.make_recording("null", 0).observations]
+        assert {"g3:h", "g3:speed"} <= set(names)
+    assert [n for n, _, _ in scenarios.gauges()] == ["g1", "g2"]
+    det = lambda s: {"switch": s, "within_prior": s is not None and s <= 1.0}
+    rows = [{"terrain": "resolved", "extra_gauges": xs, "seed": sd, "bf_min": 12.1, "x0": {},
+             "detectable": {"curvature": det(cv), "earth_pressure": det(0.2)}}
+            for xs, sd, cv in (([], 100, 4.0), ([], 101, 3.0), ([], 102, None), ([1200.0], 100, 0.9), ([1200.0], 101, 1.1))]
+    (tmp_path / "design_check_resolved.json").write_text(json.dumps(rows))
+    text = "\n".join(_design_check_section(tmp_path))
+    assert "| resolved | none | 100, 101, 102 | 12.1 | 4 (beyond) [3-inf] | 0.2 [0.2-0.2] |" in text
+    assert "| resolved | 1200 | 100, 101 | 12.1 | 1 [0.9-1.1] | 0.2 [0.2-0.2] |" in text
+    assert _design_check_section(tmp_path / "absent") == []

@@ -1,6 +1,6 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
 [--model-error N] [--mode-search-iters N] [--profile-top N] [--release-volume-sd S] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
-[--max-batch N]``.
+[--max-batch N] [--extra-gauges 300,1200]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
@@ -86,7 +86,8 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
-            "fine_terrain": fine_terrain, "fine_factor": fine_factor, "truth": rec.truth,
+            "fine_terrain": fine_terrain, "fine_factor": fine_factor, "extra_gauges": list(scenarios.EXTRA_GAUGES),
+            "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
@@ -138,6 +139,9 @@ def main(argv=None) -> int:
                    help="recording grid = inversion cells / this (the issue's harness: 2). 1 is the control without "
                         "discretisation error (the 'inverse crime': use it with --model-error 0, its own null seeds "
                         "and --out)")
+    p.add_argument("--extra-gauges", default="",
+                   help="comma-separated x (m) of extra gauges g3, ... on the thalweg (scenarios.extra_gauges; "
+                        "design_check.py); another design needs its own null seeds and --out")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     a = p.parse_args(argv)
@@ -151,7 +155,11 @@ def main(argv=None) -> int:
         p.error(f"--release-volume-sd must be in [0, 0.5), got {a.release_volume_sd}")
     if a.profile_top is not None and a.profile_top < 0:
         p.error(f"--profile-top must be >= 0, got {a.profile_top}")
-    with terrain_variant(a.terrain):
+    try:
+        xs = [float(x) for x in a.extra_gauges.split(",") if x.strip()]
+    except ValueError:
+        p.error(f"--extra-gauges must be comma-separated numbers (x in m), got {a.extra_gauges!r}")
+    with terrain_variant(a.terrain), scenarios.extra_gauges(xs):
         return _run_all(a)
 
 

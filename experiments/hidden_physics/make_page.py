@@ -537,6 +537,48 @@ def _detectability_section(f: Path | None = None) -> list[str]:
     return L + [""]
 
 
+def _design_check_section(work: Path | None = None) -> list[str]:
+    """design_check.py's rows (results/design_check*.json): per observation design (extra gauges) and
+    null seed, every candidate's detectable switch; then per design the median over the seeds."""
+    work = Path(work) if work is not None else HERE / "results"
+    rows = [r for f in sorted(work.glob("design_check*.json")) for r in json.loads(f.read_text())]
+    if not rows:
+        return []
+    from torchslide.physics import CANDIDATES
+    from .scenarios import SCENARIOS, SWITCH
+    strengths = {t: h[SWITCH[t]] for t, h in SCENARIOS.values() if t in SWITCH}
+    cands = list(rows[0]["detectable"])
+    L = ["## Design: which observations would make every term detectable? (experiments/hidden_physics/design_check.py)",
+         "", "Null recordings only (no hidden term), so the design is chosen without any hidden-term result: per "
+         "design (the harness' deposit map, gauges g1, g2 and final volume, plus gauges g3, ... at the given x on the "
+         "thalweg, h and speed) and null seed, the pilot model error and the baseline calibration as the diagnosis "
+         "makes them, the screening at the baseline's mode and every candidate's detectable switch "
+         "(screen.detectable_switch) at the given bf_min. Median over the seeds; '(beyond)': past the prior's end. "
+         "The harness' strengths: " + ", ".join(f"{c} {v:g}" for c, v in strengths.items()) + ".", "",
+         "| terrain | extra gauges at x, m | seeds | bf_min | " + " | ".join(f"{c} from (median)" for c in cands) + " |",
+         "|---" * (len(cands) + 4) + "|"]
+    keys = []
+    for r in rows:
+        k = (r["terrain"], tuple(r["extra_gauges"]), r["bf_min"])
+        if k not in keys:
+            keys.append(k)
+    for k in keys:
+        rs = [r for r in rows if (r["terrain"], tuple(r["extra_gauges"]), r["bf_min"]) == k]
+        cells = []
+        for c in cands:
+            v = [r["detectable"][c]["switch"] for r in rs if r["detectable"].get(c)]
+            v = [np.inf if x is None else x for x in v]
+            if not v:
+                cells.append("-")
+                continue
+            m = float(np.median(v))
+            cells.append(f"{m:.3g}" + (" (beyond)" if m > CANDIDATES[c].prior[1] else "") +
+                         f" [{min(v):.3g}-{max(v):.3g}]")
+        L.append(f"| {k[0]} | {', '.join(f'{x:g}' for x in k[1]) or 'none'} | "
+                 f"{', '.join(str(r['seed']) for r in rs)} | {k[2]:g} | " + " | ".join(cells) + " |")
+    return L + [""]
+
+
 def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
     """finer_grid_profile.py's rows (default results/finer_grid_profile.json): per saved case, the
     profile along the switch on the inversion grid and on cells half as large over the same DEM."""
@@ -939,6 +981,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
                               heading="### The same on the resolved terrain's saved cases (`harness --terrain resolved`)")
     L += _effect_size_section()
     L += _detectability_section()
+    L += _design_check_section()
     L += _switch_bias_section()
     L += _own_model_error_section()
     L += _finer_grid_profile_section()

@@ -90,8 +90,24 @@ def yc(x):
     return 0.5 * GEOM["width"] + float(_bends(x, 0.15 * L, 0.85 * L, GEOM["amplitude"]))
 
 
+EXTRA_GAUGES: list[float] = []   # x (m) of gauges g3, g4, ... on the thalweg (design_check.py; none in the harness)
+
+
 def gauges():
-    return [("g1", 700.0, yc(700.0)), ("g2", G2_X, yc(G2_X))]
+    return [("g1", 700.0, yc(700.0)), ("g2", G2_X, yc(G2_X))] + [
+        (f"g{3 + i}", float(x), yc(x)) for i, x in enumerate(EXTRA_GAUGES)]
+
+
+@contextmanager
+def extra_gauges(xs):
+    """``with extra_gauges([1200.0]): ...`` -- recordings and evaluators with gauges g3, ... at these x
+    on the thalweg (each recording h and speed like g1, g2), restored after."""
+    previous = list(EXTRA_GAUGES)
+    EXTRA_GAUGES[:] = [float(x) for x in xs]
+    try:
+        yield
+    finally:
+        EXTRA_GAUGES[:] = previous
 
 
 def terrain(cellsize: float):
