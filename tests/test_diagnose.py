@@ -785,6 +785,14 @@ def test_page_section_of_the_release_volume_run(tmp_path):
     narrow = "\n".join(_release_volume_narrow_section(now, before))
     assert narrow.startswith("### Probe: the narrow terrain") and "#### Against the same cases without it" in narrow
     assert "the main run at the top of this page" in narrow and "| entrainment | 1 | 0 -> 1 |" in narrow
+    # the extra-gauges probe reads the same layout and names the gauges the cases ran with
+    from experiments.hidden_physics.make_page import _extra_gauges_section
+    case = json.loads((now / "entrainment_s4.json").read_text())
+    (now / "entrainment_s4.json").write_text(json.dumps(dict(case, extra_gauges=[300.0, 1200.0])))
+    g = "\n".join(_extra_gauges_section(now, before))
+    assert g.startswith("## Probe: the resolved terrain with two more gauges") and "x = 300, 1200 m" in g
+    assert "bf_min 10.5" in g and "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in g
+    assert _extra_gauges_section(tmp_path / "absent", before) == []
 
 
 def test_report_cell_says_which_refits_the_recheck_refined():

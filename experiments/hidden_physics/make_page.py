@@ -843,6 +843,33 @@ def _release_volume_section(d=None, prev=None, heading: str | None = None, versu
     return L
 
 
+def _extra_gauges_section(d=None, prev=None) -> list[str]:
+    """The resolved terrain with the observation design of design_check.py (``harness --terrain resolved
+    --extra-gauges 300,1200``): cases in ``d`` (default results/resolved_gauges/results; its null seeds and
+    thresholds in d/null_calib) against the same cases with the harness' two gauges (``prev``, default
+    results/resolved/results)."""
+    d = Path(d) if d is not None else HERE / "results" / "resolved_gauges" / "results"
+    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
+    cases, th = _variant_cases(d)
+    cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
+    if not cases:
+        return []
+    xs = sorted({tuple(c.get("extra_gauges") or ()) for c in cases})
+    heading = "## Probe: the resolved terrain with two more gauges (`--extra-gauges 300,1200`)"
+    L = [heading, "", "The observation design that design_check.py chose on null recordings (section 'Design: which "
+         "observations would make every term detectable?'): gauges g3, g4 at x = "
+         + "; ".join(", ".join(f"{x:g}" for x in t) for t in xs) + " m on the thalweg (h and speed like g1, g2) "
+         "besides the harness' deposit map, g1, g2 and final volume; everything else as in the resolved-terrain run. "
+         f"Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+         + (_thresholds_sentence(th, "run with these gauges") if th else
+            "No null seeds of its own finished: verdicts use the resolved terrain's thresholds (bf_min 12.1), "
+            "which were set without these gauges."), ""]
+    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
+    L += _versus_section(cases, prev, f"### Against the same cases with two gauges ({_shown(prev, HERE)})",
+                         "'Before': the resolved-terrain run (gauges g1, g2); 'now': with g3, g4 too.")
+    return L
+
+
 def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's probe with the release volume's error (``harness --release-volume-sd 0.0577
     --scenarios entrainment,earth_pressure``, null seeds 100-104): cases in ``d`` (default
@@ -955,6 +982,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _resolved_terrain_section()
     L += _release_volume_section()
     L += _release_volume_narrow_section()
+    L += _extra_gauges_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",
