@@ -657,11 +657,14 @@ def _grid_convergence_section(f: Path | None = None, heading: str = "## Grid con
     return L + [""]
 
 
-def _variant_cases(d: Path):
+def _variant_cases(d: Path, strength1: bool = False):
     """(cases, thresholds dict or None) of a variant run saved in ``d``, re-decided with thresholds from its
     own null seeds in d/null_calib (d/null_calib/thresholds.json, written by ``calibrate_thresholds
-    --results d/null_calib --out d/null_calib/thresholds.json --apply d``)."""
+    --results d/null_calib --out d/null_calib/thresholds.json --apply d``); ``strength1``: only the cases
+    at strength 1."""
     cases = [json.loads(p.read_text()) for p in sorted(d.glob("*.json"))]
+    if strength1:
+        cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
     thf = d / "null_calib" / "thresholds.json"
     return cases, (json.loads(thf.read_text()) if thf.exists() else None)
 
@@ -825,8 +828,7 @@ def _release_volume_section(d=None, prev=None, heading: str | None = None, versu
     another run (the narrow terrain's probe)."""
     d = Path(d) if d is not None else HERE / "results" / "resolved_vol" / "results"
     prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
-    cases, th = _variant_cases(d)
-    cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
+    cases, th = _variant_cases(d, strength1=True)
     if not cases:
         return []
     sds = sorted({c["diagnosis"].get("model_error", {}).get("release_sd") for c in cases} - {None})
@@ -850,8 +852,7 @@ def _extra_gauges_section(d=None, prev=None) -> list[str]:
     results/resolved/results)."""
     d = Path(d) if d is not None else HERE / "results" / "resolved_gauges" / "results"
     prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
-    cases, th = _variant_cases(d)
-    cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
+    cases, th = _variant_cases(d, strength1=True)
     if not cases:
         return []
     xs = sorted({tuple(c.get("extra_gauges") or ()) for c in cases})
