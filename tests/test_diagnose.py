@@ -1611,3 +1611,18 @@ def test_design_check_section_and_extra_gauges(tmp_path):
     assert "| resolved | none | 100, 101, 102 | 12.1 | 4 (beyond) [3-inf] | 0.2 [0.2-0.2] |" in text
     assert "| resolved | 1200 | 100, 101 | 12.1 | 1 [0.9-1.1] | 0.2 [0.2-0.2] |" in text
     assert _design_check_section(tmp_path / "absent") == []
+
+
+@pytest.mark.slow
+def test_detectability_script_reproduces_the_saved_screening():
+    """experiments.hidden_physics.detectability on a saved case: the pilot model error and the screening at
+    the saved baseline mode give the saved screening scores again, and every library candidate gets a
+    detectable switch (curvature's beyond its prior there, as on the results page). About 1 min."""
+    from experiments.hidden_physics.detectability import detectability_case
+    from experiments.hidden_physics.harness import LIBRARY
+
+    r = detectability_case("narrow", "curvature_s0")
+    assert r["screening_reproduced"] and r["true_term"] == "curvature" and r["truth"] == 1.0
+    assert sorted(r["detectable"]) == sorted(LIBRARY)
+    cv = r["detectable"]["curvature"]
+    assert cv["switch"] > 1.0 and not cv["within_prior"]
