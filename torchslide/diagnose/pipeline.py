@@ -206,7 +206,8 @@ def _fit(evaluator, pred: Predictive, loc: Localisation, log_evidence) -> dict:
     for b in evaluator.blocks:
         info = loc.blocks.get(b.name, {})
         if b.is_vector:
-            res[b.name] = {"rms_z": info.get("rms_z"), "Z_block": info.get("Z_block")}
+            res[b.name] = {"rms_z": info.get("rms_z"), "Z_block": info.get("Z_block"), "Z_fit": info.get("Z_fit"),
+                           "p_fit": info.get("p_fit")}
         else:
             res[b.name] = {"z": info.get("z"), "data": info.get("data"), "pred_mean": info.get("pred_mean")}
     return {"log_evidence": log_evidence, "misfit": evaluator.misfit(mean), "k": evaluator.k, "residuals": res}

@@ -187,11 +187,14 @@ def write_markdown(j: dict, figures: list[str]) -> str:
                  f"{_fmt(mc.get('log_evidence'), '{:.2f}')} ({'adopted' if mc.get('adopted') else 'not adopted'})")
     if fa:
         L.append(f"- after ({fa.get('model')}): log Z {_fmt(fa['log_evidence'], '{:.2f}')}, misfit {_fmt(fa['misfit'], '{:.1f}')}")
-    L += ["", "| observable | before | after |", "|---|---|---|"]
+    L += ["", "'fit Z': the block's chi-square with the likelihood's own covariance (grid error included) as a "
+          "normal score (0 = as expected; localise.block_fit).", "",
+          "| observable | before | after | fit Z before | fit Z after |", "|---|---|---|---|---|"]
     for name, r in fb["residuals"].items():
         a = fa.get("residuals", {}).get(name, {}) if fa else {}
         key = "z" if "z" in r else "rms_z"
-        L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} |")
+        L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} "
+                 f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |")
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(L) + "\n"
 
