@@ -356,6 +356,11 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
         assert key in j
     for key in ("log_evidence", "misfit", "residuals"):
         assert key in j["fit_before"]
+    # every vector observable's fit with the likelihood's own covariance, before and after
+    vec = [r for r in j["fit_before"]["residuals"].values() if "rms_z" in r]
+    assert vec and all(np.isfinite(r["Z_fit"]) and 0 <= r["p_fit"] <= 1 for r in vec)
+    assert all(np.isfinite(r["Z_fit"]) for r in j["fit_after"]["residuals"].values() if "rms_z" in r)
+    assert "fit Z before" in (out / "report.md").read_text()
     c = j["candidates"][0]
     assert c["name"] == "mu_i" and {"log_evidence", "log_bayes_factor", "screening_score", "parameters"} <= set(c)
     assert set(c["parameters"]["mu_i"]) >= {"mean", "hdr90"}
@@ -1626,3 +1631,42 @@ def test_detectability_script_reproduces_the_saved_screening():
     assert sorted(r["detectable"]) == sorted(LIBRARY)
     cv = r["detectable"]["curvature"]
     assert cv["switch"] > 1.0 and not cv["within_prior"]
+
+
+def test_chi2_score_is_a_normal_score_with_finite_tails():
+    """localise.chi2_score: chi-square(m) draws give Z ~ N(0, 1); extreme statistics stay finite and ordered."""
+    from torchslide.diagnose.localise import chi2_score
+    rng = np.random.default_rng(0)
+    for m in (1, 45, 600):
+        z = np.array([chi2_score(float(c), m)[0] for c in rng.chisquare(m, 4000)])
+        assert abs(z.mean()) < 0.06 and 0.95 < z.std() < 1.05, (m, z.mean(), z.std())
+    lo, hi = chi2_score(1e-3 * 600, 600), chi2_score(1e6, 600)
+    assert np.isfinite(lo[0]) and lo[0] < -30 and lo[1] == 1.0
+    assert np.isfinite(hi[0]) and hi[0] > 100 and hi[1] == 0.0
+    assert chi2_score(700.0, 600)[0] > chi2_score(650.0, 600)[0] > 0 > chi2_score(550.0, 600)[0]
+
+
+def test_block_fit_whitens_correlated_errors_and_sees_a_real_offset():
+    """localise.block_fit with the likelihood's own covariance: strongly correlated errors (AR(1), rho 0.95,
+    the grid error's kind) give Z_fit ~ N(0, 1), where the per-value chi-square Z_block (diagonal
+    variances) is far too spread; a local offset the covariance does not expect gives Z_fit >> 3."""
+    from torchslide.diagnose.localise import block_fit
+    rng = np.random.default_rng(1)
+    m, rho = 45, 0.95
+    idx = np.arange(m)
+    cov = 0.5**2 * rho ** np.abs(idx[:, None] - idx[None, :])
+    L = np.linalg.cholesky(cov)
+    z_fit, z_diag = [], []
+    for _ in range(2000):
+        r = L @ rng.standard_normal(m)
+        z_fit.append(block_fit(r, cov)["Z_fit"])
+        z_diag.append((np.sum((r / 0.5) ** 2) - m) / np.sqrt(2 * m))
+    z_fit, z_diag = np.array(z_fit), np.array(z_diag)
+    assert abs(z_fit.mean()) < 0.08 and 0.9 < z_fit.std() < 1.1
+    assert z_diag.std() > 3 * z_fit.std()
+    bump = 2.5 * np.exp(-((idx - 20) / 3.0) ** 2)
+    assert block_fit(L @ rng.standard_normal(m) + bump, cov)["Z_fit"] > 3
+    # the draws' covariance widens the reference: the same offset with parameter spread scores lower
+    draws = rng.standard_normal((16, 1)) * bump[None, :]
+    r = bump.copy()
+    assert block_fit(r, cov, draws)["Z_fit"] < block_fit(r, cov)["Z_fit"]

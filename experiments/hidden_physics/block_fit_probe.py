@@ -6,7 +6,12 @@ own variance, so the grid's approximation error, which is strongly correlated al
 counts as many independent mismatches; located_min therefore had to be set at 8 on null data. The
 block fit (torchslide.diagnose.localise.block_fit) whitens each observable's residual with the
 likelihood's full covariance instead (measurement errors with their correlation, the grid's
-approximation error) and turns its chi-square into a normal score Z_fit.
+approximation error) and turns its chi-square into a normal score Z_fit. Each block's chi-square is
+also recomputed with the grid's error covariance scaled by s in GAMMA_SCALES (0: measurement errors
+and the draws' spread alone): on null data, chi2 / m = 1 at the s that sizes the grid's error right;
+and with the measurement sigmas scaled by a in SIGMA_SCALES (the harness' likelihood sigmas, h 0.5 m,
+speed 2 m/s, deposit 0.5 m, are 2.5, 4 and 1.7 times the recordings' noise, and the correlation
+factor widens them further).
 
 For every case this re-runs the diagnosis' first stage exactly as the harness does (same recording,
 evaluator, budgets and seed: the grid's model error, the baseline calibration and its refinement,
@@ -25,12 +30,15 @@ import time
 from pathlib import Path
 
 from torchslide.diagnose import Budgets, diagnose
+from torchslide.diagnose.localise import block_fit, likelihood_covariance
 
 from . import scenarios
 from .harness import HARNESS_BUDGETS, harness_thresholds
 from .scenarios import SCENARIOS, TERRAINS, make_evaluator, make_recording, terrain_variant
 
 HERE = Path(__file__).parent
+GAMMA_SCALES = (0.0, 0.1, 0.25, 0.5, 1.0)
+SIGMA_SCALES = (0.125, 0.25, 0.5, 1.0)
 
 
 def case_row(scenario: str, seed: int, log=lambda *a: None) -> dict:
@@ -42,12 +50,24 @@ def case_row(scenario: str, seed: int, log=lambda *a: None) -> dict:
     bud = Budgets(**{**HARNESS_BUDGETS, "top_k": 0, "seed": seed})
     d = diagnose(ev, [], bud, harness_thresholds(), log=log)
     blocks = {}
-    for name, info in d.localisation.blocks.items():
-        if "Z_fit" in info:
-            blocks[name] = {"Z_fit": info["Z_fit"], "p_fit": info["p_fit"], "chi2_fit": info["chi2_fit"],
-                            "m": info["m"], "Z_block": info["Z_block"]}
-        else:
-            blocks[name] = {"z": info["z"]}
+    ev_me = d.evaluator
+    gamma = ev_me.model_error.covariance if ev_me.model_error is not None else None
+    cov_meas = likelihood_covariance(ev)          # the measurement errors alone
+    draws = d.predictive.draws
+    for b in ev_me.blocks:
+        info = d.localisation.blocks[b.name]
+        if "Z_fit" not in info:
+            blocks[b.name] = {"z": info["z"]}
+            continue
+        blocks[b.name] = {"Z_fit": info["Z_fit"], "p_fit": info["p_fit"], "chi2_fit": info["chi2_fit"],
+                          "m": info["m"], "Z_block": info["Z_block"]}
+        if gamma is not None:
+            # the same fit with the grid's error covariance scaled by s (1: the likelihood's own)
+            r = ev_me.data[b.slice] - draws[:, b.slice].mean(0)
+            cm, gb, db = cov_meas[b.slice, b.slice], gamma[b.slice, b.slice], draws[:, b.slice]
+            blocks[b.name]["gamma_scan"] = {f"{s:g}": block_fit(r, cm + s * gb, db)["chi2"] for s in GAMMA_SCALES}
+            # and with the measurement sigmas scaled by a (the grid's error as it is)
+            blocks[b.name]["sigma_scan"] = {f"{a:g}": block_fit(r, a * a * cm + gb, db)["chi2"] for a in SIGMA_SCALES}
     located = d.localisation.public()
     return {"scenario": scenario, "seed": seed, "terrain": scenarios.TERRAIN, "blocks": blocks,
             "max_located": max([abs(l["standardised_residual"]) for l in located], default=0.0),

@@ -964,6 +964,14 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += ["", "## Targets (strength 1)", "", "| scenario | cases | strict successes | target |", "|---|---|---|---|"]
     for sc, oks in per.items():
         L.append(f"| {sc} | {len(oks)} | {sum(oks)} | >= 4 of 5 |")
+    outside = [c for c in cases if true_label(c) == "unexplained" and c.get("strength", 1.0) == 1.0]
+    if outside:
+        n_unexp = sum(c["diagnosis"]["verdict"] == "unexplained" for c in outside)
+        L += ["", f"The out-of-library term counts as a success when it is given no library name (the issue's "
+                  f"'Checked by'). The issue's harness text asks for the verdict \"unexplained\": it came out "
+                  f"\"unexplained\" in {n_unexp} of {len(outside)} cases, \"nothing missing\" in "
+                  f"{sum(c['diagnosis']['verdict'] == 'no_missing_physics' for c in outside)}: the patch is not named, "
+                  f"but not detected either."]
     def lower(c):
         return max([x["two_ln_bf_lower"] for x in c["diagnosis"]["candidates"] if x.get("two_ln_bf_lower") is not None],
                    default=None)

@@ -12,7 +12,7 @@ correlation factor of the block, see torchslide.observe_series):
   r = d_b - E y_b, Sigma the likelihood's full covariance (measurement errors with their correlation,
   plus the grid's approximation error when the evaluator has one), C the draws' covariance; under the
   model chi2_b ~ chi-square(m_b), reported as its upper-tail p-value and the normal score
-  Z_fit = Phi^-1(1 - p). Unlike the per-value z (diagonal variances), it does not count the grid's
+  Z_fit = Phi^-1(1 - p) (Z_fit << 0: the data fit better than the covariance says, i.e. it is too wide). Unlike the per-value z (diagonal variances), it does not count the grid's
   correlated error as many independent mismatches. Reported per block; not a located item.
 * map clusters: Getis-Ord Gi* of the z map with a square window of radius r cells (r >= the error
   correlation length), permutation p-values (z values shuffled over the mapped cells, n_perm
@@ -191,11 +191,22 @@ def likelihood_covariance(evaluator) -> np.ndarray:
     return np.diag(np.asarray(evaluator.sigma, float) ** 2)
 
 
+def chi2_score(chi2: float, m: int) -> tuple[float, float]:
+    """(Z, p) of a chi-square statistic with m degrees of freedom: p its upper-tail probability and
+    Z = Phi^-1(F(chi2)) its normal score (0 at the median, < 0 below), from the log of whichever tail is
+    accurate; beyond scipy's range of log sf, the Wilson-Hilferty approximation."""
+    logp = float(stats.chi2.logsf(chi2, m))
+    z = -special.ndtri_exp(logp) if logp < math.log(0.5) else special.ndtri_exp(float(stats.chi2.logcdf(chi2, m)))
+    if not math.isfinite(z):
+        z = ((chi2 / m) ** (1 / 3) - (1 - 2 / (9 * m))) / math.sqrt(2 / (9 * m))
+    return float(z), float(math.exp(logp))
+
+
 def block_fit(resid: np.ndarray, cov: np.ndarray, draws: np.ndarray | None = None) -> dict:
     """Whitened fit of one block: resid (m,) = d_b - E y_b, cov (m, m) the likelihood's covariance of
     the block, draws (M, m) the posterior-predictive draws (their covariance is added; None: not).
-    Returns {chi2, m, p_value, Z_fit}: chi2 = r^T (cov + C)^-1 r against chi-square(m), p its upper
-    tail, Z_fit = Phi^-1(1 - p) (0 at the median; from log p, so it stays finite where p underflows)."""
+    Returns {chi2, m, p_value, Z_fit}: chi2 = r^T (cov + C)^-1 r against chi-square(m), (Z_fit, p_value)
+    = chi2_score(chi2, m) (Z_fit < 0: a fit better than the covariance expects)."""
     r = np.asarray(resid, float)
     m = r.size
     c = np.asarray(cov, float).reshape(m, m)
@@ -203,8 +214,8 @@ def block_fit(resid: np.ndarray, cov: np.ndarray, draws: np.ndarray | None = Non
         c = c + np.cov(np.asarray(draws, float).reshape(len(draws), m), rowvar=False).reshape(m, m)
     w = np.linalg.solve(np.linalg.cholesky(c), r)
     chi2 = float(w @ w)
-    logp = float(stats.chi2.logsf(chi2, m))
-    return {"chi2": chi2, "m": int(m), "p_value": float(math.exp(logp)), "Z_fit": float(-special.ndtri_exp(logp))}
+    z, p = chi2_score(chi2, m)
+    return {"chi2": chi2, "m": int(m), "p_value": p, "Z_fit": z}
 
 
 def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_threshold: float = 3.0,
