@@ -1,6 +1,6 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
 [--model-error N] [--mode-search-iters N] [--profile-top N] [--release-volume-sd S] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
-[--max-batch N] [--extra-gauges 300,1200]``.
+[--max-batch N] [--extra-gauges 300,1200] [--sigma-scale A]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
 without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
@@ -76,10 +76,12 @@ def coverage(diag: dict, truth: dict) -> tuple:
 
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None,
-             fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16, fine_factor: int = 2) -> dict:
+             fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16, fine_factor: int = 2,
+             sigma_scale: float = 1.0) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
-    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor)
+    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor,
+                         sigma_scale=sigma_scale)
     ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
     d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
@@ -87,7 +89,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
             "fine_terrain": fine_terrain, "fine_factor": fine_factor, "extra_gauges": list(scenarios.EXTRA_GAUGES),
-            "truth": rec.truth,
+            "sigma_scale": sigma_scale, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
@@ -142,6 +144,9 @@ def main(argv=None) -> int:
     p.add_argument("--extra-gauges", default="",
                    help="comma-separated x (m) of extra gauges g3, ... on the thalweg (scenarios.extra_gauges; "
                         "design_check.py); another design needs its own null seeds and --out")
+    p.add_argument("--sigma-scale", type=float, default=1.0,
+                   help="multiplies the likelihood sigmas of the gauge series and the deposit map (not the noise "
+                        "drawn; scenarios.make_recording); another value needs its own null seeds and --out")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     a = p.parse_args(argv)
@@ -149,6 +154,8 @@ def main(argv=None) -> int:
         p.error(f"--max-batch must be >= 1, got {a.max_batch}")
     if a.fine_factor < 1:
         p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
+    if not 0 < a.sigma_scale <= 10:
+        p.error(f"--sigma-scale must be in (0, 10], got {a.sigma_scale}")
     if a.mode_search_iters is not None and a.mode_search_iters < 0:
         p.error(f"--mode-search-iters must be >= 0, got {a.mode_search_iters}")
     if a.release_volume_sd is not None and not 0 <= a.release_volume_sd < 0.5:
@@ -202,7 +209,7 @@ def _run_all(a) -> int:
                 try:
                     c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
                                  fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
-                                 fine_factor=a.fine_factor, log=lambda s: print(s, flush=True))
+                                 fine_factor=a.fine_factor, sigma_scale=a.sigma_scale, log=lambda s: print(s, flush=True))
                 finally:
                     claim.unlink(missing_ok=True)
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "

@@ -145,10 +145,16 @@ class Recording:
 
 def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: float = 1.0,
                    map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = 0.3, gauge_corr: float = 4.0, fine_factor: int = 2,
-                   noise_scale: float = 1.0, base: dict | None = None, volume_factor: float | None = None) -> Recording:
+                   noise_scale: float = 1.0, base: dict | None = None, volume_factor: float | None = None,
+                   sigma_scale: float = 1.0) -> Recording:
     """``noise_scale`` multiplies every noise draw (0: noise-free recording; the draws, and so the
     recordings at 1, are unchanged); ``base`` overrides TRUE_BASE values; ``volume_factor`` overrides
-    the drawn release error (both for experiments/hidden_physics/effect_size.py only)."""
+    the drawn release error (both for experiments/hidden_physics/effect_size.py only).
+    ``sigma_scale`` multiplies the likelihood sigmas given with the gauge series (h 0.5 m, speed 2 m/s)
+    and the deposit map (``map_sigma``), not the noise drawn (h 0.2 m, speed 0.5 m/s, deposit ``noise``)
+    nor the final volume's sigma (the release error's 10 %)."""
+    if not 0 < sigma_scale <= 10:
+        raise ValueError(f"sigma_scale must be in (0, 10], got {sigma_scale!r}")
     term, hidden = SCENARIOS[scenario]
     rng = np.random.default_rng(1000 + seed)
     dem_c, erod_c = terrain(cellsize)
@@ -169,7 +175,7 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     assert dep.shape == dem_c.shape, (dep.shape, dem_c.shape)
     obs = []
     dep_obs = dep + noise_scale * noise * rng.standard_normal(dep.shape)
-    obs.append(SeriesObservation.from_array("deposit_map", dep_obs, dem_c, map_sigma, name="deposit",
+    obs.append(SeriesObservation.from_array("deposit_map", dep_obs, dem_c, map_sigma * sigma_scale, name="deposit",
                                             corr_length=map_corr))
     t = np.arange(DT_OBS, T_END + 1e-9, DT_OBS)
     for g in res.gauges.values():
@@ -179,7 +185,7 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
             y = (g.h if q == "h" else g.speed)
             yv = interp_series(g.t, y, torch.as_tensor(t))[0].numpy()
             yv = yv + noise_scale * e * rng.standard_normal(yv.shape)
-            obs.append(SeriesObservation("gauge_series", yv, s, name=f"{g.name}:{q}", gauge=g.name, quantity=q,
+            obs.append(SeriesObservation("gauge_series", yv, s * sigma_scale, name=f"{g.name}:{q}", gauge=g.name, quantity=q,
                                          times=t.copy(), corr_length=gauge_corr))
     fv = float(res.final_volume[0])
     obs.append(Observation("final_volume", fv + noise_scale * 0.02 * V_NOMINAL * rng.standard_normal(), 0.1 * V_NOMINAL,
