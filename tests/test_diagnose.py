@@ -798,6 +798,57 @@ def test_page_section_of_the_release_volume_run(tmp_path):
     assert g.startswith("## Probe: the resolved terrain with two more gauges") and "x = 300, 1200 m" in g
     assert "bf_min 10.5" in g and "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in g
     assert _extra_gauges_section(tmp_path / "absent", before) == []
+    # the sigma-scale probe: the same layout, and the scale the cases ran with
+    from experiments.hidden_physics.make_page import _sigma_scale_section
+    (now / "entrainment_s4.json").write_text(json.dumps(dict(case, sigma_scale=0.5)))
+    sg = "\n".join(_sigma_scale_section(now, before))
+    assert sg.startswith("## Probe: the resolved terrain with the likelihood's sigmas halved")
+    assert "multiplied by 0.5" in sg and "bf_min 10.5" in sg and "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in sg
+    assert _sigma_scale_section(tmp_path / "absent", before) == []
+
+
+def test_block_fit_section_and_the_sigma_scale_rule(tmp_path):
+    """block_fit_probe's rule picks the sigma scale whose pooled null chi2 / m (calibration seeds 100-104
+    only) is nearest 1 on a log scale; the page section tabulates Z_fit per group and the scans."""
+    import json
+    from experiments.hidden_physics.block_fit_probe import choose_sigma_scale, pooled_null_fit
+    from experiments.hidden_physics.make_page import _block_fit_section
+
+    def row(sc, seed, c):      # c: chi2 / m at each sigma scale, for two 10-value blocks
+        b = {"Z_fit": -3.0 if sc == "null" else 1.0, "p_fit": 0.5, "chi2_fit": 5.0, "m": 10, "Z_block": 0.0,
+             "gamma_scan": {f"{s:g}": 10 * c[-1] for s in (0.0, 0.1, 0.25, 0.5, 1.0)},
+             "sigma_scan": {f"{a:g}": 10 * x for a, x in zip((0.125, 0.25, 0.5, 1.0), c)}}
+        return {"scenario": sc, "seed": seed, "terrain": "resolved", "blocks": {"g1:h": b, "g1:speed": dict(b),
+                "final_volume": {"z": 0.1}}, "max_located": 4.0, "located": [], "wall_s": 30.0}
+    rows = [row("null", 100, (8.0, 2.5, 0.7, 0.2)), row("null", 101, (6.0, 1.9, 0.5, 0.1)),
+            row("null", 0, (0.9, 0.9, 0.9, 0.9)),             # an evaluation seed: not in the rule
+            row("low_friction_patch", 0, (50.0, 20.0, 9.0, 3.0))]
+    pooled = pooled_null_fit(rows)
+    assert abs(pooled["0.5"] - 0.6) < 1e-12 and abs(pooled["0.25"] - 2.2) < 1e-12
+    assert choose_sigma_scale(rows) == 0.5 and choose_sigma_scale(rows[2:]) is None
+    f = tmp_path / "block_fit_resolved.json"
+    f.write_text(json.dumps({"terrain": "resolved", "cases": rows}))
+    text = "\n".join(_block_fit_section([f]))
+    assert "### resolved terrain" in text and "**0.5**" in text
+    assert "| null (calibration seeds 100-104) | 2 | -3.0 (-3.0 to -3.0) | -3.0 (-3.0 to -3.0) | 4.0 |" in text
+    assert "| low_friction_patch | 1 | +1.0 (+1.0 to +1.0) |" in text
+    assert "| chi2 / m | 7.00 | 2.20 | 0.60 | 0.15 |" in text
+    assert _block_fit_section([tmp_path / "absent.json"]) == []
+
+
+def test_make_recording_sigma_scale_changes_the_sigmas_not_the_data():
+    from experiments.hidden_physics.scenarios import make_recording
+    from experiments.hidden_physics.harness import main as harness_main
+    a, b = make_recording("null", 3), make_recording("null", 3, sigma_scale=0.5)
+    for oa, ob in zip(a.observations, b.observations):
+        va = np.asarray(getattr(oa, "values", None) if hasattr(oa, "values") else oa.value)
+        vb = np.asarray(getattr(ob, "values", None) if hasattr(ob, "values") else ob.value)
+        assert np.array_equal(va, vb)
+        assert ob.sigma == (oa.sigma if oa.name == "final_volume" else 0.5 * oa.sigma)
+    with pytest.raises(ValueError, match="sigma_scale must be in"):
+        make_recording("null", 3, sigma_scale=0.0)
+    with pytest.raises(SystemExit):
+        harness_main(["--sigma-scale", "-1", "--scenarios", "null", "--seeds", "0"])
 
 
 def test_report_cell_says_which_refits_the_recheck_refined():

@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import time
+from collections import defaultdict
 from pathlib import Path
 
 from torchslide.diagnose import Budgets, diagnose
@@ -105,3 +107,26 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     raise SystemExit(main())
+
+
+def pooled_null_fit(rows, key: str = "sigma_scan", seeds=range(100, 105)) -> dict:
+    """{scale: pooled chi2 / pooled m} over every vector block of the null cases with seeds in ``seeds``
+    (the null calibration seeds: no hidden-term data), for the scan ``key`` ("sigma_scan" or "gamma_scan")."""
+    tot, m = defaultdict(float), defaultdict(int)
+    for r in rows:
+        if r["scenario"] != "null" or r["seed"] not in seeds:
+            continue
+        for b in r["blocks"].values():
+            for s, c in (b.get(key) or {}).items():
+                tot[s] += c
+                m[s] += b["m"]
+    return {s: tot[s] / m[s] for s in tot}
+
+
+def choose_sigma_scale(rows) -> float | None:
+    """The sigma scale a in SIGMA_SCALES whose pooled chi2 / m on the null calibration seeds is nearest 1
+    on a log scale (the rule that chose the harness' ``--sigma-scale`` probe; None without null rows)."""
+    pooled = pooled_null_fit(rows)
+    if not pooled:
+        return None
+    return float(min(pooled, key=lambda s: abs(math.log(pooled[s]))))

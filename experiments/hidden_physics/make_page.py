@@ -871,6 +871,87 @@ def _extra_gauges_section(d=None, prev=None) -> list[str]:
     return L
 
 
+def _block_fit_section(files=None) -> list[str]:
+    """block_fit_probe.py's results (default results/block_fit_<terrain>.json): every observable's fit
+    with the likelihood's own covariance (Z_fit) per group of cases, and the null calibration seeds' chi2 / m
+    with the measurement sigmas and the grid's error covariance scaled."""
+    from .block_fit_probe import GAMMA_SCALES, SIGMA_SCALES, choose_sigma_scale, pooled_null_fit
+    files = files if files is not None else sorted((HERE / "results").glob("block_fit_*.json"))
+    data = [json.loads(Path(f).read_text()) for f in files if Path(f).exists()]
+    if not data:
+        return []
+    L = ["## Each observable's fit with the likelihood's own covariance (`block_fit_probe`)", "",
+         "`python -m experiments.hidden_physics.block_fit_probe --terrain T`: the first stage of each harness case "
+         "re-run exactly (grid error, baseline, posterior-predictive draws; no refit) and each observable's residual "
+         "whitened with the likelihood's full covariance (measurement sigmas, widened for their correlation, plus "
+         "the grid's approximation error; torchslide.diagnose.localise.block_fit). Z_fit is its chi-square as a "
+         "normal score: 0 is a fit as good as the covariance expects, Z_fit << 0 a fit much better (the "
+         "covariance is too wide), Z_fit >> 0 a mismatch. Every report now has it per observable (report.json "
+         "fit_before / fit_after residuals, report.md); it is not used in the verdict.", ""]
+    for d in data:
+        rows = d["cases"]
+        groups = defaultdict(list)
+        for r in rows:
+            g = "null (calibration seeds 100-104)" if r["scenario"] == "null" and r["seed"] >= 100 else r["scenario"]
+            groups[g].append(r)
+        names = [k for k, v in rows[0]["blocks"].items() if "Z_fit" in v]
+        L += [f"### {d['terrain']} terrain", "",
+              "Z_fit: median (min to max) over the cases.", "",
+              "| cases | n | " + " | ".join(names) + " | largest located score |",
+              "|---|---|" + "---|" * len(names) + "---|"]
+        for g, rs in groups.items():
+            cells = []
+            for n in names:
+                z = [r["blocks"][n]["Z_fit"] for r in rs]
+                cells.append(f"{np.median(z):+.1f} ({min(z):+.1f} to {max(z):+.1f})")
+            L.append(f"| {g} | {len(rs)} | " + " | ".join(cells)
+                     + f" | {max(r['max_located'] for r in rs):.1f} |")
+        sig = pooled_null_fit(rows)
+        gam = pooled_null_fit(rows, "gamma_scan")
+        if sig:
+            a = choose_sigma_scale(rows)
+            L += ["", "Null calibration seeds, pooled chi2 / m over the vector observables (1 = the covariance is the "
+                  "right size):", "",
+                  "| measurement sigmas x | " + " | ".join(f"{x:g}" for x in SIGMA_SCALES) + " |",
+                  "|---|" + "---|" * len(SIGMA_SCALES),
+                  "| chi2 / m | " + " | ".join(f"{sig[f'{x:g}']:.2f}" for x in SIGMA_SCALES) + " |", "",
+                  "| grid error covariance x | " + " | ".join(f"{x:g}" for x in GAMMA_SCALES) + " |",
+                  "|---|" + "---|" * len(GAMMA_SCALES),
+                  "| chi2 / m | " + " | ".join(f"{gam[f'{x:g}']:.2f}" for x in GAMMA_SCALES) + " |", "",
+                  f"Rule (null seeds only): the sigma scale whose pooled chi2 / m is nearest 1 on a log scale: "
+                  f"**{a:g}**."]
+        L.append("")
+    return L
+
+
+def _sigma_scale_section(d=None, prev=None) -> list[str]:
+    """The resolved terrain with the likelihood's gauge and deposit-map sigmas halved (``harness --terrain
+    resolved --sigma-scale 0.5``, the scale block_fit_probe's rule chose on null seeds): cases in ``d``
+    (default results/resolved_sig05/results; null seeds and thresholds in d/null_calib) against the same
+    cases at the harness' sigmas (``prev``, default results/resolved/results)."""
+    d = Path(d) if d is not None else HERE / "results" / "resolved_sig05" / "results"
+    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
+    cases, th = _variant_cases(d, strength1=True)
+    if not cases:
+        return []
+    scales = sorted({c.get("sigma_scale", 1.0) for c in cases})
+    L = ["## Probe: the resolved terrain with the likelihood's sigmas halved (`--sigma-scale 0.5`)", "",
+         "The harness gives the diagnosis sigmas of 0.5 m (gauge h), 2 m/s (gauge speed) and 0.5 m (deposit), "
+         "2.5, 4 and 1.7 times the noise drawn, and the likelihood widens them further for their correlation. With "
+         "the grid's error in the likelihood too, the null calibration seeds fit far better than that covariance "
+         "expects (previous section: pooled chi2 / m 0.16). Here the gauge and deposit sigmas are multiplied by "
+         + ", ".join(f"{x:g}" for x in scales) + " (the scale the previous section's rule chose on the null "
+         "calibration seeds; the noise drawn is unchanged). Everything else as in the resolved-terrain run. "
+         f"Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+         + (_thresholds_sentence(th, "run with these sigmas") if th else
+            "No null seeds of its own finished: verdicts use the narrow terrain's thresholds."), ""]
+    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
+    L += _versus_section(cases, prev, f"### Against the same cases at the harness' sigmas ({_shown(prev, HERE)})",
+                         "'Before': the resolved-terrain run (sigmas as given); 'now': halved. Each with thresholds "
+                         "from its own null seeds.")
+    return L
+
+
 def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's probe with the release volume's error (``harness --release-volume-sd 0.0577
     --scenarios entrainment,earth_pressure``, null seeds 100-104): cases in ``d`` (default
@@ -992,6 +1073,8 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _release_volume_section()
     L += _release_volume_narrow_section()
     L += _extra_gauges_section()
+    L += _block_fit_section()
+    L += _sigma_scale_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",
