@@ -361,6 +361,12 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     assert vec and all(np.isfinite(r["Z_fit"]) and 0 <= r["p_fit"] <= 1 for r in vec)
     assert all(np.isfinite(r["Z_fit"]) for r in j["fit_after"]["residuals"].values() if "rms_z" in r)
     assert "fit Z before" in (out / "report.md").read_text()
+    from torchslide.diagnose.report import _fit_notes
+    notes = "\n".join(_fit_notes({"deposit": {"Z_fit": -36.0}, "g1:h": {"Z_fit": 0.4}, "g2:h": {"Z_fit": 4.2},
+                                  "final_volume": {"z": 0.3}}))
+    assert "better than the likelihood's covariance expects at deposit (-36.0)" in notes and "g1:h" not in notes
+    assert "Mismatch beyond the likelihood's covariance at g2:h (4.2)" in notes
+    assert _fit_notes({"g1:h": {"Z_fit": 1.0}}) == []
     c = j["candidates"][0]
     assert c["name"] == "mu_i" and {"log_evidence", "log_bayes_factor", "screening_score", "parameters"} <= set(c)
     assert set(c["parameters"]["mu_i"]) >= {"mean", "hdr90"}

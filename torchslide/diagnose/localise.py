@@ -12,8 +12,9 @@ correlation factor of the block, see torchslide.observe_series):
   r = d_b - E y_b, Sigma the likelihood's full covariance (measurement errors with their correlation,
   plus the grid's approximation error when the evaluator has one), C the draws' covariance; under the
   model chi2_b ~ chi-square(m_b), reported as its upper-tail p-value and the normal score
-  Z_fit = Phi^-1(1 - p) (Z_fit << 0: the data fit better than the covariance says, i.e. it is too wide). Unlike the per-value z (diagonal variances), it does not count the grid's
-  correlated error as many independent mismatches. Reported per block; not a located item.
+  Z_fit = Phi^-1(1 - p) (Z_fit << 0: the data fit better than the covariance says, i.e. it is too
+  wide). Unlike the per-value z (diagonal variances), it does not count the grid's correlated error
+  as many independent mismatches. Reported per block; not a located item.
 * map clusters: Getis-Ord Gi* of the z map with a square window of radius r cells (r >= the error
   correlation length), permutation p-values (z values shuffled over the mapped cells, n_perm
   permutations, the |Gi*| of all cells and permutations pooled into one null distribution), Benjamini-Hochberg FDR at level q; significant cells of one sign that touch form a

@@ -195,8 +195,25 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         key = "z" if "z" in r else "rms_z"
         L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} "
                  f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |")
+    L += _fit_notes(fb["residuals"])
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(L) + "\n"
+
+
+def _fit_notes(residuals: dict, level: float = 3.0) -> list[str]:
+    """Lines naming the observables whose baseline fit Z is beyond +-``level``: below, the likelihood's
+    covariance is wider than the data need (every term's evidence is weaker than it could be); above, a
+    mismatch beyond it."""
+    wide = [f"{n} ({r['Z_fit']:.1f})" for n, r in residuals.items() if r.get("Z_fit") is not None and r["Z_fit"] <= -level]
+    bad = [f"{n} ({r['Z_fit']:.1f})" for n, r in residuals.items() if r.get("Z_fit") is not None and r["Z_fit"] >= level]
+    L = []
+    if wide:
+        L += ["", f"- The data fit better than the likelihood's covariance expects at {', '.join(wide)}: its sigmas "
+                  "(or correlation lengths) are wider than these data need there, so every term's evidence is weaker "
+                  "than it could be."]
+    if bad:
+        L += ["", f"- Mismatch beyond the likelihood's covariance at {', '.join(bad)}."]
+    return L
 
 
 def write_report(diag, out) -> Path:
