@@ -224,6 +224,11 @@ def _changes_section() -> list[str]:
             "before it; section 'Which terms could these data name at all?' recomputes it for the seed-0 cases. "
             "The harness' cases can also be written as user files for the CLI (export_case.py), which reproduces "
             "a saved case exactly.",
+            "* **Reported, not decided on** (session 16): every report also gives each observable's fit with the "
+            "likelihood's own covariance (localise.block_fit, 'fit Z'; the verdict does not use it); section "
+            "'Each observable's fit with the likelihood's own covariance' re-runs the first stage of the null and "
+            "patch cases for it. The harness' `--sigma-scale` (default 1, so the runs above are unchanged) was "
+            "probed on the resolved terrain (section 'Probe: the resolved terrain with the likelihood's sigmas halved').",
             "* The same cases run with the method without the profile (session 12, as of the previous page: "
             "results/before_profile, stopped part-way to make room for this run) are compared below.",
             "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
