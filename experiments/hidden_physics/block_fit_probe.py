@@ -105,9 +105,6 @@ def main(argv=None) -> int:
     return 0
 
 
-if __name__ == "__main__":
-    raise SystemExit(main())
-
 
 def pooled_null_fit(rows, key: str = "sigma_scan", seeds=range(100, 105)) -> dict:
     """{scale: pooled chi2 / pooled m} over every vector block of the null cases with seeds in ``seeds``
@@ -130,3 +127,7 @@ def choose_sigma_scale(rows) -> float | None:
     if not pooled:
         return None
     return float(min(pooled, key=lambda s: abs(math.log(pooled[s]))))
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
