@@ -1727,3 +1727,22 @@ def test_block_fit_whitens_correlated_errors_and_sees_a_real_offset():
     draws = rng.standard_normal((16, 1)) * bump[None, :]
     r = bump.copy()
     assert block_fit(r, cov, draws)["Z_fit"] < block_fit(r, cov)["Z_fit"]
+
+
+@pytest.mark.slow
+def test_block_fit_probe_reproduces_a_saved_row():
+    """block_fit_probe.case_row re-runs the first stage of a harness case exactly: null seed 100 on the
+    resolved terrain gives the saved Z_fit of every observable and the saved scans (~40 s)."""
+    import json
+    from pathlib import Path
+    from experiments.hidden_physics import block_fit_probe
+    from experiments.hidden_physics.scenarios import terrain_variant
+    saved = json.loads((Path(block_fit_probe.HERE) / "results" / "block_fit_resolved.json").read_text())["cases"]
+    want = next(r for r in saved if r["scenario"] == "null" and r["seed"] == 100)
+    with terrain_variant("resolved"):
+        got = block_fit_probe.case_row("null", 100)
+    for name, b in want["blocks"].items():
+        if "Z_fit" in b:
+            assert got["blocks"][name]["Z_fit"] == pytest.approx(b["Z_fit"], abs=0.05)
+            assert got["blocks"][name]["sigma_scan"]["0.5"] == pytest.approx(b["sigma_scan"]["0.5"], rel=0.02)
+    assert got["max_located"] == pytest.approx(want["max_located"], abs=0.05)
