@@ -345,7 +345,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
     tiny = ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
             'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
-            'model_error_runs = 2\nmode_search_iters = 1\nrelease_volume_sd = 0.05\n'
+            'model_error_runs = 2\nmode_search_iters = 1\nrelease_volume_sd = 0.05\nfit_max = -1000\n'
             '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
     out = tmp_path / "out"
@@ -361,6 +361,10 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     assert vec and all(np.isfinite(r["Z_fit"]) and 0 <= r["p_fit"] <= 1 for r in vec)
     assert all(np.isfinite(r["Z_fit"]) for r in j["fit_after"]["residuals"].values() if "rms_z" in r)
     assert "fit Z before" in (out / "report.md").read_text()
+    # fit_max below every fit: each vector observable is flagged, so the verdict cannot be "nothing missing"
+    assert sorted(f["observable"] for f in j["decision"]["fit_flags"]) == sorted(
+        k for k, r in j["fit_before"]["residuals"].items() if "rms_z" in r)
+    assert j["verdict"] != "no_missing_physics" and "whole-observable fit" in (out / "report.md").read_text()
     from torchslide.diagnose.report import _fit_notes
     notes = "\n".join(_fit_notes({"deposit": {"Z_fit": -36.0}, "g1:h": {"Z_fit": 0.4}, "g2:h": {"Z_fit": 4.2},
                                   "final_volume": {"z": 0.3}}))
@@ -600,6 +604,113 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert apply_thresholds(rule, asdict(old), force=True) == 1
     j = json.loads((rule / "low_friction_patch_s1.json").read_text())["diagnosis"]
     assert (j["verdict"], j["missing_physics"]) == ("unexplained", None)
+
+
+def test_fit_flags_turn_nothing_missing_into_unexplained():
+    """An observable whose baseline Z_fit exceeds fit_max is a mismatch at the level of the whole
+    observable: with no candidate supported it makes the verdict "unexplained" (rules 2 and 3), it never
+    blocks or gives a name, and without fit_max (the default) or a level for that observable it is ignored."""
+    base = {"ess": 5.0}
+    weak = [_cand("curvature", 15.0)]
+    z = {"g1:speed": 0.4, "g1:h": -3.0, "deposit": -36.0}
+    th0 = Thresholds(bf_min=20.0, located_min=8.0)
+    assert decide(weak, [], base, 100.0, th0, fit_z=z)["verdict"] == "no_missing_physics"
+    th = Thresholds(bf_min=20.0, located_min=8.0, fit_max={"g1:speed": -1.5, "g1:h": 2.0})
+    d = decide(weak, [], base, 100.0, th, fit_z=z)
+    assert d["verdict"] == "unexplained" and d["missing_physics"] is None
+    assert d["fit_flags"] == [{"observable": "g1:speed", "Z_fit": 0.4, "fit_max": -1.5}]
+    assert "g1:speed fits at Z_fit 0.4 > -1.5" in d["reason"]
+    assert decide(weak, [], base, 100.0, th, fit_z={"g1:speed": -2.0, "deposit": 50.0})["verdict"] == \
+        "no_missing_physics"                       # below its level; no level for the deposit
+    assert decide(weak, [], base, 100.0, Thresholds(bf_min=20.0, fit_max=0.0), fit_z=z)["fit_flags"][0]["observable"] \
+        == "g1:speed"                              # one level for every observable
+    # rule 2: evidence above bf_min that explains nothing located is "nothing missing" without a flag
+    supported = [_cand("curvature", 40.0, misfit_after=150.0, located_rescored={})]
+    assert decide(supported, [], base, 100.0, th0, fit_z=z)["verdict"] == "no_missing_physics"
+    assert decide(supported, [], base, 100.0, th, fit_z=z)["verdict"] == "unexplained"
+    # a term passing every check is still named
+    d = decide([_cand("entrainment", 60.0)], [{"standardised_residual": 9.0}], base, 100.0, th, fit_z=z)
+    assert d["missing_physics"] == "entrainment" and d["fit_flags"]
+
+
+def test_fit_max_from_null_is_a_prediction_bound():
+    """calibrate_thresholds.fit_max_from_null: per observable mean + t-quantile * sd * sqrt(1 + 1/n)
+    (Bonferroni over the observables), so fresh null rows from the same distribution raise a flag on
+    about 5 % of cases or fewer; case_fit_z takes a report's Z_fit, else the probe's row."""
+    from scipy import stats as st
+    from experiments.hidden_physics.calibrate_thresholds import case_fit_z, fit_max_from_null, probe_fit_z
+
+    rng = np.random.default_rng(3)
+    loc = {"deposit": (-36.0, 1.0), "g1:h": (2.0, 2.0), "g1:speed": (-4.0, 0.8)}
+    rows = [{k: m + s * rng.standard_normal() for k, (m, s) in loc.items()} for _ in range(25)]
+    fm = fit_max_from_null(rows + [{"only_two": 1.0}, {"only_two": 2.0}])
+    assert set(fm) == set(loc)                     # fewer than 3 null values: no level
+    v = np.array([r["g1:speed"] for r in rows])
+    q = st.t.ppf(1 - 0.05 / 3, 24)
+    assert np.isclose(fm["g1:speed"], v.mean() + q * v.std(ddof=1) * np.sqrt(1 + 1 / 25))
+    alarms = np.mean([any(m + s * rng.standard_normal() > fm[k] for k, (m, s) in loc.items()) for _ in range(4000)])
+    assert 0.005 < alarms < 0.12
+    # a shift of the speed fit by 5 null sds is flagged nearly always
+    assert np.mean([-4.0 + 4.0 + 0.8 * rng.standard_normal() > fm["g1:speed"] for _ in range(500)]) > 0.95
+    probe = {"cases": [{"scenario": "null", "seed": 3, "blocks": {"g1:h": {"Z_fit": 1.5}, "final_volume": {"z": 0.2}}}]}
+    old = {"scenario": "null", "seed": 3, "diagnosis": {"fit_before": {"residuals": {"g1:h": {"rms_z": 1.0}}}}}
+    assert case_fit_z(old, probe_fit_z(probe)) == ({"g1:h": 1.5}, "block_fit_probe")
+    new = {"scenario": "null", "seed": 3, "diagnosis": {"fit_before": {"residuals": {"g1:h": {"Z_fit": -0.5}}}}}
+    assert case_fit_z(new, probe_fit_z(probe)) == ({"g1:h": -0.5}, "report")
+    assert case_fit_z(dict(old, seed=4), probe_fit_z(probe)) == ({}, None)
+    # the probe's row stands only for a case of its design and terrain (not a x0.5 strength or another terrain)
+    assert case_fit_z(dict(old, strength=0.5), probe_fit_z(probe)) == ({}, None)
+    assert case_fit_z(dict(old, terrain="resolved"), probe_fit_z(probe)) == ({}, None)
+
+
+def test_apply_thresholds_with_fit_levels_from_a_probe(tmp_path):
+    """--fit-probe: a saved case whose report predates Z_fit is re-decided with the probe's Z_fit for the
+    same scenario and seed; the decision keeps the values and their source, and re-deciding it again (or
+    redecide on the page) reproduces the verdict without the probe."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.calibrate_thresholds import apply_thresholds
+    from experiments.hidden_physics.make_page import redecide
+
+    th0 = Thresholds(bf_min=20.0, located_min=8.0)
+    cands = [_cand("curvature", 15.0)]
+    d0 = decide(cands, [], {"ess": 5.0}, 100.0, th0)
+    case = {"scenario": "low_friction_patch", "seed": 2,
+            "diagnosis": {"verdict": d0["verdict"], "missing_physics": None, "candidates": cands, "located": [],
+                          "decision": dict(d0, baseline_verification={"ess": 5.0}),
+                          "fit_before": {"misfit": 100.0, "residuals": {"g1:speed": {"rms_z": 0.5}}},
+                          "thresholds": asdict(th0)}}
+    (tmp_path / "low_friction_patch_s2.json").write_text(json.dumps(case))
+    probe = {"cases": [{"scenario": "low_friction_patch", "seed": 2, "blocks": {"g1:speed": {"Z_fit": 0.9}}}]}
+    th = asdict(Thresholds(bf_min=20.0, located_min=8.0, fit_max={"g1:speed": -1.5}))
+    assert apply_thresholds(tmp_path, th, probe=probe) == 1
+    saved = json.loads((tmp_path / "low_friction_patch_s2.json").read_text())
+    j = saved["diagnosis"]
+    assert j["verdict"] == "unexplained" and j["decision"]["fit_z_source"] == "block_fit_probe"
+    assert j["decision"]["fit_flags"][0]["observable"] == "g1:speed"
+    assert redecide(saved)["verdict"] == "unexplained"
+    assert apply_thresholds(tmp_path, th, force=True) == 0
+
+
+def test_cli_fit_max(tmp_path):
+    """[diagnose] fit_max: off by default, one number or a table per observable name; an unknown
+    observable or a non-number stops with an error naming the key before any run."""
+    from torchslide.commands.diagnose import budgets_and_thresholds, load_diagnose_config
+    from torchslide.config import ConfigError
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]')
+    assert budgets_and_thresholds(load_diagnose_config(p))[1].fit_max is None
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nfit_max = 4')
+    assert budgets_and_thresholds(load_diagnose_config(p))[1].fit_max == 4.0
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nfit_max = { "G1:speed" = -1.5, deposit_map = -30 }')
+    assert budgets_and_thresholds(load_diagnose_config(p))[1].fit_max == {"G1:speed": -1.5, "deposit_map": -30.0}
+    for extra, msg in (('fit_max = { "G9:h" = 1.0 }', r"fit_max names unknown observable\(s\) \['G9:h'\]"),
+                       ('fit_max = { "G1:h" = "x" }', "fit_max: every level must be a finite number"),
+                       ("fit_max = 'high'", "fit_max must be a finite number or a table")):
+        q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
+        with pytest.raises(ConfigError, match=msg):
+            load_diagnose_config(q)
 
 
 def test_harness_skips_strengths_beyond_a_switch_range():

@@ -19,7 +19,8 @@ posterior-predictive draws, localisation), but refits no candidate (Budgets.top_
 every observable's Z_fit and the largest located |score|. A block with Z_fit above what the null
 seeds give would be a located mismatch; whether that separates the out-of-library patch (which the
 harness reports as "nothing missing" where the issue asks for "unexplained") from the nulls is the
-question. Results go to ``--out`` (default results/block_fit_<terrain>.json); cases already there are
+question. (Session 17: it does, with levels per observable from 25 null calibration seeds; see
+calibrate_thresholds ``--fit-probe``, which reads this file, and decide's ``fit_max``.) Results go to ``--out`` (default results/block_fit_<terrain>.json); cases already there are
 skipped, so the run can be resumed. The results page reads the files.
 """
 from __future__ import annotations
@@ -80,7 +81,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
     p.add_argument("--scenarios", default="null,low_friction_patch")
-    p.add_argument("--seed-list", default="100,101,102,103,104,0,1,2,3,4")
+    p.add_argument("--seed-list", default=",".join(map(str, [*range(100, 125), *range(10)])),
+                   help="seeds >= 100: null calibration seeds (null scenario only)")
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
     unknown = [s for s in a.scenarios.split(",") if s not in SCENARIOS]

@@ -21,8 +21,18 @@ Rule (fixed before looking at any hidden-term result):
 * bf_min = max(6, 1.25 * the largest lower-bound 2 ln BF of any refitted candidate on the null seeds)
 * located_min = max(8, 1.25 * the largest located |score| of the null baselines)
 * waic_min = 6, margin_min = 6, explain_min = 0.5, ess_min = 2, z_threshold = 3 (fixed a priori)
+* fit_max (session 17, only with ``--fit-probe``), per observable b with Z_fit on n >= 3 null seeds:
+  mean_b + t_{n-1}(1 - 0.05 / B) * sd_b * sqrt(1 + 1 / n), B the number of such observables (a
+  one-sided 95 % prediction bound for a new null case, Bonferroni over the observables). The Z_fit
+  come from the null calibration cases' reports, else from a block_fit_probe file (its null rows with
+  seeds >= 100: more seeds than the harness' five, at ~40 s a case).
 
 Writes experiments/hidden_physics/thresholds.json (read by the harness).
+
+``--fit-probe FILE`` (a block_fit_probe.py result for the same terrain and design): sets fit_max from its
+null calibration rows, and ``--apply`` takes each case's baseline Z_fit from the probe's row of the same
+scenario and seed when the case's report predates Z_fit (the probe re-runs the case's baseline stage
+exactly; its source is kept in the decision as ``fit_z_source``).
 
 ``--apply DIR``: afterwards, re-decide every saved harness case in DIR with the new thresholds
 (torchslide.diagnose.decide on the case's saved statistics; the verdict is a pure function of them
@@ -36,6 +46,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+import numpy as np
 
 HERE = Path(__file__).parent
 
@@ -52,17 +64,87 @@ def null_statistics(results) -> dict:
     return {"bf": bf, "located": loc, "cases": rows}
 
 
-def thresholds_from_null(stats: dict) -> dict:
-    return {"bf_min": max(6.0, 1.25 * max(stats["bf"], default=0.0)),
-            "located_min": max(8.0, 1.25 * max(stats["located"], default=0.0)),
-            "waic_min": 6.0, "margin_min": 6.0, "explain_min": 0.5, "ess_min": 2.0, "z_threshold": 3.0}
+def thresholds_from_null(stats: dict, fit_rows: list | None = None) -> dict:
+    th = {"bf_min": max(6.0, 1.25 * max(stats["bf"], default=0.0)),
+          "located_min": max(8.0, 1.25 * max(stats["located"], default=0.0)),
+          "waic_min": 6.0, "margin_min": 6.0, "explain_min": 0.5, "ess_min": 2.0, "z_threshold": 3.0}
+    if fit_rows:
+        th["fit_max"] = fit_max_from_null(fit_rows)
+    return th
 
 
-def apply_thresholds(results, th: dict, force: bool = False) -> int:
+def null_fit_rows(results, probe: dict | None) -> list:
+    """[{observable: Z_fit}] of the null calibration seeds: from the reports in ``results`` where they have
+    Z_fit, else (and for every further seed >= 100) from the probe's null rows."""
+    from torchslide.diagnose.decide import fit_z_of
+
+    rows, seeds = [], set()
+    for p in sorted(Path(results).glob("null_s*.json")):
+        case = json.loads(p.read_text())
+        z = fit_z_of(case["diagnosis"]["fit_before"])
+        if z:
+            rows.append(z)
+            seeds.add(case["seed"])
+    for r in (probe or {}).get("cases", []):
+        if r["scenario"] == "null" and r["seed"] >= 100 and r["seed"] not in seeds:
+            rows.append({k: v["Z_fit"] for k, v in r["blocks"].items() if "Z_fit" in v})
+    return rows
+
+
+def fit_max_from_null(rows: list, alpha: float = 0.05) -> dict:
+    """{observable: fit_max} from null Z_fit rows (the rule in the module doc); observables with fewer than
+    3 null values get no level."""
+    from scipy import stats as st
+
+    vals = {}
+    for r in rows:
+        for k, v in r.items():
+            vals.setdefault(k, []).append(float(v))
+    vals = {k: np.asarray(v) for k, v in vals.items() if len(v) >= 3}
+    B = max(len(vals), 1)
+    out = {}
+    for k, v in vals.items():
+        n = len(v)
+        q = st.t.ppf(1 - alpha / B, n - 1)
+        out[k] = float(v.mean() + q * v.std(ddof=1) * np.sqrt(1 + 1 / n))
+    return out
+
+
+def probe_fit_z(probe: dict | None) -> dict:
+    """{(terrain, scenario, seed): {observable: Z_fit}} of a block_fit_probe result (the harness' design:
+    strength 1, 40 m cells, recordings on cells half that size, the harness' sigmas and gauges)."""
+    return {(r.get("terrain", "narrow"), r["scenario"], r["seed"]):
+            {k: v["Z_fit"] for k, v in r["blocks"].items() if "Z_fit" in v} for r in (probe or {}).get("cases", [])}
+
+
+def _probe_design(case: dict) -> bool:
+    """Whether a saved case has the design block_fit_probe re-runs (so that its row stands for the case)."""
+    return (case.get("strength", 1.0) == 1.0 and case.get("cellsize", 40.0) == 40.0
+            and case.get("fine_factor", 2) == 2 and (case.get("sigma_scale") or 1.0) == 1.0
+            and not case.get("extra_gauges"))
+
+
+def case_fit_z(case: dict, probe_z: dict | None = None) -> tuple[dict, str | None]:
+    """(the case's baseline {observable: Z_fit}, its source: "report" | "block_fit_probe" | None)."""
+    from torchslide.diagnose.decide import fit_z_of
+
+    j = case["diagnosis"]
+    z = fit_z_of(j["fit_before"])
+    if z:
+        return z, "report"
+    z = (j.get("decision") or {}).get("fit_z")
+    if z:
+        return z, j["decision"].get("fit_z_source")
+    z = (probe_z or {}).get((case.get("terrain", "narrow"), case.get("scenario"), case.get("seed")))
+    return (z, "block_fit_probe") if z and _probe_design(case) else ({}, None)
+
+
+def apply_thresholds(results, th: dict, force: bool = False, probe: dict | None = None) -> int:
     """Re-decide the saved cases in ``results`` with thresholds ``th`` (see the module doc) and
     recompute their coverage check (harness.coverage); returns the number of cases whose verdict or
     named term changed. ``force``: also the cases already decided with ``th`` (after a change of the
-    decision rule in torchslide/diagnose/decide.py)."""
+    decision rule in torchslide/diagnose/decide.py). ``probe``: a block_fit_probe result giving the baseline
+    Z_fit of cases whose report predates it (see the module doc)."""
     from torchslide.diagnose.decide import Thresholds, decide
 
     from .harness import coverage
@@ -84,8 +166,11 @@ def apply_thresholds(results, th: dict, force: bool = False) -> int:
         if j["thresholds"] == th and not force:
             continue
         cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
+        fit_z, src = case_fit_z(case, probe_fit_z(probe))
         d = decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
-                   Thresholds(**th))
+                   Thresholds(**th), fit_z=fit_z)
+        if src is not None and src != "report":
+            d.update(fit_z=fit_z, fit_z_source=src)
         d["baseline_verification"] = j["decision"].get("baseline_verification")
         d["elpd_waic_baseline"] = j["decision"].get("elpd_waic_baseline")
         changed += (d["verdict"], d["missing_physics"]) != (j["verdict"], j["missing_physics"])
@@ -101,18 +186,23 @@ def main(argv=None) -> int:
     p.add_argument("--results", default=str(HERE / "results" / "null_calib"))
     p.add_argument("--out", default=str(HERE / "thresholds.json"))
     p.add_argument("--apply", default=None, help="harness results folder to re-decide with the new thresholds")
+    p.add_argument("--fit-probe", default=None,
+                   help="block_fit_probe result: sets fit_max from its null seeds >= 100 and gives --apply the Z_fit")
     p.add_argument("--force", action="store_true",
                    help="with --apply: re-decide every case, also those already at these thresholds (rule change)")
     a = p.parse_args(argv)
     st = null_statistics(a.results)
     if not st["cases"]:
         raise SystemExit(f"no null results in {a.results}")
-    th = thresholds_from_null(st)
+    probe = json.loads(Path(a.fit_probe).read_text()) if a.fit_probe else None
+    fit_rows = null_fit_rows(a.results, probe) if probe else None
+    th = thresholds_from_null(st, fit_rows)
     Path(a.out).write_text(json.dumps({"rule": __doc__.split("Rule")[1].split("Writes")[0].strip(),
-                                       "null_cases": st["cases"], "thresholds": th}, indent=1))
+                                       "null_cases": st["cases"], "fit_null_cases": len(fit_rows or []),
+                                       "thresholds": th}, indent=1))
     print(json.dumps(th))
     if a.apply:
-        n = apply_thresholds(a.apply, th, force=a.force)
+        n = apply_thresholds(a.apply, th, force=a.force, probe=probe)
         print(f"re-decided the cases in {a.apply} with these thresholds: {n} verdict(s) changed")
     return 0
 

@@ -53,6 +53,9 @@ and a [diagnose] section::
     explain_min = 0.5            # fraction of the located structure a named term must remove (0..1)
     ess_min = 2.0                # importance-sampling ESS a verified evidence needs (>= 1)
     z_threshold = 3.0            # per-value / cluster / window detection level
+    # fit_max = 4.0              # not set by default (off): an observable whose fit Z (its chi-square with the
+                                 #     likelihood's covariance, as a normal score) exceeds it is a mismatch; one
+                                 #     number, or a table per observable name ([diagnose.fit_max] "g1:speed" = -1.5)
 
 Unknown keys stop with a clear error (exit code 2) listing the allowed ones.
 The baseline calibration uses [calibration] n_initial / n_total / batch_size / seed. Writes DIR/report.json,
@@ -76,7 +79,7 @@ _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
              "mode_search_iters", "profile_top", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
-_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", *_INT_KEYS, *_THRESHOLD_KEYS}
+_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
 def diagnose_defaults() -> dict:
@@ -190,7 +193,27 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     if c["ess_min"] < 1.0:
         raise ConfigError(f"{path}: [diagnose] ess_min must be >= 1 (an effective number of draws), got {c['ess_min']!r}")
     c["fine_terrain"] = _parse_fine_terrain(table.get("fine_terrain"), cfg, c["model_error_factor"])
+    c["fit_max"] = _parse_fit_max(c.get("fit_max"), path)
     return c
+
+
+def _observable_names(observations) -> list[str]:
+    return [str(o.name) for o in observations]
+
+
+def _parse_fit_max(v: Any, path) -> float | dict | None:
+    """[diagnose] fit_max: None (off), a finite number, or a table {observable: finite number}."""
+    num = lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+    if v is None:
+        return None
+    if num(v):
+        return float(v)
+    if isinstance(v, dict) and v:
+        bad = {k: x for k, x in v.items() if not num(x)}
+        if bad:
+            raise ConfigError(f"{path}: [diagnose] fit_max: every level must be a finite number, got {bad}")
+        return {str(k): float(x) for k, x in v.items()}
+    raise ConfigError(f"{path}: [diagnose] fit_max must be a finite number or a table {{observable = number}}, got {v!r}")
 
 
 def _parse_fine_terrain(t: Any, cfg: Config, factor: int):
@@ -237,6 +260,13 @@ def load_diagnose_config(path) -> Config:
             raise ConfigError(f"{cfg.path}: section [{sec}] is missing (needed to diagnose)")
     cfg.extra.setdefault("calibration", parse_calibration({}, cfg))
     cfg.extra.setdefault("diagnose", parse_diagnose({}, cfg))
+    fm = cfg.extra["diagnose"].get("fit_max")
+    if isinstance(fm, dict):
+        names = _observable_names(cfg.extra["observations"])
+        unknown = sorted(set(fm) - set(names))
+        if unknown:
+            raise ConfigError(f"{cfg.path}: [diagnose] fit_max names unknown observable(s) {unknown} "
+                              f"(known: {', '.join(names)})")
     if cfg.batch_size != 1:
         raise ConfigError(f"{cfg.path}: [model] must give single values when diagnosing, got a batch of {cfg.batch_size}")
     return cfg
@@ -275,7 +305,7 @@ def budgets_and_thresholds(cfg: Config):
     cal, dg = cfg.extra["calibration"], cfg.extra["diagnose"]
     bud = Budgets(baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
                   **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"])
-    return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS})
+    return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS}, fit_max=dg.get("fit_max"))
 
 
 def run(args: argparse.Namespace) -> int:

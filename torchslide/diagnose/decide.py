@@ -33,6 +33,15 @@ Rules:
 3. Otherwise: "unexplained" when a located mismatch has |score| >= ``located_min``, else
    "no_missing_physics".
 
+Fit flags (``fit_max``, off by default): an observable whose baseline fit Z_fit (its residual whitened
+with the likelihood's full covariance, torchslide.diagnose.localise.block_fit) exceeds ``fit_max`` (one
+level for every observable, or a dict {observable: level}) is a mismatch beyond what the likelihood
+allows, located at the level of the whole observable. It counts like a significant located mismatch in
+rules 2 and 3: it turns "no_missing_physics" into "unexplained", and never names a term. The levels
+must be set on null data of the same design (experiments/hidden_physics/calibrate_thresholds.py sets
+them per observable from null seeds: each observable's Z_fit differs on null data, e.g. -36 for a
+deposit map whose sigma is wide and +3 for a gauge series the grid misses).
+
 ``bf_min``, ``waic_min`` and ``located_min`` are set on null data (no hidden term; see
 experiments/hidden_physics/calibrate_thresholds.py and the results page); ``margin_min`` = 6 is the
 issue's "strong" level; ``explain_min`` and ``ess_min`` are fixed a priori.
@@ -53,6 +62,7 @@ class Thresholds:
     explain_min: float = 0.5    # fraction of the located structure (sum of squared scores) a named term must remove
     ess_min: float = 2.0        # importance-sampling ESS (draws) for a verified evidence to count
     z_threshold: float = 3.0    # per-value / cluster / window detection level (localisation)
+    fit_max: float | dict | None = None  # Z_fit of an observable above which its fit is a mismatch (None: off)
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -69,6 +79,26 @@ def _has_items(c: dict) -> bool:
 
 def significant(located: list, th: Thresholds) -> list:
     return [l for l in located if abs(l["standardised_residual"]) >= th.located_min]
+
+
+def fit_flags(fit_z: dict | None, th: Thresholds) -> list:
+    """[{observable, Z_fit, fit_max}] for the observables whose baseline Z_fit exceeds ``th.fit_max``.
+    fit_z: {observable: Z_fit} (None values, and observables without a level, are not checked)."""
+    if th.fit_max is None or not fit_z:
+        return []
+    out = []
+    for name, z in fit_z.items():
+        lim = th.fit_max.get(name) if isinstance(th.fit_max, dict) else th.fit_max
+        if lim is not None and z is not None and np.isfinite(z) and z > lim:
+            out.append({"observable": name, "Z_fit": float(z), "fit_max": float(lim)})
+    return out
+
+
+def fit_z_of(fit: dict | None) -> dict:
+    """{observable: Z_fit} of a fit_before / fit_after dict (see pipeline._fit); observables without Z_fit
+    (scalars, or results written before Z_fit existed) are left out."""
+    res = (fit or {}).get("residuals") or {}
+    return {k: v["Z_fit"] for k, v in res.items() if isinstance(v, dict) and v.get("Z_fit") is not None}
 
 
 def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dict:
@@ -93,9 +123,11 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
 
 
 def decide(candidates: list, located_before: list, baseline: dict, misfit_before: float, th: Thresholds,
-           competitor_needs_evidence: bool = False, close_needs_all_checks: bool = False) -> dict:
+           competitor_needs_evidence: bool = False, close_needs_all_checks: bool = False,
+           fit_z: dict | None = None) -> dict:
     """candidates: refitted candidates with the verify statistics (see pipeline); baseline: the baseline's
-    verified-evidence dict. Returns {verdict, missing_physics, ambiguous, reason, checks, ...}.
+    verified-evidence dict; fit_z: {observable: the baseline's Z_fit} for the fit flags (``th.fit_max``).
+    Returns {verdict, missing_physics, ambiguous, reason, checks, fit_flags, ...}.
     ``competitor_needs_evidence`` (default False = the rule in the module doc): a candidate that explains
     more of the located mismatch blocks the name only when it also passes ``evidence`` (a post-hoc
     variant, see experiments/hidden_physics/make_page.py). ``close_needs_all_checks`` (default False): the
@@ -104,8 +136,10 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     scored = sorted([c for c in candidates if c.get("log_bayes_factor") is not None
                      and np.isfinite(c["log_bayes_factor"])], key=lambda c: -c["log_bayes_factor"])
     sig_before = significant(located_before, th)
+    flags = fit_flags(fit_z, th)
     out = {"verdict": None, "missing_physics": None, "ambiguous": False, "runner_up": None,
-           "two_ln_bf": None, "two_ln_bf_over_runner_up": None, "reason": "", "checks": {}}
+           "two_ln_bf": None, "two_ln_bf_over_runner_up": None, "reason": "", "checks": {}, "fit_flags": flags}
+    flagged = "; ".join(f"{f['observable']} fits at Z_fit {f['Z_fit']:.1f} > {f['fit_max']:.1f}" for f in flags)
     for c in scored:
         out["checks"][c["name"]] = checks(c, baseline, misfit_before, th)
     best = scored[0] if scored else None
@@ -144,10 +178,10 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                        reason=f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "
                               f"{th.bf_min}); Savage-Dickey, out-of-sample, misfit and located-structure checks pass")
             return out
-        if ck["evidence"] and (sig_before or (ck["explains"] and _has_items(best))):
+        if ck["evidence"] and (sig_before or flags or (ck["explains"] and _has_items(best))):
             out.update(verdict="unexplained",
                        reason=f"{best['name']} is supported by the evidence (2 ln BF = {tl:.1f}) but fails "
-                              f"{', '.join(failed)}: not named")
+                              f"{', '.join(failed)}: not named" + (f" ({flagged})" if flags else ""))
             return out
         if ck["evidence"]:
             out.update(verdict="no_missing_physics",
@@ -158,9 +192,10 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     why = ("no candidate refitted" if best is None else
            f"best candidate {best['name']}: 2 ln BF lower bound "
            f"{best.get('two_ln_bf_lower', float('nan')):.1f} < {th.bf_min}")
-    if sig_before:
-        out.update(verdict="unexplained",
-                   reason=f"{len(sig_before)} located mismatch(es) above {th.located_min}; {why}")
+    if sig_before or flags:
+        where = ([f"{len(sig_before)} located mismatch(es) above {th.located_min}"] if sig_before else []) + \
+            ([flagged] if flags else [])
+        out.update(verdict="unexplained", reason=f"{'; '.join(where)}; {why}")
     else:
         out.update(verdict="no_missing_physics", reason=f"no located mismatch above {th.located_min}; {why}")
     return out

@@ -38,7 +38,7 @@ import torch
 
 from ..physics import CANDIDATES
 from .consistency import subset_consistency
-from .decide import Thresholds, decide
+from .decide import Thresholds, decide, fit_z_of
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
@@ -778,7 +778,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     T["consistency_s"] = time.perf_counter() - t0
     fit_before = _fit(evaluator, pred, loc, base_ver["log_evidence"])
     fit_before["log_evidence_emulator"] = baseline.log_evidence
-    dec = decide(cand_out, loc.located, base_ver, misfit_before, th)
+    dec = decide(cand_out, loc.located, base_ver, misfit_before, th, fit_z=fit_z_of(fit_before))
     dec["baseline_verification"] = dict(base_ver, source=base_source)
     dec["baseline_mode_check"] = base_check
     dec["elpd_waic_baseline"] = elpd_b["elpd"]

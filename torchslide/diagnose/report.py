@@ -129,7 +129,9 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     L += ["## Where the baseline disagrees with the data", "", "| what | where | standardised residual |", "|---|---|---|"]
     for l in j["located"]:
         L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")
-    if not j["located"]:
+    for f in j["decision"].get("fit_flags") or []:
+        L.append(f"| whole-observable fit (Z_fit > fit_max {f['fit_max']:.2f}) | {f['observable']} | Z_fit {f['Z_fit']:.2f} |")
+    if not j["located"] and not j["decision"].get("fit_flags"):
         L.append("| (nothing located) | | |")
     sc = j.get("subset_consistency")
     if sc:
