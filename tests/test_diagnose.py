@@ -365,6 +365,8 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     assert sorted(f["observable"] for f in j["decision"]["fit_flags"]) == sorted(
         k for k, r in j["fit_before"]["residuals"].items() if "rms_z" in r)
     assert j["verdict"] != "no_missing_physics" and "whole-observable fit" in (out / "report.md").read_text()
+    assert j["decision"]["fit_z_source"] == "calibrated baseline" and set(j["decision"]["fit_z"]) == set(
+        f["observable"] for f in j["decision"]["fit_flags"])
     from torchslide.diagnose.report import _fit_notes
     notes = "\n".join(_fit_notes({"deposit": {"Z_fit": -36.0}, "g1:h": {"Z_fit": 0.4}, "g2:h": {"Z_fit": 4.2},
                                   "final_volume": {"z": 0.3}}))
@@ -653,10 +655,12 @@ def test_fit_max_from_null_is_a_prediction_bound():
     # a shift of the speed fit by 5 null sds is flagged nearly always
     assert np.mean([-4.0 + 4.0 + 0.8 * rng.standard_normal() > fm["g1:speed"] for _ in range(500)]) > 0.95
     probe = {"cases": [{"scenario": "null", "seed": 3, "blocks": {"g1:h": {"Z_fit": 1.5}, "final_volume": {"z": 0.2}}}]}
-    old = {"scenario": "null", "seed": 3, "diagnosis": {"fit_before": {"residuals": {"g1:h": {"rms_z": 1.0}}}}}
-    assert case_fit_z(old, probe_fit_z(probe)) == ({"g1:h": 1.5}, "block_fit_probe")
-    new = {"scenario": "null", "seed": 3, "diagnosis": {"fit_before": {"residuals": {"g1:h": {"Z_fit": -0.5}}}}}
-    assert case_fit_z(new, probe_fit_z(probe)) == ({"g1:h": -0.5}, "report")
+    old = {"scenario": "null", "seed": 3, "diagnosis": {"decision": {},
+                                                        "fit_before": {"residuals": {"g1:h": {"Z_fit": 0.7}}}}}
+    assert case_fit_z(old, probe_fit_z(probe)) == ({"g1:h": 1.5}, "block_fit_probe")   # not the final baseline's
+    new = {"scenario": "null", "seed": 3,
+           "diagnosis": {"decision": {"fit_z": {"g1:h": -0.5}, "fit_z_source": "calibrated baseline"}}}
+    assert case_fit_z(new, probe_fit_z(probe)) == ({"g1:h": -0.5}, "calibrated baseline")
     assert case_fit_z(dict(old, seed=4), probe_fit_z(probe)) == ({}, None)
     # the probe's row stands only for a case of its design and terrain (not a x0.5 strength or another terrain)
     assert case_fit_z(dict(old, strength=0.5), probe_fit_z(probe)) == ({}, None)
@@ -947,10 +951,30 @@ def test_block_fit_section_and_the_sigma_scale_rule(tmp_path):
     f.write_text(json.dumps({"terrain": "resolved", "cases": rows}))
     text = "\n".join(_block_fit_section([f]))
     assert "### resolved terrain" in text and "**0.5**" in text
-    assert "| null (calibration seeds 100-104) | 2 | -3.0 (-3.0 to -3.0) | -3.0 (-3.0 to -3.0) | 4.0 |" in text
+    assert "| null (calibration seeds 100-101) | 2 | -3.0 (-3.0 to -3.0) | -3.0 (-3.0 to -3.0) | 4.0 |" in text
     assert "| low_friction_patch | 1 | +1.0 (+1.0 to +1.0) |" in text
     assert "| chi2 / m | 7.00 | 2.20 | 0.60 | 0.15 |" in text
     assert _block_fit_section([tmp_path / "absent.json"]) == []
+
+
+def test_fit_flag_section_counts_flags_per_group(tmp_path):
+    """The page's fit-flag section: levels from the probe's null seeds >= 100 (the same function as
+    calibrate_thresholds), then per group (evaluation seeds, held-out seeds 5-9) the flagged cases."""
+    import json
+    from experiments.hidden_physics.make_page import _fit_flag_section
+
+    def row(sc, seed, z):
+        return {"scenario": sc, "seed": seed, "terrain": "resolved",
+                "blocks": {"g1:speed": {"Z_fit": z}, "final_volume": {"z": 0.1}}}
+    rows = [row("null", 100 + i, z) for i, z in enumerate((-5.0, -4.0, -4.5, -5.5, -4.8))]
+    rows += [row("null", 0, -4.9), row("low_friction_patch", 0, 0.5), row("low_friction_patch", 6, -5.0)]
+    f = tmp_path / "block_fit_resolved.json"
+    f.write_text(json.dumps({"terrain": "resolved", "cases": rows}))
+    text = "\n".join(_fit_flag_section([f]))
+    assert "Levels from 5 null calibration seeds: g1:speed" in text
+    assert "| low_friction_patch | 1 | 1 | low_friction_patch_s0: g1:speed +0.5 |" in text
+    assert "| null | 1 | 0 | - |" in text
+    assert "| low_friction_patch (seeds 5-9, held out) | 1 | 0 | - |" in text
 
 
 def test_make_recording_sigma_scale_changes_the_sigmas_not_the_data():

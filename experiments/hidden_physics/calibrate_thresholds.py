@@ -30,9 +30,10 @@ Rule (fixed before looking at any hidden-term result):
 Writes experiments/hidden_physics/thresholds.json (read by the harness).
 
 ``--fit-probe FILE`` (a block_fit_probe.py result for the same terrain and design): sets fit_max from its
-null calibration rows, and ``--apply`` takes each case's baseline Z_fit from the probe's row of the same
-scenario and seed when the case's report predates Z_fit (the probe re-runs the case's baseline stage
-exactly; its source is kept in the decision as ``fit_z_source``).
+null calibration rows, and ``--apply`` takes each case's calibrated-baseline Z_fit from the probe's row of
+the same scenario and seed when the case's decision has none (cases run before session 17; the probe
+re-runs the diagnosis up to the calibrated baseline's localisation exactly; the values and their source
+are kept in the decision as ``fit_z`` and ``fit_z_source``).
 
 ``--apply DIR``: afterwards, re-decide every saved harness case in DIR with the new thresholds
 (torchslide.diagnose.decide on the case's saved statistics; the verdict is a pure function of them
@@ -74,14 +75,12 @@ def thresholds_from_null(stats: dict, fit_rows: list | None = None) -> dict:
 
 
 def null_fit_rows(results, probe: dict | None) -> list:
-    """[{observable: Z_fit}] of the null calibration seeds: from the reports in ``results`` where they have
-    Z_fit, else (and for every further seed >= 100) from the probe's null rows."""
-    from torchslide.diagnose.decide import fit_z_of
-
+    """[{observable: Z_fit}] (the calibrated baseline's) of the null calibration seeds: from the cases in
+    ``results`` whose decision has them, else (and for every further seed >= 100) from the probe's null rows."""
     rows, seeds = [], set()
     for p in sorted(Path(results).glob("null_s*.json")):
         case = json.loads(p.read_text())
-        z = fit_z_of(case["diagnosis"]["fit_before"])
+        z = (case["diagnosis"].get("decision") or {}).get("fit_z")
         if z:
             rows.append(z)
             seeds.add(case["seed"])
@@ -125,13 +124,11 @@ def _probe_design(case: dict) -> bool:
 
 
 def case_fit_z(case: dict, probe_z: dict | None = None) -> tuple[dict, str | None]:
-    """(the case's baseline {observable: Z_fit}, its source: "report" | "block_fit_probe" | None)."""
-    from torchslide.diagnose.decide import fit_z_of
-
+    """(the calibrated baseline's {observable: Z_fit} of a saved case, its source): the decision's own
+    (``fit_z``: written by the pipeline since session 17, "calibrated baseline", or by an earlier --apply,
+    "block_fit_probe"), else the probe's row for the case, else nothing ({}, None). Not fit_before's Z_fit:
+    that is the final baseline's, which the refits may have refined (the levels are set on the first)."""
     j = case["diagnosis"]
-    z = fit_z_of(j["fit_before"])
-    if z:
-        return z, "report"
     z = (j.get("decision") or {}).get("fit_z")
     if z:
         return z, j["decision"].get("fit_z_source")
@@ -169,10 +166,11 @@ def apply_thresholds(results, th: dict, force: bool = False, probe: dict | None 
         fit_z, src = case_fit_z(case, probe_fit_z(probe))
         d = decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
                    Thresholds(**th), fit_z=fit_z)
-        if src is not None and src != "report":
+        if src is not None:
             d.update(fit_z=fit_z, fit_z_source=src)
-        d["baseline_verification"] = j["decision"].get("baseline_verification")
-        d["elpd_waic_baseline"] = j["decision"].get("elpd_waic_baseline")
+        # what the pipeline added to its decision (baseline verification and mode check, WAIC) is kept
+        for k in ("baseline_verification", "baseline_mode_check", "elpd_waic_baseline"):
+            d[k] = j["decision"].get(k)
         changed += (d["verdict"], d["missing_physics"]) != (j["verdict"], j["missing_physics"])
         j.setdefault("decision_as_run", {"verdict": j["verdict"], "missing_physics": j["missing_physics"],
                                          "thresholds": j["thresholds"], "reason": j["decision"].get("reason")})

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,8 @@ def _toml_value(v) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     if isinstance(v, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + " }"
+        key = lambda k: k if re.fullmatch(r"[A-Za-z0-9_-]+", k) else json.dumps(k)   # "g1:speed" needs quotes
+        return "{ " + ", ".join(f"{key(str(k))} = {_toml_value(x)}" for k, x in v.items()) + " }"
     if isinstance(v, float):
         return repr(v)
     return str(v)
@@ -112,7 +114,8 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
     L += _table("prior", {"mu": [0.12, 0.4], "xi": [150.0, 1500.0]})
     L += _table("calibration", cal)
     L += _table("diagnose", {"candidates": list(LIBRARY), "seed": int(seed), **bud,
-                             **{k: float(v) for k, v in th.items()}})
+                             **{k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict) else float(v))
+                                for k, v in th.items() if v is not None}})
     cfg = out / "diagnose.toml"
     cfg.write_text("\n".join(L))
     (out / "truth.json").write_text(json.dumps({"scenario": scenario, "seed": seed, "terrain": scenarios.TERRAIN,

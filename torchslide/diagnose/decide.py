@@ -33,8 +33,10 @@ Rules:
 3. Otherwise: "unexplained" when a located mismatch has |score| >= ``located_min``, else
    "no_missing_physics".
 
-Fit flags (``fit_max``, off by default): an observable whose baseline fit Z_fit (its residual whitened
-with the likelihood's full covariance, torchslide.diagnose.localise.block_fit) exceeds ``fit_max`` (one
+Fit flags (``fit_max``, off by default): an observable whose fit Z_fit under the calibrated baseline (its
+posterior-predictive residual whitened with the likelihood's full covariance,
+torchslide.diagnose.localise.block_fit; taken before the refits can refine the baseline, so that it is the
+statistic the levels are set on) exceeds ``fit_max`` (one
 level for every observable, or a dict {observable: level}) is a mismatch beyond what the likelihood
 allows, located at the level of the whole observable. It counts like a significant located mismatch in
 rules 2 and 3: it turns "no_missing_physics" into "unexplained", and never names a term. The levels
@@ -92,13 +94,6 @@ def fit_flags(fit_z: dict | None, th: Thresholds) -> list:
         if lim is not None and z is not None and np.isfinite(z) and z > lim:
             out.append({"observable": name, "Z_fit": float(z), "fit_max": float(lim)})
     return out
-
-
-def fit_z_of(fit: dict | None) -> dict:
-    """{observable: Z_fit} of a fit_before / fit_after dict (see pipeline._fit); observables without Z_fit
-    (scalars, or results written before Z_fit existed) are left out."""
-    res = (fit or {}).get("residuals") or {}
-    return {k: v["Z_fit"] for k, v in res.items() if isinstance(v, dict) and v.get("Z_fit") is not None}
 
 
 def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dict:

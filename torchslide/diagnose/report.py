@@ -130,7 +130,7 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     for l in j["located"]:
         L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")
     for f in j["decision"].get("fit_flags") or []:
-        L.append(f"| whole-observable fit (Z_fit > fit_max {f['fit_max']:.2f}) | {f['observable']} | Z_fit {f['Z_fit']:.2f} |")
+        L.append(f"| whole-observable fit of the calibrated baseline (Z_fit > fit_max {f['fit_max']:.2f}) | {f['observable']} | Z_fit {f['Z_fit']:.2f} |")
     if not j["located"] and not j["decision"].get("fit_flags"):
         L.append("| (nothing located) | | |")
     sc = j.get("subset_consistency")
