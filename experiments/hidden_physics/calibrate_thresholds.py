@@ -21,11 +21,14 @@ Rule (fixed before looking at any hidden-term result):
 * bf_min = max(6, 1.25 * the largest lower-bound 2 ln BF of any refitted candidate on the null seeds)
 * located_min = max(8, 1.25 * the largest located |score| of the null baselines)
 * waic_min = 6, margin_min = 6, explain_min = 0.5, ess_min = 2, z_threshold = 3 (fixed a priori)
-* fit_max (session 17, only with ``--fit-probe``), per observable b with Z_fit on n >= 3 null seeds:
+* fit_max (session 17, only with ``--fit-probe``; unlike the rules above, chosen after session 16 had
+  seen the Z_fit of the null and patch seeds 0-4, so seeds 5-9 are its held-out check), per observable
+  b with Z_fit on n >= 3 null seeds:
   mean_b + t_{n-1}(1 - 0.05 / B) * sd_b * sqrt(1 + 1 / n), B the number of such observables (a
   one-sided 95 % prediction bound for a new null case, Bonferroni over the observables). The Z_fit
-  come from the null calibration cases' reports, else from a block_fit_probe file (its null rows with
-  seeds >= 100: more seeds than the harness' five, at ~40 s a case).
+  (the calibrated baseline's) come from the null calibration cases' decisions, else from a
+  block_fit_probe file (its null rows with seeds >= 100: more seeds than the harness' five, at ~35 s a
+  case).
 
 Writes experiments/hidden_physics/thresholds.json (read by the harness).
 

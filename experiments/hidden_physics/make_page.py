@@ -1016,7 +1016,15 @@ def _heldout_rows(d: Path, terrain: str) -> list[str]:
                  f"{j['decision']['reason']} |")
     right = sum((c["diagnosis"]["verdict"] == "no_missing_physics") if c["scenario"] == "null" else
                 (c["diagnosis"]["verdict"] == "unexplained") for c in cases)
-    return L + ["", f"Right verdict (null: \"nothing missing\", patch: \"unexplained\"): {right} of {len(cases)}.", ""]
+    moved = [f"{c['scenario']}_s{c['seed']} ({c['diagnosis']['decision_as_run']['verdict']} as run)" for c in cases
+             if c["diagnosis"].get("decision_as_run", {}).get("verdict") not in (None, c["diagnosis"]["verdict"])]
+    L += ["", f"Right verdict (null: \"nothing missing\", patch: \"unexplained\"): {right} of {len(cases)}."]
+    if moved:
+        L.append("These cases ran with a first version of the flags that took the final baseline's Z_fit (after the "
+                 "refits may have refined it) and were re-decided with the calibrated baseline's, the statistic the "
+                 "levels are set on (`calibrate_thresholds --apply --force`, Z_fit from block_fit_probe); that "
+                 f"changed {', '.join(moved)}.")
+    return L + [""]
 
 
 def _sigma_scale_section(d=None, prev=None) -> list[str]:

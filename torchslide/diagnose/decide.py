@@ -33,12 +33,11 @@ Rules:
 3. Otherwise: "unexplained" when a located mismatch has |score| >= ``located_min``, else
    "no_missing_physics".
 
-Fit flags (``fit_max``, off by default): an observable whose fit Z_fit under the calibrated baseline (its
+Fit flags (``fit_max``, off by default): an observable whose Z_fit under the calibrated baseline (its
 posterior-predictive residual whitened with the likelihood's full covariance,
-torchslide.diagnose.localise.block_fit; taken before the refits can refine the baseline, so that it is the
-statistic the levels are set on) exceeds ``fit_max`` (one
-level for every observable, or a dict {observable: level}) is a mismatch beyond what the likelihood
-allows, located at the level of the whole observable. It counts like a significant located mismatch in
+torchslide.diagnose.localise.block_fit; taken before the refits can refine the baseline, so that it is
+the statistic the levels are set on) exceeds ``fit_max`` (one level for every observable, or a dict
+{observable: level}) is a mismatch at the level of the whole observable. It counts like a significant located mismatch in
 rules 2 and 3: it turns "no_missing_physics" into "unexplained", and never names a term. The levels
 must be set on null data of the same design (experiments/hidden_physics/calibrate_thresholds.py sets
 them per observable from null seeds: each observable's Z_fit differs on null data, e.g. -36 for a
@@ -171,7 +170,7 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                 return out
             out.update(verdict="missing_physics", missing_physics=best["name"], ambiguous=False,
                        reason=f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "
-                              f"{th.bf_min}); Savage-Dickey, out-of-sample, misfit and located-structure checks pass")
+                              f"{th.bf_min:.1f}); Savage-Dickey, out-of-sample, misfit and located-structure checks pass")
             return out
         if ck["evidence"] and (sig_before or flags or (ck["explains"] and _has_items(best))):
             out.update(verdict="unexplained",
@@ -181,16 +180,16 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         if ck["evidence"]:
             out.update(verdict="no_missing_physics",
                        reason=f"{best['name']} gains evidence (2 ln BF = {tl:.1f}) but no located mismatch reaches "
-                              f"{th.located_min} and it does not explain the located structure (fails "
+                              f"{th.located_min:.1f} and it does not explain the located structure (fails "
                               f"{', '.join(failed)}): what discretisation alone gives on null data")
             return out
     why = ("no candidate refitted" if best is None else
            f"best candidate {best['name']}: 2 ln BF lower bound "
-           f"{best.get('two_ln_bf_lower', float('nan')):.1f} < {th.bf_min}")
+           f"{best.get('two_ln_bf_lower', float('nan')):.1f} < {th.bf_min:.1f}")
     if sig_before or flags:
-        where = ([f"{len(sig_before)} located mismatch(es) above {th.located_min}"] if sig_before else []) + \
+        where = ([f"{len(sig_before)} located mismatch(es) above {th.located_min:.1f}"] if sig_before else []) + \
             ([flagged] if flags else [])
         out.update(verdict="unexplained", reason=f"{'; '.join(where)}; {why}")
     else:
-        out.update(verdict="no_missing_physics", reason=f"no located mismatch above {th.located_min}; {why}")
+        out.update(verdict="no_missing_physics", reason=f"no located mismatch above {th.located_min:.1f}; {why}")
     return out
