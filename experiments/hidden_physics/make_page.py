@@ -888,13 +888,18 @@ def _extra_gauges_section(d=None, prev=None) -> list[str]:
     return L
 
 
+def _probe_results(files=None) -> list[dict]:
+    """The block_fit_probe result files that exist among ``files`` (default results/block_fit_*.json), loaded."""
+    files = files if files is not None else sorted((HERE / "results").glob("block_fit_*.json"))
+    return [json.loads(Path(f).read_text()) for f in files if Path(f).exists()]
+
+
 def _block_fit_section(files=None) -> list[str]:
     """block_fit_probe.py's results (default results/block_fit_<terrain>.json): every observable's fit
     with the likelihood's own covariance (Z_fit) per group of cases, and the null calibration seeds' chi2 / m
     with the measurement sigmas and the grid's error covariance scaled."""
     from .block_fit_probe import GAMMA_SCALES, SIGMA_SCALES, choose_sigma_scale, pooled_null_fit
-    files = files if files is not None else sorted((HERE / "results").glob("block_fit_*.json"))
-    data = [json.loads(Path(f).read_text()) for f in files if Path(f).exists()]
+    data = _probe_results(files)
     if not data:
         return []
     L = ["## Each observable's fit with the likelihood's own covariance (`block_fit_probe`)", "",
@@ -960,8 +965,7 @@ def _fit_flag_section(files=None) -> list[str]:
     fit_max from the null calibration seeds (calibrate_thresholds.fit_max_from_null) and, per group of
     cases, how many raise a flag and where."""
     from .calibrate_thresholds import fit_max_from_null
-    files = files if files is not None else sorted((HERE / "results").glob("block_fit_*.json"))
-    data = [json.loads(Path(f).read_text()) for f in files if Path(f).exists()]
+    data = _probe_results(files)
     if not data:
         return []
     L = ["## Fit flags: an observable that fits worse than on null data (session 17)", "",
