@@ -20,8 +20,9 @@ every observable's Z_fit and the largest located |score|. A block with Z_fit abo
 seeds give would be a located mismatch; whether that separates the out-of-library patch (which the
 harness reports as "nothing missing" where the issue asks for "unexplained") from the nulls is the
 question. (Session 17: it does, with levels per observable from 25 null calibration seeds; see
-calibrate_thresholds ``--fit-probe``, which reads this file, and decide's ``fit_max``.) Results go to ``--out`` (default results/block_fit_<terrain>.json); cases already there are
-skipped, so the run can be resumed. The results page reads the files.
+calibrate_thresholds ``--fit-probe``, which reads this file, and decide's ``fit_max``.) Results go to
+``--out`` (default results/block_fit_<terrain>.json); cases already there are skipped, so the run can
+be resumed. The results page reads the files.
 """
 from __future__ import annotations
 
