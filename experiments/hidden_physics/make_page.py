@@ -227,7 +227,7 @@ def _changes_section() -> list[str]:
             "The harness' cases can also be written as user files for the CLI (export_case.py), which reproduces "
             "a saved case exactly.",
             "* **Reported, not decided on** (session 16): every report also gives each observable's fit with the "
-            "likelihood's own covariance (localise.block_fit, 'fit Z'; the verdict does not use it); section "
+            "likelihood's own covariance (localise.block_fit, 'fit Z'; the verdict did not use it then, see the next item); section "
             "'Each observable's fit with the likelihood's own covariance' re-runs the first stage of the null and "
             "patch cases for it. The harness' `--sigma-scale` (default 1, so the runs above are unchanged) was "
             "probed on the resolved terrain (section 'Probe: the resolved terrain with the likelihood's sigmas halved').",
