@@ -150,6 +150,7 @@ def apply_thresholds(results, th: dict, force: bool = False, probe: dict | None 
     from .harness import coverage
 
     changed = 0
+    probe_z = probe_fit_z(probe)
     for p in sorted(Path(results).glob("*.json")):
         case = json.loads(p.read_text())
         if "diagnosis" not in case:      # e.g. a thresholds.json kept next to the cases
@@ -166,7 +167,7 @@ def apply_thresholds(results, th: dict, force: bool = False, probe: dict | None 
         if j["thresholds"] == th and not force:
             continue
         cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
-        fit_z, src = case_fit_z(case, probe_fit_z(probe))
+        fit_z, src = case_fit_z(case, probe_z)
         d = decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
                    Thresholds(**th), fit_z=fit_z)
         if src is not None:
