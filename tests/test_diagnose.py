@@ -1881,3 +1881,56 @@ def test_block_fit_probe_reproduces_a_saved_row():
             assert got["blocks"][name]["Z_fit"] == pytest.approx(b["Z_fit"], abs=0.05)
             assert got["blocks"][name]["sigma_scan"]["0.5"] == pytest.approx(b["sigma_scan"]["0.5"], rel=0.02)
     assert got["max_located"] == pytest.approx(want["max_located"], abs=0.05)
+
+
+def test_fit_flags_use_the_calibrated_baselines_fit_not_the_refined_one(tmp_path, monkeypatch):
+    """The fit flags' levels are set on the calibrated baseline's Z_fit (block_fit_probe runs that far), so
+    the decision must use the first localisation's Z_fit even when the mode check refines the baseline
+    afterwards (then fit_before, re-localised, carries the refined baseline's Z_fit, which differs)."""
+    from torchslide.diagnose import Budgets, DiagnosisEvaluator, diagnose, pipeline
+    from torchslide.observe import Observation
+    from torchslide.observe_series import SeriesObservation
+    from torchslide.physics import Params
+    from torchslide.solver import SolverConfig, simulate
+    from torchslide.terrain.synthetic import inclined_plane, release_from_shape
+
+    dem = inclined_plane(30.0, 40.0, slope_length=600.0, runout_length=600.0, width=320.0, transition=200.0)
+    rel = release_from_shape(dem, (150.0, 160.0), 60.0, volume=2.0e4)
+    t = np.arange(2.0, 40.0, 2.0)
+    res = simulate(dem, rel, Params.make(mu=0.3, xi=600.0), t_end=40.0, gauges=[("g1", 700.0, 160.0)],
+                   config=SolverConfig())
+    g = res.gauges["g1"]
+    obs = [SeriesObservation.from_array("deposit_map", res.h_final[0].numpy(), dem, 0.5, name="deposit"),
+           SeriesObservation("gauge_series", np.interp(t, g.t.numpy(), g.h[0].numpy()), 0.5,
+                             name="g1:h", gauge="g1", quantity="h", times=t),
+           Observation("final_volume", 2.0e4, 2.0e3, name="final_volume")]
+    ev = DiagnosisEvaluator(dem=dem, release=rel, observations=obs, t_end=40.0, gauges=[("g1", 700.0, 160.0)],
+                            prior=Prior({"mu": Uniform(0.2, 0.45), "xi": Uniform(200.0, 1500.0)}),
+                            solver_config=SolverConfig())
+    calls = []
+    real_localise = pipeline.localise
+    monkeypatch.setattr(pipeline, "localise", lambda *a, **k: calls.append(real_localise(*a, **k)) or calls[-1])
+    # the mode check always refines (margin -inf) and its refinement is always adopted
+    monkeypatch.setattr(pipeline, "adopt_refined_baseline", lambda *a: True)
+    bud = Budgets(baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40, model_error_runs=0, batch_size=8,
+                  n_initial=4, n_total=6, n_total_max=6, n_posterior_samples=6, n_posterior_samples_after=4,
+                  refit_refine_rounds=1, baseline_refine_rounds=0,
+                  top_k=1, n_perm=9, mode_search_iters=1, mode_search_pop=2, mode_margin=-math.inf,
+                  refit_recheck=False, profile_top=0, slice_check=False, mcmc_steps=200)
+    d = diagnose(ev, ["mu_i"], bud, Thresholds(fit_max=-1000.0), log=lambda s: None, workdir=tmp_path)
+    dec = d.decision
+    assert dec["baseline_verification"]["source"] == "baseline refined from the refits' nested points"
+    first = {b: i["Z_fit"] for b, i in calls[0].blocks.items() if "Z_fit" in i}
+    final = {b: r["Z_fit"] for b, r in d.fit_before["residuals"].items() if "Z_fit" in r}
+    assert set(first) == {"deposit", "g1:h"} and set(final) == set(first)
+    assert dec["fit_z"] == first and dec["fit_z_source"] == "calibrated baseline"
+    assert any(abs(first[b] - final[b]) > 1e-6 for b in first)      # the refined baseline fits differently
+    assert {f["observable"]: f["Z_fit"] for f in dec["fit_flags"]} == first
+    # report.md shows the flags' statistic next to the final baseline's fit Z when the two differ
+    from torchslide.diagnose.report import write_markdown
+    j = d.to_json()
+    md = write_markdown(j, [])
+    row = next(l for l in md.splitlines() if l.startswith("| g1:h (rms z)"))
+    assert "fit Z calibrated |" in md and row.endswith(f" {first['g1:h']:.1f} |")
+    j["decision"]["fit_z"] = final
+    assert "fit Z calibrated" not in write_markdown(j, [])

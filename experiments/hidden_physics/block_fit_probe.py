@@ -31,13 +31,14 @@ import json
 import math
 import time
 from collections import defaultdict
+from itertools import product
 from pathlib import Path
 
 from torchslide.diagnose import Budgets, diagnose
 from torchslide.diagnose.localise import block_fit, likelihood_covariance
 
 from . import scenarios
-from .harness import HARNESS_BUDGETS, harness_thresholds
+from .harness import HARNESS_BUDGETS, harness_thresholds, out_of_range
 from .scenarios import SCENARIOS, TERRAINS, make_evaluator, make_recording, terrain_variant
 
 HERE = Path(__file__).parent
@@ -45,11 +46,11 @@ GAMMA_SCALES = (0.0, 0.1, 0.25, 0.5, 1.0)
 SIGMA_SCALES = (0.125, 0.25, 0.5, 1.0)
 
 
-def case_row(scenario: str, seed: int, log=lambda *a: None) -> dict:
-    """The baseline stage of the harness case (scenario, seed) on the current terrain: per-block Z_fit,
-    Z_block and the located mismatches (no candidate refitted)."""
+def case_row(scenario: str, seed: int, strength: float = 1.0, log=lambda *a: None) -> dict:
+    """The baseline stage of the harness case (scenario, seed, strength) on the current terrain: per-block
+    Z_fit, Z_block and the located mismatches (no candidate refitted)."""
     t0 = time.perf_counter()
-    rec = make_recording(scenario, seed)
+    rec = make_recording(scenario, seed, strength=strength)
     ev = make_evaluator(rec)
     bud = Budgets(**{**HARNESS_BUDGETS, "top_k": 0, "seed": seed})
     d = diagnose(ev, [], bud, harness_thresholds(), log=log)
@@ -73,7 +74,7 @@ def case_row(scenario: str, seed: int, log=lambda *a: None) -> dict:
             # and with the measurement sigmas scaled by a (the grid's error as it is)
             blocks[b.name]["sigma_scan"] = {f"{a:g}": block_fit(r, a * a * cm + gb, db)["chi2"] for a in SIGMA_SCALES}
     located = d.localisation.public()
-    return {"scenario": scenario, "seed": seed, "terrain": scenarios.TERRAIN, "blocks": blocks,
+    return {"scenario": scenario, "seed": seed, "strength": strength, "terrain": scenarios.TERRAIN, "blocks": blocks,
             "max_located": max([abs(l["standardised_residual"]) for l in located], default=0.0),
             "located": located, "wall_s": time.perf_counter() - t0}
 
@@ -84,6 +85,7 @@ def main(argv=None) -> int:
     p.add_argument("--scenarios", default="null,low_friction_patch")
     p.add_argument("--seed-list", default=",".join(map(str, [*range(100, 125), *range(10)])),
                    help="seeds >= 100: null calibration seeds (null scenario only)")
+    p.add_argument("--strengths", default="1", help="effect strengths (x nominal), as the harness' --strengths")
     p.add_argument("--out", default=None)
     a = p.parse_args(argv)
     unknown = [s for s in a.scenarios.split(",") if s not in SCENARIOS]
@@ -91,20 +93,21 @@ def main(argv=None) -> int:
         p.error(f"--scenarios: unknown {unknown} (known: {', '.join(SCENARIOS)})")
     out = Path(a.out or HERE / "results" / f"block_fit_{a.terrain}.json")
     rows = json.loads(out.read_text())["cases"] if out.exists() else []
-    done = {(r["scenario"], r["seed"]) for r in rows}
+    done = {(r["scenario"], r["seed"], r.get("strength", 1.0)) for r in rows}
     with terrain_variant(a.terrain):
-        for seed in [int(s) for s in a.seed_list.split(",")]:
-            for sc in a.scenarios.split(","):
-                if sc != "null" and seed >= 100:
-                    continue  # seeds 100-104: the null calibration seeds only
-                if (sc, seed) in done:
-                    continue
-                r = case_row(sc, seed)
-                rows.append(r)
-                out.parent.mkdir(parents=True, exist_ok=True)
-                out.write_text(json.dumps({"terrain": a.terrain, "cases": rows}, indent=1))
-                print(f"{sc}_s{seed}: " + ", ".join(f"{k} {v.get('Z_fit', v.get('z')):+.1f}" for k, v in r["blocks"].items())
-                      + f"; max located {r['max_located']:.1f} ({r['wall_s']:.0f} s)", flush=True)
+        for seed, strength, sc in product([int(s) for s in a.seed_list.split(",")],
+                                          [float(s) for s in a.strengths.split(",")], a.scenarios.split(",")):
+            if (sc != "null" or strength != 1.0) and seed >= 100:
+                continue  # seeds >= 100: the null calibration seeds only
+            if (sc, seed, strength) in done or out_of_range(sc, strength):
+                continue
+            r = case_row(sc, seed, strength)
+            rows.append(r)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps({"terrain": a.terrain, "cases": rows}, indent=1))
+            print(f"{sc}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}") + ": "
+                  + ", ".join(f"{k} {v.get('Z_fit', v.get('z')):+.1f}" for k, v in r["blocks"].items())
+                  + f"; max located {r['max_located']:.1f} ({r['wall_s']:.0f} s)", flush=True)
     return 0
 
 

@@ -113,15 +113,16 @@ def fit_max_from_null(rows: list, alpha: float = 0.05) -> dict:
 
 
 def probe_fit_z(probe: dict | None) -> dict:
-    """{(terrain, scenario, seed): {observable: Z_fit}} of a block_fit_probe result (the harness' design:
-    strength 1, 40 m cells, recordings on cells half that size, the harness' sigmas and gauges)."""
-    return {(r.get("terrain", "narrow"), r["scenario"], r["seed"]):
+    """{(terrain, scenario, seed, strength): {observable: Z_fit}} of a block_fit_probe result (the harness'
+    design: 40 m cells, recordings on cells half that size, the harness' sigmas and gauges)."""
+    return {(r.get("terrain", "narrow"), r["scenario"], r["seed"], float(r.get("strength", 1.0))):
             {k: v["Z_fit"] for k, v in r["blocks"].items() if "Z_fit" in v} for r in (probe or {}).get("cases", [])}
 
 
 def _probe_design(case: dict) -> bool:
-    """Whether a saved case has the design block_fit_probe re-runs (so that its row stands for the case)."""
-    return (case.get("strength", 1.0) == 1.0 and case.get("cellsize", 40.0) == 40.0
+    """Whether a saved case has the design block_fit_probe re-runs (so that its row stands for the case;
+    the strength is part of the row's key)."""
+    return (case.get("cellsize", 40.0) == 40.0
             and case.get("fine_factor", 2) == 2 and (case.get("sigma_scale") or 1.0) == 1.0
             and not case.get("extra_gauges"))
 
@@ -135,7 +136,8 @@ def case_fit_z(case: dict, probe_z: dict | None = None) -> tuple[dict, str | Non
     z = (j.get("decision") or {}).get("fit_z")
     if z:
         return z, j["decision"].get("fit_z_source")
-    z = (probe_z or {}).get((case.get("terrain", "narrow"), case.get("scenario"), case.get("seed")))
+    z = (probe_z or {}).get((case.get("terrain", "narrow"), case.get("scenario"), case.get("seed"),
+                             float(case.get("strength", 1.0))))
     return (z, "block_fit_probe") if z and _probe_design(case) else ({}, None)
 
 

@@ -40,13 +40,17 @@ def strict_success(case) -> bool:
             and fa is not None and fa < j["fit_before"]["misfit"])
 
 
-def _save_rate_plot(fig, ax, path: Path, xlabel: str, ylabel: str) -> str:
-    """Label a detection-rate plot (y in [0, 1]), save it, close it; returns the file name."""
+def _save_rate_plot(fig, ax, path: Path, xlabel: str, ylabel: str, legend_outside: bool = False) -> str:
+    """Label a detection-rate plot (y in [0, 1]), save it, close it; returns the file name.
+    ``legend_outside``: the legend to the right of the axes (many entries)."""
     import matplotlib.pyplot as plt
     ax.set_xlabel(xlabel)
     ax.set_ylabel(ylabel)
     ax.set_ylim(-0.05, 1.05)
-    ax.legend(fontsize=7)
+    if legend_outside:
+        ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    else:
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -77,22 +81,31 @@ def _figs(cases, out: Path) -> list[str]:
     fig.savefig(out / "confusion.png", dpi=90)
     plt.close(fig)
     files.append("confusion.png")
-    by = defaultdict(list)
+    by, seen = defaultdict(list), defaultdict(list)
     for c in cases:
-        if true_label(c) not in ("none", "unexplained"):
-            by[(true_label(c), c["strength"])].append(found_label(c) == true_label(c))
-    if by:
-        fig, ax = plt.subplots(figsize=(5, 3))
-        terms = sorted({k[0] for k in by})
+        if true_label(c) != "none":
+            seen[(true_label(c), c["strength"])].append(found_label(c) != "none")
+            if true_label(c) != "unexplained":
+                by[(true_label(c), c["strength"])].append(found_label(c) == true_label(c))
+    if seen:
+        # solid: the true term named; dashed: any verdict but "nothing missing" (named, another name, or
+        # "unexplained", e.g. by a fit flag); the out-of-library patch has only the dashed line
+        fig, ax = plt.subplots(figsize=(7.5, 3.4))
+        terms = sorted({k[0] for k in seen})
         for i, term in enumerate(terms):
-            xs = sorted(s for t, s in by if t == term)
+            xs = sorted(s for t, s in seen if t == term)
             dx = 0.025 * (i - (len(terms) - 1) / 2)   # side by side, so that equal rates stay visible
-            ax.plot([x + dx for x in xs], [np.mean(by[(term, s)]) for s in xs], "os^vD"[i % 5] + "-", label=term)
+            col, lab = f"C{i}", ("low-friction patch (outside)" if term == "unexplained" else term)
+            if (term, xs[0]) in by:
+                ax.plot([x + dx for x in xs], [np.mean(by[(term, s)]) for s in xs], "os^vD*"[i % 6] + "-", color=col,
+                        label=f"{lab}: named")
+            ax.plot([x + dx for x in xs], [np.mean(seen[(term, s)]) for s in xs], "os^vD*"[i % 6] + "--", color=col,
+                    mfc="none", label=f"{lab}: not 'nothing missing'")
             for x in xs:
-                ax.annotate(str(len(by[(term, x)])), (x + dx, np.mean(by[(term, x)])), fontsize=6,
+                ax.annotate(str(len(seen[(term, x)])), (x + dx, np.mean(seen[(term, x)])), fontsize=6,
                             textcoords="offset points", xytext=(3, 3))
         files.append(_save_rate_plot(fig, ax, out / "detection_vs_strength.png",
-                                     "effect strength (x nominal; small numbers: cases)", "detection rate"))
+                                     "effect strength (x nominal; small numbers: cases)", "rate", legend_outside=True))
     eff = HERE / "results" / "effect_size.json"
     if by and eff.exists():
         # the same detection rates against the *measured* effect at strength 1 (effect_size.py): the part of
@@ -236,9 +249,10 @@ def _changes_section() -> list[str]:
             "calibration seeds, makes the verdict \"unexplained\" where it would have been \"nothing missing\"; "
             "it never names a term or blocks a name. The saved cases above (main run and resolved terrain, "
             "strength 1) were re-decided with it (calibrate_thresholds --apply --force), with each case's Z_fit "
-            "from block_fit_probe, which re-runs the case's baseline stage exactly; the strength cases and the "
-            "other variant runs have no probe rows and keep their verdicts. Strict successes are unchanged (a "
-            "flag cannot add or remove a name); the patch now comes out \"unexplained\".",
+            "from block_fit_probe, which re-runs the case's baseline stage exactly; the strength cases (x0.5, x2) too "
+            "since session 18 (block_fit_probe `--strengths`), while the other variant runs have no probe rows and "
+            "keep their verdicts. Strict successes are unchanged (a flag cannot add or remove a name); the patch now "
+            "comes out \"unexplained\" (at x0.5 and x2 as well).",
             "* The same cases run with the method without the profile (session 12, as of the previous page: "
             "results/before_profile, stopped part-way to make room for this run) are compared below.",
             "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
@@ -946,11 +960,14 @@ def _block_fit_section(files=None) -> list[str]:
 
 def _probe_groups(rows) -> dict:
     """block_fit_probe rows grouped: the null calibration seeds (>= 100), then per scenario the evaluation
-    seeds 0-4 and the seeds 5-9 added in session 17 (held out: not seen when the fit rule was chosen)."""
+    seeds 0-4 and the seeds 5-9 added in session 17 (held out: not seen when the fit rule was chosen), and
+    the cases at another effect strength (session 18), one group per scenario and strength."""
     groups = defaultdict(list)
     cal = sorted(r["seed"] for r in rows if r["scenario"] == "null" and r["seed"] >= 100)
     for r in rows:
-        if r["scenario"] == "null" and r["seed"] >= 100:
+        if r.get("strength", 1.0) != 1.0:
+            g = f"{r['scenario']} x{r['strength']:g}"
+        elif r["scenario"] == "null" and r["seed"] >= 100:
             g = f"null (calibration seeds {cal[0]}-{cal[-1]})"
         elif r["seed"] >= 5:
             g = f"{r['scenario']} (seeds 5-9, held out)"
@@ -1114,7 +1131,12 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         if other:
             L += [f"Strengths other than 1: {', '.join(f'x{st:g} (seed {sd})' for st, sd in other)}, one case per "
                   "point; earth pressure and curvature cannot be doubled (their switches end at 1; "
-                  "harness.out_of_range). Detection: the true term named.", ""]
+                  "harness.out_of_range). Solid lines: the true term named. Dashed lines: any verdict but \"nothing "
+                  "missing\" (the true term or another named, or \"unexplained\", e.g. by a fit flag); for the "
+                  "out-of-library patch the right verdict is \"unexplained\", which it got at every strength. The "
+                  "cases at x0.5 and x2 were re-decided with the fit flags in session 18, their Z_fit from "
+                  "block_fit_probe `--strengths 0.5,2` (which re-runs each case's baseline stage: its located scores "
+                  "equal the saved case's where the baseline was not refined later).", ""]
     if "detection_vs_effect_size.png" in files:
         L += ["Against the measured effect (strength 1; effect_size.py: the part of each term's effect that "
               "re-tuning mu and xi cannot mimic, in units of the 40 m grid's discretisation error against the 20 m "

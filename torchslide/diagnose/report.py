@@ -189,14 +189,22 @@ def write_markdown(j: dict, figures: list[str]) -> str:
                  f"{_fmt(mc.get('log_evidence'), '{:.2f}')} ({'adopted' if mc.get('adopted') else 'not adopted'})")
     if fa:
         L.append(f"- after ({fa.get('model')}): log Z {_fmt(fa['log_evidence'], '{:.2f}')}, misfit {_fmt(fa['misfit'], '{:.1f}')}")
+    # the fit flags' statistic: the calibrated baseline's fit Z, shown apart when the baseline was refined later
+    fz = j["decision"].get("fit_z") or {}
+    first = any(fb["residuals"].get(n, {}).get("Z_fit") is None or abs(z - fb["residuals"][n]["Z_fit"]) > 0.05
+                for n, z in fz.items() if z is not None)
     L += ["", "'fit Z': the block's chi-square with the likelihood's own covariance (grid error included) as a "
-          "normal score (0 = as expected; localise.block_fit).", "",
-          "| observable | before | after | fit Z before | fit Z after |", "|---|---|---|---|---|"]
+          "normal score (0 = as expected; localise.block_fit)."
+          + (" 'fit Z calibrated': the same for the calibrated baseline, before the refits refined it (what the fit "
+             "flags compare with fit_max)." if first else ""), "",
+          "| observable | before | after | fit Z before | fit Z after |" + (" fit Z calibrated |" if first else ""),
+          "|---|---|---|---|---|" + ("---|" if first else "")]
     for name, r in fb["residuals"].items():
         a = fa.get("residuals", {}).get(name, {}) if fa else {}
         key = "z" if "z" in r else "rms_z"
         L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} "
-                 f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |")
+                 f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |"
+                 + (f" {_fmt(fz.get(name), '{:.1f}')} |" if first else ""))
     L += _fit_notes(fb["residuals"])
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(L) + "\n"
