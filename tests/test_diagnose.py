@@ -349,9 +349,19 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
             '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
     out = tmp_path / "out"
-    assert main(["diagnose", str(p), "--out", str(out), "--quiet"]) == 0
+    assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "-1"]) == 2
+    assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "1"]) == 0
     j = json.loads((out / "report.json").read_text())
     assert j["verdict"] in ("missing_physics", "no_missing_physics", "unexplained")
+    # --null-runs 1: one null recording diagnosed like the data; bf_min and located_min set on it (fit_max
+    # needs 3, so the config's is kept), the data decided again, the first decision kept
+    nc = j["null_calibration"]
+    assert nc["n"] == 1 and len(nc["cases"]) == 1 and (out / "null" / "null_0.json").exists()
+    c0 = nc["cases"][0]
+    assert j["thresholds"]["bf_min"] == max(6.0, 1.25 * c0["max_two_ln_bf_lower"]) == nc["thresholds"]["bf_min"]
+    assert j["thresholds"]["located_min"] == max(8.0, 1.25 * c0["max_located"]) and j["thresholds"]["fit_max"] == -1000
+    assert j["decision"]["decision_before"]["thresholds"]["bf_min"] == 6.0
+    assert "## Thresholds set on null simulations of this design" in (out / "report.md").read_text()
     for key in ("missing_physics", "located", "candidates", "fit_before", "fit_after"):
         assert key in j
     for key in ("log_evidence", "misfit", "residuals"):

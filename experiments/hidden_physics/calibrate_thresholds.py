@@ -30,6 +30,9 @@ Rule (fixed before looking at any hidden-term result):
   block_fit_probe file (its null rows with seeds >= 100: more seeds than the harness' five, at ~35 s a
   case).
 
+The rule's functions (thresholds_from_null, fit_max_from_null) live in torchslide.diagnose.null, where
+the CLI's ``torchslide diagnose --null-runs N`` applies them to null simulations of a user's own design.
+
 Writes experiments/hidden_physics/thresholds.json (read by the harness).
 
 ``--fit-probe FILE`` (a block_fit_probe.py result for the same terrain and design): sets fit_max from its
@@ -51,7 +54,7 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
+from torchslide.diagnose.null import fit_max_from_null, thresholds_from_null
 
 HERE = Path(__file__).parent
 
@@ -68,15 +71,6 @@ def null_statistics(results) -> dict:
     return {"bf": bf, "located": loc, "cases": rows}
 
 
-def thresholds_from_null(stats: dict, fit_rows: list | None = None) -> dict:
-    th = {"bf_min": max(6.0, 1.25 * max(stats["bf"], default=0.0)),
-          "located_min": max(8.0, 1.25 * max(stats["located"], default=0.0)),
-          "waic_min": 6.0, "margin_min": 6.0, "explain_min": 0.5, "ess_min": 2.0, "z_threshold": 3.0}
-    if fit_rows:
-        th["fit_max"] = fit_max_from_null(fit_rows)
-    return th
-
-
 def null_fit_rows(results, probe: dict | None) -> list:
     """[{observable: Z_fit}] (the calibrated baseline's) of the null calibration seeds: from the cases in
     ``results`` whose decision has them, else (and for every further seed >= 100) from the probe's null rows."""
@@ -91,25 +85,6 @@ def null_fit_rows(results, probe: dict | None) -> list:
         if r["scenario"] == "null" and r["seed"] >= 100 and r["seed"] not in seeds:
             rows.append({k: v["Z_fit"] for k, v in r["blocks"].items() if "Z_fit" in v})
     return rows
-
-
-def fit_max_from_null(rows: list, alpha: float = 0.05) -> dict:
-    """{observable: fit_max} from null Z_fit rows (the rule in the module doc); observables with fewer than
-    3 null values get no level."""
-    from scipy import stats as st
-
-    vals = {}
-    for r in rows:
-        for k, v in r.items():
-            vals.setdefault(k, []).append(float(v))
-    vals = {k: np.asarray(v) for k, v in vals.items() if len(v) >= 3}
-    B = max(len(vals), 1)
-    out = {}
-    for k, v in vals.items():
-        n = len(v)
-        q = st.t.ppf(1 - alpha / B, n - 1)
-        out[k] = float(v.mean() + q * v.std(ddof=1) * np.sqrt(1 + 1 / n))
-    return out
 
 
 def probe_fit_z(probe: dict | None) -> dict:

@@ -57,6 +57,11 @@ and a [diagnose] section::
                                  #     likelihood's covariance, as a normal score) exceeds it is a mismatch; one
                                  #     number, or a table per observable name ([diagnose.fit_max] "g1:speed" = -1.5)
 
+``--null-runs N``: the thresholds bf_min, located_min and (N >= 3) fit_max set on N null recordings of this
+design (torchslide.diagnose.null: the calibrated baseline's posterior draws run on the finer grid, the
+release volume's error and noise from the stated errors, each diagnosed like the data); report.json gets
+"null_calibration" and the decision with the thresholds given before as decision["decision_before"].
+
 Unknown keys stop with a clear error (exit code 2) listing the allowed ones.
 The baseline calibration uses [calibration] n_initial / n_total / batch_size / seed. Writes DIR/report.json,
 DIR/report.md and figures. Bad input (a gauge series with non-increasing times, a map on another grid,
@@ -295,6 +300,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("config", help="TOML config (calibrate config + [diagnose], vector observations)")
     p.add_argument("--out", required=True, help="output folder (report.json, report.md, figures)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--null-runs", type=int, default=0, metavar="N",
+                   help="set bf_min, located_min and fit_max (N >= 3) on N null recordings of this design made "
+                        "from the calibrated baseline, each diagnosed like the data (costs N diagnoses; "
+                        "torchslide.diagnose.null); finished null cases in OUT/null are reused")
 
 
 def budgets_and_thresholds(cfg: Config):
@@ -318,8 +327,16 @@ def run(args: argparse.Namespace) -> int:
     if "entrainment" in dg["candidates"] and cfg.terrain.erodible_depth is None:
         raise ConfigError(f"{cfg.path}: candidate 'entrainment' needs an erodible depth raster ([terrain] erodible)")
     bud, th = budgets_and_thresholds(cfg)
+    if args.null_runs < 0:
+        raise ConfigError(f"--null-runs must be >= 0, got {args.null_runs}")
     out = Path(args.out)
-    d = diagnose(ev, dg["candidates"], bud, th, log=(lambda s: None) if args.quiet else print)
+    log = (lambda s: None) if args.quiet else print
+    d = diagnose(ev, dg["candidates"], bud, th, log=log)
+    if args.null_runs:
+        from ..diagnose.null import null_calibration
+        d.null_calibration = null_calibration(ev, dg["candidates"], bud, th, d.baseline, args.null_runs, out / "null",
+                                              log=log)
+        d.redecide(d.null_calibration["thresholds"], f"set on {args.null_runs} null simulations of this design")
     write_report(d, out)
     print(f"verdict: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "") + f"; report in {out}")
     return 0

@@ -139,10 +139,25 @@ class Diagnosis:
     model_error: dict | None = None
     baseline_refined: object = None     # the baseline posterior that replaced the calibration's (mode check)
     consistency: list | None = None     # consistency.subset_consistency at the final baseline (None: not computable)
+    null_calibration: dict | None = None  # thresholds set on null simulations of this design (diagnose.null)
 
     @property
     def missing_physics(self):
         return self.decision.get("missing_physics")
+
+    def redecide(self, th: Thresholds, source: str) -> None:
+        """Decide again with thresholds ``th`` (e.g. set on null data of this design: diagnose.null). The
+        verdict is a pure function of the saved statistics and the thresholds, so this equals a run with
+        ``th``; the earlier decision is kept as decision["decision_before"], ``source`` says where ``th``
+        came from."""
+        keep = {k: self.decision.get(k) for k in ("fit_z", "fit_z_source", "baseline_verification",
+                                                   "baseline_mode_check", "elpd_waic_baseline")}
+        before = {"verdict": self.verdict, "missing_physics": self.missing_physics,
+                  "reason": self.decision.get("reason"), "thresholds": self.thresholds.to_json()}
+        dec = decide(self.candidates, self.localisation.located, keep["baseline_verification"] or {},
+                     self.fit_before["misfit"], th, fit_z=keep["fit_z"])
+        dec.update(keep, decision_before=before, thresholds_source=source)
+        self.decision, self.verdict, self.thresholds = dec, dec["verdict"], th
 
     def to_json(self) -> dict:
         def clean(v):
@@ -176,6 +191,8 @@ class Diagnosis:
             "timings": self.timings,
             "model_error": self.model_error,
             "subset_consistency": self.consistency,
+            "null_calibration": None if self.null_calibration is None else
+            {**self.null_calibration, "thresholds": self.null_calibration["thresholds"].to_json()},
         })
 
 

@@ -121,6 +121,11 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     if j["decision"].get("ambiguous"):
         L += [f"Ambiguous: competing candidate(s) {', '.join(j['decision'].get('competitors') or [])} "
               f"(see the reason above); no name is given.", ""]
+    db = j["decision"].get("decision_before")
+    if db:
+        L += [f"Thresholds {j['decision'].get('thresholds_source')}; with the thresholds given before, the verdict "
+              f"was {db['verdict']}" + (f" ({db['missing_physics']})" if db.get("missing_physics") else "") + ".", ""]
+    L += _null_section(j.get("null_calibration"))
     me = j.get("model_error")
     if me:
         L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
@@ -208,6 +213,24 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     L += _fit_notes(fb["residuals"])
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(L) + "\n"
+
+
+def _null_section(nc: dict | None) -> list[str]:
+    """report.md lines on the thresholds set on null simulations of this design (diagnose.null), if any."""
+    if not nc:
+        return []
+    th = nc["thresholds"]
+    fm = th.get("fit_max")
+    fm = (", ".join(f"{k} {v:.2f}" for k, v in fm.items()) if isinstance(fm, dict) else _fmt(fm, "{:.2f}"))
+    L = ["## Thresholds set on null simulations of this design", "",
+         f"{nc['n']} recordings made from the calibrated baseline (posterior draws run on the finer grid, the release "
+         "volume's error, noise from the stated errors) and diagnosed like the data; rule: " + nc["rule"] + ".", "",
+         f"bf_min {th['bf_min']:.1f}, located_min {th['located_min']:.1f}, fit_max: {fm}.", "",
+         "| null case | largest lower 2 ln BF | largest located | verdict (thresholds given) |", "|---|---|---|---|"]
+    for i, c in enumerate(nc["cases"]):
+        L.append(f"| {i} | {_fmt(c['max_two_ln_bf_lower'], '{:.1f}')} | {c['max_located']:.1f} | {c['verdict']}"
+                 + (f" ({c['missing_physics']})" if c.get("missing_physics") else "") + " |")
+    return L + [""]
 
 
 def _fit_notes(residuals: dict, level: float = 3.0) -> list[str]:

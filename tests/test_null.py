@@ -1,0 +1,126 @@
+"""Thresholds set on null simulations of the user's own design (torchslide.diagnose.null)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from torchslide.bayes import Prior, Uniform
+from torchslide.diagnose import Budgets, DiagnosisEvaluator, Thresholds, diagnose
+from torchslide.diagnose.localise import likelihood_covariance
+from torchslide.diagnose.model_error import fine_predictions
+from torchslide.diagnose.null import (fit_max_from_null, null_calibration, null_recordings, thresholds_from_null,
+                                      with_data)
+from torchslide.observe import Observation
+from torchslide.observe_series import SeriesObservation
+from torchslide.physics import Params
+from torchslide.solver import SolverConfig, simulate
+from torchslide.terrain.synthetic import inclined_plane, release_from_shape
+
+V = 2.0e4
+
+
+def _evaluator():
+    """A 40 m inclined plane; data: a run at mu 0.3, xi 600 (deposit map, one gauge's h, final volume)."""
+    dem = inclined_plane(30.0, 40.0, slope_length=600.0, runout_length=600.0, width=320.0, transition=200.0)
+    rel = release_from_shape(dem, (150.0, 160.0), 60.0, volume=V)
+    t = np.arange(2.0, 40.0, 2.0)
+    res = simulate(dem, rel, Params.make(mu=0.3, xi=600.0), t_end=40.0, gauges=[("g1", 700.0, 160.0)],
+                   config=SolverConfig())
+    g = res.gauges["g1"]
+    obs = [SeriesObservation.from_array("deposit_map", res.h_final[0].numpy(), dem, 0.5, name="deposit",
+                                        corr_length=40.0),
+           SeriesObservation("gauge_series", np.interp(t, g.t.numpy(), g.h[0].numpy()), 0.5, name="g1:h", gauge="g1",
+                             quantity="h", times=t),
+           Observation("final_volume", V, 0.05 * V, name="final_volume")]
+    return DiagnosisEvaluator(dem=dem, release=rel, observations=obs, t_end=40.0, gauges=[("g1", 700.0, 160.0)],
+                              prior=Prior({"mu": Uniform(0.2, 0.45), "xi": Uniform(200.0, 1500.0)}),
+                              solver_config=SolverConfig())
+
+
+def _tiny(**kw):
+    return Budgets(**{**dict(baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40, model_error_runs=0,
+                             batch_size=8, n_initial=4, n_total=6, n_total_max=6, n_posterior_samples=6,
+                             n_posterior_samples_after=4, refit_refine_rounds=1, baseline_refine_rounds=0, top_k=1,
+                             n_perm=9, mode_search_iters=1, mode_search_pop=2, refit_recheck=False, profile_top=0,
+                             slice_check=False, mcmc_steps=200), **kw})
+
+
+def test_null_recordings_are_finer_grid_runs_plus_the_stated_noise():
+    """d = y_fine(theta; V (1 + delta)) + e: without noise the finer-grid run itself, its volume scaled by
+    the release factor (mass conservation); the noise whitened by the likelihood's covariance is N(0, 1)."""
+    ev = _evaluator()
+    theta = np.array([[0.3, 600.0], [0.34, 900.0]])
+    y, _ = fine_predictions(ev, theta, 2)
+    d0, vf0 = null_recordings(ev, theta, 2, release_sd=0.0, seed=1, noise=False)
+    assert np.array_equal(vf0, [1.0, 1.0]) and np.allclose(d0, y)
+    d1, vf1 = null_recordings(ev, theta, 2, release_sd=0.05, seed=1, noise=False)
+    a = math.sqrt(3) * 0.05
+    assert np.all(np.abs(vf1 - 1) <= a) and np.all(vf1 != 1.0)
+    fv = ev.block("final_volume").slice
+    assert np.allclose(d1[:, fv].ravel(), vf1 * V, rtol=1e-3)                 # the release volume scaled
+    d, _ = null_recordings(ev, theta, 2, release_sd=0.0, seed=2)
+    w = np.linalg.solve(np.linalg.cholesky(likelihood_covariance(ev)), (d - y).T)   # (k, n) whitened noise
+    assert abs(w.mean()) < 4 / math.sqrt(w.size) and abs(w.var() - 1) < 0.15
+    assert not np.allclose(null_recordings(ev, theta, 2, seed=3)[0], d)      # another seed, other noise
+    with pytest.raises(ValueError, match="release_volume_sd"):
+        null_recordings(ev, theta, 2, release_sd=0.6)
+
+
+def test_with_data_replaces_every_observation_in_the_flat_order():
+    ev = _evaluator()
+    old = ev.data.copy()
+    new = ev.data + np.arange(ev.k)
+    ev2 = with_data(ev, new)
+    assert np.array_equal(ev2.data, new) and ev2.k == ev.k and ev2.records == []
+    assert [b.name for b in ev2.blocks] == [b.name for b in ev.blocks] and np.array_equal(ev.data, old)   # a copy
+    with pytest.raises(ValueError, match="data has 3 values"):
+        with_data(ev, np.zeros(3))
+
+
+def test_threshold_rule_from_null_statistics():
+    th = thresholds_from_null({"bf": [3.0, 10.0, -2.0], "located": [4.0, 12.0, 5.0]})
+    assert th["bf_min"] == 12.5 and th["located_min"] == 15.0 and "fit_max" not in th
+    assert thresholds_from_null({"bf": [1.0], "located": [2.0]})["bf_min"] == 6.0     # floors 6 and 8
+    rows = [{"a": 0.0, "b": 1.0}, {"a": 1.0, "b": None}, {"a": 2.0, "b": 2.0}, {"a": 3.0}]
+    fm = fit_max_from_null(rows)
+    from scipy import stats as st
+    v = np.array([0.0, 1.0, 2.0, 3.0])
+    assert set(fm) == {"a"}             # b: 2 finite values, below the 3 needed
+    assert math.isclose(fm["a"], v.mean() + st.t.ppf(1 - 0.05, 3) * v.std(ddof=1) * math.sqrt(1.25))
+
+
+def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkeypatch):
+    """The whole path on a tiny design: a diagnosis of the data, 3 null recordings diagnosed like it, the
+    thresholds by the rule from their statistics, the data's verdict decided again with them (equal to a run
+    with those thresholds); a second call reuses the finished null cases."""
+    from torchslide.diagnose import pipeline
+
+    ev = _evaluator()
+    bud = _tiny()
+    th0 = Thresholds(bf_min=6.0, located_min=8.0, waic_min=5.0)
+    d = diagnose(ev, ["mu_i"], bud, th0, log=lambda s: None, workdir=tmp_path / "data")
+    nc = null_calibration(ev, ["mu_i"], bud, th0, d.baseline, 3, tmp_path / "null", log=lambda s: None)
+    cases = nc["cases"]
+    assert nc["n"] == 3 and len(cases) == 3 and len({tuple(c["theta"]) for c in cases}) == 3
+    assert sorted(p.name for p in (tmp_path / "null").glob("null_*.json")) == ["null_0.json", "null_1.json", "null_2.json"]
+    th = nc["thresholds"]
+    assert th.bf_min == max(6.0, 1.25 * max(c["max_two_ln_bf_lower"] for c in cases))
+    assert th.located_min == max(8.0, 1.25 * max(c["max_located"] for c in cases))
+    assert th.fit_max == fit_max_from_null([c["fit_z"] for c in cases]) and set(th.fit_max) == {"deposit", "g1:h"}
+    assert th.waic_min == 5.0                                   # the thresholds not set on null data are kept
+    # resumed: the finished cases are read back, no diagnosis runs
+    monkeypatch.setattr(pipeline, "diagnose", lambda *a, **k: pytest.fail("a finished null case was re-run"))
+    again = null_calibration(ev, ["mu_i"], bud, th0, d.baseline, 3, tmp_path / "null", log=lambda s: None)
+    assert again["cases"] == cases and again["thresholds"] == th
+    monkeypatch.undo()
+    # the data decided again with them equals a run with them
+    before = (d.verdict, d.missing_physics)
+    d.redecide(th, "set on 3 null simulations")
+    ref = diagnose(ev, ["mu_i"], bud, th, log=lambda s: None, workdir=tmp_path / "ref")
+    assert (d.verdict, d.missing_physics, d.decision["reason"]) == (ref.verdict, ref.missing_physics, ref.decision["reason"])
+    assert d.decision["decision_before"]["verdict"] == before[0] and d.decision["fit_z"] == ref.decision["fit_z"]
+    assert d.decision["thresholds_source"] == "set on 3 null simulations" and d.thresholds == th
+    with pytest.raises(ValueError, match="null runs must be >= 1"):
+        null_calibration(ev, ["mu_i"], bud, th0, d.baseline, 0, tmp_path / "null")
