@@ -1944,3 +1944,38 @@ def test_fit_flags_use_the_calibrated_baselines_fit_not_the_refined_one(tmp_path
     assert "fit Z calibrated |" in md and row.endswith(f" {first['g1:h']:.1f} |")
     j["decision"]["fit_z"] = final
     assert "fit Z calibrated" not in write_markdown(j, [])
+
+
+def test_page_section_on_the_clis_null_thresholds(tmp_path):
+    """make_page's --null-runs section: per case the harness' thresholds and verdict against the null runs' own,
+    and one row per null run."""
+    import json
+    from experiments.hidden_physics.make_page import _null_runs_section
+
+    assert _null_runs_section(tmp_path) == []
+    rep = {"verdict": "unexplained", "missing_physics": None,
+           "decision": {"fit_flags": [{"observable": "g1:speed", "Z_fit": 2.5, "fit_max": 1.0}],
+                        "decision_before": {"verdict": "no_missing_physics", "missing_physics": None,
+                                            "thresholds": {"bf_min": 48.9, "located_min": 8.0, "fit_max": {"g1:speed": -0.1}}}},
+           "thresholds": {"bf_min": 20.0, "located_min": 9.5, "fit_max": {"g1:speed": 1.0}},
+           "null_calibration": {"n": 1, "cases": [{"release_factor": 1.05, "max_two_ln_bf_lower": None, "max_located": 7.6,
+                                                   "fit_z": {"g1:speed": -1.2}}]}}
+    (tmp_path / "narrow" / "patch_s0").mkdir(parents=True)
+    (tmp_path / "narrow" / "patch_s0" / "report.json").write_text(json.dumps(rep))
+    L = "\n".join(_null_runs_section(tmp_path, saved={}))
+    assert "| narrow patch_s0 | the harness' | 48.9 | 8.0 | g1:speed -0.1 | no_missing_physics |" in L
+    assert "| narrow patch_s0 | its 1 null runs | 20.0 | 9.5 | g1:speed +1.0 | unexplained; flags g1:speed +2.5 |" in L
+    assert "| narrow patch_s0 | 0 | 1.050 | - | 7.6 | g1:speed -1.2 |" in L
+    # a saved null case of the terrain, "nothing missing" at the harness' bf_min 48.9, named at these (20)
+    from dataclasses import asdict
+    cands = [_cand("entrainment", 30.0)]
+    th0 = Thresholds(bf_min=48.9)
+    d0 = decide(cands, [], {"ess": 5.0}, 100.0, th0)
+    case = {"scenario": "null", "seed": 3, "strength": 1.0, "truth": {"term": None},
+            "diagnosis": {"verdict": d0["verdict"], "missing_physics": None, "candidates": cands, "located": [],
+                          "decision": dict(d0, baseline_verification={"ess": 5.0}, fit_z={"g1:speed": -3.0}),
+                          "fit_before": {"misfit": 100.0}, "fit_after": {}, "thresholds": asdict(th0)}}
+    (tmp_path / "saved").mkdir()
+    (tmp_path / "saved" / "null_s3.json").write_text(json.dumps(case))
+    L = "\n".join(_null_runs_section(tmp_path, saved={"narrow": tmp_path / "saved"}))
+    assert "| narrow patch_s0 | null | 1 | 1 | 0 | entrainment 1 |" in L

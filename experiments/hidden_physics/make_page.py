@@ -157,16 +157,16 @@ def _before_after(results: Path, case, out: Path) -> str | None:
     return name
 
 
-def redecide(case, **kw) -> dict:
-    """The case's verdict recomputed from its saved statistics with torchslide.diagnose.decide (``kw``:
-    a rule variant); the default reproduces the saved decision."""
+def redecide(case, th: dict | None = None, **kw) -> dict:
+    """The case's verdict recomputed from its saved statistics with torchslide.diagnose.decide (``th``: other
+    thresholds, a dict of Thresholds fields; ``kw``: a rule variant); the default reproduces the saved decision."""
     from torchslide.diagnose.decide import Thresholds, decide
 
     from .calibrate_thresholds import case_fit_z
     j = case["diagnosis"]
     cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
     return decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
-                  Thresholds(**j["thresholds"]), fit_z=case_fit_z(case)[0], **kw)
+                  Thresholds(**(th or j["thresholds"])), fit_z=case_fit_z(case)[0], **kw)
 
 
 def _with_decision(case, d) -> dict:
@@ -977,6 +977,75 @@ def _probe_groups(rows) -> dict:
     return dict(sorted(groups.items(), key=lambda kv: (not kv[0].startswith("null (cal"), "held out" in kv[0], kv[0])))
 
 
+def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list[str]:
+    """The CLI's own null thresholds (``torchslide diagnose --null-runs 5``, torchslide.diagnose.null) on harness
+    cases written as user files (export_case), against the harness' null-calibrated thresholds: results in
+    results/null_runs/<terrain>/<case>/ (report.json and the null cases' null/null_<i>.json). ``saved``:
+    {terrain: folder of that terrain's saved harness cases} (default results/harness, results/resolved/results),
+    whose strength-1 cases are re-decided with each case's null thresholds."""
+    d = d or HERE / "results" / "null_runs"
+    saved = saved if saved is not None else {"narrow": HERE / "results" / "harness",
+                                             "resolved": HERE / "results" / "resolved" / "results"}
+    reps = [(f"{p.parent.parent.name} {p.parent.name}", p.parent.parent.name, json.loads(p.read_text()))
+            for p in sorted(Path(d).glob("*/*/report.json"))]
+    if not reps:
+        return []
+    L = ["## Thresholds from the user's own null simulations (`torchslide diagnose --null-runs 5`, session 18)", "",
+         "A user cannot run the harness' null calibration: it needs recordings of the same design with nothing "
+         "missing. `--null-runs N` makes them from the calibrated baseline of the user's data (torchslide.diagnose.null: "
+         "posterior draws run on cells twice as fine over the DEM interpolated bilinearly, the release volume's "
+         "error, Gaussian noise from the likelihood's measurement covariance) and diagnoses each like the data; "
+         "bf_min, located_min and fit_max come from them by the harness' rule, and the verdict is decided again. "
+         "Here on harness cases written as user files (`export_case SCENARIO 0 --out DIR`, then `python -m "
+         "torchslide.cli diagnose DIR/diagnose.toml --out DIR/diagnosis --null-runs 5`), against the harness' "
+         "thresholds (set on its null calibration seeds: recordings on the finer grid of the *true* terrain, noise "
+         "smaller than the likelihood's sigmas).", "",
+         "| case | thresholds | bf_min | located_min | fit_max | verdict |", "|---|---|---|---|---|---|"]
+    fmt_fm = lambda fm: (", ".join(f"{k} {v:+.1f}" for k, v in fm.items()) if isinstance(fm, dict)
+                         else ("-" if fm is None else f"{fm:+.1f}"))
+    for name, _, j in reps:
+        db = j["decision"].get("decision_before") or {}
+        tb = db.get("thresholds") or {}
+        ff = ", ".join(f"{f['observable']} {f['Z_fit']:+.1f}" for f in j["decision"].get("fit_flags") or [])
+        L.append(f"| {name} | the harness' | {tb.get('bf_min', float('nan')):.1f} | {tb.get('located_min', float('nan')):.1f} "
+                 f"| {fmt_fm(tb.get('fit_max'))} | {db.get('verdict')}" + (f" ({db['missing_physics']})" if db.get("missing_physics") else "") + " |")
+        th = j["thresholds"]
+        L.append(f"| {name} | its {j['null_calibration']['n']} null runs | {th['bf_min']:.1f} | {th['located_min']:.1f} "
+                 f"| {fmt_fm(th.get('fit_max'))} | {j['verdict']}" + (f" ({j['missing_physics']})" if j["missing_physics"] else "")
+                 + (f"; flags {ff}" if ff else "") + " |")
+    L += ["", "The null runs themselves (largest lower-bound 2 ln BF, largest located |score|, the calibrated baseline's "
+          "Z_fit per observable):", "", "| case | null run | release x | 2 ln BF lower | located | Z_fit |", "|---|---|---|---|---|---|"]
+    for name, _, j in reps:
+        for i, c in enumerate(j["null_calibration"]["cases"]):
+            bf = c["max_two_ln_bf_lower"]
+            L.append(f"| {name} | {i} | {c['release_factor']:.3f} | {'-' if bf is None else f'{bf:.1f}'} | "
+                     f"{c['max_located']:.1f} | {fmt_fm(c['fit_z'])} |")
+    # what these thresholds would make of every saved case of the terrain (the verdict is a pure function of a
+    # case's saved statistics and the thresholds: redecide)
+    rows = []
+    for name, terrain, j in reps:
+        cases = [c for c in (json.loads(p.read_text()) for p in sorted(Path(saved.get(terrain, "-")).glob("*_s*.json")))
+                 if "diagnosis" in c and c.get("strength", 1.0) == 1.0]
+        if not cases:
+            continue
+        per = defaultdict(list)
+        for c in cases:
+            per[c["scenario"]].append((c, _with_decision(c, redecide(c, th=j["thresholds"]))))
+        for sc, cs in sorted(per.items()):
+            found = defaultdict(int)
+            for _, c2 in cs:
+                found[found_label(c2)] += 1
+            rows.append(f"| {name} | {sc} | {len(cs)} | {sum(strict_success(c) for c, _ in cs)} | "
+                        f"{sum(strict_success(c2) for _, c2 in cs)} | {', '.join(f'{k} {v}' for k, v in sorted(found.items()))} |")
+    if rows:
+        L += ["", "Every saved case of the terrain (strength 1) decided with these null runs' thresholds instead of the "
+              "harness' (redecide on its saved statistics; each case's own null runs would differ somewhat, since "
+              "they start from its own baseline):", "",
+              "| thresholds from | scenario | cases | strict successes, harness' thresholds | strict successes, these | found with these |",
+              "|---|---|---|---|---|---|"] + rows
+    return L + [""]
+
+
 def _fit_flag_section(files=None) -> list[str]:
     """The fit flags (decide.fit_flags, session 17) on block_fit_probe's cases: each observable's level
     fit_max from the null calibration seeds (calibrate_thresholds.fit_max_from_null) and, per group of
@@ -1207,6 +1276,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _extra_gauges_section()
     L += _block_fit_section()
     L += _fit_flag_section()
+    L += _null_runs_section()
     L += _sigma_scale_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
