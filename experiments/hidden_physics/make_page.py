@@ -253,6 +253,10 @@ def _changes_section() -> list[str]:
             "since session 18 (block_fit_probe `--strengths`), while the other variant runs have no probe rows and "
             "keep their verdicts. Strict successes are unchanged (a flag cannot add or remove a name); the patch now "
             "comes out \"unexplained\" (at x0.5 and x2 as well).",
+            "* **The user's own null thresholds** (session 18; CLI `torchslide diagnose --null-runs N`, "
+            "torchslide.diagnose.null; section 'Thresholds from the user's own null simulations'). Not used by the "
+            "harness' verdicts above; that section compares them with the harness' thresholds on four cases and "
+            "re-decides the saved cases with them.",
             "* The same cases run with the method without the profile (session 12, as of the previous page: "
             "results/before_profile, stopped part-way to make room for this run) are compared below.",
             "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
@@ -1013,7 +1017,14 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
         L.append(f"| {name} | its {j['null_calibration']['n']} null runs | {th['bf_min']:.1f} | {th['located_min']:.1f} "
                  f"| {fmt_fm(th.get('fit_max'))} | {j['verdict']}" + (f" ({j['missing_physics']})" if j["missing_physics"] else "")
                  + (f"; flags {ff}" if ff else "") + " |")
-    L += ["", "The null runs themselves (largest lower-bound 2 ln BF, largest located |score|, the calibrated baseline's "
+    L += ["", "Two things the user's null runs cannot know make their levels differ from the harness': the harness' "
+          "recordings carry noise 1.7-5 times smaller than the likelihood's sigmas (scenarios.make_recording) and come "
+          "from the true terrain on the finer grid, while the null runs draw noise at the stated sigmas over the "
+          "DEM interpolated bilinearly. So their fit_max levels sit near the chi-square's own scale (Z_fit about 0) "
+          "instead of far below it, and a mismatch the harness' levels flag only because the data fit better than "
+          "their sigmas say goes unflagged. bf_min is 1.25 times the largest of N values, so with N = 5 it depends "
+          "on whether one null run happens to give a spurious candidate a large evidence.", "",
+          "The null runs themselves (largest lower-bound 2 ln BF, largest located |score|, the calibrated baseline's "
           "Z_fit per observable):", "", "| case | null run | release x | 2 ln BF lower | located | Z_fit |", "|---|---|---|---|---|---|"]
     for name, _, j in reps:
         for i, c in enumerate(j["null_calibration"]["cases"]):
