@@ -337,7 +337,7 @@ def test_refine_baseline_narrow_posterior():
     assert ver["ess"] >= 0.3 * 16 and len(pred.x) == 16
 
 
-def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
+def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     """`torchslide diagnose CONFIG --out DIR` with tiny budgets: exit 0, report.json with the issue's keys,
     report.md and figures (a refit posterior plot included)."""
     import json
@@ -350,6 +350,15 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path):
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
     out = tmp_path / "out"
     assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "-1"]) == 2
+    # null runs that fail (a finer-grid run): exit 1, the report with the thresholds given is written
+    import torchslide.diagnose.null as null_mod
+
+    def fail(*a, **k):
+        raise RuntimeError("null recording 0: the finer-grid run failed")
+    monkeypatch.setattr(null_mod, "null_calibration", fail)
+    assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "2"]) == 1
+    assert json.loads((out / "report.json").read_text())["null_calibration"] is None
+    monkeypatch.undo()
     assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "1"]) == 0
     j = json.loads((out / "report.json").read_text())
     assert j["verdict"] in ("missing_physics", "no_missing_physics", "unexplained")

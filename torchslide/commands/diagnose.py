@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -332,11 +333,19 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     log = (lambda s: None) if args.quiet else print
     d = diagnose(ev, dg["candidates"], bud, th, log=log)
+    write_report(d, out)           # with the thresholds given; rewritten below when null runs reset them
     if args.null_runs:
         from ..diagnose.null import null_calibration
-        d.null_calibration = null_calibration(ev, dg["candidates"], bud, th, d.baseline, args.null_runs, out / "null",
-                                              log=log)
+        print(f"verdict with the thresholds given: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "")
+              + f"; now {args.null_runs} null runs")
+        try:
+            d.null_calibration = null_calibration(ev, dg["candidates"], bud, th, d.baseline, args.null_runs,
+                                                  out / "null", log=log)
+        except RuntimeError as e:   # a null recording's finer-grid run failed: the report above stands
+            print(f"torchslide: error: null runs stopped: {e}; {out}/report.json keeps the thresholds given",
+                  file=sys.stderr)
+            return 1
         d.redecide(d.null_calibration["thresholds"], f"set on {args.null_runs} null simulations of this design")
-    write_report(d, out)
+        write_report(d, out)
     print(f"verdict: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "") + f"; report in {out}")
     return 0
