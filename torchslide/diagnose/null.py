@@ -138,7 +138,8 @@ def null_case_statistics(diag) -> dict:
 def null_calibration(evaluator, candidates, budgets, thresholds, baseline, n: int, workdir, log=print) -> dict:
     """Thresholds from ``n`` null recordings of this design (module doc). ``evaluator``: the real data's
     evaluator without model error; ``baseline``: the real data's calibrated baseline (a CalibrationResult);
-    ``workdir``: one JSON per finished null case (a rerun skips them: an interrupted calibration resumes).
+    ``workdir``: one JSON per finished null case (a rerun with the same n and seed skips them: an interrupted
+    calibration resumes; another n draws other parameter sets, and a case whose theta differs is run again).
     Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds}:
     bf_min, located_min and (n >= 3) fit_max set on the null cases, the other fields those of ``thresholds``."""
     from .pipeline import diagnose
