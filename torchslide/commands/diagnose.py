@@ -337,8 +337,8 @@ def run(args: argparse.Namespace) -> int:
     write_report(d, out)           # with the thresholds given; rewritten below when null runs reset them
     if args.null_runs:
         from ..diagnose.null import null_calibration
-        print(f"verdict with the thresholds given: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "")
-              + f"; now {args.null_runs} null runs")
+        named = f" ({d.missing_physics})" if d.missing_physics else ""
+        print(f"verdict with the thresholds given: {d.verdict}{named}; now {args.null_runs} null runs")
         try:
             d.null_calibration = null_calibration(ev, dg["candidates"], bud, th, d.baseline, args.null_runs,
                                                   out / "null", log=log)

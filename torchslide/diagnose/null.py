@@ -91,7 +91,8 @@ def with_data(evaluator, data: np.ndarray):
     for b in evaluator.blocks:
         o = b.obs
         v = data[b.slice]
-        obs.append(dataclasses.replace(o, values=v.copy()) if b.is_vector else dataclasses.replace(o, value=float(v[0])))
+        obs.append(dataclasses.replace(o, values=v.copy()) if b.is_vector
+                   else dataclasses.replace(o, value=float(v[0])))
     return evaluator._copy(observations=obs, model_error=None)
 
 
@@ -116,8 +117,9 @@ def null_recordings(evaluator, theta: np.ndarray, factor: int = 2, release_sd: f
         ev = evaluator
         if vf[i] != 1.0:
             ft = getattr(evaluator, "fine_terrain", None)
-            ev = evaluator._copy(release=np.asarray(evaluator.release, np.float64) * vf[i],
-                                 fine_terrain=None if ft is None else dataclasses.replace(ft, release=np.asarray(ft.release) * vf[i]))
+            if ft is not None:
+                ft = dataclasses.replace(ft, release=np.asarray(ft.release) * vf[i])
+            ev = evaluator._copy(release=np.asarray(evaluator.release, np.float64) * vf[i], fine_terrain=ft)
         y, failed = fine_predictions(ev, theta[i:i + 1], factor)
         if failed[0]:
             raise RuntimeError(f"null recording {i}: the finer-grid run at {theta[i].tolist()} failed")
