@@ -106,9 +106,11 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     bud = _tiny()
     th0 = Thresholds(bf_min=6.0, located_min=8.0, waic_min=5.0)
     d = diagnose(ev, ["mu_i"], bud, th0, log=lambda s: None, workdir=tmp_path / "data")
-    nc = null_calibration(ev, ["mu_i"], bud, th0, d.baseline, 3, tmp_path / "null", log=lambda s: None)
+    nc = null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 3, tmp_path / "null", log=lambda s: None)
     cases = nc["cases"]
     assert nc["n"] == 3 and len(cases) == 3 and len({tuple(c["theta"]) for c in cases}) == 3
+    pool = {tuple(x) for x in d.predictive.x.tolist()}
+    assert all(tuple(c["theta"]) in pool for c in cases)       # drawn from the verdict's posterior draws
     assert sorted(p.name for p in (tmp_path / "null").glob("null_*.json")) == ["null_0.json", "null_1.json", "null_2.json"]
     th = nc["thresholds"]
     assert th.bf_min == max(6.0, 1.25 * max(c["max_two_ln_bf_lower"] for c in cases))
@@ -117,7 +119,7 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     assert th.waic_min == 5.0                                   # the thresholds not set on null data are kept
     # resumed: the finished cases are read back, no diagnosis runs
     monkeypatch.setattr(pipeline, "diagnose", lambda *a, **k: pytest.fail("a finished null case was re-run"))
-    again = null_calibration(ev, ["mu_i"], bud, th0, d.baseline, 3, tmp_path / "null", log=lambda s: None)
+    again = null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 3, tmp_path / "null", log=lambda s: None)
     assert again["cases"] == cases and again["thresholds"] == th
     monkeypatch.undo()
     # the data decided again with them equals a run with them
@@ -128,4 +130,6 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     assert d.decision["decision_before"]["verdict"] == before[0] and d.decision["fit_z"] == ref.decision["fit_z"]
     assert d.decision["thresholds_source"] == "set on 3 null simulations" and d.thresholds == th
     with pytest.raises(ValueError, match="null runs must be >= 1"):
-        null_calibration(ev, ["mu_i"], bud, th0, d.baseline, 0, tmp_path / "null")
+        null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 0, tmp_path / "null")
+    with pytest.raises(ValueError, match="posterior draws"):
+        null_calibration(ev, ["mu_i"], bud, th0, np.zeros((0, 2)), 2, tmp_path / "null")

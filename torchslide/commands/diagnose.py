@@ -58,7 +58,7 @@ and a [diagnose] section::
                                  #     number, or a table per observable name ([diagnose.fit_max] "g1:speed" = -1.5)
 
 ``--null-runs N``: the thresholds bf_min, located_min and (N >= 3) fit_max set on N null recordings of this
-design (torchslide.diagnose.null: the calibrated baseline's posterior draws run on the finer grid, the
+design (torchslide.diagnose.null: the baseline's posterior draws run on the finer grid, the
 release volume's error and noise from the stated errors, each diagnosed like the data); report.json gets
 "null_calibration" and the decision with the thresholds given before as decision["decision_before"].
 
@@ -303,7 +303,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--null-runs", type=int, default=0, metavar="N",
                    help="set bf_min, located_min and fit_max (N >= 3) on N null recordings of this design made "
-                        "from the calibrated baseline, each diagnosed like the data (costs N diagnoses; "
+                        "from the baseline's posterior, each diagnosed like the data (costs N diagnoses; "
                         "torchslide.diagnose.null); a rerun with the same N and seed reuses the finished null "
                         "cases in OUT/null")
 
@@ -340,7 +340,7 @@ def run(args: argparse.Namespace) -> int:
         named = f" ({d.missing_physics})" if d.missing_physics else ""
         print(f"verdict with the thresholds given: {d.verdict}{named}; now {args.null_runs} null runs")
         try:
-            d.null_calibration = null_calibration(ev, dg["candidates"], bud, th, d.baseline, args.null_runs,
+            d.null_calibration = null_calibration(ev, dg["candidates"], bud, th, d.predictive.x, args.null_runs,
                                                   out / "null", log=log)
         except RuntimeError as e:   # a null recording's finer-grid run failed: the report above stands
             print(f"torchslide: error: null runs stopped: {e}; {out}/report.json keeps the thresholds given",

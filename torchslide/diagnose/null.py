@@ -5,7 +5,9 @@ nothing missing, and what such data give depends on the design: the grid, the ob
 errors, the terrain. This module makes such data for the user's case and runs the whole diagnosis
 on each:
 
-1. n parameter sets theta_i drawn from the calibrated baseline's posterior (the real data's diagnosis);
+1. n parameter sets theta_i drawn from the posterior draws of the baseline the data's verdict rests on
+   (Diagnosis.predictive.x: the calibration's posterior, or the beta = 0 slice's or the mode check's
+   refinement when the diagnosis adopted one);
 2. each run on cells ``factor`` times smaller than the inversion grid (model_error.fine_run: the user's
    fine terrain when given, else the DEM interpolated bilinearly), seen on the inversion grid, with the
    release volume scaled by (1 + delta_i), delta_i uniform with sd ``release_sd`` (0: exact), and
@@ -41,7 +43,6 @@ import numpy as np
 
 from .localise import likelihood_covariance
 from .model_error import fine_predictions
-from .predictive import posterior_samples
 
 RULE = ("bf_min = max(6, 1.25 x the largest lower-bound 2 ln BF of any refitted candidate on the null cases); "
         "located_min = max(8, 1.25 x the largest located |score|); fit_max per observable = mean + "
@@ -137,9 +138,11 @@ def null_case_statistics(diag) -> dict:
             "missing_physics": diag.missing_physics}
 
 
-def null_calibration(evaluator, candidates, budgets, thresholds, baseline, n: int, workdir, log=print) -> dict:
+def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws, n: int, workdir,
+                     log=print) -> dict:
     """Thresholds from ``n`` null recordings of this design (module doc). ``evaluator``: the real data's
-    evaluator without model error; ``baseline``: the real data's calibrated baseline (a CalibrationResult);
+    evaluator without model error; ``posterior_draws``: (M, p) parameter sets of the data's baseline posterior
+    (Diagnosis.predictive.x), n of them taken without replacement (with, when M < n);
     ``workdir``: one JSON per finished null case (a rerun with the same n and seed skips them: an interrupted
     calibration resumes; another n draws other parameter sets, and a case whose theta differs is run again).
     Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds}:
@@ -150,7 +153,11 @@ def null_calibration(evaluator, candidates, budgets, thresholds, baseline, n: in
         raise ValueError(f"null runs must be >= 1, got {n}")
     workdir = Path(workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    theta = posterior_samples(baseline, n, seed=budgets.seed + 97)
+    pool = np.asarray(posterior_draws, dtype=np.float64).reshape(-1, len(evaluator.names))
+    if not len(pool):
+        raise ValueError("null runs need posterior draws of the baseline, got none")
+    rng = np.random.default_rng(budgets.seed + 97)
+    theta = pool[rng.choice(len(pool), size=n, replace=len(pool) < n)]
     data, vf = null_recordings(evaluator, theta, budgets.model_error_factor, budgets.release_volume_sd,
                                seed=budgets.seed + 98)
     cases = []
