@@ -354,6 +354,8 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     import torchslide.diagnose.null as null_mod
 
     def fail(*a, **k):
+        # the null runs draw from the data's baseline posterior draws (Diagnosis.predictive.x), (M, p)
+        assert isinstance(a[4], np.ndarray) and a[4].ndim == 2 and a[4].shape[1] == 2 and len(a[4]) >= 1
         raise RuntimeError("null recording 0: the finer-grid run failed")
     monkeypatch.setattr(null_mod, "null_calibration", fail)
     assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "2"]) == 1
