@@ -223,8 +223,9 @@ def _null_section(nc: dict | None) -> list[str]:
     fm = th.get("fit_max")
     fm = (", ".join(f"{k} {v:.2f}" for k, v in fm.items()) if isinstance(fm, dict) else _fmt(fm, "{:.2f}"))
     L = ["## Thresholds set on null simulations of this design", "",
-         f"{nc['n']} recordings made from the calibrated baseline (posterior draws run on the finer grid, the release "
-         "volume's error, noise from the stated errors) and diagnosed like the data; rule: " + nc["rule"] + ".", "",
+         f"{nc['n']} recordings made from the baseline (the posterior draws the verdict rests on, run on the finer "
+         "grid, the release volume's error, noise from the stated errors) and diagnosed like the data; rule: "
+         + nc["rule"] + ".", "",
          f"bf_min {th['bf_min']:.1f}, located_min {th['located_min']:.1f}, fit_max: {fm}.", "",
          "| null case | largest lower 2 ln BF | largest located | verdict (thresholds given) |", "|---|---|---|---|"]
     for i, c in enumerate(nc["cases"]):
