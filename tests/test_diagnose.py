@@ -686,6 +686,10 @@ def test_fit_max_from_null_is_a_prediction_bound():
     # the probe's row stands only for a case of its design and terrain (not a x0.5 strength or another terrain)
     assert case_fit_z(dict(old, strength=0.5), probe_fit_z(probe)) == ({}, None)
     assert case_fit_z(dict(old, terrain="resolved"), probe_fit_z(probe)) == ({}, None)
+    # ... and a row of the probe at that strength (block_fit_probe --strengths) stands for the x0.5 case only
+    probe["cases"].append({"scenario": "null", "seed": 3, "strength": 0.5, "blocks": {"g1:h": {"Z_fit": 4.0}}})
+    assert case_fit_z(dict(old, strength=0.5), probe_fit_z(probe)) == ({"g1:h": 4.0}, "block_fit_probe")
+    assert case_fit_z(old, probe_fit_z(probe)) == ({"g1:h": 1.5}, "block_fit_probe")
 
 
 def test_apply_thresholds_with_fit_levels_from_a_probe(tmp_path):
@@ -989,6 +993,7 @@ def test_fit_flag_section_counts_flags_per_group(tmp_path):
                 "blocks": {"g1:speed": {"Z_fit": z}, "final_volume": {"z": 0.1}}}
     rows = [row("null", 100 + i, z) for i, z in enumerate((-5.0, -4.0, -4.5, -5.5, -4.8))]
     rows += [row("null", 0, -4.9), row("low_friction_patch", 0, 0.5), row("low_friction_patch", 6, -5.0)]
+    rows += [dict(row("low_friction_patch", 0, 3.0), strength=2.0)]     # another strength: a group of its own
     f = tmp_path / "block_fit_resolved.json"
     f.write_text(json.dumps({"terrain": "resolved", "cases": rows}))
     text = "\n".join(_fit_flag_section([f]))
@@ -996,6 +1001,7 @@ def test_fit_flag_section_counts_flags_per_group(tmp_path):
     assert "| low_friction_patch | 1 | 1 | low_friction_patch_s0: g1:speed +0.5 |" in text
     assert "| null | 1 | 0 | - |" in text
     assert "| low_friction_patch (seeds 5-9, held out) | 1 | 0 | - |" in text
+    assert "| low_friction_patch x2 | 1 | 1 | low_friction_patch_s0: g1:speed +3.0 |" in text
 
 
 def test_make_recording_sigma_scale_changes_the_sigmas_not_the_data():
