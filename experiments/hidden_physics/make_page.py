@@ -996,14 +996,18 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
         return []
     L = ["## Thresholds from the user's own null simulations (`torchslide diagnose --null-runs 5`, session 18)", "",
          "A user cannot run the harness' null calibration: it needs recordings of the same design with nothing "
-         "missing. `--null-runs N` makes them from the calibrated baseline of the user's data (torchslide.diagnose.null: "
+         "missing. `--null-runs N` makes them from the baseline of the user's data (torchslide.diagnose.null: "
          "posterior draws run on cells twice as fine over the DEM interpolated bilinearly, the release volume's "
          "error, Gaussian noise from the likelihood's measurement covariance) and diagnoses each like the data; "
          "bf_min, located_min and fit_max come from them by the harness' rule, and the verdict is decided again. "
          "Here on harness cases written as user files (`export_case SCENARIO 0 --out DIR`, then `python -m "
          "torchslide.cli diagnose DIR/diagnose.toml --out DIR/diagnosis --null-runs 5`), against the harness' "
          "thresholds (set on its null calibration seeds: recordings on the finer grid of the *true* terrain, noise "
-         "smaller than the likelihood's sigmas).", "",
+         "smaller than the likelihood's sigmas). The two narrow cases ran with the first version, which drew the null "
+         "runs' parameter sets from the calibration's grid posterior; the review of session 18 made them come from "
+         "the posterior draws the verdict rests on (the beta = 0 slice's or the refined baseline's when the "
+         "diagnosis adopted one). For those two cases that is the same posterior (their baseline stayed the "
+         "calibration's) with other draws; the two resolved cases, whose baselines were replaced, were re-run with it.", "",
          "| case | thresholds | bf_min | located_min | fit_max | verdict |", "|---|---|---|---|---|---|"]
     fmt_fm = lambda fm: (", ".join(f"{k} {v:+.1f}" for k, v in fm.items()) if isinstance(fm, dict)
                          else ("-" if fm is None else f"{fm:+.1f}"))
@@ -1035,7 +1039,9 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
     # case's saved statistics and the thresholds: redecide)
     rows = []
     for name, terrain, j in reps:
-        cases = [c for c in (json.loads(p.read_text()) for p in sorted(Path(saved.get(terrain, "-")).glob("*_s*.json")))
+        if terrain not in saved:
+            continue
+        cases = [c for c in (json.loads(p.read_text()) for p in sorted(Path(saved[terrain]).glob("*_s*.json")))
                  if "diagnosis" in c and c.get("strength", 1.0) == 1.0]
         if not cases:
             continue
