@@ -8,7 +8,6 @@ import pytest
 
 from torchslide.bayes import Prior, Uniform
 from torchslide.diagnose import Budgets, DiagnosisEvaluator, Thresholds, diagnose
-from torchslide.diagnose.localise import likelihood_covariance
 from torchslide.diagnose.model_error import fine_predictions
 from torchslide.diagnose.null import (fit_max_from_null, null_calibration, null_recordings, thresholds_from_null,
                                       with_data)
@@ -49,7 +48,8 @@ def _tiny(**kw):
 
 def test_null_recordings_are_finer_grid_runs_plus_the_stated_noise():
     """d = y_fine(theta; V (1 + delta)) + e: without noise the finer-grid run itself, its volume scaled by
-    the release factor (mass conservation); the noise whitened by the likelihood's covariance is N(0, 1)."""
+    the release factor (mass conservation); the noise that of the stated error model (sigma 0.5 m per cell, not
+    the likelihood's wider sigma_eff)."""
     ev = _evaluator()
     theta = np.array([[0.3, 600.0], [0.34, 900.0]])
     y, _ = fine_predictions(ev, theta, 2)
@@ -66,8 +66,17 @@ def test_null_recordings_are_finer_grid_runs_plus_the_stated_noise():
     d2, vf2 = null_recordings(ev_ft, theta, 2, release_sd=0.05, seed=1, noise=False)
     assert np.array_equal(vf2, vf1) and np.allclose(d2[:, fv].ravel(), vf1 * V, rtol=1e-3)
     d, _ = null_recordings(ev, theta, 2, release_sd=0.0, seed=2)
-    w = np.linalg.solve(np.linalg.cholesky(likelihood_covariance(ev)), (d - y).T)   # (k, n) whitened noise
-    assert abs(w.mean()) < 4 / math.sqrt(w.size) and abs(w.var() - 1) < 0.15
+    e = d - y
+    dep = ev.block("deposit").obs
+    assert dep.sigma_eff()[0] > 2 * 0.5                                       # the likelihood's stand-in is wider
+    v = e[:, ev.block("deposit").slice].var()
+    assert 0.25 * 0.6 < v < 0.25 * 1.6                                        # the stated sigma 0.5, not sigma_eff
+    assert abs(e[:, fv].std() / (0.05 * V)) < 4
+    # recording i comes from its own stream: the first of two equals the recording made alone
+    assert np.allclose(null_recordings(ev, theta[:1], 2, release_sd=0.05, seed=2)[0][0],
+                       null_recordings(ev, theta, 2, release_sd=0.05, seed=2)[0][0])
+    assert np.allclose(null_recordings(ev, theta[1:], 2, release_sd=0.05, seed=2, start=1)[0][0],
+                       null_recordings(ev, theta, 2, release_sd=0.05, seed=2)[0][1])
     assert not np.allclose(null_recordings(ev, theta, 2, seed=3)[0], d)      # another seed, other noise
     with pytest.raises(ValueError, match="release_volume_sd"):
         null_recordings(ev, theta, 2, release_sd=0.6)
@@ -121,6 +130,18 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     monkeypatch.setattr(pipeline, "diagnose", lambda *a, **k: pytest.fail("a finished null case was re-run"))
     again = null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 3, tmp_path / "null", log=lambda s: None)
     assert again["cases"] == cases and again["thresholds"] == th
+    fewer = null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 2, tmp_path / "null", log=lambda s: None)
+    assert fewer["cases"] == cases[:2]                          # a smaller n: the first runs of the larger one
+    import json
+    f1 = tmp_path / "null" / "null_1.json"
+    old = json.loads(f1.read_text())
+    f1.write_text(json.dumps({k: v for k, v in old.items() if k != "noise_model"}))    # a case of the old noise
+
+    def rerun(*a, **k):
+        raise RuntimeError("re-run")
+    monkeypatch.setattr(pipeline, "diagnose", rerun)
+    with pytest.raises(RuntimeError, match="re-run"):
+        null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 3, tmp_path / "null", log=lambda s: None)
     monkeypatch.undo()
     # the data decided again with them equals a run with them
     before = (d.verdict, d.missing_physics)

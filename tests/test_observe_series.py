@@ -95,3 +95,32 @@ def test_effective_factor():
     o = SeriesObservation.from_array("deposit_map", np.zeros(dem.shape), dem, 0.5, corr_length=20.0)
     assert np.allclose(o.sigma_eff(), 0.5 * math.sqrt(8 * math.pi))
     assert math.isclose(o.n_eff, o.m / (8 * math.pi))
+
+
+def test_sample_errors_have_the_stated_covariance():
+    """Draws of the stated error model: per-value sigma, exponential correlation exp(-r / L) between map cells
+    (r in m, diagonal neighbours included) and between series samples (|dt| in s); independent without L."""
+    rng = np.random.default_rng(0)
+    dem = DEM(z=np.zeros((20, 12)), cellsize=10.0)
+    mask = np.ones(dem.shape, bool)
+    mask[:3, :] = False                                            # unmapped rows: cell_index skips them
+    sig = np.full(dem.shape, 0.5)
+    sig[10:, :] = 1.0
+    o = SeriesObservation.from_array("deposit_map", np.zeros(dem.shape), dem, sig[mask], corr_length=15.0,
+                                     mask=mask)
+    e = o.sample_errors(rng, 4000)
+    assert e.shape == (4000, o.m)
+    g = np.stack([o.to_grid(x) for x in e[:2000]])                 # (n, ny, nx), NaN off the map
+    assert np.allclose(np.nanstd(g[:, 3:10], axis=0).mean(), 0.5, rtol=0.05)
+    assert np.allclose(np.nanstd(g[:, 10:], axis=0).mean(), 1.0, rtol=0.05)
+    z = g / sig
+    for (dy, dx), r in (((1, 0), 10.0), ((0, 1), 10.0), ((2, 0), 20.0), ((1, 1), 10.0 * math.sqrt(2))):
+        a, b = z[:, 3 + dy:, dx:], z[:, 3:z.shape[1] - dy, :z.shape[2] - dx]
+        assert abs(np.mean(a * b) - math.exp(-r / 15.0)) < 0.03, (dy, dx)
+    s = SeriesObservation("gauge_series", np.zeros(30), 0.2, name="g:h", gauge="g", times=np.arange(30) * 2.0,
+                          corr_length=4.0)
+    es = s.sample_errors(rng, 4000) / 0.2
+    assert abs(es.var() - 1) < 0.05 and abs(np.mean(es[:, 1:] * es[:, :-1]) - math.exp(-0.5)) < 0.03
+    iid = SeriesObservation("gauge_series", np.zeros(30), 0.2, name="g:h", gauge="g", times=np.arange(30) * 2.0)
+    ei = iid.sample_errors(rng, 4000) / 0.2
+    assert abs(ei.var() - 1) < 0.05 and abs(np.mean(ei[:, 1:] * ei[:, :-1])) < 0.03

@@ -46,7 +46,7 @@ from .result import SimulationResult
 from .terrain.grid import DEM, TerrainError
 
 __all__ = ["SeriesObservation", "VECTOR_KINDS", "read_gauge_csv", "read_map", "interp_series",
-           "GaugeSeriesError", "effective_factor"]
+           "GaugeSeriesError", "effective_factor", "exponential_field"]
 
 VECTOR_KINDS = ("gauge_series", "deposit_map", "impact_map")
 
@@ -110,6 +110,27 @@ def effective_factor(kind: str, corr_length: float | None, cellsize: float | Non
     if kind == "gauge_series":
         return max(1.0, 2.0 * corr_length / dt) if dt else 1.0
     return max(1.0, 2.0 * math.pi * corr_length**2 / cellsize**2)
+
+
+def exponential_field(shape: tuple, cellsize: float, corr_length: float, rng: np.random.Generator,
+                      n: int = 1) -> np.ndarray:
+    """(n, ny, nx) zero-mean, unit-variance Gaussian fields on a grid of ``cellsize`` m with the exponential
+    correlation exp(-r / corr_length) (r the distance between cell centres, m), by circulant embedding:
+    the covariance is laid on a periodic grid at least twice the size (plus 2 correlation lengths) so that
+    the wrapped distance of every pair of the grid is its true one; the FFT of that row gives the
+    eigenvalues lambda of the circulant covariance, and ifft2(sqrt(lambda) fft2(w)) of white noise w has
+    it. The few slightly negative eigenvalues the embedding may give are set to 0 (an error of that size in
+    the covariance)."""
+    ny, nx = (int(v) for v in shape)
+    pad = int(math.ceil(2.0 * corr_length / cellsize))
+    Ny, Nx = 2 * (ny + pad), 2 * (nx + pad)
+    iy = np.minimum(np.arange(Ny), Ny - np.arange(Ny))[:, None]
+    ix = np.minimum(np.arange(Nx), Nx - np.arange(Nx))[None, :]
+    c = np.exp(-cellsize * np.hypot(iy, ix) / corr_length)
+    lam = np.clip(np.fft.fft2(c).real, 0.0, None)
+    w = rng.standard_normal((n, Ny, Nx))
+    f = np.fft.ifft2(np.sqrt(lam) * np.fft.fft2(w), axes=(-2, -1)).real
+    return f[:, :ny, :nx]
 
 
 # -------------------------------------------------------------------------------------------- readers
@@ -263,6 +284,23 @@ class SeriesObservation:
     def sigma_eff(self) -> np.ndarray:
         """(m,) sigma * sqrt(f): the standard deviations the likelihood uses."""
         return self.sigma_vector() * math.sqrt(self.factor())
+
+    def sample_errors(self, rng: np.random.Generator, n: int = 1) -> np.ndarray:
+        """(n, m) draws of the stated error model: zero-mean Gaussian, covariance sigma_i sigma_j exp(-r_ij / L)
+        (r_ij: distance between the cells' centres, m, for maps; |t_i - t_j|, s, for series; L =
+        ``corr_length``; independent when it is None or 0). The likelihood stands in for this covariance
+        with independent values of sigma_eff (module doc); synthetic recordings of this design (the null
+        runs of torchslide.diagnose.null) take their noise from here."""
+        s = self.sigma_vector()
+        L = self.corr_length
+        if not L:
+            return s * rng.standard_normal((n, self.m))
+        if self.is_map:
+            f = exponential_field(self.grid_shape, self.cellsize, L, rng, n)
+            return s * f.reshape(n, -1)[:, self.cell_index]
+        t = np.asarray(self.times, dtype=np.float64)
+        c = np.exp(-np.abs(t[:, None] - t[None, :]) / L) + 1e-10 * np.eye(t.size)
+        return s * (rng.standard_normal((n, self.m)) @ np.linalg.cholesky(c).T)
 
     @property
     def n_eff(self) -> float:

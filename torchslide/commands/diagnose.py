@@ -304,8 +304,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--null-runs", type=int, default=0, metavar="N",
                    help="set bf_min, located_min and fit_max (N >= 3) on N null recordings of this design made "
                         "from the baseline's posterior, each diagnosed like the data (costs N diagnoses; "
-                        "torchslide.diagnose.null); a rerun with the same N and seed reuses the finished null "
-                        "cases in OUT/null")
+                        "torchslide.diagnose.null; N >= 10 advised); a rerun with the same seed reuses the "
+                        "finished null cases in OUT/null, also those of a smaller N")
 
 
 def budgets_and_thresholds(cfg: Config):

@@ -5,17 +5,20 @@ nothing missing, and what such data give depends on the design: the grid, the ob
 errors, the terrain. This module makes such data for the user's case and runs the whole diagnosis
 on each:
 
-1. n parameter sets theta_i drawn from the posterior draws of the baseline the data's verdict rests on
+1. n parameter sets theta_i from the posterior draws of the baseline the data's verdict rests on
    (Diagnosis.predictive.x: the calibration's posterior, or the beta = 0 slice's or the mode check's
-   refinement when the diagnosis adopted one);
+   refinement when the diagnosis adopted one), taken in one fixed random order of the draws: the first
+   n of it, so that a calibration with more runs starts with the runs of one with fewer;
 2. each run on cells ``factor`` times smaller than the inversion grid (model_error.fine_run: the user's
    fine terrain when given, else the DEM interpolated bilinearly), seen on the inversion grid, with the
    release volume scaled by (1 + delta_i), delta_i uniform with sd ``release_sd`` (0: exact), and
-   Gaussian noise from the likelihood's measurement covariance (the error model the user stated, as the
-   likelihood uses it: per-value sigmas widened for their correlation, no model error):
+   Gaussian noise of the error model the user stated (per value sigma; maps and series with their
+   exponential correlation of corr_length: SeriesObservation.sample_errors), not the likelihood's
+   stand-in for it (independent values of the wider sigma_eff):
 
-       d_i = y_{h/f}(theta_i; V (1 + delta_i)) + e_i,   e_i ~ N(0, Sigma)
+       d_i = y_{h/f}(theta_i; V (1 + delta_i)) + e_i,   e_i ~ N(0, Sigma_stated)
 
+   delta_i and e_i from a random stream of their own per i (seed, i);
 3. the diagnosis (pipeline.diagnose, same candidates and budgets, seed + 101 + i) on each d_i, recording
    the largest lower-bound 2 ln BF of any refitted candidate, the largest located |score| and every
    observable's Z_fit of the calibrated baseline;
@@ -97,24 +100,37 @@ def with_data(evaluator, data: np.ndarray):
     return evaluator._copy(observations=obs, model_error=None)
 
 
+NOISE_MODEL = "stated"   # the null runs' noise (module doc, step 2); a checkpoint with another is run again
+
+
+def stated_errors(evaluator, rng: np.random.Generator) -> np.ndarray:
+    """(k,) one draw of the stated measurement errors of every observation, in the evaluator's flat order:
+    SeriesObservation.sample_errors for maps and series, N(0, sigma^2) for scalar observations."""
+    e = np.empty(evaluator.k)
+    for b in evaluator.blocks:
+        o = b.obs
+        e[b.slice] = o.sample_errors(rng, 1)[0] if b.is_vector else float(o.sigma) * rng.standard_normal()
+    return e
+
+
 def null_recordings(evaluator, theta: np.ndarray, factor: int = 2, release_sd: float = 0.0,
-                    seed: int = 0, noise: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                    seed: int = 0, noise: bool = True, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(data (n, k), release factors (n,)): null recordings at the (n, p) parameter sets ``theta`` (module
-    doc, step 2). ``evaluator``: without model error (its likelihood's covariance is the measurement
-    errors'); ``noise`` False: the finer-grid runs alone. Raises RuntimeError when a run fails on the
-    finer grid."""
+    doc, step 2); recording i from the random stream (seed, start + i), so that it does not depend on n. ``evaluator``:
+    without model error; ``noise`` False: the finer-grid runs alone. Raises RuntimeError when a run fails
+    on the finer grid."""
     if getattr(evaluator, "model_error", None) is not None:
-        raise ValueError("null_recordings needs the evaluator without model error (its measurement covariance)")
+        raise ValueError("null_recordings needs the evaluator without model error (the measurement errors alone)")
     if not 0 <= release_sd < 0.5:
         raise ValueError(f"release_volume_sd must be in [0, 0.5) (a relative sd), got {release_sd!r}")
-    rng = np.random.default_rng(seed)
     theta = np.asarray(theta, dtype=np.float64).reshape(-1, len(evaluator.names))
     n = len(theta)
     a = math.sqrt(3.0) * release_sd
-    vf = 1.0 + rng.uniform(-a, a, size=n) if a > 0 else np.ones(n)
-    L = np.linalg.cholesky(likelihood_covariance(evaluator))
     out = np.empty((n, evaluator.k))
+    vf = np.ones(n)
     for i in range(n):
+        rng = np.random.default_rng([seed, start + i])
+        vf[i] = 1.0 + rng.uniform(-a, a) if a > 0 else 1.0
         ev = evaluator
         if vf[i] != 1.0:
             ft = getattr(evaluator, "fine_terrain", None)
@@ -124,8 +140,7 @@ def null_recordings(evaluator, theta: np.ndarray, factor: int = 2, release_sd: f
         y, failed = fine_predictions(ev, theta[i:i + 1], factor)
         if failed[0]:
             raise RuntimeError(f"null recording {i}: the finer-grid run at {theta[i].tolist()} failed")
-        e = L @ rng.standard_normal(evaluator.k)
-        out[i] = y[0] + (e if noise else 0.0)
+        out[i] = y[0] + (stated_errors(evaluator, rng) if noise else 0.0)
     return out, vf
 
 
@@ -143,8 +158,9 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
     """Thresholds from ``n`` null recordings of this design (module doc). ``evaluator``: the real data's
     evaluator without model error; ``posterior_draws``: (M, p) parameter sets of the data's baseline posterior
     (Diagnosis.predictive.x), n of them taken without replacement (with, when M < n);
-    ``workdir``: one JSON per finished null case (a rerun with the same n and seed skips them: an interrupted
-    calibration resumes; another n draws other parameter sets, and a case whose theta differs is run again).
+    ``workdir``: one JSON per finished null case (a rerun with the same seed skips them: an interrupted
+    calibration resumes, and one with more runs starts with those of one with fewer; a case whose theta or noise
+    model differs is run again).
     Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds}:
     bf_min, located_min and (n >= 3) fit_max set on the null cases, the other fields those of ``thresholds``."""
     from .pipeline import diagnose
@@ -156,24 +172,25 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
     pool = np.asarray(posterior_draws, dtype=np.float64).reshape(-1, len(evaluator.names))
     if not len(pool):
         raise ValueError("null runs need posterior draws of the baseline, got none")
-    rng = np.random.default_rng(budgets.seed + 97)
-    theta = pool[rng.choice(len(pool), size=n, replace=len(pool) < n)]
-    data, vf = null_recordings(evaluator, theta, budgets.model_error_factor, budgets.release_volume_sd,
-                               seed=budgets.seed + 98)
+    order = np.random.default_rng(budgets.seed + 97).permutation(len(pool))
+    theta = pool[order[np.arange(n) % len(pool)]]      # module doc, step 1 (cycling when M < n)
     cases = []
     for i in range(n):
         f = workdir / f"null_{i}.json"
         if f.exists():
             c = json.loads(f.read_text())
-            if c.get("theta") == theta[i].tolist():
+            if c.get("theta") == theta[i].tolist() and c.get("noise_model") == NOISE_MODEL:
                 cases.append(c)
                 log(f"[null] case {i + 1}/{n}: done earlier")
                 continue
-        log(f"[null] case {i + 1}/{n}: theta {np.round(theta[i], 4).tolist()}, release x{vf[i]:.3f}")
+        d_i, vf = null_recordings(evaluator, theta[i:i + 1], budgets.model_error_factor, budgets.release_volume_sd,
+                                  seed=budgets.seed + 98, start=i)
+        log(f"[null] case {i + 1}/{n}: theta {np.round(theta[i], 4).tolist()}, release x{vf[0]:.3f}")
         bud_i = dataclasses.replace(budgets, seed=budgets.seed + 101 + i)
-        d = diagnose(with_data(evaluator, data[i]), candidates, bud_i, thresholds, log=lambda s: None,
+        d = diagnose(with_data(evaluator, d_i[0]), candidates, bud_i, thresholds, log=lambda s: None,
                      workdir=workdir / f"case_{i}")
-        c = dict(null_case_statistics(d), theta=theta[i].tolist(), release_factor=float(vf[i]))
+        c = dict(null_case_statistics(d), theta=theta[i].tolist(), release_factor=float(vf[0]),
+                 noise_model=NOISE_MODEL)
         f.write_text(json.dumps(c, indent=1))
         log(f"[null] case {i + 1}/{n}: largest lower 2 ln BF {c['max_two_ln_bf_lower']:.1f}, largest located "
             f"{c['max_located']:.1f}, verdict {c['verdict']}")

@@ -224,7 +224,8 @@ def _null_section(nc: dict | None) -> list[str]:
     fm = (", ".join(f"{k} {v:.2f}" for k, v in fm.items()) if isinstance(fm, dict) else _fmt(fm, "{:.2f}"))
     L = ["## Thresholds set on null simulations of this design", "",
          f"{nc['n']} recordings made from the baseline (the posterior draws the verdict rests on, run on the finer "
-         "grid, the release volume's error, noise from the stated errors) and diagnosed like the data; rule: "
+         "grid, the release volume's error, noise drawn from the stated error model: sigma with its correlation "
+         "length) and diagnosed like the data; rule: "
          + nc["rule"] + ".", "",
          f"bf_min {th['bf_min']:.1f}, located_min {th['located_min']:.1f}, fit_max: {fm}.", "",
          "| null case | largest lower 2 ln BF | largest located | verdict (thresholds given) |", "|---|---|---|---|"]
