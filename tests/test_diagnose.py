@@ -1996,3 +1996,23 @@ def test_page_section_on_the_clis_null_thresholds(tmp_path):
     (tmp_path / "saved" / "null_s3.json").write_text(json.dumps(case))
     L = "\n".join(_null_runs_section(tmp_path, saved={"narrow": tmp_path / "saved"}))
     assert "| narrow patch_s0 | null | 1 | 1 | 0 | entrainment 1 |" in L
+    # a case with more than 5 null runs also shows what its first 5 give: they set bf_min 25 (1.25 x 20), which
+    # lets entrainment's 2 ln BF 60 name it; all 6 set 1.25 x 56 = 70, which does not
+    cases6 = [{"release_factor": 1.0, "max_two_ln_bf_lower": b, "max_located": 4.0, "fit_z": {"g1:speed": z}}
+              for b, z in ((10.0, -1.0), (12.0, 0.0), (None, 1.0), (20.0, -0.5), (16.0, 0.5), (56.0, 0.2))]
+    th_given = asdict(Thresholds(bf_min=48.9))
+    rep6 = {"verdict": "no_missing_physics", "missing_physics": None, "candidates": [_cand("entrainment", 60.0)],
+            "located": [{"standardised_residual": 9.0}], "fit_before": {"misfit": 100.0},
+            "decision": {"baseline_verification": {"ess": 5.0}, "fit_z": {"g1:speed": -3.0},
+                         "decision_before": {"verdict": "missing_physics", "missing_physics": "entrainment",
+                                             "thresholds": th_given}},
+            "thresholds": dict(th_given, bf_min=70.0, located_min=8.0), "null_calibration": {"n": 6, "cases": cases6}}
+    (tmp_path / "narrow" / "null_s0").mkdir(parents=True)
+    (tmp_path / "narrow" / "null_s0" / "report.json").write_text(json.dumps(rep6))
+    L = "\n".join(_null_runs_section(tmp_path, saved={"narrow": tmp_path / "saved"}))
+    row5 = next(r for r in L.splitlines() if r.startswith("| narrow null_s0 | its first 5 null runs |"))
+    assert row5.startswith("| narrow null_s0 | its first 5 null runs | 25.0 | 8.0 |")
+    assert row5.endswith("| missing_physics (entrainment) |")
+    assert "| narrow null_s0 | its 6 null runs | 70.0 | 8.0 |" in L
+    assert "| narrow null_s0 (first 5) | null | 1 | 1 | 0 | entrainment 1 |" in L   # 30 > 25: named
+    assert "| narrow null_s0 | null | 1 | 1 | 1 | none 1 |" in L                      # 30 < 70

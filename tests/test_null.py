@@ -154,3 +154,23 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
         null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 0, tmp_path / "null")
     with pytest.raises(ValueError, match="posterior draws"):
         null_calibration(ev, ["mu_i"], bud, th0, np.zeros((0, 2)), 2, tmp_path / "null")
+
+
+def test_a_null_cases_checkpoints_are_kept_only_for_the_same_recording(tmp_path):
+    """The active-learning checkpoints in case_<i>/ do not know their data: they are reused when the recording,
+    candidates and budgets are the same (an interrupted case resumes) and cleared otherwise."""
+    from torchslide.diagnose.null import _case_workdir
+
+    p = tmp_path / "case_0"
+    p.mkdir()
+    (p / "refit_mu_i.pt").write_text("made on another recording")
+    a, b = np.arange(5.0), np.arange(5.0) + 1e-9
+    assert _case_workdir(p, a, ["mu_i"], _tiny()) == p and not (p / "refit_mu_i.pt").exists()   # unknown: cleared
+    (p / "refit_mu_i.pt").write_text("this recording's")
+    _case_workdir(p, a.copy(), ["mu_i"], _tiny())
+    assert (p / "refit_mu_i.pt").exists()                                  # the same: resumed
+    for other in ((b, ["mu_i"], _tiny()), (a, ["mu_i", "curvature"], _tiny()), (a, ["mu_i"], _tiny(n_total=7))):
+        _case_workdir(p, a, ["mu_i"], _tiny())
+        (p / "refit_mu_i.pt").write_text("this recording's")
+        _case_workdir(p, *other)
+        assert not (p / "refit_mu_i.pt").exists()

@@ -981,12 +981,44 @@ def _probe_groups(rows) -> dict:
     return dict(sorted(groups.items(), key=lambda kv: (not kv[0].startswith("null (cal"), "held out" in kv[0], kv[0])))
 
 
+def _null_thresholds(j: dict, n: int | None = None) -> dict:
+    """The thresholds (a dict of Thresholds fields) a CLI report's null calibration gives from its first ``n``
+    null runs (None: all, the report's own): torchslide.diagnose.null's rule on those runs, the other fields
+    those the report started from (decision_before)."""
+    from torchslide.diagnose.null import thresholds_from_null
+
+    nc = j["null_calibration"]
+    if n is None or n >= nc["n"]:
+        return dict(j["thresholds"])
+    cs = nc["cases"][:n]
+    base = dict((j["decision"].get("decision_before") or {}).get("thresholds") or j["thresholds"])
+    t = thresholds_from_null({"bf": [c["max_two_ln_bf_lower"] for c in cs if c["max_two_ln_bf_lower"] is not None],
+                              "located": [c["max_located"] for c in cs]},
+                             [c["fit_z"] for c in cs if c["fit_z"]] if n >= 3 else None)
+    return dict(base, bf_min=t["bf_min"], located_min=t["located_min"], fit_max=t.get("fit_max", base.get("fit_max")))
+
+
+def _report_decision(j: dict, th: dict) -> dict:
+    """A CLI report's verdict decided with thresholds ``th`` from its saved statistics (decide.decide on the
+    same inputs as Diagnosis.redecide: the refitted candidates, located mismatches, baseline checks, the
+    calibrated baseline's Z_fit)."""
+    from torchslide.diagnose.decide import Thresholds, decide
+
+    cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
+    return decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
+                  Thresholds(**th), fit_z=j["decision"].get("fit_z") or None)
+
+
+NULL_RUNS_SUBSET = 5   # a report with more null runs also shows the thresholds of its first 5 (how stable they are)
+
+
 def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list[str]:
-    """The CLI's own null thresholds (``torchslide diagnose --null-runs 5``, torchslide.diagnose.null) on harness
+    """The CLI's own null thresholds (``torchslide diagnose --null-runs N``, torchslide.diagnose.null) on harness
     cases written as user files (export_case), against the harness' null-calibrated thresholds: results in
     results/null_runs/<terrain>/<case>/ (report.json and the null cases' null/null_<i>.json). ``saved``:
     {terrain: folder of that terrain's saved harness cases} (default results/harness, results/resolved/results),
-    whose strength-1 cases are re-decided with each case's null thresholds."""
+    whose strength-1 cases are re-decided with each case's null thresholds (and with those of its first
+    NULL_RUNS_SUBSET null runs when it has more)."""
     d = d or HERE / "results" / "null_runs"
     saved = saved if saved is not None else {"narrow": HERE / "results" / "harness",
                                              "resolved": HERE / "results" / "resolved" / "results"}
@@ -994,42 +1026,45 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
             for p in sorted(Path(d).glob("*/*/report.json"))]
     if not reps:
         return []
-    L = ["## Thresholds from the user's own null simulations (`torchslide diagnose --null-runs 5`, session 18)", "",
+    L = ["## Thresholds from the user's own null simulations (`torchslide diagnose --null-runs N`)", "",
          "A user cannot run the harness' null calibration: it needs recordings of the same design with nothing "
          "missing. `--null-runs N` makes them from the baseline of the user's data (torchslide.diagnose.null: "
-         "posterior draws run on cells twice as fine over the DEM interpolated bilinearly, the release volume's "
-         "error, Gaussian noise from the likelihood's measurement covariance) and diagnoses each like the data; "
-         "bf_min, located_min and fit_max come from them by the harness' rule, and the verdict is decided again. "
-         "Here on harness cases written as user files (`export_case SCENARIO 0 --out DIR`, then `python -m "
-         "torchslide.cli diagnose DIR/diagnose.toml --out DIR/diagnosis --null-runs 5`), against the harness' "
-         "thresholds (set on its null calibration seeds: recordings on the finer grid of the *true* terrain, noise "
-         "smaller than the likelihood's sigmas). The two narrow cases ran with the first version, which drew the null "
-         "runs' parameter sets from the calibration's grid posterior; the review of session 18 made them come from "
-         "the posterior draws the verdict rests on (the beta = 0 slice's or the refined baseline's when the "
-         "diagnosis adopted one). For those two cases that is the same posterior (their baseline stayed the "
-         "calibration's) with other draws; the two resolved cases, whose baselines were replaced, were re-run with it.", "",
+         "the posterior draws the verdict rests on, run on cells twice as fine over the DEM interpolated "
+         "bilinearly, the release volume's error, and Gaussian noise drawn from the error model the user stated: "
+         "each observation's sigma with its exponential correlation length, SeriesObservation.sample_errors) and "
+         "diagnoses each like the data; bf_min, located_min and fit_max come from them by the harness' rule, and "
+         "the verdict is decided again. Here on harness cases written as user files (`export_case SCENARIO 0 --out "
+         "DIR`, then `python -m torchslide.cli diagnose DIR/diagnose.toml --out DIR/diagnosis --null-runs N`), "
+         "against the harness' thresholds (set on its null calibration seeds: recordings on the finer grid of the "
+         "*true* terrain, noise smaller than the stated sigmas). Null run i has its own random stream, so the "
+         f"first {NULL_RUNS_SUBSET} of a case with more are the runs N = {NULL_RUNS_SUBSET} would make; the rows "
+         f"'first {NULL_RUNS_SUBSET}' show the thresholds and verdict those give.", "",
          "| case | thresholds | bf_min | located_min | fit_max | verdict |", "|---|---|---|---|---|---|"]
     fmt_fm = lambda fm: (", ".join(f"{k} {v:+.1f}" for k, v in fm.items()) if isinstance(fm, dict)
                          else ("-" if fm is None else f"{fm:+.1f}"))
-    for name, _, j in reps:
+    verdict = lambda v, m: v + (f" ({m})" if m else "")
+    sets = []   # (label, terrain, thresholds) for the saved cases below
+    for name, terrain, j in reps:
         db = j["decision"].get("decision_before") or {}
         tb = db.get("thresholds") or {}
         ff = ", ".join(f"{f['observable']} {f['Z_fit']:+.1f}" for f in j["decision"].get("fit_flags") or [])
         L.append(f"| {name} | the harness' | {tb.get('bf_min', float('nan')):.1f} | {tb.get('located_min', float('nan')):.1f} "
-                 f"| {fmt_fm(tb.get('fit_max'))} | {db.get('verdict')}" + (f" ({db['missing_physics']})" if db.get("missing_physics") else "") + " |")
+                 f"| {fmt_fm(tb.get('fit_max'))} | {verdict(db.get('verdict'), db.get('missing_physics'))} |")
+        n = j["null_calibration"]["n"]
+        if n > NULL_RUNS_SUBSET:
+            t5 = _null_thresholds(j, NULL_RUNS_SUBSET)
+            d5 = _report_decision(j, t5)
+            L.append(f"| {name} | its first {NULL_RUNS_SUBSET} null runs | {t5['bf_min']:.1f} | {t5['located_min']:.1f} "
+                     f"| {fmt_fm(t5.get('fit_max'))} | {verdict(d5['verdict'], d5['missing_physics'])} |")
+            sets.append((f"{name} (first {NULL_RUNS_SUBSET})", terrain, t5))
         th = j["thresholds"]
-        L.append(f"| {name} | its {j['null_calibration']['n']} null runs | {th['bf_min']:.1f} | {th['located_min']:.1f} "
-                 f"| {fmt_fm(th.get('fit_max'))} | {j['verdict']}" + (f" ({j['missing_physics']})" if j["missing_physics"] else "")
+        L.append(f"| {name} | its {n} null runs | {th['bf_min']:.1f} | {th['located_min']:.1f} "
+                 f"| {fmt_fm(th.get('fit_max'))} | {verdict(j['verdict'], j['missing_physics'])}"
                  + (f"; flags {ff}" if ff else "") + " |")
-    L += ["", "Two things the user's null runs cannot know make their levels differ from the harness': the harness' "
-          "recordings carry noise 1.7-5 times smaller than the likelihood's sigmas (scenarios.make_recording) and come "
-          "from the true terrain on the finer grid, while the null runs draw noise at the stated sigmas over the "
-          "DEM interpolated bilinearly. So their fit_max levels sit near the chi-square's own scale (Z_fit about 0) "
-          "instead of far below it, and a mismatch the harness' levels flag only because the data fit better than "
-          "their sigmas say goes unflagged. bf_min is 1.25 times the largest of N values, so with N = 5 it depends "
-          "on whether one null run happens to give a spurious candidate a large evidence.", "",
-          "The null runs themselves (largest lower-bound 2 ln BF, largest located |score|, the calibrated baseline's "
-          "Z_fit per observable):", "", "| case | null run | release x | 2 ln BF lower | located | Z_fit |", "|---|---|---|---|---|---|"]
+        sets.append((name, terrain, th))
+    L += ["", "The null runs themselves (largest lower-bound 2 ln BF, largest located |score|, the calibrated "
+          "baseline's Z_fit per observable):", "", "| case | null run | release x | 2 ln BF lower | located | Z_fit |",
+          "|---|---|---|---|---|---|"]
     for name, _, j in reps:
         for i, c in enumerate(j["null_calibration"]["cases"]):
             bf = c["max_two_ln_bf_lower"]
@@ -1038,7 +1073,7 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
     # what these thresholds would make of every saved case of the terrain (the verdict is a pure function of a
     # case's saved statistics and the thresholds: redecide)
     rows = []
-    for name, terrain, j in reps:
+    for name, terrain, th in sets:
         if terrain not in saved:
             continue
         cases = [c for c in (json.loads(p.read_text()) for p in sorted(Path(saved[terrain]).glob("*_s*.json")))
@@ -1047,7 +1082,7 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
             continue
         per = defaultdict(list)
         for c in cases:
-            per[c["scenario"]].append((c, _with_decision(c, redecide(c, th=j["thresholds"]))))
+            per[c["scenario"]].append((c, _with_decision(c, redecide(c, th=th))))
         for sc, cs in sorted(per.items()):
             found = defaultdict(int)
             for _, c2 in cs:

@@ -38,13 +38,14 @@ diagnoses.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
 
-from .localise import likelihood_covariance
 from .model_error import fine_predictions
 
 RULE = ("bf_min = max(6, 1.25 x the largest lower-bound 2 ln BF of any refitted candidate on the null cases); "
@@ -116,9 +117,9 @@ def stated_errors(evaluator, rng: np.random.Generator) -> np.ndarray:
 def null_recordings(evaluator, theta: np.ndarray, factor: int = 2, release_sd: float = 0.0,
                     seed: int = 0, noise: bool = True, start: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(data (n, k), release factors (n,)): null recordings at the (n, p) parameter sets ``theta`` (module
-    doc, step 2); recording i from the random stream (seed, start + i), so that it does not depend on n. ``evaluator``:
-    without model error; ``noise`` False: the finer-grid runs alone. Raises RuntimeError when a run fails
-    on the finer grid."""
+    doc, step 2); recording i from the random stream (seed, start + i), so that it does not depend on n.
+    ``evaluator``: without model error; ``noise`` False: the finer-grid runs alone. Raises RuntimeError when a
+    run fails on the finer grid."""
     if getattr(evaluator, "model_error", None) is not None:
         raise ValueError("null_recordings needs the evaluator without model error (the measurement errors alone)")
     if not 0 <= release_sd < 0.5:
@@ -144,6 +145,21 @@ def null_recordings(evaluator, theta: np.ndarray, factor: int = 2, release_sd: f
     return out, vf
 
 
+def _case_workdir(path: Path, data: np.ndarray, candidates, budgets) -> Path:
+    """``path`` for a null case's checkpoints: its active-learning checkpoints do not know the data they
+    were made on, so the folder is cleared unless recording.sha256 in it names this recording, candidates
+    and budgets (an interrupted case resumes; one whose recording changed starts afresh)."""
+    key = hashlib.sha256(np.ascontiguousarray(data, dtype=np.float64).tobytes()
+                         + json.dumps([list(candidates), dataclasses.asdict(budgets)], sort_keys=True,
+                                      default=str).encode()).hexdigest()
+    stamp = path / "recording.sha256"
+    if path.exists() and not (stamp.exists() and stamp.read_text() == key):
+        shutil.rmtree(path)
+    path.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(key)
+    return path
+
+
 def null_case_statistics(diag) -> dict:
     """The statistics a null case contributes (module doc, step 3) from a pipeline.Diagnosis."""
     b = [c["two_ln_bf_lower"] for c in diag.candidates if c.get("two_ln_bf_lower") is not None]
@@ -157,10 +173,11 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
                      log=print) -> dict:
     """Thresholds from ``n`` null recordings of this design (module doc). ``evaluator``: the real data's
     evaluator without model error; ``posterior_draws``: (M, p) parameter sets of the data's baseline posterior
-    (Diagnosis.predictive.x), n of them taken without replacement (with, when M < n);
+    (Diagnosis.predictive.x), the first n of one fixed random order of them (cycling when M < n);
     ``workdir``: one JSON per finished null case (a rerun with the same seed skips them: an interrupted
     calibration resumes, and one with more runs starts with those of one with fewer; a case whose theta or noise
-    model differs is run again).
+    model differs is run again) and each case's checkpoints in case_<i>/, kept for a rerun only while the
+    recording, candidates and budgets are the same (recording.sha256), else cleared.
     Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds}:
     bf_min, located_min and (n >= 3) fit_max set on the null cases, the other fields those of ``thresholds``."""
     from .pipeline import diagnose
@@ -188,7 +205,7 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
         log(f"[null] case {i + 1}/{n}: theta {np.round(theta[i], 4).tolist()}, release x{vf[0]:.3f}")
         bud_i = dataclasses.replace(budgets, seed=budgets.seed + 101 + i)
         d = diagnose(with_data(evaluator, d_i[0]), candidates, bud_i, thresholds, log=lambda s: None,
-                     workdir=workdir / f"case_{i}")
+                     workdir=_case_workdir(workdir / f"case_{i}", d_i[0], candidates, bud_i))
         c = dict(null_case_statistics(d), theta=theta[i].tolist(), release_factor=float(vf[0]),
                  noise_model=NOISE_MODEL)
         f.write_text(json.dumps(c, indent=1))
