@@ -1971,7 +1971,7 @@ def test_page_section_on_the_clis_null_thresholds(tmp_path):
 
     assert _null_runs_section(tmp_path) == []
     rep = {"verdict": "unexplained", "missing_physics": None,
-           "decision": {"fit_flags": [{"observable": "g1:speed", "Z_fit": 2.5, "fit_max": 1.0}],
+           "decision": {"fit_flags": [{"observable": "g1:speed", "Z_fit": 2.5, "fit_max": 1.0}], "fit_z": {"g1:speed": 2.5},
                         "decision_before": {"verdict": "no_missing_physics", "missing_physics": None,
                                             "thresholds": {"bf_min": 48.9, "located_min": 8.0, "fit_max": {"g1:speed": -0.1}}}},
            "thresholds": {"bf_min": 20.0, "located_min": 9.5, "fit_max": {"g1:speed": 1.0}},
@@ -1983,6 +1983,7 @@ def test_page_section_on_the_clis_null_thresholds(tmp_path):
     assert "| narrow patch_s0 | the harness' | 48.9 | 8.0 | g1:speed -0.1 | no_missing_physics |" in L
     assert "| narrow patch_s0 | its 1 null runs | 20.0 | 9.5 | g1:speed +1.0 | unexplained; flags g1:speed +2.5 |" in L
     assert "| narrow patch_s0 | 0 | 1.050 | - | 7.6 | g1:speed -1.2 |" in L
+    assert "| narrow patch_s0 | g1:speed +2.5 (null runs at most -1.2) |" in L     # worse than every null run
     # a saved null case of the terrain, "nothing missing" at the harness' bf_min 48.9, named at these (20)
     from dataclasses import asdict
     cands = [_cand("entrainment", 30.0)]
@@ -2016,3 +2017,4 @@ def test_page_section_on_the_clis_null_thresholds(tmp_path):
     assert "| narrow null_s0 | its 6 null runs | 70.0 | 8.0 |" in L
     assert "| narrow null_s0 (first 5) | null | 1 | 1 | 0 | entrainment 1 |" in L   # 30 > 25: named
     assert "| narrow null_s0 | null | 1 | 1 | 1 | none 1 |" in L                      # 30 < 70
+    assert "| narrow null_s0 | none |" in L                                          # -3.0 < the null runs' 1.0

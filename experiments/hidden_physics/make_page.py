@@ -1016,12 +1016,14 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
     """The CLI's own null thresholds (``torchslide diagnose --null-runs N``, torchslide.diagnose.null) on harness
     cases written as user files (export_case), against the harness' null-calibrated thresholds: results in
     results/null_runs/<terrain>/<case>/ (report.json and the null cases' null/null_<i>.json). ``saved``:
-    {terrain: folder of that terrain's saved harness cases} (default results/harness, results/resolved/results),
-    whose strength-1 cases are re-decided with each case's null thresholds (and with those of its first
-    NULL_RUNS_SUBSET null runs when it has more)."""
+    {terrain: folder of that terrain's saved harness cases} (default results/harness, results/resolved/results, and
+    results/narrow_vol/results for the narrow cases with the release volume's error stated), whose strength-1
+    cases are re-decided with each case's null thresholds (and with those of its first NULL_RUNS_SUBSET null
+    runs when it has more)."""
     d = d or HERE / "results" / "null_runs"
     saved = saved if saved is not None else {"narrow": HERE / "results" / "harness",
-                                             "resolved": HERE / "results" / "resolved" / "results"}
+                                             "resolved": HERE / "results" / "resolved" / "results",
+                                             "narrow_vol": HERE / "results" / "narrow_vol" / "results"}
     reps = [(f"{p.parent.parent.name} {p.parent.name}", p.parent.parent.name, json.loads(p.read_text()))
             for p in sorted(Path(d).glob("*/*/report.json"))]
     if not reps:
@@ -1062,6 +1064,18 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
                  f"| {fmt_fm(th.get('fit_max'))} | {verdict(j['verdict'], j['missing_physics'])}"
                  + (f"; flags {ff}" if ff else "") + " |")
         sets.append((name, terrain, th))
+    worse = []
+    for name, _, j in reps:
+        zs = j["decision"].get("fit_z") or {}
+        cs = j["null_calibration"]["cases"]
+        top = {k: max((c["fit_z"].get(k) for c in cs if c["fit_z"].get(k) is not None), default=None) for k in zs}
+        out = [f"{k} {z:+.1f} (null runs at most {top[k]:+.1f})" for k, z in zs.items()
+               if z is not None and top[k] is not None and z > top[k]]
+        worse.append(f"| {name} | {', '.join(out) if out else 'none'} |")
+    L += ["", "Where the data fit worse than every one of their null runs (the calibrated baseline's Z_fit; the "
+          "null runs' largest in brackets): an error the stated error model does not contain (in the harness "
+          "recordings: the release volume's +-10 % error, unless the config states it as release_volume_sd, and "
+          "the true terrain on the finer grid) or a missing term.", "", "| case | observables |", "|---|---|"] + worse
     L += ["", "The null runs themselves (largest lower-bound 2 ln BF, largest located |score|, the calibrated "
           "baseline's Z_fit per observable):", "", "| case | null run | release x | 2 ln BF lower | located | Z_fit |",
           "|---|---|---|---|---|---|"]
