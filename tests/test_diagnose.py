@@ -372,7 +372,10 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     assert j["thresholds"]["bf_min"] == max(6.0, 1.25 * c0["max_two_ln_bf_lower"]) == nc["thresholds"]["bf_min"]
     assert j["thresholds"]["located_min"] == max(8.0, 1.25 * c0["max_located"]) and j["thresholds"]["fit_max"] == -1000
     assert j["decision"]["decision_before"]["thresholds"]["bf_min"] == 6.0
-    assert "## Thresholds set on null simulations of this design" in (out / "report.md").read_text()
+    md = (out / "report.md").read_text()
+    assert "## Thresholds set on null simulations of this design" in md
+    assert nc["noise_model"] == "stated" and nc["release_volume_sd"] == 0.05 and c0["noise_model"] == "stated"
+    assert "the release volume's error (relative sd 0.05)" in md
     for key in ("missing_physics", "located", "candidates", "fit_before", "fit_after"):
         assert key in j
     for key in ("log_evidence", "misfit", "residuals"):

@@ -174,3 +174,15 @@ def test_a_null_cases_checkpoints_are_kept_only_for_the_same_recording(tmp_path)
         (p / "refit_mu_i.pt").write_text("this recording's")
         _case_workdir(p, *other)
         assert not (p / "refit_mu_i.pt").exists()
+
+
+def test_report_says_which_release_error_the_null_runs_carry():
+    from torchslide.diagnose.report import _null_section
+
+    nc = {"n": 1, "rule": "r", "thresholds": {"bf_min": 6.0, "located_min": 8.0, "fit_max": None},
+          "cases": [{"max_two_ln_bf_lower": 1.0, "max_located": 2.0, "verdict": "no_missing_physics",
+                     "missing_physics": None}]}
+    exact = "\n".join(_null_section(dict(nc, release_volume_sd=0.0)))
+    assert "the release volume as given (release_volume_sd 0: an error in it is not in these runs)" in exact
+    assert "an error not stated" in exact and "| 0 | 1.0 | 2.0 | no_missing_physics |" in exact
+    assert "the release volume's error (relative sd 0.0577)" in "\n".join(_null_section(dict(nc, release_volume_sd=0.0577)))

@@ -178,7 +178,8 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
     calibration resumes, and one with more runs starts with those of one with fewer; a case whose theta or noise
     model differs is run again) and each case's checkpoints in case_<i>/, kept for a rerun only while the
     recording, candidates and budgets are the same (recording.sha256), else cleared.
-    Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds}:
+    Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds,
+    "noise_model", "release_volume_sd"}:
     bf_min, located_min and (n >= 3) fit_max set on the null cases, the other fields those of ``thresholds``."""
     from .pipeline import diagnose
 
@@ -218,4 +219,5 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
     # bf_min, located_min and (n >= 3) fit_max from the null cases; every other threshold as given
     new = dataclasses.replace(thresholds, bf_min=th["bf_min"], located_min=th["located_min"],
                               fit_max=th.get("fit_max", thresholds.fit_max))
-    return {"n": n, "rule": RULE, "cases": cases, "thresholds": new}
+    return {"n": n, "rule": RULE, "cases": cases, "thresholds": new, "noise_model": NOISE_MODEL,
+            "release_volume_sd": float(budgets.release_volume_sd)}

@@ -222,12 +222,17 @@ def _null_section(nc: dict | None) -> list[str]:
     th = nc["thresholds"]
     fm = th.get("fit_max")
     fm = (", ".join(f"{k} {v:.2f}" for k, v in fm.items()) if isinstance(fm, dict) else _fmt(fm, "{:.2f}"))
+    sd = nc.get("release_volume_sd")
+    rel = ("the release volume as given (release_volume_sd 0: an error in it is not in these runs)" if sd == 0
+           else f"the release volume's error (relative sd {sd:g})" if sd is not None else "the release volume's error")
     L = ["## Thresholds set on null simulations of this design", "",
          f"{nc['n']} recordings made from the baseline (the posterior draws the verdict rests on, run on the finer "
-         "grid, the release volume's error, noise drawn from the stated error model: sigma with its correlation "
-         "length) and diagnosed like the data; rule: "
-         + nc["rule"] + ".", "",
+         f"grid, {rel}, noise drawn from the stated error model: sigma with its correlation length) and diagnosed "
+         "like the data; rule: " + nc["rule"] + ".", "",
          f"bf_min {th['bf_min']:.1f}, located_min {th['located_min']:.1f}, fit_max: {fm}.", "",
+         "They know only the errors stated: an observable flagged against these fit_max levels fits worse than "
+         "null data of the stated error model would, which a term outside the library does, and so does an error "
+         "not stated (a release volume taken as exact, a DEM coarser than the terrain, a gauge's timing).", "",
          "| null case | largest lower 2 ln BF | largest located | verdict (thresholds given) |", "|---|---|---|---|"]
     for i, c in enumerate(nc["cases"]):
         L.append(f"| {i} | {_fmt(c['max_two_ln_bf_lower'], '{:.1f}')} | {c['max_located']:.1f} | {c['verdict']}"
