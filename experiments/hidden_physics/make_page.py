@@ -253,10 +253,11 @@ def _changes_section() -> list[str]:
             "since session 18 (block_fit_probe `--strengths`), while the other variant runs have no probe rows and "
             "keep their verdicts. Strict successes are unchanged (a flag cannot add or remove a name); the patch now "
             "comes out \"unexplained\" (at x0.5 and x2 as well).",
-            "* **The user's own null thresholds** (session 18; CLI `torchslide diagnose --null-runs N`, "
-            "torchslide.diagnose.null; section 'Thresholds from the user's own null simulations'). Not used by the "
-            "harness' verdicts above; that section compares them with the harness' thresholds on four cases and "
-            "re-decides the saved cases with them.",
+            "* **The user's own null thresholds** (sessions 18-19; CLI `torchslide diagnose --null-runs N`, "
+            "torchslide.diagnose.null; section 'Thresholds from the user's own null simulations'; since session 19 "
+            "with noise drawn from the stated error model, correlations included). Not used by the harness' verdicts "
+            "above; that section compares them with the harness' thresholds on six cases and re-decides the saved "
+            "cases with them.",
             "* The same cases run with the method without the profile (session 12, as of the previous page: "
             "results/before_profile, stopped part-way to make room for this run) are compared below.",
             "* Unchanged: the grid's approximation error in every likelihood (model_error_runs = 12), the refits' "
