@@ -982,14 +982,14 @@ def _probe_groups(rows) -> dict:
     return dict(sorted(groups.items(), key=lambda kv: (not kv[0].startswith("null (cal"), "held out" in kv[0], kv[0])))
 
 
-def _null_thresholds(j: dict, n: int | None = None) -> dict:
+def _null_thresholds(j: dict, n: int) -> dict:
     """The thresholds (a dict of Thresholds fields) a CLI report's null calibration gives from its first ``n``
-    null runs (None: all, the report's own): torchslide.diagnose.null's rule on those runs, the other fields
+    null runs (all of them: the report's own): torchslide.diagnose.null's rule on those runs, the other fields
     those the report started from (decision_before)."""
     from torchslide.diagnose.null import thresholds_from_null
 
     nc = j["null_calibration"]
-    if n is None or n >= nc["n"]:
+    if n >= nc["n"]:
         return dict(j["thresholds"])
     cs = nc["cases"][:n]
     base = dict((j["decision"].get("decision_before") or {}).get("thresholds") or j["thresholds"])
@@ -1033,7 +1033,8 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
          "A user cannot run the harness' null calibration: it needs recordings of the same design with nothing "
          "missing. `--null-runs N` makes them from the baseline of the user's data (torchslide.diagnose.null: "
          "the posterior draws the verdict rests on, run on cells twice as fine over the DEM interpolated "
-         "bilinearly, the release volume's error, and Gaussian noise drawn from the error model the user stated: "
+         "bilinearly, the release volume's error when the config states one (release_volume_sd), and Gaussian "
+         "noise drawn from the error model the user stated: "
          "each observation's sigma with its exponential correlation length, SeriesObservation.sample_errors) and "
          "diagnoses each like the data; bf_min, located_min and fit_max come from them by the harness' rule, and "
          "the verdict is decided again. Here on harness cases written as user files (`export_case SCENARIO 0 --out "
