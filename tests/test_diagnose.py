@@ -2024,19 +2024,20 @@ def test_page_section_on_the_clis_null_thresholds(tmp_path):
 
 
 def test_page_redecides_the_saved_cli_reports_as_they_were_decided():
-    """make_page's re-decision of a CLI report (_report_decision, used for its 'first 5' rows) reproduces every
-    saved report's verdict and reason, with its null thresholds and with the thresholds it started from."""
+    """make_page's re-decision of a CLI report (redecide on it as a case's "diagnosis", used for its 'first 5' rows)
+    reproduces every saved report's verdict and reason, with its null thresholds and with the thresholds it
+    started from."""
     import glob
     import json
-    from experiments.hidden_physics.make_page import HERE, _null_thresholds, _report_decision
+    from experiments.hidden_physics.make_page import HERE, _null_thresholds, redecide
 
     files = sorted(glob.glob(str(HERE / "results" / "null_runs" / "*" / "*" / "report.json")))
     assert files
     for f in files:
         j = json.loads(open(f).read())
-        d = _report_decision(j, _null_thresholds(j, j["null_calibration"]["n"]))
+        d = redecide({"diagnosis": j}, th=_null_thresholds(j, j["null_calibration"]["n"]))
         assert (d["verdict"], d["missing_physics"], d["reason"]) == (j["verdict"], j["missing_physics"],
                                                                    j["decision"]["reason"]), f
         db = j["decision"]["decision_before"]
-        d0 = _report_decision(j, db["thresholds"])
+        d0 = redecide({"diagnosis": j}, th=db["thresholds"])
         assert (d0["verdict"], d0["reason"]) == (db["verdict"], db["reason"]), f

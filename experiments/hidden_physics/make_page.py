@@ -999,17 +999,6 @@ def _null_thresholds(j: dict, n: int) -> dict:
     return dict(base, bf_min=t["bf_min"], located_min=t["located_min"], fit_max=t.get("fit_max", base.get("fit_max")))
 
 
-def _report_decision(j: dict, th: dict) -> dict:
-    """A CLI report's verdict decided with thresholds ``th`` from its saved statistics (decide.decide on the
-    same inputs as Diagnosis.redecide: the refitted candidates, located mismatches, baseline checks, the
-    calibrated baseline's Z_fit)."""
-    from torchslide.diagnose.decide import Thresholds, decide
-
-    cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
-    return decide(cands, j["located"], j["decision"].get("baseline_verification") or {}, j["fit_before"]["misfit"],
-                  Thresholds(**th), fit_z=j["decision"].get("fit_z") or None)
-
-
 NULL_RUNS_SUBSET = 5   # a report with more null runs also shows the thresholds of its first 5 (how stable they are)
 
 
@@ -1057,7 +1046,7 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
         n = j["null_calibration"]["n"]
         if n > NULL_RUNS_SUBSET:
             t5 = _null_thresholds(j, NULL_RUNS_SUBSET)
-            d5 = _report_decision(j, t5)
+            d5 = redecide({"diagnosis": j}, th=t5)   # a CLI report has the fields of a case's "diagnosis"
             L.append(f"| {name} | its first {NULL_RUNS_SUBSET} null runs | {t5['bf_min']:.1f} | {t5['located_min']:.1f} "
                      f"| {fmt_fm(t5.get('fit_max'))} | {verdict(d5['verdict'], d5['missing_physics'])} |")
             sets.append((f"{name} (first {NULL_RUNS_SUBSET})", terrain, t5))

@@ -58,8 +58,9 @@ and a [diagnose] section::
                                  #     number, or a table per observable name ([diagnose.fit_max] "g1:speed" = -1.5)
 
 ``--null-runs N``: the thresholds bf_min, located_min and (N >= 3) fit_max set on N null recordings of this
-design (torchslide.diagnose.null: the baseline's posterior draws run on the finer grid, the
-release volume's error and noise from the stated errors, each diagnosed like the data); report.json gets
+design (torchslide.diagnose.null: the baseline's posterior draws run on the finer grid, the release
+volume's error when release_volume_sd states one, and noise drawn from the stated error model, correlations
+included, each diagnosed like the data); report.json gets
 "null_calibration" and the decision with the thresholds given before as decision["decision_before"].
 
 Unknown keys stop with a clear error (exit code 2) listing the allowed ones.
