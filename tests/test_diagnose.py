@@ -1750,6 +1750,21 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
         export_case.main(["earth_pressure", "0", "--strength", "2", "--out", str(tmp_path / "x")])
     text = (tmp_path / "diagnose.toml").read_text()
     assert "tau_y" not in text and not any("yield" in l for l in text.splitlines() if l.startswith("#"))
+    assert cfg.extra["diagnose"]["fine_terrain"] is None and bud.release_volume_sd == 0.0
+    # --fine-terrain / --release-volume-sd: the harness' options of the same names
+    out = tmp_path / "fine"
+    assert export_case.main(["null", "0", "--out", str(out), "--fine-terrain", "--release-volume-sd", "0.0577"]) == 0
+    harness_ev = scenarios.make_evaluator(scenarios.make_recording("null", 0), fine_terrain=True)
+    cfg = load_diagnose_config(out / "diagnose.toml")
+    ft, hft = cli_evaluator(cfg).fine_terrain, harness_ev.fine_terrain
+    assert ft is not None and hft is not None
+    assert np.array_equal(ft.dem.z, hft.dem.z) and ft.dem.cellsize == hft.dem.cellsize == 20.0
+    assert (ft.dem.xll, ft.dem.yll) == (hft.dem.xll, hft.dem.yll)
+    assert np.array_equal(ft.release, hft.release) and np.array_equal(ft.erodible_depth, hft.erodible_depth)
+    bud, _ = budgets_and_thresholds(cfg)
+    assert bud == Budgets(**HARNESS_BUDGETS, seed=0, release_volume_sd=0.0577)
+    with pytest.raises(SystemExit, match="--release-volume-sd -0.1: must be in"):
+        export_case.main(["null", "0", "--out", str(out), "--release-volume-sd", "-0.1"])
 
 
 def test_page_section_of_the_finer_grid_profile(tmp_path):

@@ -12,6 +12,8 @@ The harness calls torchslide.diagnose from Python. This writes the same case as 
   [[observations]] (with the harness' sigmas and correlation lengths; the final volume as a scalar),
   [prior], [calibration] (the baseline's budget) and [diagnose] (harness.HARNESS_BUDGETS, the case's
   seed and the decision thresholds of ``--thresholds``, default the harness' thresholds.json);
+* with ``--fine-terrain``: ``dem_fine.asc``, ``release_fine.asc``, ``erodible_fine.asc``, the terrain on the
+  recording grid (no hidden term), as ``[diagnose] fine_terrain`` (the harness' ``--fine-terrain``);
 * ``truth.json``: the answer (scenario, hidden term, its value, the release volume factor). The
   diagnosis does not read it.
 
@@ -32,7 +34,8 @@ from torchslide.terrain.io import write_asc
 
 from . import scenarios
 from .harness import HARNESS_BUDGETS, LIBRARY, THRESHOLDS_FILE, out_of_range
-from .scenarios import SOLVER, T_END, TERRAINS, V_NOMINAL, gauges, make_recording, release, terrain
+from .scenarios import (SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges, make_recording, release,
+                        terrain)
 
 EXACT = "%.17g"  # float64 round trip
 
@@ -57,10 +60,13 @@ def _table(name: str, d: dict, array: bool = False) -> list[str]:
 
 
 def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds_file=None,
-                cellsize: float = 40.0) -> Path:
+                cellsize: float = 40.0, fine_terrain: bool = False, release_volume_sd: float = 0.0) -> Path:
     """Write the case (module doc) for the current terrain variant (scenarios.use_terrain) to ``out``;
     returns the config's path. ``thresholds_file``: a thresholds JSON as calibrate_thresholds writes
-    it (default harness.THRESHOLDS_FILE)."""
+    it (default harness.THRESHOLDS_FILE). ``fine_terrain``: also write the terrain on the recording
+    grid (``*_fine.asc``, scenarios.fine_terrain_grids) as ``[diagnose] fine_terrain``, as the harness'
+    ``--fine-terrain``; ``release_volume_sd`` > 0: write it under [diagnose], as the harness'
+    ``--release-volume-sd``."""
     from torchslide.observe import Observation
     from torchslide.observe_series import SeriesObservation
 
@@ -99,6 +105,13 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
     obs_tables.sort(key=lambda d: order.get(d["kind"], 2))
     th = json.loads(Path(thresholds_file or THRESHOLDS_FILE).read_text())["thresholds"]
     bud = dict(HARNESS_BUDGETS)
+    if fine_terrain:
+        dem_f, rel_f, erod_f = fine_terrain_grids(cellsize)
+        for name, a in (("dem", dem_f.z), ("release", rel_f), ("erodible", erod_f)):
+            write_asc(out / f"{name}_fine.asc", a, dem_f, fmt=EXACT)
+        bud["fine_terrain"] = {k: f"{k}_fine.asc" for k in ("dem", "release", "erodible")}
+    if release_volume_sd > 0:
+        bud["release_volume_sd"] = float(release_volume_sd)
     cal = {"n_initial": bud.pop("baseline_n_initial"), "n_total": bud.pop("baseline_n_total"),
            "batch_size": bud["batch_size"], "max_batch": 16}
     L = ["# A blind hidden-physics harness case (the answer is in truth.json, which the diagnosis does not read),",
@@ -132,12 +145,21 @@ def main(argv=None) -> int:
     a.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
     a.add_argument("--strength", type=float, default=1.0)
     a.add_argument("--thresholds", default=None, help="thresholds JSON (default: the harness' thresholds.json)")
+    a.add_argument("--fine-terrain", action="store_true",
+                   help="also write the recording grid's terrain (dem_fine.asc, release_fine.asc, erodible_fine.asc) "
+                        "as [diagnose] fine_terrain, as the harness' --fine-terrain")
+    a.add_argument("--release-volume-sd", type=float, default=0.0,
+                   help="write [diagnose] release_volume_sd (the harness' recordings: 0.0577), as the harness' "
+                        "--release-volume-sd; default 0 (the release taken as exact)")
     args = a.parse_args(argv)
+    if not (0.0 <= args.release_volume_sd < 1.0):
+        raise SystemExit(f"--release-volume-sd {args.release_volume_sd:g}: must be in [0, 1)")
     why = out_of_range(args.scenario, args.strength)
     if why:
         raise SystemExit(f"--strength {args.strength:g}: {args.scenario}'s {why}")
     with scenarios.terrain_variant(args.terrain):
-        cfg = export_case(args.scenario, args.seed, args.out, strength=args.strength, thresholds_file=args.thresholds)
+        cfg = export_case(args.scenario, args.seed, args.out, strength=args.strength, thresholds_file=args.thresholds,
+                          fine_terrain=args.fine_terrain, release_volume_sd=args.release_volume_sd)
     print(f"wrote {cfg}; run: torchslide diagnose {cfg} --out {Path(args.out) / 'diagnosis'}")
     return 0
 

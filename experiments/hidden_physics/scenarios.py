@@ -194,6 +194,18 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     return Recording(scenario, seed, strength, truth, vf, obs, hf)
 
 
+def fine_terrain_grids(cellsize: float = 40.0) -> tuple:
+    """(DEM, release depth (ny, nx) m, erodible depth (ny, nx) m) on cells half of ``cellsize``: the
+    recording grid's surface with the nominal release and no hidden term, cut to twice the inversion
+    grid's shape (the finer grid's extent rounds up by a cell), as a user who coarsened a finer DEM for the
+    inversion would have it."""
+    dem = terrain(cellsize)[0]
+    dem_f, erod_f = terrain(cellsize / 2)
+    ny, nx = 2 * dem.ny, 2 * dem.nx
+    dem_f = DEM(dem_f.z[:ny, :nx], dem_f.cellsize, xll=dem_f.xll, yll=dem_f.yll)
+    return dem_f, release(dem_f, V_NOMINAL), erod_f[:ny, :nx]
+
+
 def make_evaluator(rec: Recording, cellsize: float = 40.0, max_batch: int = 16, fine_terrain: bool = False,
                    device: str = "cpu"):
     """The diagnosis' evaluator on ``cellsize`` m cells (nominal release volume), its solver runs on
@@ -207,10 +219,8 @@ def make_evaluator(rec: Recording, cellsize: float = 40.0, max_batch: int = 16, 
     prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0)})
     ft = None
     if fine_terrain:
-        dem_f, erod_f = terrain(cellsize / 2)
-        ny, nx = 2 * dem.ny, 2 * dem.nx  # the finer grid's extent rounds up by a cell: keep the coarse extent
-        dem_f = DEM(dem_f.z[:ny, :nx], dem_f.cellsize, xll=dem_f.xll, yll=dem_f.yll)
-        ft = FineTerrain(dem_f, release(dem_f, V_NOMINAL), erodible_depth=erod_f[:ny, :nx])
+        dem_f, rel_f, erod_f = fine_terrain_grids(cellsize)
+        ft = FineTerrain(dem_f, rel_f, erodible_depth=erod_f)
     return DiagnosisEvaluator(dem=dem, release=release(dem, V_NOMINAL), observations=rec.observations, prior=prior,
                               t_end=T_END, gauges=gauges(), erodible_depth=erod,
                               solver_config=SolverConfig(**SOLVER), max_batch=max_batch, fine_terrain=ft,
