@@ -375,6 +375,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     md = (out / "report.md").read_text()
     assert "## Thresholds set on null simulations of this design" in md
     assert nc["noise_model"] == "stated" and nc["release_volume_sd"] == 0.05 and c0["noise_model"] == "stated"
+    assert nc["terrain"] == "interpolated" and "over the DEM interpolated bilinearly" in md
     assert "the release volume's error (relative sd 0.05)" in md
     for key in ("missing_physics", "located", "candidates", "fit_before", "fit_after"):
         assert key in j

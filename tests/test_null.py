@@ -186,3 +186,7 @@ def test_report_says_which_release_error_the_null_runs_carry():
     assert "the release volume as given (release_volume_sd 0: an error in it is not in these runs)" in exact
     assert "an error not stated" in exact and "| 0 | 1.0 | 2.0 | no_missing_physics |" in exact
     assert "the release volume's error (relative sd 0.0577)" in "\n".join(_null_section(dict(nc, release_volume_sd=0.0577)))
+    # which terrain the finer runs used
+    assert "over the finer DEM given as fine_terrain," in "\n".join(_null_section(dict(nc, terrain="fine_terrain")))
+    assert "interpolated bilinearly (no fine_terrain given" in "\n".join(_null_section(dict(nc, terrain="interpolated")))
+    assert "finer grid, the release volume as given" in exact      # a report without the field (before session 20)

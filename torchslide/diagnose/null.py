@@ -179,7 +179,8 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
     model differs is run again) and each case's checkpoints in case_<i>/, kept for a rerun only while the
     recording, candidates and budgets are the same (recording.sha256), else cleared.
     Returns {"n", "rule", "cases": [statistics + theta, release_factor], "thresholds": decide.Thresholds,
-    "noise_model", "release_volume_sd"}:
+    "noise_model", "release_volume_sd", "terrain"} (terrain: "fine_terrain" when the finer runs used the user's
+    finer DEM, "interpolated" when they used the inversion DEM interpolated bilinearly):
     bf_min, located_min and (n >= 3) fit_max set on the null cases, the other fields those of ``thresholds``."""
     from .pipeline import diagnose
 
@@ -220,4 +221,5 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
     new = dataclasses.replace(thresholds, bf_min=th["bf_min"], located_min=th["located_min"],
                               fit_max=th.get("fit_max", thresholds.fit_max))
     return {"n": n, "rule": RULE, "cases": cases, "thresholds": new, "noise_model": NOISE_MODEL,
-            "release_volume_sd": float(budgets.release_volume_sd)}
+            "release_volume_sd": float(budgets.release_volume_sd),
+            "terrain": "fine_terrain" if getattr(evaluator, "fine_terrain", None) is not None else "interpolated"}

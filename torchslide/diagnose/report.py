@@ -225,9 +225,13 @@ def _null_section(nc: dict | None) -> list[str]:
     sd = nc.get("release_volume_sd")
     rel = ("the release volume as given (release_volume_sd 0: an error in it is not in these runs)" if sd == 0
            else f"the release volume's error (relative sd {sd:g})" if sd is not None else "the release volume's error")
+    ter = {"fine_terrain": "over the finer DEM given as fine_terrain",
+           "interpolated": "over the DEM interpolated bilinearly (no fine_terrain given: what the DEM smooths of the "
+                           "terrain is not in these runs)"}.get(nc.get("terrain"), "")
     L = ["## Thresholds set on null simulations of this design", "",
          f"{nc['n']} recordings made from the baseline (the posterior draws the verdict rests on, run on the finer "
-         f"grid, {rel}, noise drawn from the stated error model: sigma with its correlation length) and diagnosed "
+         f"grid{' ' + ter if ter else ''}, {rel}, noise drawn from the stated error model: sigma with its correlation "
+         "length) and diagnosed "
          "like the data; rule: " + nc["rule"] + ".", "",
          f"bf_min {th['bf_min']:.1f}, located_min {th['located_min']:.1f}, fit_max: {fm}.", "",
          "They know only the errors stated: an observable flagged against these fit_max levels fits worse than "
