@@ -1764,8 +1764,9 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
     assert np.array_equal(ft.release, hft.release) and np.array_equal(ft.erodible_depth, hft.erodible_depth)
     bud, _ = budgets_and_thresholds(cfg)
     assert bud == Budgets(**HARNESS_BUDGETS, seed=0, release_volume_sd=0.0577)
-    with pytest.raises(SystemExit, match="--release-volume-sd -0.1: must be in"):
-        export_case.main(["null", "0", "--out", str(out), "--release-volume-sd", "-0.1"])
+    for bad in ("-0.1", "0.5"):
+        with pytest.raises(SystemExit, match=f"--release-volume-sd {bad}: must be a relative sd in"):
+            export_case.main(["null", "0", "--out", str(out), "--release-volume-sd", bad])
 
 
 def test_page_section_of_the_finer_grid_profile(tmp_path):

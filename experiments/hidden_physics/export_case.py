@@ -152,8 +152,8 @@ def main(argv=None) -> int:
                    help="write [diagnose] release_volume_sd (the harness' recordings: 0.0577), as the harness' "
                         "--release-volume-sd; default 0 (the release taken as exact)")
     args = a.parse_args(argv)
-    if not (0.0 <= args.release_volume_sd < 1.0):
-        raise SystemExit(f"--release-volume-sd {args.release_volume_sd:g}: must be in [0, 1)")
+    if not (0.0 <= args.release_volume_sd < 0.5):   # as [diagnose] release_volume_sd
+        raise SystemExit(f"--release-volume-sd {args.release_volume_sd:g}: must be a relative sd in [0, 0.5)")
     why = out_of_range(args.scenario, args.strength)
     if why:
         raise SystemExit(f"--strength {args.strength:g}: {args.scenario}'s {why}")
