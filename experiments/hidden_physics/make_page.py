@@ -1028,12 +1028,14 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
          "each observation's sigma with its exponential correlation length, SeriesObservation.sample_errors) and "
          "diagnoses each like the data; bf_min, located_min and fit_max come from them by the harness' rule, and "
          "the verdict is decided again. Here on harness cases written as user files (`export_case SCENARIO SEED --out "
-         "DIR`; seed 0, and seed 1 too for narrow_vol_fine; then `python -m torchslide.cli diagnose DIR/diagnose.toml --out DIR/diagnosis --null-runs N`), "
+         "DIR`; seed 0, and seed 1 too for narrow_vol_fine; then `python -m torchslide.cli diagnose "
+         "DIR/diagnose.toml --out DIR/diagnosis --null-runs N`), "
          "against the harness' thresholds (set on its null calibration seeds: recordings on the finer grid of the "
          "*true* terrain, noise smaller than the stated sigmas). Folders: narrow, resolved (the release taken as "
          "exact), narrow_vol (`--release-volume-sd 0.0577`), narrow_vol_fine (that and `--fine-terrain`: the "
          "recording grid's terrain given as fine_terrain, so the null runs see the narrow channel the 40 m DEM "
-         "smooths; no harness run has this design, so its thresholds re-decide no saved case). Null run i has its own random stream, so the "
+         "smooths; no harness run has this design, so its thresholds re-decide no saved case). Null run i has "
+         "its own random stream, so the "
          f"first {NULL_RUNS_SUBSET} of a case with more are the runs N = {NULL_RUNS_SUBSET} would make; the rows "
          f"'first {NULL_RUNS_SUBSET}' show the thresholds and verdict those give.", "",
          "| case | thresholds | bf_min | located_min | fit_max | verdict |", "|---|---|---|---|---|---|"]
