@@ -2058,3 +2058,37 @@ def test_page_redecides_the_saved_cli_reports_as_they_were_decided():
         db = j["decision"]["decision_before"]
         d0 = redecide({"diagnosis": j}, th=db["thresholds"])
         assert (d0["verdict"], d0["reason"]) == (db["verdict"], db["reason"]), f
+
+
+def test_effect_size_on_another_terrain_and_grid(tmp_path, monkeypatch):
+    """effect_size --terrain resolved --cellsize 100 (recordings on 50 m cells) writes
+    results/effect_size_resolved_100m.json with what it measured: projecting out what mu, xi mimic never
+    lengthens an effect, the blocks add up to it, and entrainment changes the final volume far more than
+    any other term (they conserve mass, up to what leaves the grid). The page's table puts it next to the default run."""
+    import json
+    from experiments.hidden_physics import effect_size
+    from experiments.hidden_physics.make_page import _effect_size_by_grid
+
+    monkeypatch.setattr(effect_size, "HERE", tmp_path)
+    assert effect_size.main(["--terrain", "resolved", "--cellsize", "100"]) == 0
+    r = json.loads((tmp_path / "results" / "effect_size_resolved_100m.json").read_text())
+    assert (r["terrain"], r["cellsize"], r["recording_cellsize"]) == ("resolved", 100.0, 50.0)
+    assert r["discretisation_unmimicked"] <= r["discretisation"] + 1e-9 and r["discretisation"] > 0
+    for name, s in r["scenarios"].items():
+        assert 0 < s["effect_unmimicked"] <= s["effect"] + 1e-9, name
+        assert np.isclose(sum(v ** 2 for v in s["unmimicked_by_block"].values()), s["effect_unmimicked"] ** 2), name
+    fv = {name: s["unmimicked_by_block"]["final_volume"] for name, s in r["scenarios"].items()}
+    assert fv["entrainment"] > 10 * max(v for name, v in fv.items() if name != "entrainment"), fv
+    for bad in (["--cellsize", "0"], ["--cellsize", "80"]):      # 80: 15x42 cells of 40 m onto 8x21
+        with pytest.raises(SystemExit):
+            effect_size.main(bad)
+    with pytest.raises(SystemExit):
+        effect_size.main(["--terrain", "steep"])
+
+    coarse = dict(r, cellsize=200.0, discretisation_unmimicked=2 * r["discretisation_unmimicked"])
+    text = "\n".join(_effect_size_by_grid([r, coarse]))
+    rows = [line for line in text.splitlines() if line.startswith("| resolved |")]
+    assert [row.split(" | ")[1] for row in rows] == ["200", "100"]          # coarsest grid first
+    e = r["scenarios"]["entrainment"]["effect_unmimicked"]
+    assert f"{e / r['discretisation_unmimicked']:.2f} ({e ** 2:.0f})" in rows[1]
+    assert f"{e / (2 * r['discretisation_unmimicked']):.2f} ({e ** 2:.0f})" in rows[0]
