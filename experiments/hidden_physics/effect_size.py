@@ -2,17 +2,17 @@
 ``python -m experiments.hidden_physics.effect_size [--terrain narrow|resolved] [--cellsize C] [--out FILE]``
 
 Noise-free recordings (experiments/hidden_physics/scenarios.make_recording with noise_scale = 0, true
-release volume = nominal, TRUE_BASE mu, xi) on the recording grid (C / 2: 20 m for the harness' C = 40 m)
-for every scenario, the null
-recording, and two null recordings with mu and xi nudged (+5 %, +20 %). Everything is whitened by the
-likelihood's effective sigmas (DiagnosisEvaluator.sigma: measurement sigma x correlation factor), so
-|.|^2 is a chi-square in the units the diagnosis works in. For every scenario:
+release volume = nominal, TRUE_BASE mu, xi) on the recording grid (C / 2: 20 m for the harness' inversion
+cells C = 40 m) for every scenario, the null recording, and two null recordings with mu and xi nudged
+(+5 %, +20 %). Everything is whitened by the likelihood's effective sigmas (DiagnosisEvaluator.sigma:
+measurement sigma x correlation factor), so |.|^2 is a chi-square in the units the diagnosis works in.
+For every scenario:
 
 * ``effect``: |(y_S - y_null) / sigma|, the hidden term's whole effect on the recordings;
 * ``effect_unmimicked``: the same after projecting out what re-tuning mu, xi can mimic (linearised:
   finite differences of the null recording; the screening's projection, torchslide/diagnose/screen.py);
-* the floor it has to beat: ``discretisation``: the null model on the inversion grid (40 m, same
-  parameters) against the null recording (20 m; C and C / 2 in general), also projected, i.e. the model error the inversion
+* the floor it has to beat: ``discretisation``: the null model on the inversion grid (C m, same
+  parameters) against the null recording (C / 2 m), also projected, i.e. the model error the inversion
   always has ("inverse crime" avoided), and the noise: E|noise / sigma|^2 = k_eff, the effective
   number of independent data (the expected chi-square of a correct model).
 

@@ -499,9 +499,10 @@ def _effect_size_by_grid(runs: list[dict]) -> list[str]:
          "multiple of that grid's unmimicked discretisation floor (above 1: larger than the error of the grid "
          "itself); in brackets, its square: the 2 ln L the term at its true strength gains over the refitted "
          "baseline with neither noise nor grid error (linearised, the likelihood's effective sigmas). Noise adds "
-         "about 1 to it on average, and the prior's width costs the term some of it, so a term whose square is below "
-         "6 is not expected to reach 2 ln BF >= 6 on any grid (noise can lift it there by chance). k_eff, the effective number of "
-         "independent values, stays the same on every grid: the map's correlation length sets it, not its cells.", "",
+         "about 1 to it on average, and the prior's width costs the term some of it, so a term whose square is "
+         "below 6 is not expected to reach 2 ln BF >= 6 on any grid (noise can lift it there by chance). k_eff, "
+         "the effective number of independent values, stays the same on every grid: the map's correlation length "
+         "sets it, not its cells.", "",
          "| terrain | inversion cells (m) | floor (unmimicked) | k_eff | " + " | ".join(names) + " |",
          "|---|---|---|---|" + "---|" * len(names)]
     for r in runs:
