@@ -1055,7 +1055,7 @@ def _null_runs_section(d: Path | None = None, saved: dict | None = None) -> list
          "each observation's sigma with its exponential correlation length, SeriesObservation.sample_errors) and "
          "diagnoses each like the data; bf_min, located_min and fit_max come from them by the harness' rule, and "
          "the verdict is decided again. Here on harness cases written as user files (`export_case SCENARIO SEED --out "
-         "DIR`; seed 0, and seeds 1 (N = 10) and 2-4 (N = 5) too for narrow_vol_fine; then `python -m torchslide.cli diagnose "
+         "DIR`; seed 0, and seeds 1, 3 and 4 (N = 10) and 2 (N = 5) too for narrow_vol_fine; then `python -m torchslide.cli diagnose "
          "DIR/diagnose.toml --out DIR/diagnosis --null-runs N`), "
          "against the harness' thresholds (set on its null calibration seeds: recordings on the finer grid of the "
          "*true* terrain, noise smaller than the stated sigmas). Folders: narrow, resolved (the release taken as "
