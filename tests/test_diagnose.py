@@ -1387,6 +1387,42 @@ def test_page_section_of_the_finer_grid_probe(tmp_path):
     assert _finer_grid_section(tmp_path / "absent") == []
 
 
+def test_page_section_of_the_narrow_terrain_on_20m_cells(tmp_path):
+    """make_page's section for the narrow harness on 20 m cells: the thresholds from its own null seeds,
+    the targets per scenario, a row per case and the same cases on 40 m cells (before -> now)."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _narrow_20m_section
+
+    th = Thresholds(bf_min=21.5, located_min=8.0)
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+
+    def case(seed, verdict, name, lo, hi, covered, margin):
+        ys = dict(_cand("yield_stress", 70.0), param="tau_y", parameters={"tau_y": par(3.1, lo, hi)})
+        return {"scenario": "yield_stress", "seed": seed, "strength": 1.0, "wall_s": 900.0,
+                "truth": {"term": "yield_stress", "tau_y": 3.0}, "true_term_covered_hdr90": covered,
+                "diagnosis": {"verdict": verdict, "missing_physics": name, "candidates": [ys], "located": [],
+                              "decision": {"two_ln_bf_over_runner_up": margin}, "fit_before": {"misfit": 100.0},
+                              "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}}
+
+    now, before = tmp_path / "now", tmp_path / "before"
+    (now / "null_calib").mkdir(parents=True)
+    before.mkdir()
+    (now / "yield_stress_s0.json").write_text(json.dumps(case(0, "missing_physics", "yield_stress", 2.5, 3.6, True, 15.0)))
+    (now / "yield_stress_s1.json").write_text(json.dumps(case(1, "missing_physics", "yield_stress", 2.0, 2.6, False, 9.0)))
+    (before / "yield_stress_s0.json").write_text(json.dumps(case(0, "unexplained", None, 1.8, 2.8, False, None)))
+    (now / "null_calib" / "thresholds.json").write_text(json.dumps(
+        {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 17.2, "max_located": 6.0}],
+         "thresholds": asdict(th)}))
+    text = "\n".join(_narrow_20m_section(now, before))
+    assert "bf_min 21.5" in text and "median wall time per case 15 min" in text.lower()
+    assert "| yield_stress | 2 | 1 | yield_stress 2 | >= 4 of 5 |" in text
+    assert "| yield_stress_s1 | yield_stress | False |" in text
+    # only seed 0 ran on 40 m: 0 -> 1 strict, unexplained -> named, not covered -> covered
+    assert "| yield_stress | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
+    assert _narrow_20m_section(tmp_path / "absent", before) == []
+
+
 def test_page_section_of_the_grid_convergence_study(tmp_path):
     """make_page's grid-convergence section: a row per scenario and cell size (the finest without rms),
     the terrain / numerics split and the noise-free switch scan's best switch against the truth."""

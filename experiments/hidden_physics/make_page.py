@@ -782,6 +782,30 @@ def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cell
     return L + _case_rows(cases) + [""]
 
 
+def _narrow_20m_section(d=None, prev=None) -> list[str]:
+    """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
+    --cellsize 20 --out results/narrow_20m/results``, session 23): its cases in ``d`` (default
+    results/narrow_20m/results; null calibration seeds and thresholds in d/null_calib), the targets, every
+    case, and the same cases on the main run's 40 m cells (``prev``, default results/harness)."""
+    d = Path(d) if d is not None else HERE / "results" / "narrow_20m" / "results"
+    prev = Path(prev) if prev is not None else HERE / "results" / "harness"
+    cases, th = _variant_cases(d, strength1=True)
+    if not cases:
+        return []
+    L = ["## The narrow terrain on 20 m cells with the current method (`harness --cellsize 20`)", "",
+         "The main harness with both grids halved (inversion 20 m, recordings 10 m): same terrain, scenarios, "
+         "seeds, noise, release error, budgets and method (grid error, mode checks, profile along the switch). "
+         "Session 8 ran a probe like this with the method of then (EARLIER.md, 'Probe: inversion on 20 m "
+         "cells'; its files were lost): yield stress named in 5 of 5, the 90 % interval covering the truth in "
+         "3. Only the scenarios listed here were re-run. Median wall time per case "
+         f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min (two cases in parallel on 2 cores). "
+         + _thresholds_sentence(th, "at 20 m"), ""]
+    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
+    return L + _versus_section(cases, prev, f"### Against the same cases on 40 m cells ({_shown(prev, HERE)})",
+                               "'Before': the main harness (40 m cells, recordings on 20 m); 'now': 20 m cells, "
+                               "recordings on 10 m. Each with thresholds from its own null seeds.")
+
+
 def _targets_table(cases) -> list[str]:
     """Per scenario: cases, strict successes, what was found (count), the target."""
     per = defaultdict(list)
@@ -1363,6 +1387,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _resolved_terrain_section()
     L += _release_volume_section()
     L += _release_volume_narrow_section()
+    L += _narrow_20m_section()
     L += _extra_gauges_section()
     L += _block_fit_section()
     L += _fit_flag_section()
