@@ -782,28 +782,42 @@ def _finer_grid_section(d=None, heading: str = "## Probe: inversion on 20 m cell
     return L + _case_rows(cases) + [""]
 
 
-def _narrow_20m_section(d=None, prev=None) -> list[str]:
-    """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
-    --cellsize 20 --out results/narrow_20m/results``, session 23): its cases in ``d`` (default
-    results/narrow_20m/results; null calibration seeds and thresholds in d/null_calib), the targets, every
-    case, and the same cases on the main run's 40 m cells (``prev``, default results/harness)."""
-    d = Path(d) if d is not None else HERE / "results" / "narrow_20m" / "results"
-    prev = Path(prev) if prev is not None else HERE / "results" / "harness"
+def _variant_section(d: Path, prev: Path, heading: str, describe, versus_heading: str, versus: str,
+                     note: str = "") -> list[str]:
+    """The shared layout of a variant run's section: its strength-1 cases in ``d`` re-decided with thresholds
+    from its own null seeds (:func:`_variant_cases`; no cases: no section), ``heading``, the paragraph
+    ``describe(cases, th)`` (th: the thresholds dict or None), ``note`` (a paragraph after it), the targets
+    table, every case, and the same cases in ``prev`` (a subsection one level down titled ``versus_heading``
+    and ``prev``'s folder; ``versus``: the sentence saying what 'before' and 'now' are)."""
     cases, th = _variant_cases(d, strength1=True)
     if not cases:
         return []
-    L = ["## The narrow terrain on 20 m cells with the current method (`harness --cellsize 20`)", "",
-         "The main harness with both grids halved (inversion 20 m, recordings 10 m): same terrain, scenarios, "
-         "seeds, noise, release error, budgets and method (grid error, mode checks, profile along the switch). "
-         "Session 8 ran a probe like this with the method of then (EARLIER.md, 'Probe: inversion on 20 m "
-         "cells'; its files were lost): yield stress named in 5 of 5, the 90 % interval covering the truth in "
-         "3. Only the scenarios listed here were re-run. Median wall time per case "
-         f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min (two cases in parallel on 2 cores). "
-         + _thresholds_sentence(th, "at 20 m"), ""]
+    L = [heading, "", describe(cases, th), ""] + ([note, ""] if note else [])
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    return L + _versus_section(cases, prev, f"### Against the same cases on 40 m cells ({_shown(prev, HERE)})",
-                               "'Before': the main harness (40 m cells, recordings on 20 m); 'now': 20 m cells, "
-                               "recordings on 10 m. Each with thresholds from its own null seeds.")
+    return L + _versus_section(cases, prev, f"{heading.split(' ')[0]}# {versus_heading} ({_shown(prev, HERE)})",
+                               versus)
+
+
+def _narrow_20m_section(d=None, prev=None) -> list[str]:
+    """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
+    --cellsize 20 --out results/narrow_20m/results``, sessions 23 and 25): its cases in ``d`` (default
+    results/narrow_20m/results; null calibration seeds and thresholds in d/null_calib), the targets, every
+    case, and the same cases on the main run's 40 m cells (``prev``, default results/harness)."""
+    def describe(cases, th):
+        return ("The main harness with both grids halved (inversion 20 m, recordings 10 m): same terrain, scenarios, "
+                "seeds, noise, release error, budgets and method (grid error, mode checks, profile along the switch). "
+                "Session 8 ran a probe like this with the method of then (EARLIER.md, 'Probe: inversion on 20 m "
+                "cells'; its files were lost): yield stress named in 5 of 5, the 90 % interval covering the truth in "
+                "3. Only the scenarios listed here were re-run. Median wall time per case "
+                f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min (two cases in parallel on 2 cores). "
+                + _thresholds_sentence(th, "at 20 m"))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "narrow_20m" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "harness",
+        "## The narrow terrain on 20 m cells with the current method (`harness --cellsize 20`)", describe,
+        "Against the same cases on 40 m cells",
+        "'Before': the main harness (40 m cells, recordings on 20 m); 'now': 20 m cells, recordings on 10 m. "
+        "Each with thresholds from its own null seeds.")
 
 
 def _targets_table(cases) -> list[str]:
@@ -913,23 +927,18 @@ def _release_volume_section(d=None, prev=None, heading: str | None = None, versu
     every case and the same cases without it (``prev``, default results/resolved/results; ``versus``: the
     sentence saying what 'before' is); ``heading`` and ``note`` (a paragraph after the description) for
     another run (the narrow terrain's probe)."""
-    d = Path(d) if d is not None else HERE / "results" / "resolved_vol" / "results"
-    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
-    cases, th = _variant_cases(d, strength1=True)
-    if not cases:
-        return []
-    sds = sorted({c["diagnosis"].get("model_error", {}).get("release_sd") for c in cases} - {None})
-    heading = heading or ("## The resolved terrain with the release volume's error in the likelihood "
-                          "(`--release-volume-sd 0.0577`)")
-    versus = versus or ("'Before': the resolved-terrain run of the previous section (session 13, release volume "
-                        "taken as exact); 'now': with its error. Each with thresholds from its own null seeds.")
-    L = [heading, "", _RELEASE_VOLUME_TEXT.format(sds=", ".join(f"{v:g}" for v in sds) or "-")
-         + f" Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
-         + _thresholds_sentence(th, "run with it"), ""] + ([note, ""] if note else [])
-    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    L += _versus_section(cases, prev, f"{heading.split(' ')[0]}# Against the same cases without it ({_shown(prev, HERE)})",
-                         versus)
-    return L
+    def describe(cases, th):
+        sds = sorted({c["diagnosis"].get("model_error", {}).get("release_sd") for c in cases} - {None})
+        return (_RELEASE_VOLUME_TEXT.format(sds=", ".join(f"{v:g}" for v in sds) or "-")
+                + f" Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+                + _thresholds_sentence(th, "run with it"))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "resolved_vol" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "resolved" / "results",
+        heading or "## The resolved terrain with the release volume's error in the likelihood (`--release-volume-sd 0.0577`)",
+        describe, "Against the same cases without it",
+        versus or ("'Before': the resolved-terrain run of the previous section (session 13, release volume "
+                   "taken as exact); 'now': with its error. Each with thresholds from its own null seeds."), note)
 
 
 def _extra_gauges_section(d=None, prev=None) -> list[str]:
@@ -937,25 +946,22 @@ def _extra_gauges_section(d=None, prev=None) -> list[str]:
     --extra-gauges 300,1200``): cases in ``d`` (default results/resolved_gauges/results; its null seeds and
     thresholds in d/null_calib) against the same cases with the harness' two gauges (``prev``, default
     results/resolved/results)."""
-    d = Path(d) if d is not None else HERE / "results" / "resolved_gauges" / "results"
-    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
-    cases, th = _variant_cases(d, strength1=True)
-    if not cases:
-        return []
-    xs = sorted({tuple(c.get("extra_gauges") or ()) for c in cases})
-    heading = "## Probe: the resolved terrain with two more gauges (`--extra-gauges 300,1200`)"
-    L = [heading, "", "The observation design that design_check.py chose on null recordings (section 'Design: which "
-         "observations would make every term detectable?'): gauges g3, g4 at x = "
-         + "; ".join(", ".join(f"{x:g}" for x in t) for t in xs) + " m on the thalweg (h and speed like g1, g2) "
-         "besides the harness' deposit map, g1, g2 and final volume; everything else as in the resolved-terrain run. "
-         f"Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
-         + (_thresholds_sentence(th, "run with these gauges") if th else
-            "No null seeds of its own finished: verdicts use the resolved terrain's thresholds (bf_min 12.1), "
-            "which were set without these gauges."), ""]
-    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    L += _versus_section(cases, prev, f"### Against the same cases with two gauges ({_shown(prev, HERE)})",
-                         "'Before': the resolved-terrain run (gauges g1, g2); 'now': with g3, g4 too.")
-    return L
+    def describe(cases, th):
+        xs = sorted({tuple(c.get("extra_gauges") or ()) for c in cases})
+        return ("The observation design that design_check.py chose on null recordings (section 'Design: which "
+                "observations would make every term detectable?'): gauges g3, g4 at x = "
+                + "; ".join(", ".join(f"{x:g}" for x in t) for t in xs) + " m on the thalweg (h and speed like g1, "
+                "g2) besides the harness' deposit map, g1, g2 and final volume; everything else as in the "
+                f"resolved-terrain run. Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+                + (_thresholds_sentence(th, "run with these gauges") if th else
+                   "No null seeds of its own finished: verdicts use the resolved terrain's thresholds (bf_min 12.1), "
+                   "which were set without these gauges."))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "resolved_gauges" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "resolved" / "results",
+        "## Probe: the resolved terrain with two more gauges (`--extra-gauges 300,1200`)", describe,
+        "Against the same cases with two gauges",
+        "'Before': the resolved-terrain run (gauges g1, g2); 'now': with g3, g4 too.")
 
 
 def _probe_results(files=None) -> list[dict]:
@@ -1236,27 +1242,24 @@ def _sigma_scale_section(d=None, prev=None) -> list[str]:
     resolved --sigma-scale 0.5``, the scale block_fit_probe's rule chose on null seeds): cases in ``d``
     (default results/resolved_sig05/results; null seeds and thresholds in d/null_calib) against the same
     cases at the harness' sigmas (``prev``, default results/resolved/results)."""
-    d = Path(d) if d is not None else HERE / "results" / "resolved_sig05" / "results"
-    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
-    cases, th = _variant_cases(d, strength1=True)
-    if not cases:
-        return []
-    scales = sorted({c.get("sigma_scale", 1.0) for c in cases})
-    L = ["## Probe: the resolved terrain with the likelihood's sigmas halved (`--sigma-scale 0.5`)", "",
-         "The harness gives the diagnosis sigmas of 0.5 m (gauge h), 2 m/s (gauge speed) and 0.5 m (deposit), "
-         "2.5, 4 and 1.7 times the noise drawn, and the likelihood widens them further for their correlation. With "
-         "the grid's error in the likelihood too, the null calibration seeds fit far better than that covariance "
-         "expects (previous section: pooled chi2 / m 0.16). Here the gauge and deposit sigmas are multiplied by "
-         + ", ".join(f"{x:g}" for x in scales) + " (the scale the previous section's rule chose on the null "
-         "calibration seeds; the noise drawn is unchanged). Everything else as in the resolved-terrain run. "
-         f"Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
-         + (_thresholds_sentence(th, "run with these sigmas") if th else
-            "No null seeds of its own finished: verdicts use the narrow terrain's thresholds."), ""]
-    L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    L += _versus_section(cases, prev, f"### Against the same cases at the harness' sigmas ({_shown(prev, HERE)})",
-                         "'Before': the resolved-terrain run (sigmas as given); 'now': halved. Each with thresholds "
-                         "from its own null seeds.")
-    return L
+    def describe(cases, th):
+        scales = sorted({c.get("sigma_scale", 1.0) for c in cases})
+        return ("The harness gives the diagnosis sigmas of 0.5 m (gauge h), 2 m/s (gauge speed) and 0.5 m (deposit), "
+                "2.5, 4 and 1.7 times the noise drawn, and the likelihood widens them further for their correlation. "
+                "With the grid's error in the likelihood too, the null calibration seeds fit far better than that "
+                "covariance expects (previous section: pooled chi2 / m 0.16). Here the gauge and deposit sigmas are "
+                "multiplied by " + ", ".join(f"{x:g}" for x in scales) + " (the scale the previous section's rule "
+                "chose on the null calibration seeds; the noise drawn is unchanged). Everything else as in the "
+                f"resolved-terrain run. Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s. "
+                + (_thresholds_sentence(th, "run with these sigmas") if th else
+                   "No null seeds of its own finished: verdicts use the narrow terrain's thresholds."))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "resolved_sig05" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "resolved" / "results",
+        "## Probe: the resolved terrain with the likelihood's sigmas halved (`--sigma-scale 0.5`)", describe,
+        "Against the same cases at the harness' sigmas",
+        "'Before': the resolved-terrain run (sigmas as given); 'now': halved. Each with thresholds from its own "
+        "null seeds.")
 
 
 def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
