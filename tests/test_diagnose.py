@@ -866,7 +866,7 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     from experiments.hidden_physics.make_page import _resolved_terrain_section
 
     th = Thresholds(bf_min=12.5, located_min=9.0)
-    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo - 0.02, hi + 0.02], "hdi90": [lo, hi]}
     mi = dict(_cand("mu_i", 30.2), param="mu_i", parameters={"mu_i": par(0.21, 0.12, 0.3)}, two_ln_bf_lower=30.2)
     ep = dict(_cand("earth_pressure", 14.0), param="earth_pressure",
               parameters={"earth_pressure": par(0.5, 0.2, 0.7)}, two_ln_bf_lower=14.0)
@@ -888,7 +888,7 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
                                                 d20_check=tmp_path / "absent", d20_recheck=tmp_path / "absent"))
     assert "bf_min 12.5" in text and "located_min 9.0" in text
     assert "| mu_i | 2 | 1 | mu_i 1, unexplained 1 | >= 4 of 5 |" in text
-    assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3] (0.2) |" in text
+    assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3]; hdr90 [0.1, 0.32] (0.2) |" in text
     assert "| mu_i_s1 | unexplained | False |" in text and "x0.5" not in text
     assert "Median wall time per case 300 s." in text
     assert _resolved_terrain_section(tmp_path / "absent") == []

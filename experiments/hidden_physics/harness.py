@@ -54,11 +54,14 @@ def out_of_range(scenario: str, strength: float) -> str | None:
 
 
 def coverage(diag: dict, truth: dict) -> tuple:
-    """(true switch in the 90 % HDI, in the equal-tailed 90 % interval) of the true term's refit in a
+    """(true switch in the 90 % HDI, in the refit's 'hdr90') of the true term's refit in a
     report.json-style ``diag``; (None, None) when the scenario has no library term or it was not
     refitted. "Covers": the highest-density interval on the prior range (it may include a prior bound,
     e.g. earth pressure = 1), with a tolerance of 1e-9 of the prior width for the floating-point end
-    of a grid's last cell (0.9999999999999999 for a bound at 1)."""
+    of a grid's last cell (0.9999999999999999 for a bound at 1). 'hdr90' (the second value, the key
+    'true_term_covered_equal_tailed90' of saved cases) is the equal-tailed interval of MCMC samples but, on
+    the grid posterior a refinement leaves, the extent along the axis of the joint 90 % region: wider
+    than a marginal interval, so it is shown and never used for the targets."""
     term = truth["term"]
     if term not in SWITCH:
         return None, None

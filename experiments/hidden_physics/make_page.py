@@ -655,7 +655,7 @@ def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
          "same 40 m DEM interpolated bilinearly (model_error.fine_run, what the grid's model error compares "
          "with). If the 40 m solver caused the switch's bias, the finer grid would move the profile's maximum "
          "towards the truth. 'Profile': the best ln L + ln prior at each switch value minus the largest.", "",
-         "| terrain | case | candidate | truth | refit's equal-tailed 90 % interval | best switch, 40 m | best switch, 20 m "
+         "| terrain | case | candidate | truth | refit's hdr90 | best switch, 40 m | best switch, 20 m "
          "on the 40 m DEM | profile, 40 m | profile, 20 m on the 40 m DEM |", "|---|---|---|---|---|---|---|---|---|"]
 
     def prof(p):
@@ -743,9 +743,12 @@ def _thresholds_sentence(th, where: str) -> str:
 
 def _case_rows(cases) -> list[str]:
     """Per-case table of a variant run: what was found, the strict-success check, every candidate's
-    lower-bound 2 ln BF, the margin over the runner-up and the true switch's mean and 90 % HDI."""
+    lower-bound 2 ln BF, the margin over the runner-up and the true switch's mean, 90 % HDI (the strict
+    check's interval) and, where it differs, the refit's 'hdr90' (on a grid posterior, which the refinement
+    leaves, the extent along the axis of the joint 90 % region, wider than the marginal interval; on MCMC
+    samples the equal-tailed 5-95 % interval)."""
     L = ["| case | found | strict success | lower 2 ln BF per candidate | margin over runner-up | true switch: mean, "
-         "90 % HDI (truth) |", "|---|---|---|---|---|---|"]
+         "90 % HDI (hdr90 where it differs) (truth) |", "|---|---|---|---|---|---|"]
     for c in cases:
         j = c["diagnosis"]
         bfs = ", ".join(f"{x['name']} {x['two_ln_bf_lower']:.1f}" for x in
@@ -758,7 +761,8 @@ def _case_rows(cases) -> list[str]:
         if x is not None:
             p = x["parameters"][x["param"]]
             lo, hi = p.get("hdi90", p["hdr90"])
-            sw = f"{p['mean']:.3g}, [{lo:.3g}, {hi:.3g}] ({c['truth'][x['param']]:g})"
+            eq = "; hdr90 [{:.3g}, {:.3g}]".format(*p["hdr90"]) if list(p["hdr90"]) != [lo, hi] else ""
+            sw = f"{p['mean']:.3g}, [{lo:.3g}, {hi:.3g}]{eq} ({c['truth'][x['param']]:g})"
         L.append(f"| {c['scenario']}_s{c['seed']} | {found_label(c)} | "
                  f"{strict_success(c)} | {bfs} | "
                  f"{'-' if m is None else f'{m:.1f}'} | {sw or '-'} |")
@@ -1332,10 +1336,12 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
           "candidate vs the baseline; 'emulator' the emulator-only value the previous version used; 'failed checks' "
           "those of the best candidate (torchslide/diagnose/decide.py).", "",
           "'true switch in 90 % HDI': the true term's refitted switch, 90 % highest-density interval on the prior "
-          "range (boundary-corrected KDE; it may include a prior bound); in brackets the equal-tailed 5-95 % interval.", "",
+          "range (boundary-corrected KDE or the grid marginal; it may include a prior bound); in brackets the same check "
+          "with the refit's 'hdr90': on a grid posterior (what the refinement leaves) the extent along the axis of the "
+          "joint 90 % region, wider than the marginal interval; on MCMC samples the equal-tailed 5-95 % interval.", "",
           "'converged': whether the true term's verified evidence ended trustworthy and stable "
           "(pipeline 'evidence_converged'; '-' for cases without a library term or older results).", "",
-          "| case | truth | verdict | named | best candidate | 2 ln BF (verified) | 2 ln BF (emulator) | 2 ln BF over runner-up | failed checks | true switch in 90 % HDI (equal-tailed) | converged | misfit before | misfit after | strict success | wall s |",
+          "| case | truth | verdict | named | best candidate | 2 ln BF (verified) | 2 ln BF (emulator) | 2 ln BF over runner-up | failed checks | true switch in 90 % HDI (hdr90) | converged | misfit before | misfit after | strict success | wall s |",
           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     per = defaultdict(list)
     for c in cases:
