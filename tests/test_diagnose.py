@@ -2128,3 +2128,33 @@ def test_effect_size_on_another_terrain_and_grid(tmp_path, monkeypatch):
     e = r["scenarios"]["entrainment"]["effect_unmimicked"]
     assert f"{e / r['discretisation_unmimicked']:.2f} ({e ** 2:.0f})" in rows[1]
     assert f"{e / (2 * r['discretisation_unmimicked']):.2f} ({e ** 2:.0f})" in rows[0]
+
+
+def test_page_section_of_interval_coverage_pooled_over_runs(tmp_path):
+    """make_page._coverage_section: per run, the true switch's 90 % HDI coverage over all in-library cases
+    and over the named ones, the binomial probability of so few covered at a nominal 90 %, hdr90 beside
+    it; null cases and other strengths left out; no run with such cases: no section."""
+    import json
+    from scipy.stats import binom
+    from experiments.hidden_physics.make_page import _coverage_section
+
+    def case(sc, seed, named, cov, cov_e, strength=1.0):
+        return {"scenario": sc, "seed": seed, "strength": strength, "truth": {"term": sc},
+                "true_term_covered_hdr90": cov, "true_term_covered_equal_tailed90": cov_e,
+                "diagnosis": {"missing_physics": sc if named else None}}
+
+    run = tmp_path / "run"
+    run.mkdir()
+    cases = {"entrainment_s0": case("entrainment", 0, True, True, True),
+             "entrainment_s1": case("entrainment", 1, True, False, True),
+             "mu_i_s0": case("mu_i", 0, False, False, False),
+             "mu_i_s1": case("mu_i", 1, False, True, True),
+             "mu_i_s0_x0.5": case("mu_i", 0, True, False, False, strength=0.5),
+             "null_s0": case("none", 0, False, None, None)}
+    for k, c in cases.items():
+        (run / f"{k}.json").write_text(json.dumps(c))
+    text = "\n".join(_coverage_section([("my run", run), ("empty", tmp_path / "absent")]))
+    p_all, p_named = binom.cdf(2, 4, 0.9), binom.cdf(1, 2, 0.9)
+    assert f"| my run ({run}) | 2 of 4 | {p_all:.2g} | 3 of 4 | 1 of 2 | {p_named:.2g} |" in text
+    assert "empty" not in text
+    assert _coverage_section([("empty", tmp_path / "absent")]) == []

@@ -1281,6 +1281,46 @@ def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
              "them.")
 
 
+COVERAGE_RUNS = [("narrow, 40 m (main run)", "harness"), ("resolved, 40 m", "resolved/results"),
+                 ("resolved, release volume's error", "resolved_vol/results"),
+                 ("narrow, release volume's error (entrainment, earth pressure)", "narrow_vol/results"),
+                 ("narrow, 20 m cells", "narrow_20m/results"), ("resolved, two more gauges", "resolved_gauges/results"),
+                 ("resolved, sigmas halved", "resolved_sig05/results")]
+
+
+def _coverage_section(runs=None) -> list[str]:
+    """How often the true switch's 90 % HDI covers the truth, pooled over every seed and in-library
+    scenario of each run (``runs``: (label, folder) pairs, default COVERAGE_RUNS under results/; strength-1
+    cases whose true term was refitted), over all of them and over those where the diagnosis named the true
+    term, with the binomial probability of so few covered if the intervals held their nominal 90 %
+    (scipy.stats.binom.cdf(k, n, 0.9)); the refit's 'hdr90' beside it. [] when no run has such cases."""
+    from scipy.stats import binom
+
+    runs = runs if runs is not None else [(lab, HERE / "results" / sub) for lab, sub in COVERAGE_RUNS]
+    cell = lambda cs, key: (f"{sum(bool(c[key]) for c in cs)} of {len(cs)}" if cs else "-")
+    prob = lambda cs: f"{binom.cdf(sum(bool(c['true_term_covered_hdr90']) for c in cs), len(cs), 0.9):.2g}" if cs else "-"
+    rows = []
+    for label, d in runs:
+        cases, _ = _variant_cases(Path(d), strength1=True)
+        cs = [c for c in cases if c.get("true_term_covered_hdr90") is not None]
+        if not cs:
+            continue
+        named = [c for c in cs if c["diagnosis"].get("missing_physics") == c["truth"]["term"]]
+        rows.append(f"| {label} ({_shown(Path(d), HERE)}) | {cell(cs, 'true_term_covered_hdr90')} | {prob(cs)} | "
+                    f"{cell(cs, 'true_term_covered_equal_tailed90')} | {cell(named, 'true_term_covered_hdr90')} | "
+                    f"{prob(named)} |")
+    if not rows:
+        return []
+    return ["## Do the 90 % intervals cover the truth? (every run, pooled)", "",
+            "Each run's in-library cases at strength 1 (every seed; the true term refitted whether or not it was "
+            "named): how often the true switch lies in the refit's 90 % HDI, and the binomial probability of "
+            "that few or fewer if the intervals held their nominal 90 % (small: the intervals are too narrow). "
+            "'hdr90': the refit's wider interval (the joint 90 % region's extent on a grid posterior). 'Named': "
+            "only the cases where the diagnosis named the true term, the intervals a user would read.", "",
+            "| run | HDI covers | P(so few at 90 %) | hdr90 covers | named: HDI covers | P(so few at 90 %) |",
+            "|---|---|---|---|---|---|"] + rows + [""]
+
+
 def build_page(results, out=None, thresholds_file=None, note: str = "", changes: bool = True) -> Path:
     """The results page (out/README.md + out/figures) of the harness cases in ``results``;
     ``thresholds_file``: the null calibration shown (default thresholds.json here); ``note``: a
@@ -1402,6 +1442,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _fit_flag_section()
     L += _null_runs_section()
     L += _sigma_scale_section()
+    L += _coverage_section()
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",
