@@ -58,10 +58,11 @@ def coverage(diag: dict, truth: dict) -> tuple:
     report.json-style ``diag``; (None, None) when the scenario has no library term or it was not
     refitted. "Covers": the highest-density interval on the prior range (it may include a prior bound,
     e.g. earth pressure = 1), with a tolerance of 1e-9 of the prior width for the floating-point end
-    of a grid's last cell (0.9999999999999999 for a bound at 1). 'hdr90' (the second value, the key
-    'true_term_covered_equal_tailed90' of saved cases) is the equal-tailed interval of MCMC samples but, on
-    the grid posterior a refinement leaves, the extent along the axis of the joint 90 % region: wider
-    than a marginal interval, so it is shown and never used for the targets."""
+    of a grid's last cell (0.9999999999999999 for a bound at 1). Saved cases keep the keys of older
+    runs: 'true_term_covered_hdr90' holds the first value (the HDI), 'true_term_covered_equal_tailed90'
+    the second ('hdr90': the equal-tailed interval of MCMC samples but, on the grid posterior a
+    refinement leaves, the extent along the axis of the joint 90 % region, wider than a marginal
+    interval; shown, never used for the targets)."""
     term = truth["term"]
     if term not in SWITCH:
         return None, None
