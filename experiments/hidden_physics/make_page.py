@@ -1315,7 +1315,8 @@ def _coverage_section(runs=None) -> list[str]:
             "Each run's in-library cases at strength 1 (every seed; the true term refitted whether or not it was "
             "named): how often the true switch lies in the refit's 90 % HDI, and the binomial probability of "
             "that few or fewer if the intervals held their nominal 90 % (small: the intervals are too narrow). "
-            "'hdr90': the refit's wider interval (the joint 90 % region's extent on a grid posterior). 'Named': "
+            "'hdr90': the refit's other interval (on a grid posterior the joint 90 % region's extent along the axis, "
+            "usually wider; on MCMC samples the equal-tailed one). 'Named': "
             "only the cases where the diagnosis named the true term, the intervals a user would read.", "",
             "| run | HDI covers | P(so few at 90 %) | hdr90 covers | named: HDI covers | P(so few at 90 %) |",
             "|---|---|---|---|---|---|"] + rows + [""]
