@@ -61,7 +61,7 @@ def coverage(diag: dict, truth: dict) -> tuple:
     of a grid's last cell (0.9999999999999999 for a bound at 1). Saved cases keep the keys of older
     runs: 'true_term_covered_hdr90' holds the first value (the HDI), 'true_term_covered_equal_tailed90'
     the second ('hdr90': the equal-tailed interval of MCMC samples but, on the grid posterior a
-    refinement leaves, the extent along the axis of the joint 90 % region, wider than a marginal
+    refinement leaves, the extent along the axis of the joint 90 % region, usually wider than a marginal
     interval; shown, never used for the targets)."""
     term = truth["term"]
     if term not in SWITCH:

@@ -745,7 +745,7 @@ def _case_rows(cases) -> list[str]:
     """Per-case table of a variant run: what was found, the strict-success check, every candidate's
     lower-bound 2 ln BF, the margin over the runner-up and the true switch's mean, 90 % HDI (the strict
     check's interval) and, where it differs, the refit's 'hdr90' (on a grid posterior, which the refinement
-    leaves, the extent along the axis of the joint 90 % region, wider than the marginal interval; on MCMC
+    leaves, the extent along the axis of the joint 90 % region, usually wider than the marginal interval; on MCMC
     samples the equal-tailed 5-95 % interval)."""
     L = ["| case | found | strict success | lower 2 ln BF per candidate | margin over runner-up | true switch: mean, "
          "90 % HDI (hdr90 where it differs) (truth) |", "|---|---|---|---|---|---|"]
@@ -1379,7 +1379,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
           "'true switch in 90 % HDI': the true term's refitted switch, 90 % highest-density interval on the prior "
           "range (boundary-corrected KDE or the grid marginal; it may include a prior bound); in brackets the same check "
           "with the refit's 'hdr90': on a grid posterior (what the refinement leaves) the extent along the axis of the "
-          "joint 90 % region, wider than the marginal interval; on MCMC samples the equal-tailed 5-95 % interval.", "",
+          "joint 90 % region, usually wider than the marginal interval; on MCMC samples the equal-tailed 5-95 % interval.", "",
           "'converged': whether the true term's verified evidence ended trustworthy and stable "
           "(pipeline 'evidence_converged'; '-' for cases without a library term or older results).", "",
           "| case | truth | verdict | named | best candidate | 2 ln BF (verified) | 2 ln BF (emulator) | 2 ln BF over runner-up | failed checks | true switch in 90 % HDI (hdr90) | converged | misfit before | misfit after | strict success | wall s |",
