@@ -1322,6 +1322,124 @@ def _coverage_section(runs=None) -> list[str]:
             "|---|---|---|---|---|---|"] + rows + [""]
 
 
+EFFECT_RUNS = [("narrow, 40 m (main run)", "harness", "effect_size.json", "../thresholds.json"),
+               ("narrow, 20 m cells", "narrow_20m/results", "effect_size_narrow_20m.json", None),
+               ("resolved, 40 m", "resolved/results", "effect_size_resolved_40m.json", None)]
+
+
+def _effect_rows(runs) -> list[dict]:
+    """One row per (run, in-library scenario) at strength 1: the measured effect (effect_size.py's JSON:
+    the unmimicked effect over the run's grid floor, and its square, the noise-free 2 ln L the term gains)
+    beside what the harness run found: cases n, true term named, true term the best candidate (largest
+    lower-bound 2 ln BF) and the median of its lower-bound 2 ln BF. ``runs``: (label, results folder,
+    effect-size JSON, thresholds JSON or None for the folder's own null_calib/thresholds.json) tuples; a run
+    missing its effect size is skipped."""
+    rows = []
+    for label, d, ef, thf in runs:
+        d, ef = Path(d), Path(ef)
+        if not ef.exists():
+            continue
+        e = json.loads(ef.read_text())
+        cases, th = _variant_cases(d, strength1=True)
+        if thf is not None:
+            th = json.loads(Path(thf).read_text()) if Path(thf).exists() else None
+        for sc, r in e["scenarios"].items():
+            cs = [c for c in cases if c["truth"].get("term") == sc]
+            if not cs:
+                continue
+            lows = []
+            best = 0
+            for c in cs:
+                fitted = {x["name"]: x["two_ln_bf_lower"] for x in c["diagnosis"]["candidates"]
+                          if x.get("two_ln_bf_lower") is not None}
+                if sc in fitted:
+                    lows.append(fitted[sc])
+                    best += max(fitted, key=fitted.get) == sc
+            rows.append({"run": label, "folder": d, "scenario": sc, "n": len(cs),
+                         "named": sum(found_label(c) == sc for c in cs), "best": best,
+                         "median_lower": float(np.median(lows)) if lows else None,
+                         "ratio": r["effect_unmimicked"] / max(e["discretisation_unmimicked"], 1e-12),
+                         "two_ln_l": r["effect_unmimicked"] ** 2,
+                         "bf_min": (th or {}).get("thresholds", {}).get("bf_min")})
+    return rows
+
+
+def _effect_vs_detection_section(runs=None, out: Path | None = None) -> list[str]:
+    """Does the measured effect size predict what the harness found? Pools every run with both harness
+    cases and an effect-size measurement (``runs``: default EFFECT_RUNS under results/): the rows of
+    _effect_rows, the rank correlation (scipy.stats.spearmanr) of the noise-free 2 ln L with the median
+    lower-bound 2 ln BF the refits reached, and, when ``out`` is given, the figure
+    detection_vs_effect_size_runs.png there. [] when no run has both."""
+    from scipy.stats import spearmanr
+
+    runs = runs if runs is not None else [(lab, HERE / "results" / sub, HERE / "results" / ef,
+                                           None if thf is None else HERE / "results" / thf)
+                                          for lab, sub, ef, thf in EFFECT_RUNS]
+    rows = _effect_rows(runs)
+    if not rows:
+        return []
+    f = lambda v, p="{:.1f}": "-" if v is None else p.format(v)
+    L = ["## Does the effect size predict detection? (every run with an effect-size measurement)", "",
+         "Per run and in-library scenario at strength 1: the measured effect (effect_size.py, noise-free: the part "
+         "of the term's effect that re-tuning mu, xi cannot mimic, over the run's own grid floor, and its square, "
+         "the 2 ln L the term gains without noise or grid error) beside what the blind harness found: the true term "
+         "named, the true term the best candidate (largest lower-bound 2 ln BF), and the median of its lower-bound "
+         "2 ln BF against the run's naming threshold bf_min (from its own null seeds).", "",
+         "| run | scenario | effect / floor | noise-free 2 ln L | cases | named | best candidate | median lower 2 ln BF "
+         "| bf_min |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: r["ratio"]):
+        L.append(f"| {r['run']} ({_shown(r['folder'], HERE)}) | {r['scenario']} | {r['ratio']:.2f} | "
+                 f"{r['two_ln_l']:.0f} | {r['n']} | {r['named']} | {r['best']} | {f(r['median_lower'])} | "
+                 f"{f(r['bf_min'])} |")
+    above = [r for r in rows if r["ratio"] >= 1]
+    below = [r for r in rows if r["ratio"] < 1]
+    count = lambda rs, k: f"{sum(r[k] for r in rs)} of {sum(r['n'] for r in rs)}"
+    pairs = lambda rs: f"{len(rs)} run-scenario pair" + ("" if len(rs) == 1 else "s")
+    L += ["", f"Pooled: with the effect at or above the floor ({pairs(above)}) the true term was named in "
+              f"{count(above, 'named')} cases and was the best candidate in {count(above, 'best')}; below it "
+              f"({pairs(below)}), named in {count(below, 'named')} and best in {count(below, 'best')}."]
+    paired = [(r["two_ln_l"], r["median_lower"]) for r in rows if r["median_lower"] is not None]
+    if len(paired) >= 3:
+        rho, p = spearmanr(*zip(*paired))
+        L += [f"Rank correlation of the noise-free 2 ln L with the median lower-bound 2 ln BF over the "
+              f"{len(paired)} pairs: Spearman {rho:.2f} (p {p:.2g})."]
+    if out is not None:
+        import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, axs = plt.subplots(1, 2, figsize=(10, 3.4))
+        labels = list(dict.fromkeys(r["run"] for r in rows))
+        terms = list(dict.fromkeys(r["scenario"] for r in rows))
+        for r in rows:
+            kw = dict(marker="os^D"[labels.index(r["run"]) % 4], color=f"C{terms.index(r['scenario'])}", ms=7,
+                      ls="none", mfc="none" if r["named"] == 0 else None)
+            axs[0].plot([r["ratio"]], [r["named"] / r["n"]], **kw)
+            if r["median_lower"] is not None:
+                axs[1].plot([r["two_ln_l"]], [r["median_lower"]], **kw)
+        axs[0].axvline(1.0, color="0.5", ls=":", lw=1)
+        axs[0].set_xlabel("unmimicked effect / grid floor (strength 1)")
+        axs[0].set_ylabel("true term named (rate)")
+        axs[1].set_xscale("symlog", linthresh=10)
+        axs[1].set_yscale("symlog", linthresh=10)
+        lim = max(max(x for x, _ in paired), max(y for _, y in paired)) if paired else 1
+        axs[1].plot([0, lim], [0, lim], color="0.5", ls=":", lw=1)
+        axs[1].set_xlabel("noise-free 2 ln L of the term")
+        axs[1].set_ylabel("median lower-bound 2 ln BF")
+        from matplotlib.lines import Line2D
+        handles = ([Line2D([], [], marker="os^D"[i % 4], color="0.3", ls="none", label=lab) for i, lab in enumerate(labels)]
+                   + [Line2D([], [], marker="o", color=f"C{i}", ls="none", label=t) for i, t in enumerate(terms)])
+        axs[1].legend(handles=handles, fontsize=7, loc="center left", bbox_to_anchor=(1.02, 0.5))
+        fig.tight_layout()
+        fig.savefig(Path(out) / "detection_vs_effect_size_runs.png", dpi=90)
+        plt.close(fig)
+        L += ["", "Left: named rate (hollow: never named); right: the evidence reached against the effect's "
+                  "noise-free 2 ln L (dotted: equal; both axes linear within +-10, logarithmic beyond). Marker: run; "
+                  "colour: term.", "",
+              "![detection vs effect, every run](figures/detection_vs_effect_size_runs.png)"]
+    return L + [""]
+
+
 def build_page(results, out=None, thresholds_file=None, note: str = "", changes: bool = True) -> Path:
     """The results page (out/README.md + out/figures) of the harness cases in ``results``;
     ``thresholds_file``: the null calibration shown (default thresholds.json here); ``note``: a
@@ -1444,6 +1562,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _null_runs_section()
     L += _sigma_scale_section()
     L += _coverage_section()
+    L += _effect_vs_detection_section(out=figdir)
     L += _changes_section() if changes else []
     L += _versus_section(cases, HERE / "results" / "before_profile",
                          "## This run against the same cases without the profile (results/before_profile)",
