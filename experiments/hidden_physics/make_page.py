@@ -804,7 +804,7 @@ def _variant_section(d: Path, prev: Path, heading: str, describe, versus_heading
 
 def _narrow_20m_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
-    --cellsize 20 --out results/narrow_20m/results``, sessions 23 and 25): its cases in ``d`` (default
+    --cellsize 20 --out results/narrow_20m/results``, sessions 23, 25 and 26): its cases in ``d`` (default
     results/narrow_20m/results; null calibration seeds and thresholds in d/null_calib), the targets, every
     case, and the same cases on the main run's 40 m cells (``prev``, default results/harness)."""
     def describe(cases, th):
@@ -812,7 +812,7 @@ def _narrow_20m_section(d=None, prev=None) -> list[str]:
                 "seeds, noise, release error, budgets and method (grid error, mode checks, profile along the switch). "
                 "Session 8 ran a probe like this with the method of then (EARLIER.md, 'Probe: inversion on 20 m "
                 "cells'; its files were lost): yield stress named in 5 of 5, the 90 % interval covering the truth in "
-                "3. Only the scenarios listed here were re-run. Median wall time per case "
+                "3. Median wall time per case "
                 f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min (two cases in parallel on 2 cores). "
                 + _thresholds_sentence(th, "at 20 m"))
     return _variant_section(
