@@ -2163,7 +2163,8 @@ def test_page_section_of_interval_coverage_pooled_over_runs(tmp_path):
 def test_page_section_of_detection_against_measured_effect(tmp_path):
     """make_page._effect_vs_detection_section: per run and scenario the measured effect (over the run's
     floor, and squared) beside the cases named, the cases where the true term was the best candidate and
-    the median of its lower-bound 2 ln BF; the pooled counts above and below the floor, the rank
+    the median of its lower-bound 2 ln BF, the same two for that term on the run's null cases (reported and
+    calibration seeds); the pooled counts above and below the floor, the rank
     correlation and the figure; a run without an effect-size file is skipped, none at all: no section."""
     import json
     import numpy as np
@@ -2176,17 +2177,23 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
                               "missing_physics": sc if named else None,
                               "candidates": [{"name": k, "two_ln_bf_lower": v} for k, v in lowers.items()]}}
 
+    def null(seed, lowers):
+        return {"scenario": "null", "seed": seed, "strength": 1.0, "truth": {"term": None},
+                "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None,
+                              "candidates": [{"name": k, "two_ln_bf_lower": v} for k, v in lowers.items()]}}
+
     run = tmp_path / "run"
     (run / "null_calib").mkdir(parents=True)
     (run / "null_calib" / "thresholds.json").write_text(json.dumps({"thresholds": {"bf_min": 17.0}}))
+    for seed, lowers in [(100, {"curvature": 6.0, "entrainment": 1.0}), (101, {"curvature": 2.0, "mu_i": 4.0})]:
+        (run / "null_calib" / f"null_s{seed}.json").write_text(json.dumps(null(seed, lowers)))
     cases = {"entrainment_s0": case("entrainment", 0, True, {"entrainment": 40.0, "mu_i": 1.0}),
              "entrainment_s1": case("entrainment", 1, False, {"entrainment": 10.0, "mu_i": 12.0}),
              "entrainment_s2": case("entrainment", 2, False, {"entrainment": 4.0, "mu_i": 0.0}),
              "entrainment_s0_x2": case("entrainment", 0, True, {"entrainment": 99.0}, strength=2.0),
              "mu_i_s0": case("mu_i", 0, False, {"mu_i": -3.0, "entrainment": 2.0}),
              "curvature_s0": case("curvature", 0, False, {"curvature": 5.0}),
-             "null_s0": {"scenario": "null", "seed": 0, "strength": 1.0, "truth": {"term": None},
-                         "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None, "candidates": []}}}
+             "null_s0": null(0, {"curvature": 7.0, "entrainment": -2.0})}
     for k, c in cases.items():
         (run / f"{k}.json").write_text(json.dumps(c))
     eff = tmp_path / "effect.json"
@@ -2195,20 +2202,22 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
         "curvature": {"effect_unmimicked": 3.0}, "yield_stress": {"effect_unmimicked": 9.0}}}))
     figs = tmp_path / "figs"
     figs.mkdir()
-    text = "\n".join(_effect_vs_detection_section([("my run", run, eff, None),
-                                                   ("no effect", run, tmp_path / "absent.json", None)], out=figs))
-    assert f"| my run ({run}) | entrainment | 2.00 | 64 | 3 | 1 | 2 | 10.0 | 17.0 |" in text
-    assert f"| my run ({run}) | mu_i | 0.50 | 4 | 1 | 0 | 0 | -3.0 | 17.0 |" in text
-    assert f"| my run ({run}) | curvature | 0.75 | 9 | 1 | 0 | 1 | 5.0 | 17.0 |" in text
+    text = "\n".join(_effect_vs_detection_section([("my run", run, eff, None, None),
+                                                   ("no effect", run, tmp_path / "absent.json", None, None)], out=figs))
+    # null data: the reported null seed and the two calibration seeds (thresholds.json is not a case)
+    assert f"| my run ({run}) | entrainment | 2.00 | 64 | 3 | 1 | 2 | 10.0 | 0 of 3 | -0.5 | 17.0 |" in text
+    assert f"| my run ({run}) | mu_i | 0.50 | 4 | 1 | 0 | 0 | -3.0 | 1 of 3 | 4.0 | 17.0 |" in text
+    assert f"| my run ({run}) | curvature | 0.75 | 9 | 1 | 0 | 1 | 5.0 | 2 of 3 | 6.0 | 17.0 |" in text
     assert "yield_stress" not in text and "no effect" not in text          # no cases / no effect size: no row
-    assert ("(1 run-scenario pair) the true term was named in 1 of 3 cases and was the best candidate in 2 of 3; "
-            "below it (2 run-scenario pairs), named in 0 of 2 and best in 1 of 2.") in text
+    assert ("(1 run-scenario pair) the true term was named in 1 of 3 cases and was the best candidate in 2 of 3 "
+            "(on null data 0 of 3); below it (2 run-scenario pairs), named in 0 of 2 and best in 1 of 2 (on null "
+            "data 3 of 6).") in text
     rho, p = spearmanr([64, 4, 9], [10.0, -3.0, 5.0])
     assert f"over the 3 pairs: Spearman {rho:.2f} (p {p:.2g})" in text
     assert (figs / "detection_vs_effect_size_runs.png").stat().st_size > 0
     # the given thresholds file replaces the folder's own
     other = tmp_path / "th.json"
     other.write_text(json.dumps({"thresholds": {"bf_min": 48.9}}))
-    text = "\n".join(_effect_vs_detection_section([("my run", run, eff, other)]))
-    assert "| 10.0 | 48.9 |" in text and "figures/" not in text
-    assert _effect_vs_detection_section([("no effect", run, tmp_path / "absent.json", None)]) == []
+    text = "\n".join(_effect_vs_detection_section([("my run", run, eff, other, tmp_path / "no_nulls")]))
+    assert "| 10.0 | 0 of 1 | -2.0 | 48.9 |" in text and "figures/" not in text   # only the reported null seed
+    assert _effect_vs_detection_section([("no effect", run, tmp_path / "absent.json", None, None)]) == []

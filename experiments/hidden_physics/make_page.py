@@ -1322,20 +1322,37 @@ def _coverage_section(runs=None) -> list[str]:
             "|---|---|---|---|---|---|"] + rows + [""]
 
 
-EFFECT_RUNS = [("narrow, 40 m (main run)", "harness", "effect_size.json", "../thresholds.json"),
-               ("narrow, 20 m cells", "narrow_20m/results", "effect_size_narrow_20m.json", None),
-               ("resolved, 40 m", "resolved/results", "effect_size_resolved_40m.json", None)]
+EFFECT_RUNS = [("narrow, 40 m (main run)", "harness", "effect_size.json", "../thresholds.json", "null_calib"),
+               ("narrow, 20 m cells", "narrow_20m/results", "effect_size_narrow_20m.json", None, None),
+               ("resolved, 40 m", "resolved/results", "effect_size_resolved_40m.json", None, None)]
+
+
+def _lower_bounds(case) -> dict:
+    """{candidate: lower-bound 2 ln BF} of a saved case's refitted candidates."""
+    return {x["name"]: x["two_ln_bf_lower"] for x in case["diagnosis"]["candidates"]
+            if x.get("two_ln_bf_lower") is not None}
 
 
 def _effect_rows(runs) -> list[dict]:
     """One row per (run, in-library scenario) at strength 1: the measured effect (effect_size.py's JSON:
     the unmimicked effect over the run's grid floor, and its square, the noise-free 2 ln L the term gains)
     beside what the harness run found: cases n, true term named, true term the best candidate (largest
-    lower-bound 2 ln BF) and the median of its lower-bound 2 ln BF. ``runs``: (label, results folder,
-    effect-size JSON, thresholds JSON or None for the folder's own null_calib/thresholds.json) tuples; a run
-    missing its effect size is skipped."""
+    lower-bound 2 ln BF) and the median of its lower-bound 2 ln BF; and the same two on the run's null cases
+    (nothing hidden: its reported null seeds and its null calibration seeds), how often this term comes out
+    best where there is nothing to find. ``runs``: (label, results folder, effect-size JSON, thresholds JSON or
+    None for the folder's null_calib/thresholds.json, null calibration folder or None for the folder's
+    null_calib) tuples; a run missing its effect size is skipped."""
+    def best_and_median(cs, sc):
+        lows, best = [], 0
+        for c in cs:
+            fitted = _lower_bounds(c)
+            if sc in fitted:
+                lows.append(fitted[sc])
+                best += max(fitted, key=fitted.get) == sc
+        return best, (float(np.median(lows)) if lows else None)
+
     rows = []
-    for label, d, ef, thf in runs:
+    for label, d, ef, thf, nd in runs:
         d, ef = Path(d), Path(ef)
         if not ef.exists():
             continue
@@ -1343,21 +1360,18 @@ def _effect_rows(runs) -> list[dict]:
         cases, th = _variant_cases(d, strength1=True)
         if thf is not None:
             th = json.loads(Path(thf).read_text()) if Path(thf).exists() else None
+        nd = Path(nd) if nd is not None else d / "null_calib"
+        nulls = ([c for c in cases if c["truth"].get("term") is None]
+                 + [json.loads(p.read_text()) for p in sorted(nd.glob("*.json")) if p.name != "thresholds.json"])
         for sc, r in e["scenarios"].items():
             cs = [c for c in cases if c["truth"].get("term") == sc]
             if not cs:
                 continue
-            lows = []
-            best = 0
-            for c in cs:
-                fitted = {x["name"]: x["two_ln_bf_lower"] for x in c["diagnosis"]["candidates"]
-                          if x.get("two_ln_bf_lower") is not None}
-                if sc in fitted:
-                    lows.append(fitted[sc])
-                    best += max(fitted, key=fitted.get) == sc
+            best, median = best_and_median(cs, sc)
+            null_best, null_median = best_and_median(nulls, sc)
             rows.append({"run": label, "folder": d, "scenario": sc, "n": len(cs),
-                         "named": sum(found_label(c) == sc for c in cs), "best": best,
-                         "median_lower": float(np.median(lows)) if lows else None,
+                         "named": sum(found_label(c) == sc for c in cs), "best": best, "median_lower": median,
+                         "null_n": len(nulls), "null_best": null_best, "null_median_lower": null_median,
                          "ratio": r["effect_unmimicked"] / max(e["discretisation_unmimicked"], 1e-12),
                          "two_ln_l": r["effect_unmimicked"] ** 2,
                          "bf_min": (th or {}).get("thresholds", {}).get("bf_min")})
@@ -1373,8 +1387,9 @@ def _effect_vs_detection_section(runs=None, out: Path | None = None) -> list[str
     from scipy.stats import spearmanr
 
     runs = runs if runs is not None else [(lab, HERE / "results" / sub, HERE / "results" / ef,
-                                           None if thf is None else HERE / "results" / thf)
-                                          for lab, sub, ef, thf in EFFECT_RUNS]
+                                           None if thf is None else HERE / "results" / thf,
+                                           None if nd is None else HERE / "results" / nd)
+                                          for lab, sub, ef, thf, nd in EFFECT_RUNS]
     rows = _effect_rows(runs)
     if not rows:
         return []
@@ -1384,20 +1399,25 @@ def _effect_vs_detection_section(runs=None, out: Path | None = None) -> list[str
          "of the term's effect that re-tuning mu, xi cannot mimic, over the run's own grid floor, and its square, "
          "the 2 ln L the term gains without noise or grid error) beside what the blind harness found: the true term "
          "named, the true term the best candidate (largest lower-bound 2 ln BF), and the median of its lower-bound "
-         "2 ln BF against the run's naming threshold bf_min (from its own null seeds).", "",
+         "2 ln BF against the run's naming threshold bf_min (from its own null seeds). 'On null data': the same "
+         "two for this term on the run's cases with nothing hidden (its reported null seeds and its null "
+         "calibration seeds): a term that comes out best there too is not detected by coming out best.", "",
          "| run | scenario | effect / floor | noise-free 2 ln L | cases | named | best candidate | median lower 2 ln BF "
-         "| bf_min |", "|---|---|---|---|---|---|---|---|---|"]
+         "| on null data: best candidate | on null data: median lower 2 ln BF | bf_min |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: r["ratio"]):
         L.append(f"| {r['run']} ({_shown(r['folder'], HERE)}) | {r['scenario']} | {r['ratio']:.2f} | "
                  f"{r['two_ln_l']:.0f} | {r['n']} | {r['named']} | {r['best']} | {f(r['median_lower'])} | "
-                 f"{f(r['bf_min'])} |")
+                 f"{r['null_best']} of {r['null_n']} | {f(r['null_median_lower'])} | {f(r['bf_min'])} |")
     above = [r for r in rows if r["ratio"] >= 1]
     below = [r for r in rows if r["ratio"] < 1]
     count = lambda rs, k: f"{sum(r[k] for r in rs)} of {sum(r['n'] for r in rs)}"
     pairs = lambda rs: f"{len(rs)} run-scenario pair" + ("" if len(rs) == 1 else "s")
+    null = lambda rs: f"{sum(r['null_best'] for r in rs)} of {sum(r['null_n'] for r in rs)}"
     L += ["", f"Pooled: with the effect at or above the floor ({pairs(above)}) the true term was named in "
-              f"{count(above, 'named')} cases and was the best candidate in {count(above, 'best')}; below it "
-              f"({pairs(below)}), named in {count(below, 'named')} and best in {count(below, 'best')}."]
+              f"{count(above, 'named')} cases and was the best candidate in {count(above, 'best')} (on null data "
+              f"{null(above)}); below it ({pairs(below)}), named in {count(below, 'named')} and best in "
+              f"{count(below, 'best')} (on null data {null(below)})."]
     paired = [(r["two_ln_l"], r["median_lower"]) for r in rows if r["median_lower"] is not None]
     if len(paired) >= 3:
         rho, p = spearmanr(*zip(*paired))
