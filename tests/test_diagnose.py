@@ -2167,7 +2167,6 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
     calibration seeds); the pooled counts above and below the floor, the rank
     correlation and the figure; a run without an effect-size file is skipped, none at all: no section."""
     import json
-    import numpy as np
     from scipy.stats import spearmanr
     from experiments.hidden_physics.make_page import _effect_vs_detection_section
 
