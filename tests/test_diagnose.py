@@ -374,6 +374,10 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     assert j["decision"]["decision_before"]["thresholds"]["bf_min"] == 6.0
     md = (out / "report.md").read_text()
     assert "## Thresholds set on null simulations of this design" in md
+    # which candidate came out best on the null run, in report.json and report.md
+    best0 = max(c0["lower_by_candidate"], key=c0["lower_by_candidate"].get)
+    assert c0["lower_by_candidate"][best0] == c0["max_two_ln_bf_lower"]
+    assert f"nothing is missing there): {best0} in 1 of 1" in md
     assert nc["noise_model"] == "stated" and nc["release_volume_sd"] == 0.05 and c0["noise_model"] == "stated"
     assert nc["terrain"] == "interpolated" and "over the DEM interpolated bilinearly" in md
     assert "the release volume's error (relative sd 0.05)" in md

@@ -126,6 +126,8 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     assert th.located_min == max(8.0, 1.25 * max(c["max_located"] for c in cases))
     assert th.fit_max == fit_max_from_null([c["fit_z"] for c in cases]) and set(th.fit_max) == {"deposit", "g1:h"}
     assert th.waic_min == 5.0                                   # the thresholds not set on null data are kept
+    assert all(set(c["lower_by_candidate"]) == {"mu_i"} and c["lower_by_candidate"]["mu_i"] == c["max_two_ln_bf_lower"]
+               for c in cases)                                  # every refitted candidate's value is kept
     # resumed: the finished cases are read back, no diagnosis runs
     monkeypatch.setattr(pipeline, "diagnose", lambda *a, **k: pytest.fail("a finished null case was re-run"))
     again = null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 3, tmp_path / "null", log=lambda s: None)
@@ -184,9 +186,38 @@ def test_report_says_which_release_error_the_null_runs_carry():
                      "missing_physics": None}]}
     exact = "\n".join(_null_section(dict(nc, release_volume_sd=0.0)))
     assert "the release volume as given (release_volume_sd 0: an error in it is not in these runs)" in exact
-    assert "an error not stated" in exact and "| 0 | 1.0 | 2.0 | no_missing_physics |" in exact
+    assert "an error not stated" in exact and "| 0 | 1.0 | - | 2.0 | no_missing_physics |" in exact
     assert "the release volume's error (relative sd 0.0577)" in "\n".join(_null_section(dict(nc, release_volume_sd=0.0577)))
     # which terrain the finer runs used
     assert "over the finer DEM given as fine_terrain," in "\n".join(_null_section(dict(nc, terrain="fine_terrain")))
     assert "interpolated bilinearly (no fine_terrain given" in "\n".join(_null_section(dict(nc, terrain="interpolated")))
     assert "finer grid, the release volume as given" in exact      # a report without the field (before session 20)
+
+
+def test_report_says_how_often_each_candidate_is_best_on_null_runs():
+    """report._null_section: each null case's best candidate, how often each candidate came out best on the
+    null runs (with its largest value there), and whether the data's best candidate is one of them; null
+    cases saved without the per-candidate values (before session 26) give no such lines."""
+    from torchslide.diagnose.report import _null_section
+
+    def case(by):
+        return {"max_two_ln_bf_lower": max(by.values()), "max_located": 3.0, "verdict": "no_missing_physics",
+                "missing_physics": None, "lower_by_candidate": by}
+
+    nc = {"n": 3, "rule": "r", "thresholds": {"bf_min": 17.0, "located_min": 8.0, "fit_max": None},
+          "cases": [case({"curvature": 13.6, "mu_i": 2.0}), case({"curvature": 4.0, "entrainment": 9.0}),
+                    case({"curvature": 6.0, "mu_i": -1.0})]}
+    data = [{"name": "curvature", "two_ln_bf_lower": 14.8}, {"name": "mu_i", "two_ln_bf_lower": -4.1},
+            {"name": "yield_stress", "two_ln_bf_lower": None}]
+    text = "\n".join(_null_section(nc, data))
+    assert "| 0 | 13.6 | curvature | 3.0 | no_missing_physics |" in text
+    assert "| 1 | 9.0 | entrainment | 3.0 | no_missing_physics |" in text
+    assert ("nothing is missing there): curvature in 2 of 3 (up to 13.6), entrainment in 1 of 3 (up to 9.0).") in text
+    assert ("On these data the best candidate is curvature (lower-bound 2 ln BF 14.8); on the null runs it was the "
+            "best in 2 of 3: coming out best is, on its own, no sign of it here") in text
+    other = [{"name": "yield_stress", "two_ln_bf_lower": 30.0}]
+    assert ("best candidate is yield_stress (lower-bound 2 ln BF 30.0); on the null runs it was the best in 0 of 3."
+            in "\n".join(_null_section(nc, other)))
+    old = dict(nc, cases=[{k: v for k, v in c.items() if k != "lower_by_candidate"} for c in nc["cases"]])
+    text = "\n".join(_null_section(old, data))
+    assert "| 0 | 13.6 | - | 3.0 |" in text and "Best candidate on the null runs" not in text

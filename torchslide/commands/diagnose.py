@@ -61,7 +61,9 @@ and a [diagnose] section::
 design (torchslide.diagnose.null: the baseline's posterior draws run on the finer grid, the release
 volume's error when release_volume_sd states one, and noise drawn from the stated error model, correlations
 included, each diagnosed like the data); report.json gets
-"null_calibration" and the decision with the thresholds given before as decision["decision_before"].
+"null_calibration" (per null case every candidate's lower-bound 2 ln BF, "lower_by_candidate"; report.md says
+which came out best there and whether the data's best is among them) and the decision with the thresholds
+given before as decision["decision_before"].
 
 Unknown keys stop with a clear error (exit code 2) listing the allowed ones.
 The baseline calibration uses [calibration] n_initial / n_total / batch_size / seed. Writes DIR/report.json,

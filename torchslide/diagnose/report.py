@@ -125,7 +125,7 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     if db:
         L += [f"Thresholds {j['decision'].get('thresholds_source')}; with the thresholds given before, the verdict "
               f"was {db['verdict']}" + (f" ({db['missing_physics']})" if db.get("missing_physics") else "") + ".", ""]
-    L += _null_section(j.get("null_calibration"))
+    L += _null_section(j.get("null_calibration"), j.get("candidates"))
     me = j.get("model_error")
     if me:
         L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
@@ -215,8 +215,46 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     return "\n".join(L) + "\n"
 
 
-def _null_section(nc: dict | None) -> list[str]:
-    """report.md lines on the thresholds set on null simulations of this design (diagnose.null), if any."""
+def _best(lower: dict | None):
+    """(name, value) of the largest lower-bound 2 ln BF in {candidate: value}, or None."""
+    if not lower:
+        return None
+    name = max(lower, key=lower.get)
+    return name, lower[name]
+
+
+def _null_best_lines(cases: list, data_candidates: list | None) -> list[str]:
+    """How often each candidate came out best (largest lower-bound 2 ln BF) on the null runs, and whether the
+    data's best candidate is among them: a term the grid's error favours when nothing is missing is the best
+    candidate there too, so on its own its coming out best is no sign of it. [] for null cases saved
+    without the per-candidate values (before session 26)."""
+    known = [c["lower_by_candidate"] for c in cases if c.get("lower_by_candidate")]
+    if not known:
+        return []
+    wins, top = {}, {}
+    for lower in known:
+        name, v = _best(lower)
+        wins[name] = wins.get(name, 0) + 1
+        top[name] = max(top.get(name, v), v)
+    n = len(known)
+    L = ["Best candidate on the null runs (largest lower-bound 2 ln BF; nothing is missing there): "
+         + ", ".join(f"{k} in {w} of {n} (up to {top[k]:.1f})" for k, w in sorted(wins.items(), key=lambda kv: -kv[1]))
+         + "."]
+    data = _best({c["name"]: c["two_ln_bf_lower"] for c in data_candidates or []
+                  if c.get("two_ln_bf_lower") is not None})
+    if data:
+        name, v = data
+        k = wins.get(name, 0)
+        L.append(f"On these data the best candidate is {name} (lower-bound 2 ln BF {v:.1f}); on the null runs it was "
+                 f"the best in {k} of {n}" + (": coming out best is, on its own, no sign of it here; its evidence "
+                                              "has to clear bf_min, which these runs set." if k else "."))
+    return L + [""]
+
+
+def _null_section(nc: dict | None, data_candidates: list | None = None) -> list[str]:
+    """report.md lines on the thresholds set on null simulations of this design (diagnose.null), if any;
+    ``data_candidates``: report.json's candidates of the data, to say whether their best is also the null
+    runs' best (_null_best_lines)."""
     if not nc:
         return []
     th = nc["thresholds"]
@@ -237,11 +275,14 @@ def _null_section(nc: dict | None) -> list[str]:
          "They know only the errors stated: an observable flagged against these fit_max levels fits worse than "
          "null data of the stated error model would, which a term outside the library does, and so does an error "
          "not stated (a release volume taken as exact, a DEM coarser than the terrain, a gauge's timing).", "",
-         "| null case | largest lower 2 ln BF | largest located | verdict (thresholds given) |", "|---|---|---|---|"]
+         "| null case | largest lower 2 ln BF | best candidate | largest located | verdict (thresholds given) |",
+         "|---|---|---|---|---|"]
     for i, c in enumerate(nc["cases"]):
-        L.append(f"| {i} | {_fmt(c['max_two_ln_bf_lower'], '{:.1f}')} | {c['max_located']:.1f} | {c['verdict']}"
+        best = _best(c.get("lower_by_candidate"))
+        L.append(f"| {i} | {_fmt(c['max_two_ln_bf_lower'], '{:.1f}')} | {best[0] if best else '-'} | "
+                 f"{c['max_located']:.1f} | {c['verdict']}"
                  + (f" ({c['missing_physics']})" if c.get("missing_physics") else "") + " |")
-    return L + [""]
+    return L + [""] + _null_best_lines(nc["cases"], data_candidates)
 
 
 def _fit_notes(residuals: dict, level: float = 3.0) -> list[str]:
