@@ -1392,11 +1392,12 @@ def test_page_section_of_the_finer_grid_probe(tmp_path):
 
 
 def test_page_section_of_the_narrow_terrain_on_20m_cells(tmp_path):
-    """make_page's section for the narrow harness on 20 m cells: the thresholds from its own null seeds,
-    the targets per scenario, a row per case and the same cases on 40 m cells (before -> now)."""
+    """make_page's section for the narrow harness on 20 m cells (and the resolved terrain's, same layout):
+    the thresholds from its own null seeds, the targets per scenario, a row per case and the same cases on
+    40 m cells (before -> now)."""
     import json
     from dataclasses import asdict
-    from experiments.hidden_physics.make_page import _narrow_20m_section
+    from experiments.hidden_physics.make_page import _narrow_20m_section, _resolved_20m_section
 
     th = Thresholds(bf_min=21.5, located_min=8.0)
     par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
@@ -1418,13 +1419,17 @@ def test_page_section_of_the_narrow_terrain_on_20m_cells(tmp_path):
     (now / "null_calib" / "thresholds.json").write_text(json.dumps(
         {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 17.2, "max_located": 6.0}],
          "thresholds": asdict(th)}))
-    text = "\n".join(_narrow_20m_section(now, before))
-    assert "bf_min 21.5" in text and "median wall time per case 15 min" in text.lower()
-    assert "| yield_stress | 2 | 1 | yield_stress 2 | >= 4 of 5 |" in text
-    assert "| yield_stress_s1 | yield_stress | False |" in text
-    # only seed 0 ran on 40 m: 0 -> 1 strict, unexplained -> named, not covered -> covered
-    assert "| yield_stress | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
-    assert _narrow_20m_section(tmp_path / "absent", before) == []
+    # the resolved terrain's 20 m run (session 26) has the same layout under its own heading
+    for section, heading in ((_narrow_20m_section, "## The narrow terrain on 20 m cells"),
+                             (_resolved_20m_section, "## The resolved terrain on 20 m cells")):
+        text = "\n".join(section(now, before))
+        assert text.startswith(heading)
+        assert "bf_min 21.5" in text and "median wall time per case 15 min" in text.lower()
+        assert "| yield_stress | 2 | 1 | yield_stress 2 | >= 4 of 5 |" in text
+        assert "| yield_stress_s1 | yield_stress | False |" in text
+        # only seed 0 ran on 40 m: 0 -> 1 strict, unexplained -> named, not covered -> covered
+        assert "| yield_stress | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
+        assert section(tmp_path / "absent", before) == []
 
 
 def test_page_section_of_the_grid_convergence_study(tmp_path):

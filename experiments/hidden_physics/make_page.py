@@ -824,6 +824,31 @@ def _narrow_20m_section(d=None, prev=None) -> list[str]:
         "Each with thresholds from its own null seeds.")
 
 
+def _resolved_20m_section(d=None, prev=None) -> list[str]:
+    """The resolved terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
+    --terrain resolved --cellsize 20 --out results/resolved_20m/results``, session 26): its cases in ``d``
+    (default results/resolved_20m/results; null calibration seeds and thresholds in d/null_calib), the
+    targets, every case, and the same cases on the resolved run's 40 m cells (``prev``, default
+    results/resolved/results)."""
+    def describe(cases, th):
+        return ("The resolved terrain's harness with both grids halved (inversion 20 m, recordings 10 m): same "
+                "terrain, seeds, noise, release error, budgets and method. A probe of earth pressure, whose 40 m "
+                "refits were supported by the evidence but whose intervals missed the truth in every seed (the "
+                "switch's bias, section 'Would a finer grid over the same DEM correct the switches?' in the README); "
+                "its unmimicked effect at 20 m is 1.78 of that grid's floor (effect_size_resolved_20m.json). "
+                "Session 8 probed curvature and yield stress on this terrain at 20 m with the method of then "
+                "(EARLIER.md). Median wall time per case "
+                f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min (two cases in parallel on 2 cores). "
+                + _thresholds_sentence(th, "at 20 m on this terrain"))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "resolved_20m" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "resolved" / "results",
+        "## The resolved terrain on 20 m cells (`harness --terrain resolved --cellsize 20`)", describe,
+        "Against the same cases on 40 m cells",
+        "'Before': the resolved terrain's harness (40 m cells, recordings on 20 m); 'now': 20 m cells, recordings "
+        "on 10 m. Each with thresholds from its own null seeds.")
+
+
 def _targets_table(cases) -> list[str]:
     """Per scenario: cases, strict successes, what was found (count), the target."""
     per = defaultdict(list)
@@ -1284,7 +1309,8 @@ def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
 COVERAGE_RUNS = [("narrow, 40 m (main run)", "harness"), ("resolved, 40 m", "resolved/results"),
                  ("resolved, release volume's error", "resolved_vol/results"),
                  ("narrow, release volume's error (entrainment, earth pressure)", "narrow_vol/results"),
-                 ("narrow, 20 m cells", "narrow_20m/results"), ("resolved, two more gauges", "resolved_gauges/results"),
+                 ("narrow, 20 m cells", "narrow_20m/results"), ("resolved, 20 m cells", "resolved_20m/results"),
+                 ("resolved, two more gauges", "resolved_gauges/results"),
                  ("resolved, sigmas halved", "resolved_sig05/results")]
 
 
@@ -1324,7 +1350,8 @@ def _coverage_section(runs=None) -> list[str]:
 
 EFFECT_RUNS = [("narrow, 40 m (main run)", "harness", "effect_size.json", "../thresholds.json", "null_calib"),
                ("narrow, 20 m cells", "narrow_20m/results", "effect_size_narrow_20m.json", None, None),
-               ("resolved, 40 m", "resolved/results", "effect_size_resolved_40m.json", None, None)]
+               ("resolved, 40 m", "resolved/results", "effect_size_resolved_40m.json", None, None),
+               ("resolved, 20 m cells", "resolved_20m/results", "effect_size_resolved_20m.json", None, None)]
 
 
 def _lower_bounds(case) -> dict:
@@ -1576,6 +1603,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _release_volume_section()
     L += _release_volume_narrow_section()
     L += _narrow_20m_section()
+    L += _resolved_20m_section()
     L += _extra_gauges_section()
     L += _block_fit_section()
     L += _fit_flag_section()
