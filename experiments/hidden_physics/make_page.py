@@ -269,11 +269,17 @@ def _changes_section() -> list[str]:
             "(calibrate_thresholds --apply; each keeps the verdict it was run with under 'decision_as_run').", ""]
 
 
+def _lower_bounds(case) -> dict:
+    """{candidate: lower-bound 2 ln BF} of a saved case's refitted candidates."""
+    return {x["name"]: x["two_ln_bf_lower"] for x in case["diagnosis"]["candidates"]
+            if x.get("two_ln_bf_lower") is not None}
+
+
 def _best_lower(case) -> tuple:
     """(name, lower-bound 2 ln BF) of the case's candidate with the largest lower bound."""
-    c = [x for x in case["diagnosis"]["candidates"] if x.get("two_ln_bf_lower") is not None]
-    b = max(c, key=lambda x: x["two_ln_bf_lower"], default=None)
-    return (b["name"], b["two_ln_bf_lower"]) if b else ("-", None)
+    lower = _lower_bounds(case)
+    name = max(lower, key=lower.get, default=None)
+    return (name, lower[name]) if name is not None else ("-", None)
 
 
 def _recheck_section(cases, prev: Path | None = None) -> list[str]:
@@ -1354,12 +1360,6 @@ EFFECT_RUNS = [("narrow, 40 m (main run)", "harness", "effect_size.json", "../th
                ("resolved, 20 m cells", "resolved_20m/results", "effect_size_resolved_20m.json", None, None)]
 
 
-def _lower_bounds(case) -> dict:
-    """{candidate: lower-bound 2 ln BF} of a saved case's refitted candidates."""
-    return {x["name"]: x["two_ln_bf_lower"] for x in case["diagnosis"]["candidates"]
-            if x.get("two_ln_bf_lower") is not None}
-
-
 def _effect_rows(runs) -> list[dict]:
     """One row per (run, in-library scenario) at strength 1: the measured effect (effect_size.py's JSON:
     the unmimicked effect over the run's grid floor, and its square, the noise-free 2 ln L the term gains)
@@ -1370,12 +1370,8 @@ def _effect_rows(runs) -> list[dict]:
     None for the folder's null_calib/thresholds.json, null calibration folder or None for the folder's
     null_calib) tuples; a run missing its effect size is skipped."""
     def best_and_median(cs, sc):
-        lows, best = [], 0
-        for c in cs:
-            fitted = _lower_bounds(c)
-            if sc in fitted:
-                lows.append(fitted[sc])
-                best += max(fitted, key=fitted.get) == sc
+        lows = [v for v in (_lower_bounds(c).get(sc) for c in cs) if v is not None]
+        best = sum(_best_lower(c)[0] == sc for c in cs)
         return best, (float(np.median(lows)) if lows else None)
 
     rows = []
