@@ -1430,6 +1430,15 @@ def test_page_section_of_the_narrow_terrain_on_20m_cells(tmp_path):
         # only seed 0 ran on 40 m: 0 -> 1 strict, unexplained -> named, not covered -> covered
         assert "| yield_stress | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
         assert section(tmp_path / "absent", before) == []
+    # the resolved section says which scenarios ran and their effect over the 20 m floor
+    eff = tmp_path / "effect.json"
+    eff.write_text(json.dumps({"discretisation_unmimicked": 5.0,
+                               "scenarios": {"yield_stress": {"effect_unmimicked": 26.0}}}))
+    text = "\n".join(_resolved_20m_section(now, before, effect=eff))
+    assert ("Scenarios run: yield_stress; not yet run: null, entrainment, curvature, earth_pressure, mu_i, "
+            "low_friction_patch.") in text
+    assert "(effect.json): yield_stress 5.20." in text and "Fit flags are off here" in text
+    assert "floor (" not in "\n".join(_resolved_20m_section(now, before, effect=tmp_path / "no.json"))
 
 
 def test_page_section_of_the_grid_convergence_study(tmp_path):
@@ -1815,8 +1824,9 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
 
 
 def test_page_section_of_the_finer_grid_profile(tmp_path):
-    """make_page's finer-grid profile section: per case the best switch on each grid and both profiles
-    relative to their maximum; absent file: no section."""
+    """make_page's finer-grid profile section: per case (from every file given; rows without a cell
+    size are 40 m) the best switch and the largest ln L + ln prior on each grid and both profiles
+    relative to their maximum; absent files: no section."""
     import json
     from experiments.hidden_physics.make_page import _finer_grid_profile_section
 
@@ -1824,11 +1834,19 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
            "truth": 1.0, "refit_hdr90": [0.35, 0.625],
            "profiles": {"inversion_grid": {"switch": [0.5, 0.75, 1.0], "z": [-1308.5, -1308.3, -1310.0], "best": 0.75},
                         "finer_grid": {"switch": [0.5, 0.75, 1.0], "z": [-1302.0, -1325.8, -1344.0], "best": 0.5}}}
-    f = tmp_path / "fgp.json"
+    row20 = {"terrain": "resolved", "cellsize": 20.0, "case": "yield_stress_s0", "candidate": "mu_i", "param": "mu_i",
+             "truth": None, "refit_hdr90": [0.29, 0.4],
+             "profiles": {"inversion_grid": {"switch": [0.3, 0.35], "z": [-6060.0, -6055.25], "best": 0.35},
+                          "finer_grid": {"switch": [0.3, 0.35], "z": [-6080.5, -6070.0], "best": 0.35}}}
+    f, f20 = tmp_path / "fgp.json", tmp_path / "fgp20.json"
     f.write_text(json.dumps([row]))
-    text = "\n".join(_finer_grid_profile_section(f))
-    assert ("| resolved | earth_pressure_s0 | earth_pressure | 1 | [0.35, 0.625] | 0.75 | 0.5 | "
+    f20.write_text(json.dumps([row20]))
+    text = "\n".join(_finer_grid_profile_section([f, f20, tmp_path / "absent.json"]))
+    assert ("| resolved | 40 | earth_pressure_s0 | earth_pressure | 1 | [0.35, 0.625] | 0.75 | 0.5 | -1308.3 | -1302.0 | "
             "0.5: -0.2, 0.75: 0.0, 1: -1.7 | 0.5: 0.0, 0.75: -23.8, 1: -42.0 |") in text
+    assert ("| resolved | 20 | yield_stress_s0 | mu_i | - | [0.29, 0.4] | 0.35 | 0.35 | -6055.2 | -6070.0 | "
+            "0.3: -4.8, 0.35: 0.0 | 0.3: -10.5, 0.35: 0.0 |") in text
+    assert "\n".join(_finer_grid_profile_section(f)).count("| resolved |") == 1
     assert _finer_grid_profile_section(tmp_path / "absent.json") == []
 
 
@@ -2179,15 +2197,15 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
     from scipy.stats import spearmanr
     from experiments.hidden_physics.make_page import _effect_vs_detection_section
 
-    def case(sc, seed, named, lowers, strength=1.0):
+    def case(sc, seed, named, lowers, strength=1.0, misfit=100.0):
         return {"scenario": sc, "seed": seed, "strength": strength, "truth": {"term": sc},
                 "diagnosis": {"verdict": "missing_physics" if named else "no_missing_physics",
-                              "missing_physics": sc if named else None,
+                              "missing_physics": sc if named else None, "fit_before": {"misfit": misfit},
                               "candidates": [{"name": k, "two_ln_bf_lower": v} for k, v in lowers.items()]}}
 
-    def null(seed, lowers):
+    def null(seed, lowers, misfit=100.0):
         return {"scenario": "null", "seed": seed, "strength": 1.0, "truth": {"term": None},
-                "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None,
+                "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None, "fit_before": {"misfit": misfit},
                               "candidates": [{"name": k, "two_ln_bf_lower": v} for k, v in lowers.items()]}}
 
     run = tmp_path / "run"
@@ -2195,13 +2213,14 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
     (run / "null_calib" / "thresholds.json").write_text(json.dumps({"thresholds": {"bf_min": 17.0}}))
     for seed, lowers in [(100, {"curvature": 6.0, "entrainment": 1.0}), (101, {"curvature": 2.0, "mu_i": 4.0})]:
         (run / "null_calib" / f"null_s{seed}.json").write_text(json.dumps(null(seed, lowers)))
-    cases = {"entrainment_s0": case("entrainment", 0, True, {"entrainment": 40.0, "mu_i": 1.0}),
+    # baseline excess: paired with the reported null seed of the same seed only (seed 0, misfit 50)
+    cases = {"entrainment_s0": case("entrainment", 0, True, {"entrainment": 40.0, "mu_i": 1.0}, misfit=90.0),
              "entrainment_s1": case("entrainment", 1, False, {"entrainment": 10.0, "mu_i": 12.0}),
              "entrainment_s2": case("entrainment", 2, False, {"entrainment": 4.0, "mu_i": 0.0}),
              "entrainment_s0_x2": case("entrainment", 0, True, {"entrainment": 99.0}, strength=2.0),
-             "mu_i_s0": case("mu_i", 0, False, {"mu_i": -3.0, "entrainment": 2.0}),
-             "curvature_s0": case("curvature", 0, False, {"curvature": 5.0}),
-             "null_s0": null(0, {"curvature": 7.0, "entrainment": -2.0})}
+             "mu_i_s0": case("mu_i", 0, False, {"mu_i": -3.0, "entrainment": 2.0}, misfit=45.0),
+             "curvature_s0": case("curvature", 0, False, {"curvature": 5.0}, misfit=40.0),
+             "null_s0": null(0, {"curvature": 7.0, "entrainment": -2.0}, misfit=50.0)}
     for k, c in cases.items():
         (run / f"{k}.json").write_text(json.dumps(c))
     eff = tmp_path / "effect.json"
@@ -2213,15 +2232,17 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
     text = "\n".join(_effect_vs_detection_section([("my run", run, eff, None, None),
                                                    ("no effect", run, tmp_path / "absent.json", None, None)], out=figs))
     # null data: the reported null seed and the two calibration seeds (thresholds.json is not a case)
-    assert f"| my run ({run}) | entrainment | 2.00 | 64 | 3 | 1 | 2 | 10.0 | 0 of 3 | -0.5 | 17.0 |" in text
-    assert f"| my run ({run}) | mu_i | 0.50 | 4 | 1 | 0 | 0 | -3.0 | 1 of 3 | 4.0 | 17.0 |" in text
-    assert f"| my run ({run}) | curvature | 0.75 | 9 | 1 | 0 | 1 | 5.0 | 2 of 3 | 6.0 | 17.0 |" in text
+    assert f"| my run ({run}) | entrainment | 2.00 | 64 | 40 | 3 | 1 | 2 | 10.0 | 0 of 3 | -0.5 | 17.0 |" in text
+    assert f"| my run ({run}) | mu_i | 0.50 | 4 | -5 | 1 | 0 | 0 | -3.0 | 1 of 3 | 4.0 | 17.0 |" in text
+    assert f"| my run ({run}) | curvature | 0.75 | 9 | -10 | 1 | 0 | 1 | 5.0 | 2 of 3 | 6.0 | 17.0 |" in text
     assert "yield_stress" not in text and "no effect" not in text          # no cases / no effect size: no row
     assert ("(1 run-scenario pair) the true term was named in 1 of 3 cases and was the best candidate in 2 of 3 "
             "(on null data 0 of 3); below it (2 run-scenario pairs), named in 0 of 2 and best in 1 of 2 (on null "
             "data 3 of 6).") in text
     rho, p = spearmanr([64, 4, 9], [10.0, -3.0, 5.0])
     assert f"over the 3 pairs: Spearman {rho:.2f} (p {p:.2g})" in text
+    rho, p = spearmanr([40, -5, -10], [10.0, -3.0, 5.0])   # 0.5, not the 1.0 of 2 ln L
+    assert f"baseline excess with the median lower-bound 2 ln BF over the 3 pairs with null seeds 0-4: Spearman {rho:.2f} (p {p:.2g})" in text
     assert (figs / "detection_vs_effect_size_runs.png").stat().st_size > 0
     # the given thresholds file replaces the folder's own
     other = tmp_path / "th.json"
@@ -2229,3 +2250,59 @@ def test_page_section_of_detection_against_measured_effect(tmp_path):
     text = "\n".join(_effect_vs_detection_section([("my run", run, eff, other, tmp_path / "no_nulls")]))
     assert "| 10.0 | 0 of 1 | -2.0 | 48.9 |" in text and "figures/" not in text   # only the reported null seed
     assert _effect_vs_detection_section([("no effect", run, tmp_path / "absent.json", None, None)]) == []
+
+
+def test_page_section_of_the_finer_grid_points(tmp_path):
+    """make_page's finer-grid points section: per case ln L at each point on both grids, the candidate
+    whose best run each grid prefers, whether the truth tops every best run on the finer grid, and
+    the per-scenario tally; absent file: no section."""
+    import json
+    from experiments.hidden_physics.make_page import _finer_grid_points_section
+
+    def pt(label, cand, a, b):
+        return {"label": label, "candidate": cand, "x": [0.25, 500.0, 3.0], "log_lik": {"inversion_grid": a, "finer_grid": b}}
+
+    rows = [{"run": "resolved_20m", "terrain": "resolved", "cellsize": 20.0, "case": "yield_stress_s0",
+             "scenario": "yield_stress", "truth": {"term": "yield_stress", "tau_y": 3.0},
+             "points": [pt("truth", "yield_stress", -6104.4, -6033.2), pt("best run", "yield_stress", -6070.9, -6056.9),
+                        pt("best run", "mu_i", -6062.9, -6071.0)]},
+            {"run": "resolved_20m", "terrain": "resolved", "cellsize": 20.0, "case": "null_s0", "scenario": "null",
+             "truth": {"term": None}, "points": [pt("best run", "yield_stress", -10.0, -12.0), pt("best run", "mu_i", -9.0, -13.0)]}]
+    f = tmp_path / "pts.json"
+    f.write_text(json.dumps(rows))
+    text = "\n".join(_finer_grid_points_section(f))
+    assert ("| resolved | 20 | yield_stress_s0 | truth -6104.4 -> -6033.2; yield_stress -6070.9 -> -6056.9; "
+            "mu_i -6062.9 -> -6071.0 | mu_i | yield_stress | True |") in text
+    assert "| resolved | 20 | null_s0 | yield_stress -10.0 -> -12.0; mu_i -9.0 -> -13.0 | mu_i | yield_stress | - |" in text
+    assert ("* resolved, 20 m cells, yield_stress: the true term's best run preferred in 0 of 1 on the inversion "
+            "grid, 1 of 1 on cells halved.") in text
+    assert "null:" not in text
+    assert _finer_grid_points_section(tmp_path / "absent.json") == []
+
+
+def test_finer_grid_points_rejects_bad_input_before_any_run():
+    """finer_grid_points: an unknown candidate or a case spec without a known run fails with a message
+    naming it, before any solver run."""
+    from experiments.hidden_physics.finer_grid_points import main, points_case
+
+    with pytest.raises(SystemExit, match="unknown candidate 'friction_patch'"):
+        points_case("resolved_20m", "yield_stress_s0", candidates=("yield_stress", "friction_patch"))
+    with pytest.raises(SystemExit, match="'resolved_5m:yield_stress_s0' is not run:case"):
+        main(["--cases", "resolved_5m:yield_stress_s0"])
+    with pytest.raises(SystemExit, match="is not run:case"):
+        main(["--cases", "resolved_20m"])
+
+
+@pytest.mark.slow
+def test_finer_grid_points_on_a_saved_case():
+    """finer_grid_points on the resolved terrain's saved 40 m yield-stress case: finite ln L at the truth
+    and both best runs on both grids, the finer grid's differing from the inversion grid's."""
+    import math
+    from experiments.hidden_physics.finer_grid_points import points_case
+
+    r = points_case("resolved", "yield_stress_s0")
+    assert [(p["label"], p["candidate"]) for p in r["points"]] == [
+        ("truth", "yield_stress"), ("best run", "yield_stress"), ("best run", "mu_i")]
+    for p in r["points"]:
+        a, b = p["log_lik"]["inversion_grid"], p["log_lik"]["finer_grid"]
+        assert math.isfinite(a) and math.isfinite(b) and abs(a - b) > 0.1

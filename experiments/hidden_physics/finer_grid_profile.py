@@ -8,7 +8,9 @@ cause, the same refit on cells half as large over the inversion's own DEM (inter
 as the model error's finer runs do: torchslide.diagnose.model_error.fine_run) would move the switch
 towards the truth, and a "finer-grid check" of the named term would be worth adding to the diagnosis.
 
-For each saved harness case (``terrain:case[:candidate]``, default candidate: the true term): the
+For each saved harness case (``run:case[:candidate]``, run one of RESULTS' keys, default candidate: the
+true term; the terrain, cell size and recording grid are the case's own, so the 20 m runs are profiled
+on 20 m and 10 m cells): the
 profile along the candidate's switch (torchslide.diagnose.profile.switch_profile: a ladder of 5 switch
 values over the centre of the saved refit's 90 % interval +- 1.5 times its width (at least +- 2 % of
 the prior range; extended where the profile stays high), the best ln L + ln prior over (mu, xi) at each by a
@@ -37,7 +39,9 @@ from . import scenarios
 from .scenarios import SCENARIOS, make_evaluator, make_recording
 
 HERE = Path(__file__).parent
-RESULTS = {"narrow": HERE / "results" / "harness", "resolved": HERE / "results" / "resolved" / "results"}
+RESULTS = {"narrow": HERE / "results" / "harness", "resolved": HERE / "results" / "resolved" / "results",
+           "narrow_20m": HERE / "results" / "narrow_20m" / "results",
+           "resolved_20m": HERE / "results" / "resolved_20m" / "results"}
 MIN_HALF = 0.02   # the ladder's least half-width (fraction of the prior range): it follows the refit's interval
 DEFAULT_CASES = ("resolved:earth_pressure_s0,resolved:earth_pressure_s1,resolved:yield_stress_s0,"
                  "resolved:entrainment_s4,narrow:earth_pressure_s0,narrow:entrainment_s0,narrow:yield_stress_s1")
@@ -59,17 +63,20 @@ def finer_grid_evaluator(ev, factor: int = 2):
 def _parse(spec: str) -> tuple[str, str, str | None]:
     parts = spec.split(":")
     if len(parts) not in (2, 3) or parts[0] not in RESULTS:
-        raise SystemExit(f"--cases: {spec!r} is not terrain:case[:candidate] with terrain in {sorted(RESULTS)}")
+        raise SystemExit(f"--cases: {spec!r} is not run:case[:candidate] with run in {sorted(RESULTS)}")
     return parts[0], parts[1], parts[2] if len(parts) == 3 else None
 
 
-def profile_case(terrain: str, case: str, candidate: str | None = None, results=None, seed: int = 0) -> dict:
-    """The two profiles of one saved case (module doc)."""
+def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0) -> dict:
+    """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
+    read unless ``results`` is given). Row: {terrain, cellsize, case, candidate, param, truth,
+    refit_hdr90, profiles: {inversion_grid, finer_grid: {switch, z, best, wall_s}}}."""
     sc, s = case.rsplit("_s", 1)
-    D = json.loads((Path(results or RESULTS[terrain]) / f"{case}.json").read_text())
+    D = json.loads((Path(results or RESULTS[run]) / f"{case}.json").read_text())
+    terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
     with scenarios.terrain_variant(terrain):
-        rec = make_recording(sc, int(s))
-        ev = make_evaluator(rec)
+        rec = make_recording(sc, int(s), cellsize=cellsize, fine_factor=D.get("fine_factor", 2))
+        ev = make_evaluator(rec, cellsize=cellsize)
     cand = candidate or SCENARIOS[sc][0]
     C = CANDIDATES[cand]
     prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
@@ -80,7 +87,7 @@ def profile_case(terrain: str, case: str, candidate: str | None = None, results=
     sd = np.array([(P[n]["hdr90"][1] - P[n]["hdr90"][0]) / 3.3 for n in names])
     b = np.array([[0.12, 150.0, C.prior[0]], [0.4, 1500.0, C.prior[1]]])
     draws = np.clip(m + sd * np.random.default_rng(seed).standard_normal((32, 3)), b[0], b[1])
-    row = {"terrain": terrain, "case": case, "candidate": cand, "param": C.param,
+    row = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
            "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None,
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
     for label, e in (("inversion_grid", ev_c), ("finer_grid", finer_grid_evaluator(ev_c))):
@@ -89,7 +96,7 @@ def profile_case(terrain: str, case: str, candidate: str | None = None, results=
         k = int(np.argmax(r["z"]))
         row["profiles"][label] = {"switch": r["switch"].tolist(), "z": r["z"].tolist(), "best": float(r["switch"][k]),
                                   "wall_s": time.perf_counter() - t0}
-        print(terrain, case, cand, label, "best", round(float(r["switch"][k]), 4), flush=True)
+        print(terrain, cellsize, case, cand, label, "best", round(float(r["switch"][k]), 4), flush=True)
     return row
 
 

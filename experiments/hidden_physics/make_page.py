@@ -646,23 +646,31 @@ def _design_check_section(work: Path | None = None) -> list[str]:
     return L + [""]
 
 
-def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
-    """finer_grid_profile.py's rows (default results/finer_grid_profile.json): per saved case, the
-    profile along the switch on the inversion grid and on cells half as large over the same DEM."""
-    f = Path(f) if f is not None else HERE / "results" / "finer_grid_profile.json"
-    if not f.exists():
+def _finer_grid_profile_section(files=None) -> list[str]:
+    """finer_grid_profile.py's rows (default results/finer_grid_profile.json for the 40 m runs and
+    results/finer_grid_profile_20m.json for the 20 m ones; absent files are skipped): per saved case,
+    the profile along the switch on the inversion grid and on cells half as large over the same DEM,
+    and the best ln L + ln prior each reached (comparable between two candidates of the same case)."""
+    if files is None:
+        files = [HERE / "results" / "finer_grid_profile.json", HERE / "results" / "finer_grid_profile_20m.json"]
+    elif isinstance(files, (str, Path)):
+        files = [files]
+    rows = [r for f in map(Path, files) if f.exists() for r in json.loads(f.read_text())]
+    if not rows:
         return []
-    rows = json.loads(f.read_text())
     L = ["## Probe: would a finer grid over the same DEM correct the switch? "
          "(experiments/hidden_physics/finer_grid_profile.py)", "",
          "Saved cases' refits profiled along the switch (profile.switch_profile: 5 values around the refit's 90 % "
          "interval, more where the profile stays high at an end; the best ln L + ln prior over (mu, xi) at each by "
-         "a local search on the solver), with the measurement errors alone in the likelihood, on the inversion grid (40 m) and on 20 m cells over the "
-         "same 40 m DEM interpolated bilinearly (model_error.fine_run, what the grid's model error compares "
-         "with). If the 40 m solver caused the switch's bias, the finer grid would move the profile's maximum "
-         "towards the truth. 'Profile': the best ln L + ln prior at each switch value minus the largest.", "",
-         "| terrain | case | candidate | truth | refit's hdr90 | best switch, 40 m | best switch, 20 m "
-         "on the 40 m DEM | profile, 40 m | profile, 20 m on the 40 m DEM |", "|---|---|---|---|---|---|---|---|---|"]
+         "a local search on the solver), with the measurement errors alone in the likelihood, on the case's "
+         "inversion grid and on cells half as large over the same DEM interpolated bilinearly "
+         "(model_error.fine_run, what the grid's model error compares with). If the inversion grid's solver "
+         "caused the switch's bias, the finer grid would move the profile's maximum towards the truth. "
+         "'Profile': the best ln L + ln prior at each switch value minus the largest; 'max': the largest "
+         "(two candidates of the same case compare by it; their switches' priors differ by a few units of ln).", "",
+         "| terrain | cells, m | case | candidate | truth | refit's hdr90 | best switch, inversion grid | "
+         "best switch, cells halved | max, inversion grid | max, cells halved | profile, inversion grid | "
+         "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def prof(p):
         z = np.asarray(p["z"], float)
@@ -672,8 +680,51 @@ def _finer_grid_profile_section(f: Path | None = None) -> list[str]:
         a, b = r["profiles"]["inversion_grid"], r["profiles"]["finer_grid"]
         lo, hi = r["refit_hdr90"]
         truth = "-" if r["truth"] is None else f"{r['truth']:.3g}"
-        L.append(f"| {r['terrain']} | {r['case']} | {r['candidate']} | {truth} | [{lo:.3g}, {hi:.3g}] | "
-                 f"{a['best']:.3g} | {b['best']:.3g} | {prof(a)} | {prof(b)} |")
+        L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {r['case']} | {r['candidate']} | {truth} | "
+                 f"[{lo:.3g}, {hi:.3g}] | {a['best']:.3g} | {b['best']:.3g} | {max(a['z']):.1f} | {max(b['z']):.1f} | "
+                 f"{prof(a)} | {prof(b)} |")
+    return L + [""]
+
+
+def _finer_grid_points_section(f: Path | None = None) -> list[str]:
+    """finer_grid_points.py's rows (default results/finer_grid_points.json): per saved case ln L with
+    the measurement errors alone at the truth and at each candidate's best run, on the inversion grid
+    and on cells half as large, and which candidate's best run each grid prefers."""
+    from .scenarios import SWITCH
+    f = Path(f) if f is not None else HERE / "results" / "finer_grid_points.json"
+    if not f.exists():
+        return []
+    rows = json.loads(f.read_text())
+    L = ["## Probe: which term do cells half as large prefer? (experiments/hidden_physics/finer_grid_points.py)", "",
+         "Saved cases: ln L with the measurement errors alone (no grid model error) at the truth (the true term at "
+         "its true switch, mu = 0.25, xi = 500) and at each candidate's best run in the saved refit, on the case's "
+         "inversion grid and on cells half as large over the same DEM (model_error.fine_run). Points, not "
+         "searches: a best run on the inversion grid is not the best on the finer grid, so the finer grid's "
+         "value is a lower bound for that candidate there. 'Prefers': the candidate whose best run has the "
+         "larger ln L.", "",
+         "| terrain | cells, m | case | ln L: inversion grid -> cells halved | prefers, inversion grid | "
+         "prefers, cells halved | truth above every best run, cells halved |", "|---|---|---|---|---|---|---|"]
+    tally = {}
+    for r in rows:
+        best = [p for p in r["points"] if p["label"] == "best run"]
+        pref = {g: max(best, key=lambda p: p["log_lik"][g])["candidate"] if best else "-"
+                for g in ("inversion_grid", "finer_grid")}
+        truth = next((p for p in r["points"] if p["label"] == "truth"), None)
+        above = "-" if truth is None or not best else str(all(truth["log_lik"]["finer_grid"] > p["log_lik"]["finer_grid"]
+                                                             for p in best))
+        cells = "; ".join(f"{p['label'] if p['label'] == 'truth' else p['candidate']} "
+                          f"{p['log_lik']['inversion_grid']:.1f} -> {p['log_lik']['finer_grid']:.1f}" for p in r["points"])
+        L.append(f"| {r['terrain']} | {r['cellsize']:g} | {r['case']} | {cells} | {pref['inversion_grid']} | "
+                 f"{pref['finer_grid']} | {above} |")
+        t = tally.setdefault((r["terrain"], r["cellsize"], r["scenario"]), [0, 0, 0])
+        t[0] += 1
+        t[1] += pref["inversion_grid"] == r["scenario"]
+        t[2] += pref["finer_grid"] == r["scenario"]
+    L.append("")
+    for (terrain, cs, sc), (n, a, b) in tally.items():
+        if sc in SWITCH:
+            L.append(f"* {terrain}, {cs:g} m cells, {sc}: the true term's best run preferred in {a} of {n} on the "
+                     f"inversion grid, {b} of {n} on cells halved.")
     return L + [""]
 
 
@@ -830,20 +881,32 @@ def _narrow_20m_section(d=None, prev=None) -> list[str]:
         "Each with thresholds from its own null seeds.")
 
 
-def _resolved_20m_section(d=None, prev=None) -> list[str]:
+def _resolved_20m_section(d=None, prev=None, effect=None) -> list[str]:
     """The resolved terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
-    --terrain resolved --cellsize 20 --out results/resolved_20m/results``, session 26): its cases in ``d``
+    --terrain resolved --cellsize 20 --out results/resolved_20m/results``, sessions 26-27): its cases in ``d``
     (default results/resolved_20m/results; null calibration seeds and thresholds in d/null_calib), the
     targets, every case, and the same cases on the resolved run's 40 m cells (``prev``, default
-    results/resolved/results)."""
+    results/resolved/results). ``effect``: the 20 m effect-size file (default
+    results/effect_size_resolved_20m.json) for each run scenario's unmimicked effect over the grid's floor."""
+    from .scenarios import SCENARIOS
+    ef = Path(effect) if effect is not None else HERE / "results" / "effect_size_resolved_20m.json"
+
     def describe(cases, th):
+        ran = [s for s in SCENARIOS if any(c["scenario"] == s for c in cases)]
+        left = [s for s in SCENARIOS if s not in ran]
+        e = json.loads(ef.read_text()) if ef.exists() else None
+        ratios = ", ".join(f"{s} {e['scenarios'][s]['effect_unmimicked'] / e['discretisation_unmimicked']:.2f}"
+                           for s in ran if e and s in e["scenarios"])
         return ("The resolved terrain's harness with both grids halved (inversion 20 m, recordings 10 m): same "
-                "terrain, seeds, noise, release error, budgets and method. A probe of earth pressure, whose 40 m "
-                "refits were supported by the evidence but whose intervals missed the truth in every seed (the "
-                "switch's bias, section 'Would a finer grid over the same DEM correct the switches?' in the README); "
-                "its unmimicked effect at 20 m is 1.78 of that grid's floor (effect_size_resolved_20m.json). "
-                "Session 8 probed curvature and yield stress on this terrain at 20 m with the method of then "
-                "(EARLIER.md). Median wall time per case "
+                "terrain, seeds, noise, release error, budgets and method. Scenarios run: " + ", ".join(ran)
+                + (f"; not yet run: {', '.join(left)}" if left else "") + ". Session 26 began it with earth "
+                "pressure, whose 40 m refits were supported by the evidence but whose intervals missed the truth "
+                "in every seed (the switch's bias, section 'Would a finer grid over the same DEM correct the "
+                "switches?' in the README). "
+                + (f"Unmimicked effect over the 20 m grid's floor ({ef.name}): {ratios}. " if ratios else "")
+                + "Fit flags are off here (no fit_max: no block-fit probe on 20 m cells), so a located mismatch or a "
+                "candidate's evidence alone decides. Session 8 probed curvature and yield stress on this terrain at "
+                "20 m with the method of then (EARLIER.md). Median wall time per case "
                 f"{np.median([c['wall_s'] for c in cases]) / 60:.0f} min (two cases in parallel on 2 cores). "
                 + _thresholds_sentence(th, "at 20 m on this terrain"))
     return _variant_section(
@@ -1384,19 +1447,24 @@ def _effect_rows(runs) -> list[dict]:
         if thf is not None:
             th = json.loads(Path(thf).read_text()) if Path(thf).exists() else None
         nd = Path(nd) if nd is not None else d / "null_calib"
-        nulls = ([c for c in cases if c["truth"].get("term") is None]
-                 + [json.loads(p.read_text()) for p in sorted(nd.glob("*.json")) if p.name != "thresholds.json"])
+        reported_nulls = [c for c in cases if c["truth"].get("term") is None]
+        nulls = reported_nulls + [json.loads(p.read_text()) for p in sorted(nd.glob("*.json"))
+                                  if p.name != "thresholds.json"]
+        null_misfit = {c["seed"]: c["diagnosis"]["fit_before"]["misfit"] for c in reported_nulls}
         for sc, r in e["scenarios"].items():
             cs = [c for c in cases if c["truth"].get("term") == sc]
             if not cs:
                 continue
             best, median = best_and_median(cs, sc)
             null_best, null_median = best_and_median(nulls, sc)
+            excess = [c["diagnosis"]["fit_before"]["misfit"] - null_misfit[c["seed"]] for c in cs
+                      if c["seed"] in null_misfit]
             rows.append({"run": label, "folder": d, "scenario": sc, "n": len(cs),
                          "named": sum(found_label(c) == sc for c in cs), "best": best, "median_lower": median,
                          "null_n": len(nulls), "null_best": null_best, "null_median_lower": null_median,
                          "ratio": r["effect_unmimicked"] / max(e["discretisation_unmimicked"], 1e-12),
                          "two_ln_l": r["effect_unmimicked"] ** 2,
+                         "excess": float(np.median(excess)) if excess else None, "excess_n": len(excess),
                          "bf_min": (th or {}).get("thresholds", {}).get("bf_min")})
     return rows
 
@@ -1424,13 +1492,18 @@ def _effect_vs_detection_section(runs=None, out: Path | None = None) -> list[str
          "named, the true term the best candidate (largest lower-bound 2 ln BF), and the median of its lower-bound "
          "2 ln BF against the run's naming threshold bf_min (from its own null seeds). 'On null data': the same "
          "two for this term on the run's cases with nothing hidden (its reported null seeds and its null "
-         "calibration seeds): a term that comes out best there too is not detected by coming out best.", "",
-         "| run | scenario | effect / floor | noise-free 2 ln L | cases | named | best candidate | median lower 2 ln BF "
-         "| on null data: best candidate | on null data: median lower 2 ln BF | bf_min |",
-         "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "calibration seeds): a term that comes out best there too is not detected by coming out best. 'Baseline "
+         "excess': the median over seeds of the calibrated baseline's misfit (fit_before: its posterior-predictive mean against the data, chi-square "
+         "in the same effective sigmas, without the grid error's covariance that the likelihood adds) on the scenario's recording minus on the null recording of the same seed (same noise "
+         "draws and release error): the part of the term's effect that the calibration of mu, xi did not absorb, "
+         "the nonlinear re-tuning included, measured on the run's own cases rather than predicted.", "",
+         "| run | scenario | effect / floor | noise-free 2 ln L | baseline excess | cases | named | best candidate "
+         "| median lower 2 ln BF | on null data: best candidate | on null data: median lower 2 ln BF | bf_min |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(rows, key=lambda r: r["ratio"]):
         L.append(f"| {r['run']} ({_shown(r['folder'], HERE)}) | {r['scenario']} | {r['ratio']:.2f} | "
-                 f"{r['two_ln_l']:.0f} | {r['n']} | {r['named']} | {r['best']} | {f(r['median_lower'])} | "
+                 f"{r['two_ln_l']:.0f} | {f(r['excess'], '{:.0f}')} | {r['n']} | {r['named']} | {r['best']} | "
+                 f"{f(r['median_lower'])} | "
                  f"{r['null_best']} of {r['null_n']} | {f(r['null_median_lower'])} | {f(r['bf_min'])} |")
     above = [r for r in rows if r["ratio"] >= 1]
     below = [r for r in rows if r["ratio"] < 1]
@@ -1446,6 +1519,12 @@ def _effect_vs_detection_section(runs=None, out: Path | None = None) -> list[str
         rho, p = spearmanr(*zip(*paired))
         L += [f"Rank correlation of the noise-free 2 ln L with the median lower-bound 2 ln BF over the "
               f"{len(paired)} pairs: Spearman {rho:.2f} (p {p:.2g})."]
+    measured = [(r["excess"], r["median_lower"]) for r in rows
+                if r["excess"] is not None and r["median_lower"] is not None]
+    if len(measured) >= 3:
+        rho, p = spearmanr(*zip(*measured))
+        L += [f"Rank correlation of the baseline excess with the median lower-bound 2 ln BF over the "
+              f"{len(measured)} pairs with null seeds 0-4: Spearman {rho:.2f} (p {p:.2g})."]
     if out is not None:
         import matplotlib
         matplotlib.use("Agg")
@@ -1637,6 +1716,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _switch_bias_section()
     L += _own_model_error_section()
     L += _finer_grid_profile_section()
+    L += _finer_grid_points_section()
     L += _finer_grid_section()
     L += _grid_convergence_section()
     walls = [c["wall_s"] for c in cases]
