@@ -2280,6 +2280,34 @@ def test_page_section_of_the_finer_grid_points(tmp_path):
     assert _finer_grid_points_section(tmp_path / "absent.json") == []
 
 
+def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypatch):
+    """finer_grid_profile's CLI: a spec without a known run or a case not saved fails with a message
+    naming it before any run; cases already in --out are skipped (resume), new rows are appended and
+    written after each case."""
+    import json
+    from experiments.hidden_physics import finer_grid_profile as fgp
+
+    with pytest.raises(SystemExit, match="'resolved_5m:yield_stress_s0' is not run:case"):
+        fgp.main(["--cases", "resolved_5m:yield_stress_s0", "--out", str(tmp_path / "o.json")])
+    with pytest.raises(SystemExit, match="no saved case 'yield_stress_s9'"):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s0,resolved_20m:yield_stress_s9",
+                  "--out", str(tmp_path / "o.json")])
+    assert not (tmp_path / "o.json").exists()
+    out = tmp_path / "rows.json"
+    out.write_text(json.dumps([{"terrain": "resolved", "cellsize": 20.0, "case": "yield_stress_s0",
+                                "candidate": "yield_stress"}]))
+    calls = []
+
+    def fake(run, case, cand=None):
+        calls.append((run, case, cand))
+        return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand}
+
+    monkeypatch.setattr(fgp, "profile_case", fake)
+    fgp.main(["--cases", "resolved_20m:yield_stress_s0,resolved_20m:yield_stress_s0:mu_i", "--out", str(out)])
+    assert calls == [("resolved_20m", "yield_stress_s0", "mu_i")]      # the true term's row was there
+    assert [r["candidate"] for r in json.loads(out.read_text())] == ["yield_stress", "mu_i"]
+
+
 def test_finer_grid_points_rejects_bad_input_before_any_run():
     """finer_grid_points: an unknown candidate or a case spec without a known run fails with a message
     naming it, before any solver run."""

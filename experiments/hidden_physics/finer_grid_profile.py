@@ -102,13 +102,26 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
 
 def main(argv=None) -> int:
     a = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    a.add_argument("--cases", default=DEFAULT_CASES, help="comma-separated terrain:case[:candidate]")
-    a.add_argument("--out", default=str(HERE / "results" / "finer_grid_profile.json"))
+    a.add_argument("--cases", default=DEFAULT_CASES, help="comma-separated run:case[:candidate]")
+    a.add_argument("--out", default=str(HERE / "results" / "finer_grid_profile.json"),
+                   help="rows file; an existing one is kept and its cases are skipped (resume)")
     args = a.parse_args(argv)
-    rows = [profile_case(*_parse(c)) for c in args.cases.split(",") if c]
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(rows, indent=1))
-    print("wrote", args.out)
+    specs = [_parse(c) for c in args.cases.split(",") if c]
+    for run, case, _ in specs:
+        if not (RESULTS[run] / f"{case}.json").exists():
+            raise SystemExit(f"--cases: no saved case {case!r} in {RESULTS[run]}")
+    out = Path(args.out)
+    rows = json.loads(out.read_text()) if out.exists() else []
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for run, case, cand in specs:
+        cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
+        key = (cs.get("terrain", run), float(cs.get("cellsize", 40.0)), case, cand or SCENARIOS[cs["scenario"]][0])
+        if any((r["terrain"], float(r.get("cellsize", 40.0)), r["case"], r["candidate"]) == key for r in rows):
+            print("already in", out, *key)
+            continue
+        rows.append(profile_case(run, case, cand))
+        out.write_text(json.dumps(rows, indent=1))      # after every case: an interrupted run loses one
+    print("wrote", out)
     return 0
 
 
