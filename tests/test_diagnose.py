@@ -2308,7 +2308,7 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     assert [r["candidate"] for r in json.loads(out.read_text())] == ["yield_stress", "mu_i"]
 
 
-def test_finer_grid_points_rejects_bad_input_before_any_run():
+def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):
     """finer_grid_points: an unknown candidate or a case spec without a known run fails with a message
     naming it, before any solver run."""
     from experiments.hidden_physics.finer_grid_points import main, points_case
@@ -2319,6 +2319,36 @@ def test_finer_grid_points_rejects_bad_input_before_any_run():
         main(["--cases", "resolved_5m:yield_stress_s0"])
     with pytest.raises(SystemExit, match="is not run:case"):
         main(["--cases", "resolved_20m"])
+    # a bad spec after a good one fails before the good one runs
+    from experiments.hidden_physics import finer_grid_points as fgp
+    ran = []
+    monkeypatch.setattr(fgp, "points_case", lambda *a: ran.append(a) or {})
+    with pytest.raises(SystemExit, match="'resolved_20m' is not run:case"):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s0,resolved_20m"])
+    assert ran == []
+
+
+def test_finer_grid_points_cli_writes_after_every_case(tmp_path, monkeypatch):
+    """finer_grid_points' CLI writes its rows file after each case, so an interrupted run keeps what
+    finished."""
+    import json
+    from experiments.hidden_physics import finer_grid_points as fgp
+
+    out = tmp_path / "pts.json"
+    seen = []
+
+    def fake(run, case, cands):
+        seen.append(json.loads(out.read_text()) if out.exists() else None)
+        if case == "mu_i_s0":
+            raise KeyboardInterrupt
+        return {"run": run, "case": case, "candidates": list(cands)}
+
+    monkeypatch.setattr(fgp, "points_case", fake)
+    with pytest.raises(KeyboardInterrupt):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s0,resolved_20m:mu_i_s0", "--candidates", "mu_i",
+                  "--out", str(out)])
+    assert seen[0] is None and [r["case"] for r in seen[1]] == ["yield_stress_s0"]
+    assert json.loads(out.read_text()) == [{"run": "resolved_20m", "case": "yield_stress_s0", "candidates": ["mu_i"]}]
 
 
 @pytest.mark.slow

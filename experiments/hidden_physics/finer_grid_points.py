@@ -85,15 +85,18 @@ def main(argv=None) -> int:
     a.add_argument("--out", default=str(HERE / "results" / "finer_grid_points.json"))
     args = a.parse_args(argv)
     cands = [c for c in args.candidates.split(",") if c]
-    rows = []
-    for spec in (c for c in args.cases.split(",") if c):
-        run, _, case = spec.partition(":")
+    raw = [spec for spec in args.cases.split(",") if spec]
+    specs = [spec.partition(":")[::2] for spec in raw]
+    for spec, (run, case) in zip(raw, specs):      # every spec checked before any run
         if run not in RESULTS or not case:
             raise SystemExit(f"--cases: {spec!r} is not run:case with run in {sorted(RESULTS)}")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for run, case in specs:
         rows.append(points_case(run, case, cands))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(rows, indent=1))
-    print("wrote", args.out)
+        out.write_text(json.dumps(rows, indent=1))      # after every case: an interrupted run keeps the rest
+    print("wrote", out)
     return 0
 
 

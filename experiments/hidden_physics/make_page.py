@@ -883,7 +883,7 @@ def _narrow_20m_section(d=None, prev=None) -> list[str]:
 
 def _resolved_20m_section(d=None, prev=None, effect=None) -> list[str]:
     """The resolved terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
-    --terrain resolved --cellsize 20 --out results/resolved_20m/results``, sessions 26-27): its cases in ``d``
+    --terrain resolved --cellsize 20 --out results/resolved_20m/results``, sessions 26-28): its cases in ``d``
     (default results/resolved_20m/results; null calibration seeds and thresholds in d/null_calib), the
     targets, every case, and the same cases on the resolved run's 40 m cells (``prev``, default
     results/resolved/results). ``effect``: the 20 m effect-size file (default
