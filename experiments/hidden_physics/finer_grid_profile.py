@@ -5,7 +5,8 @@ experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
 cause, the same refit on cells half as large over the inversion's own DEM (interpolated bilinearly,
-as the model error's finer runs do: torchslide.diagnose.model_error.fine_run) would move the switch
+as the model error's finer runs do: torchslide.diagnose.model_error.fine_run; the finer-grid profile
+is torchslide.diagnose.finer.finer_profile, the diagnosis' finer-grid check) would move the switch
 towards the truth, and a "finer-grid check" of the named term would be worth adding to the diagnosis.
 
 For each saved harness case (``run:case[:candidate]``, run one of RESULTS' keys, default candidate: the
@@ -23,7 +24,6 @@ results/finer_grid_profile.json); the results page reads them.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import time
 from pathlib import Path
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from torchslide.bayes import Prior, Uniform
-from torchslide.diagnose.model_error import fine_run
+from torchslide.diagnose.finer import MIN_HALF, finer_profile, profile_starts
 from torchslide.diagnose.profile import switch_profile
 from torchslide.physics import CANDIDATES
 
@@ -42,22 +42,8 @@ HERE = Path(__file__).parent
 RESULTS = {"narrow": HERE / "results" / "harness", "resolved": HERE / "results" / "resolved" / "results",
            "narrow_20m": HERE / "results" / "narrow_20m" / "results",
            "resolved_20m": HERE / "results" / "resolved_20m" / "results"}
-MIN_HALF = 0.02   # the ladder's least half-width (fraction of the prior range): it follows the refit's interval
 DEFAULT_CASES = ("resolved:earth_pressure_s0,resolved:earth_pressure_s1,resolved:yield_stress_s0,"
                  "resolved:entrainment_s4,narrow:earth_pressure_s0,narrow:entrainment_s0,narrow:yield_stress_s1")
-
-
-def finer_grid_evaluator(ev, factor: int = 2):
-    """A copy of the DiagnosisEvaluator ``ev`` whose runs are on cells ``factor`` times smaller over
-    the same inputs (model_error.fine_run), predicting the same observations."""
-    base = type(ev)
-
-    class FinerGrid(base):
-        def simulate(self, x):
-            return fine_run(self, x, factor)
-
-    kw = {f.name: getattr(ev, f.name) for f in dataclasses.fields(ev) if f.init and f.name not in ("records", "solver_seconds")}
-    return FinerGrid(**kw)
 
 
 def _parse(spec: str) -> tuple[str, str, str | None]:
@@ -82,21 +68,20 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
     ev_c = ev.with_prior(prior, fixed=dict(C.fixed))
     P = next(c for c in D["diagnosis"]["candidates"] if c["name"] == cand)["parameters"]
-    names = ["mu", "xi", C.param]
-    m = np.array([P[n]["mean"] for n in names])
-    sd = np.array([(P[n]["hdr90"][1] - P[n]["hdr90"][0]) / 3.3 for n in names])
-    b = np.array([[0.12, 150.0, C.prior[0]], [0.4, 1500.0, C.prior[1]]])
-    draws = np.clip(m + sd * np.random.default_rng(seed).standard_normal((32, 3)), b[0], b[1])
     row = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
            "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None,
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
-    for label, e in (("inversion_grid", ev_c), ("finer_grid", finer_grid_evaluator(ev_c))):
-        t0 = time.perf_counter()
-        r = switch_profile(e, draws, P[C.param]["hdr90"], b, n_values=5, n_iter=2, pop=6, min_half=MIN_HALF, seed=seed)
-        k = int(np.argmax(r["z"]))
-        row["profiles"][label] = {"switch": r["switch"].tolist(), "z": r["z"].tolist(), "best": float(r["switch"][k]),
-                                  "wall_s": time.perf_counter() - t0}
-        print(terrain, cellsize, case, cand, label, "best", round(float(r["switch"][k]), 4), flush=True)
+    # on the inversion grid: the same ladder and start points as the finer grid's (finer.finer_profile)
+    b = ev_c.prior.bounds.numpy()
+    t0 = time.perf_counter()
+    r = switch_profile(ev_c, profile_starts(P, list(ev_c.prior.names), b, seed=seed), P[C.param]["hdr90"], b,
+                       n_values=5, n_iter=2, pop=6, min_half=MIN_HALF, seed=seed)
+    k = int(np.argmax(r["z"]))
+    row["profiles"]["inversion_grid"] = {"switch": r["switch"].tolist(), "z": r["z"].tolist(),
+                                         "best": float(r["switch"][k]), "wall_s": time.perf_counter() - t0}
+    row["profiles"]["finer_grid"] = finer_profile(ev_c, P, factor=2, seed=seed)
+    for label, pr in row["profiles"].items():
+        print(terrain, cellsize, case, cand, label, "best", round(pr["best"], 4), flush=True)
     return row
 
 
