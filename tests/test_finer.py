@@ -146,3 +146,64 @@ def test_cli_finer_check_key(tmp_path):
     r, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nfiner_check = 1')
     with pytest.raises(ConfigError, match="finer_check must be true or false, got 1"):
         load_diagnose_config(r)
+
+
+def _saved_case(tmp_path, scenario, seed, cands, covered=True):
+    """A saved harness case (the keys finer_check.py and the page read) decided without the check."""
+    import json
+    from dataclasses import asdict
+
+    th = Thresholds(bf_min=20.0, located_min=8.0)
+    d = decide(cands, LOC, BASE, 100.0, th)
+    term = {"null": None, "low_friction_patch": "outside"}.get(scenario, scenario)
+    case = {"scenario": scenario, "seed": seed, "terrain": "resolved", "cellsize": 20.0, "truth": {"term": term},
+            "true_term_covered_hdr90": covered,
+            "diagnosis": {"verdict": d["verdict"], "missing_physics": d["missing_physics"], "candidates": cands,
+                          "located": LOC, "decision": dict(d, baseline_verification=BASE),
+                          "fit_before": {"misfit": 100.0}, "fit_after": {"misfit": 50.0}, "thresholds": asdict(th)}}
+    (tmp_path / f"{scenario}_s{seed}.json").write_text(json.dumps(case))
+
+
+def _profile_row(case, cand, z):
+    return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand,
+            "profiles": {"finer_grid": {"switch": [0.0, 1.0, 2.0], "z": [z - 3.0, z, z - 1.0]}}}
+
+
+def test_finer_check_script_redecides_saved_cases_and_the_page_shows_them(tmp_path):
+    """finer_check.py: a yield-stress case that the Bayes factors gave to mu_i is named yield stress after
+    the check (strict with the finer margin only); a case whose profiles are missing stays as it was
+    and is listed; a null case without a pair is untouched; the saved cases are not changed."""
+    import json
+
+    from experiments.hidden_physics.finer_check import main
+    from experiments.hidden_physics.make_page import _finer_check_section
+
+    res = tmp_path / "results"
+    res.mkdir()
+    _saved_case(res, "yield_stress", 0, [_cand("mu_i", 60.0), _cand("yield_stress", 35.0)])
+    _saved_case(res, "yield_stress", 1, [_cand("yield_stress", 60.0), _cand("mu_i", 50.0)])
+    _saved_case(res, "null", 0, [_cand("curvature", 10.0, two_ln_bf_lower=8.0)])
+    before = {p.name: p.read_text() for p in res.iterdir()}
+    prof = tmp_path / "profiles.json"
+    prof.write_text(json.dumps([_profile_row("yield_stress_s0", "mu_i", -20.0),
+                                _profile_row("yield_stress_s0", "yield_stress", -10.0)]))
+    out = tmp_path / "fc.json"
+    assert main(["--results", str(res), "--profiles", str(prof), "--out", str(out)]) == 0
+    assert {p.name: p.read_text() for p in res.iterdir()} == before
+    rows = {r["case"]: r for r in json.loads(out.read_text())["rows"]}
+    r0 = rows["yield_stress_s0"]
+    assert r0["pair"] == ["mu_i", "yield_stress"] and r0["applied"] and r0["leader"] == "yield_stress"
+    assert r0["two_ln_ratio"] == pytest.approx(20.0)
+    assert (r0["named_before"], r0["named_after"]) == ("mu_i", "yield_stress")
+    assert (r0["strict_before"], r0["strict_after"], r0["strict_after_finer"]) == (False, False, True)
+    r1 = rows["yield_stress_s1"]
+    assert r1["missing_profiles"] == ["yield_stress", "mu_i"] and not r1["applied"]
+    assert r1["named_after"] == r1["named_before"] == "yield_stress"
+    assert rows["null_s0"]["pair"] is None and rows["null_s0"]["verdict_after"] == rows["null_s0"]["verdict_before"]
+    md = "\n".join(_finer_check_section(out))
+    assert "| yield_stress_s0 | mu_i > yield_stress | yield_stress, 20.0 | mu_i | yield_stress | True | " \
+           "False -> False (True) |" in md
+    assert "| yield_stress | 2 | 2 | 1 -> 2 | 1 -> 1 (2) |" in md
+    assert "Cases lacking a profile (decided as before): yield_stress_s1" in md
+    with pytest.raises(SystemExit, match="no profile file"):
+        main(["--results", str(res), "--profiles", str(tmp_path / "none.json"), "--out", str(out)])
