@@ -207,10 +207,10 @@ def test_release_volume_sd_needs_the_model_error_runs(tmp_path):
 
 
 def test_finer_grid_evaluator_predicts_what_the_model_errors_finer_runs_do():
-    """torchslide.diagnose.finer.finer_grid_evaluator: an evaluator whose runs are
+    """experiments.hidden_physics.finer_grid_profile.finer_grid_evaluator: an evaluator whose runs are
     model_error.fine_run's (cells half as large over the same inputs), so its predictions are
     fine_predictions' and differ from the inversion grid's; its z uses the same likelihood."""
-    from torchslide.diagnose.finer import finer_grid_evaluator
+    from experiments.hidden_physics.finer_grid_profile import finer_grid_evaluator
 
     ev = _evaluator()
     fe = finer_grid_evaluator(ev)

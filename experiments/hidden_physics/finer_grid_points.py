@@ -7,7 +7,7 @@ solver's own error, or would the recordings prefer mu(I) on any grid? For each s
 (``run:case``, run one of finer_grid_profile.RESULTS' keys) the log-likelihood ln L with the
 measurement errors alone (no grid model error: the finer grid is what that error stands for) is
 evaluated on the case's inversion grid and on cells half as large over the same DEM
-(torchslide.diagnose.finer.finer_grid_evaluator, model_error.fine_run) at:
+(finer_grid_profile.finer_grid_evaluator, model_error.fine_run) at:
 
 * ``truth``: the true term at its true switch and TRUE_BASE's mu, xi (in-library scenarios only);
 * each candidate's best run in the saved refit (report ``best_x``), under that candidate's model.
@@ -28,12 +28,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchslide.diagnose.finer import finer_grid_evaluator
 from torchslide.diagnose.refit import candidate_evaluator
 from torchslide.physics import CANDIDATES
 
 from . import scenarios
-from .finer_grid_profile import RESULTS
+from .finer_grid_profile import RESULTS, finer_grid_evaluator
 from .scenarios import SWITCH, TRUE_BASE, make_evaluator, make_recording
 
 HERE = Path(__file__).parent

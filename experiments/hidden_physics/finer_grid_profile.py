@@ -5,8 +5,7 @@ experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
 cause, the same refit on cells half as large over the inversion's own DEM (interpolated bilinearly,
-as the model error's finer runs do: torchslide.diagnose.model_error.fine_run; the finer-grid profile
-is torchslide.diagnose.finer.finer_profile, the diagnosis' finer-grid check) would move the switch
+as the model error's finer runs do: torchslide.diagnose.model_error.fine_run) would move the switch
 towards the truth, and a "finer-grid check" of the named term would be worth adding to the diagnosis.
 
 For each saved harness case (``run:case[:candidate]``, run one of RESULTS' keys, default candidate: the
@@ -24,6 +23,7 @@ results/finer_grid_profile.json); the results page reads them.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from torchslide.bayes import Prior, Uniform
-from torchslide.diagnose.finer import MIN_HALF, finer_profile, profile_starts
+from torchslide.diagnose.model_error import fine_run
 from torchslide.diagnose.profile import switch_profile
 from torchslide.physics import CANDIDATES
 
@@ -41,9 +41,64 @@ from .scenarios import SCENARIOS, make_evaluator, make_recording
 HERE = Path(__file__).parent
 RESULTS = {"narrow": HERE / "results" / "harness", "resolved": HERE / "results" / "resolved" / "results",
            "narrow_20m": HERE / "results" / "narrow_20m" / "results",
-           "resolved_20m": HERE / "results" / "resolved_20m" / "results"}
+           "resolved_20m": HERE / "results" / "resolved_20m" / "results",
+           "resolved_vol": HERE / "results" / "resolved_vol" / "results"}
 DEFAULT_CASES = ("resolved:earth_pressure_s0,resolved:earth_pressure_s1,resolved:yield_stress_s0,"
                  "resolved:entrainment_s4,narrow:earth_pressure_s0,narrow:entrainment_s0,narrow:yield_stress_s1")
+
+
+N_STARTS = 32      # profile start points drawn around the saved refit (profile_starts)
+MIN_HALF = 0.02   # the ladder's least half-width (fraction of the prior range): it follows the refit's interval
+
+
+def finer_grid_evaluator(ev, factor: int = 2):
+    """A copy of the DiagnosisEvaluator ``ev`` (same prior, likelihood and observations) whose runs are
+    on cells ``factor`` times smaller over the same inputs (model_error.fine_run)."""
+    if int(factor) != factor or factor < 2:
+        raise ValueError(f"finer-grid factor must be an integer >= 2, got {factor!r}")
+    base = type(ev)
+
+    class FinerGrid(base):
+        def simulate(self, x):
+            return fine_run(self, x, int(factor))
+
+    kw = {f.name: getattr(ev, f.name) for f in dataclasses.fields(ev) if f.init and f.name not in ("records", "solver_seconds")}
+    return FinerGrid(**kw)
+
+
+def profile_starts(parameters: dict, names, bounds: np.ndarray, n: int = N_STARTS, seed: int = 0) -> np.ndarray:
+    """(n, p) start points around a refit known by its reported ``parameters`` ({name: {mean, hdr90}},
+    as in report.json; the report keeps no samples): normal draws with the posterior mean and
+    sd = (90 % interval width) / 3.3, clipped to ``bounds`` (2, p); ``names`` (p,) in the evaluator's
+    order, the switch last."""
+    missing = [k for k in names if k not in parameters or "mean" not in parameters[k] or "hdr90" not in parameters[k]]
+    if missing:
+        raise ValueError(f"refit parameters lack mean / hdr90 for {missing}")
+    m = np.array([parameters[k]["mean"] for k in names], float)
+    sd = np.array([(parameters[k]["hdr90"][1] - parameters[k]["hdr90"][0]) / 3.3 for k in names], float)
+    b = np.asarray(bounds, float)
+    return np.clip(m + sd * np.random.default_rng(seed).standard_normal((n, len(names))), b[0], b[1])
+
+
+def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_values: int = 5, n_iter: int = 2,
+                 pop: int = 6) -> dict:
+    """Profile of one candidate along its switch (module doc) on the evaluator's grid (``factor`` 1) or
+    on cells ``factor`` times smaller. ``ev_c``: the candidate's evaluator (prior: baseline parameters
+    + switch last); ``parameters``: its refit's {name: {mean, hdr90}}. Returns {switch (K,), z (K,),
+    best (switch at the maximum), z_max, runs, wall_s}."""
+    names = list(ev_c.prior.names)
+    b = ev_c.prior.bounds.numpy()
+    e = ev_c if factor == 1 else finer_grid_evaluator(ev_c, factor)
+    t0 = time.perf_counter()
+    r = switch_profile(e, profile_starts(parameters, names, b, seed=seed), parameters[names[-1]]["hdr90"], b,
+                       n_values=n_values, n_iter=n_iter, pop=pop, min_half=MIN_HALF, seed=seed)
+    z = np.where(np.isfinite(r["z"]), r["z"], -np.inf)
+    if not np.isfinite(z).any():
+        raise RuntimeError(f"profile of {names[-1]}: every run failed")
+    k = int(np.argmax(z))
+    return {"switch": np.asarray(r["switch"], float).tolist(), "z": np.asarray(r["z"], float).tolist(),
+            "best": float(r["switch"][k]), "z_max": float(z[k]), "runs": len(e.records),
+            "wall_s": time.perf_counter() - t0}
 
 
 def _parse(spec: str) -> tuple[str, str, str | None]:
@@ -71,17 +126,9 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     row = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
            "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None,
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
-    # on the inversion grid: the same ladder and start points as the finer grid's (finer.finer_profile)
-    b = ev_c.prior.bounds.numpy()
-    t0 = time.perf_counter()
-    r = switch_profile(ev_c, profile_starts(P, list(ev_c.prior.names), b, seed=seed), P[C.param]["hdr90"], b,
-                       n_values=5, n_iter=2, pop=6, min_half=MIN_HALF, seed=seed)
-    k = int(np.argmax(r["z"]))
-    row["profiles"]["inversion_grid"] = {"switch": r["switch"].tolist(), "z": r["z"].tolist(),
-                                         "best": float(r["switch"][k]), "wall_s": time.perf_counter() - t0}
-    row["profiles"]["finer_grid"] = finer_profile(ev_c, P, factor=2, seed=seed)
-    for label, pr in row["profiles"].items():
-        print(terrain, cellsize, case, cand, label, "best", round(pr["best"], 4), flush=True)
+    for label, f in (("inversion_grid", 1), ("finer_grid", 2)):
+        row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed)
+        print(terrain, cellsize, case, cand, label, "best", round(row["profiles"][label]["best"], 4), flush=True)
     return row
 
 

@@ -686,54 +686,56 @@ def _finer_grid_profile_section(files=None) -> list[str]:
     return L + [""]
 
 
-def _finer_check_section(f: Path | None = None) -> list[str]:
-    """finer_check.py's rows (default results/finer_check_resolved_20m.json): the saved cases re-decided
-    with the finer-grid check (torchslide.diagnose.finer), per case with a pair and per scenario."""
+def _finer_check_section(files=None) -> list[str]:
+    """finer_check.py's rows (default results/finer_check_resolved_20m.json and
+    results/finer_check_resolved.json; absent files are skipped): saved cases re-decided as a finer-grid
+    check of the two supported candidates would decide them, per case with a pair and per scenario."""
     from .scenarios import SWITCH
-    f = Path(f) if f is not None else HERE / "results" / "finer_check_resolved_20m.json"
-    if not f.exists():
+    files = [Path(f) for f in files] if files is not None else \
+        [HERE / "results" / "finer_check_resolved_20m.json", HERE / "results" / "finer_check_resolved.json"]
+    files = [f for f in files if f.exists()]
+    if not files:
         return []
-    D = json.loads(f.read_text())
-    rows = D["rows"]
-    L = ["## The finer-grid check on the saved cases (experiments/hidden_physics/finer_check.py)", "",
-         f"Cases of `{D['results']}` re-decided with `finer_check = True` (torchslide.diagnose.finer): when two "
-         "candidates pass the evidence check and one of them every check, their order and separation come from "
-         "the maxima of their profiles along the switch on cells half as large (measurement errors alone; "
-         f"profiles from {', '.join(D['profiles'])}, finer_grid_profile.py with the check's own function and "
-         "seed) instead of from their Bayes factors. Strict success after: the page's rule (a name the Bayes "
-         "factors rank second fails its 2 ln BF margin); 'finer margin': the same with the pair's separation "
-         "from the finer grid, as the decision takes it.", "",
-         "| case | pair (2 ln BF order) | finer grid: leader, 2 ln profile ratio | before | after | true switch in "
-         "90 % HDI | strict: before -> after (finer margin) |", "|---|---|---|---|---|---|---|"]
+    L = ["## Probe: a finer-grid check of the two supported candidates (experiments/hidden_physics/finer_check.py)", "",
+         "Saved cases re-decided as a check would decide them that takes, when two candidates pass the evidence "
+         "check and one of them every check, their order and separation (2 ln profile ratio against the margin "
+         "of 6) from the maxima of their profiles along the switch on cells half as large (measurement errors "
+         "alone; finer_grid_profile.py) instead of from their Bayes factors. Strict success after: the page's "
+         "rule (a name the Bayes factors rank second fails its 2 ln BF margin); in brackets with the pair's "
+         "separation from the finer grid, as the check decides. 'reproduced': the saved statistics without the "
+         "check give the saved verdict.", ""]
     lab = lambda v, n: n if v == "missing_physics" else ("none" if v == "no_missing_physics" else v)  # noqa: E731
-    for r in rows:
-        if not r["pair"]:
-            continue
-        fc = ("profiles missing: " + ", ".join(r["missing_profiles"]) if r["missing_profiles"] else
-              f"{r['leader']}, {r['two_ln_ratio']:.1f}")
-        L.append(f"| {r['case']} | {' > '.join(r['pair'])} | {fc} | {lab(r['verdict_before'], r['named_before'])} | "
-                 f"{lab(r['verdict_after'], r['named_after'])} | {r['covered'] if r['covered'] is not None else '-'} | "
-                 f"{r['strict_before']} -> {r['strict_after']} ({r['strict_after_finer']}) |")
-    L.append("")
-    by = {}
-    for r in rows:
-        t = by.setdefault(r["scenario"], [0, 0, 0, 0, 0, 0, 0])
-        t[0] += 1
-        t[1] += r["named_before"] == r["scenario"]
-        t[2] += r["named_after"] == r["scenario"]
-        t[3] += r["strict_before"]
-        t[4] += r["strict_after"]
-        t[5] += r["strict_after_finer"]
-        t[6] += r["pair"] is not None
-    L += ["| scenario | cases | with a pair | true term named: before -> after | strict: before -> after (finer "
-          "margin) |", "|---|---|---|---|---|"]
-    for sc, (n, nb, na, sb, sa, sf, npair) in by.items():
-        named = f"{nb} -> {na}" if sc in SWITCH else "-"
-        L.append(f"| {sc} | {n} | {npair} | {named} | {sb} -> {sa} ({sf}) |")
-    miss = [r["case"] for r in rows if r["missing_profiles"]]
-    wrong = [r["case"] for r in rows if r["named_after"] not in (None, r["scenario"])]
-    L += ["", f"Cases lacking a profile (decided as before): {', '.join(miss) if miss else 'none'}. "
-          f"A wrong library name after the check: {', '.join(wrong) if wrong else 'none'}.", ""]
+    for f in files:
+        D = json.loads(f.read_text())
+        rows = D["rows"]
+        L += [f"### `{D['results']}` (profiles: {', '.join(D['profiles'])})", "",
+              "| case | pair (2 ln BF order) | finer grid: leader, 2 ln profile ratio | before | after | true switch "
+              "in 90 % HDI | strict: before -> after (finer margin) |", "|---|---|---|---|---|---|---|"]
+        for r in rows:
+            if not r["pair"]:
+                continue
+            fc = ("profiles missing: " + ", ".join(r["missing_profiles"]) if r["missing_profiles"] else
+                  f"{r['leader']}, {r['two_ln_ratio']:.1f}")
+            L.append(f"| {r['case']} | {' > '.join(r['pair'])} | {fc} | {lab(r['verdict_before'], r['named_before'])} | "
+                     f"{lab(r['verdict_after'], r['named_after'])} | {r['covered'] if r['covered'] is not None else '-'} | "
+                     f"{r['strict_before']} -> {r['strict_after']} ({r['strict_after_finer']}) |")
+        by = {}
+        for r in rows:
+            t = by.setdefault(r["scenario"], [0, 0, 0, 0, 0, 0, 0])
+            for i, v in enumerate((1, r["named_before"] == r["scenario"], r["named_after"] == r["scenario"],
+                                   r["strict_before"], r["strict_after"], r["strict_after_finer"], r["pair"] is not None)):
+                t[i] += v
+        L += ["", "| scenario | cases | with a pair | true term named: before -> after | strict: before -> after "
+              "(finer margin) |", "|---|---|---|---|---|"]
+        for sc, (n, nb, na, sb, sa, sf, npair) in by.items():
+            named = f"{nb} -> {na}" if sc in SWITCH else "-"
+            L.append(f"| {sc} | {n} | {npair} | {named} | {sb} -> {sa} ({sf}) |")
+        miss = [r["case"] for r in rows if r["missing_profiles"]]
+        wrong = [f"{r['case']} ({r['named_after']})" for r in rows if r["named_after"] not in (None, r["scenario"])]
+        unrep = [r["case"] for r in rows if not r.get("reproduced", True)]
+        L += ["", f"Cases lacking a profile (decided as before): {', '.join(miss) if miss else 'none'}. "
+              f"A wrong library name after the check: {', '.join(wrong) if wrong else 'none'}. "
+              f"Saved verdict not reproduced: {', '.join(unrep) if unrep else 'none'}.", ""]
     return L
 
 

@@ -41,9 +41,6 @@ and a [diagnose] section::
                                  #     is refined with its runs); 0: off
     profile_top = 2              # refits (largest verified evidence above the baseline's) profiled along their
                                  #     switch; refined where the profile finds ridge mass they missed; 0: off
-    finer_check = false          # true: when two candidates pass the evidence check and one of them every check,
-                                 #     their order from profiles along the switch on cells model_error_factor
-                                 #     times smaller (torchslide.diagnose.finer; minutes per candidate)
     top_k = 2                    # candidates refitted
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
@@ -91,8 +88,7 @@ _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
              "mode_search_iters", "profile_top", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
-_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "finer_check", *_INT_KEYS,
-              *_THRESHOLD_KEYS}
+_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
 def diagnose_defaults() -> dict:
@@ -102,7 +98,6 @@ def diagnose_defaults() -> dict:
 
     b, t = Budgets(), Thresholds()
     return {"candidates": list(CANDIDATES), "seed": b.seed, "release_volume_sd": b.release_volume_sd,
-            "finer_check": b.finer_check,
             **{k: getattr(b, k) for k in _INT_KEYS},
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 _VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
@@ -181,8 +176,6 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
         raise ConfigError(f"{path}: [diagnose] seed must be an integer, got {c['seed']!r}")
-    if not isinstance(c["finer_check"], bool):
-        raise ConfigError(f"{path}: [diagnose] finer_check must be true or false, got {c['finer_check']!r}")
     if c["n_total"] < c["n_initial"]:
         raise ConfigError(f"{path}: [diagnose] n_total ({c['n_total']}) must be >= n_initial ({c['n_initial']})")
     if c["model_error_runs"] == 1:
@@ -325,8 +318,7 @@ def budgets_and_thresholds(cfg: Config):
 
     cal, dg = cfg.extra["calibration"], cfg.extra["diagnose"]
     bud = Budgets(baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
-                  **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"],
-                  finer_check=dg["finer_check"])
+                  **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"])
     return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS}, fit_max=dg.get("fit_max"))
 
 

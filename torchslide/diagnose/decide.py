@@ -43,13 +43,6 @@ must be set on null data of the same design (experiments/hidden_physics/calibrat
 them per observable from null seeds: each observable's Z_fit differs on null data, e.g. -36 for a
 deposit map whose sigma is wide and +3 for a gauge series the grid misses).
 
-The finer-grid check (``finer``, off by default: Budgets.finer_check; torchslide.diagnose.finer):
-when two candidates pass ``evidence`` and one of them passes every check (finer_pair), their order and
-their separation in rule 1 come from the maxima of their profiles along the switch on cells half as
-large (2 ln profile ratio against ``margin_min``) instead of from their Bayes factors. The named
-candidate must still pass all its own checks, and a candidate that explains more of the located
-mismatch still blocks the name.
-
 ``bf_min``, ``waic_min`` and ``located_min`` are set on null data (no hidden term; see
 experiments/hidden_physics/calibrate_thresholds.py and the results page); ``margin_min`` = 6 is the
 issue's "strong" level; ``explain_min`` and ``ess_min`` are fixed a priori.
@@ -123,36 +116,9 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
     return out
 
 
-def _with_finer(out: dict) -> dict:
-    """The decision ``out`` with the finer-grid check's part in its reason."""
-    fc = out.get("finer_check")
-    if fc and fc.get("applied"):
-        a, b = fc["pair"]
-        other = b if fc["leader"] == a else a
-        out["reason"] += (f" [finer-grid check: {fc['leader']} ahead of {other} by 2 ln profile ratio "
-                          f"{fc['two_ln_ratio']:.1f} on cells half as large"
-                          + (f", against {a} ahead by 2 ln BF {2 * (out['bf_pair'][a] - out['bf_pair'][b]):.1f}"
-                             if "bf_pair" in out else "") + "]")
-    elif fc:
-        out["reason"] += f" [finer-grid check not applied: {fc['why']}]"
-    out.pop("bf_pair", None)
-    return out
-
-
-def finer_pair(candidates: list, baseline: dict, misfit_before: float, th: Thresholds) -> list | None:
-    """The pair the finer-grid check compares (torchslide.diagnose.finer): the two candidates with the
-    largest Bayes factors among those that pass ``evidence``, when at least one of the two passes every
-    check (else no order between them can change the verdict); None when fewer than two pass."""
-    ok = sorted([c for c in candidates if c.get("log_bayes_factor") is not None and np.isfinite(c["log_bayes_factor"])
-                 and checks(c, baseline, misfit_before, th)["evidence"]], key=lambda c: -c["log_bayes_factor"])
-    if len(ok) < 2 or not any(all(checks(c, baseline, misfit_before, th).values()) for c in ok[:2]):
-        return None
-    return [ok[0]["name"], ok[1]["name"]]
-
-
 def decide(candidates: list, located_before: list, baseline: dict, misfit_before: float, th: Thresholds,
            competitor_needs_evidence: bool = False, close_needs_all_checks: bool = False,
-           fit_z: dict | None = None, finer: dict | None = None) -> dict:
+           fit_z: dict | None = None) -> dict:
     """candidates: refitted candidates with the verify statistics (see pipeline); baseline: the baseline's
     verified-evidence dict; fit_z: {observable: the baseline's Z_fit} for the fit flags (``th.fit_max``).
     Returns {verdict, missing_physics, ambiguous, reason, checks, fit_flags, ...}.
@@ -160,34 +126,13 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     more of the located mismatch blocks the name only when it also passes ``evidence`` (a post-hoc
     variant, see experiments/hidden_physics/make_page.py). ``close_needs_all_checks`` (default False): the
     rule before session 8, where a runner-up within margin_min blocked the name only when it passed every
-    check (it let a 20 m out-of-library case be named curvature, 4.3 ahead of earth pressure).
-    ``finer``: {name: max profile z on the finer grid} (finer.finer_profile's z_max) for the finer-grid
-    check (rule 1 in the module doc's last paragraph); it applies to finer_pair(...) when both of the
-    pair have a value, else out["finer_check"] says what is missing and the Bayes factors decide."""
+    check (it let a 20 m out-of-library case be named curvature, 4.3 ahead of earth pressure)."""
     scored = sorted([c for c in candidates if c.get("log_bayes_factor") is not None
                      and np.isfinite(c["log_bayes_factor"])], key=lambda c: -c["log_bayes_factor"])
-    fc, sep = None, {}
-    if finer is not None:
-        pair = finer_pair(candidates, baseline, misfit_before, th)
-        if pair is None:
-            fc = {"applied": False, "why": "fewer than two candidates pass the evidence check, or neither of the "
-                                           "two best passes every check"}
-        elif not all(n in finer and finer[n] is not None and np.isfinite(finer[n]) for n in pair):
-            fc = {"applied": False, "pair": pair, "why": f"no finer-grid profile of {[n for n in pair if n not in finer]}"}
-        else:
-            from .finer import compare
-            fc = dict(compare(finer, pair), applied=True)
-            other = pair[1] if fc["leader"] == pair[0] else pair[0]
-            sep[other] = fc["two_ln_ratio"]
-            scored = [c for c in scored if c["name"] == fc["leader"]] + [c for c in scored if c["name"] != fc["leader"]]
     sig_before = significant(located_before, th)
     flags = fit_flags(fit_z, th)
     out = {"verdict": None, "missing_physics": None, "ambiguous": False, "runner_up": None,
            "two_ln_bf": None, "two_ln_bf_over_runner_up": None, "reason": "", "checks": {}, "fit_flags": flags}
-    if fc is not None:
-        out["finer_check"] = fc
-        if fc.get("applied"):
-            out["bf_pair"] = {c["name"]: c["log_bayes_factor"] for c in scored if c["name"] in fc["pair"]}
     flagged = "; ".join(f"{f['observable']} fits at Z_fit {f['Z_fit']:.1f} > {f['fit_max']:.1f}" for f in flags)
     for c in scored:
         out["checks"][c["name"]] = checks(c, baseline, misfit_before, th)
@@ -204,20 +149,17 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         failed = [k for k, v in ck.items() if not v]
         if not failed:
             ex_best = _explained(best)
-            # the separation from the best: 2 ln BF, or for the finer-grid check's pair its profile ratio
             close = [c["name"] for c in scored[1:]
                      if (all(out["checks"][c["name"]].values()) if close_needs_all_checks
                          else out["checks"][c["name"]]["evidence"])
-                     and sep.get(c["name"], 2 * (best["log_bayes_factor"] - c["log_bayes_factor"])) < th.margin_min]
+                     and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
                       and _explained(c) > ex_best
                       and (out["checks"][c["name"]]["evidence"] or not competitor_needs_evidence)]
             if close or better:
                 why = []
                 if close:
-                    why.append(f"{', '.join(close)} also pass(es) the evidence check within "
-                               + ("2 ln profile ratio (finer grid)" if any(n in sep for n in close) else "2 ln BF")
-                               + f" {th.margin_min}")
+                    why.append(f"{', '.join(close)} also pass(es) the evidence check within 2 ln BF {th.margin_min}")
                 if better:
                     why.append(f"{', '.join(better)} explain(s) more of the located mismatch "
                                f"({', '.join(f'{_explained(c):.2f}' for c in scored if c['name'] in better)} vs "
@@ -225,22 +167,22 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                 out.update(verdict="unexplained", ambiguous=True, competitors=close + [b for b in better if b not in close],
                            reason=f"{best['name']} has the largest evidence (2 ln BF = {tl:.1f}) and passes every "
                                   f"check, but {'; '.join(why)}: ambiguous, not named")
-                return _with_finer(out)
+                return out
             out.update(verdict="missing_physics", missing_physics=best["name"], ambiguous=False,
                        reason=f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "
                               f"{th.bf_min:.1f}); Savage-Dickey, out-of-sample, misfit and located-structure checks pass")
-            return _with_finer(out)
+            return out
         if ck["evidence"] and (sig_before or flags or (ck["explains"] and _has_items(best))):
             out.update(verdict="unexplained",
                        reason=f"{best['name']} is supported by the evidence (2 ln BF = {tl:.1f}) but fails "
                               f"{', '.join(failed)}: not named" + (f" ({flagged})" if flags else ""))
-            return _with_finer(out)
+            return out
         if ck["evidence"]:
             out.update(verdict="no_missing_physics",
                        reason=f"{best['name']} gains evidence (2 ln BF = {tl:.1f}) but no located mismatch reaches "
                               f"{th.located_min:.1f} and it does not explain the located structure (fails "
                               f"{', '.join(failed)}): what discretisation alone gives on null data")
-            return _with_finer(out)
+            return out
     why = ("no candidate refitted" if best is None else
            f"best candidate {best['name']}: 2 ln BF lower bound "
            f"{best.get('two_ln_bf_lower', float('nan')):.1f} < {th.bf_min:.1f}")
@@ -250,4 +192,4 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         out.update(verdict="unexplained", reason=f"{'; '.join(where)}; {why}")
     else:
         out.update(verdict="no_missing_physics", reason=f"no located mismatch above {th.located_min:.1f}; {why}")
-    return _with_finer(out)
+    return out

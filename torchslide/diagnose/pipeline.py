@@ -38,8 +38,7 @@ import torch
 
 from ..physics import CANDIDATES
 from .consistency import subset_consistency
-from .decide import Thresholds, decide, finer_pair
-from .finer import finer_profile
+from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
@@ -106,11 +105,6 @@ class Budgets:
     profile_outside: float = 1.0       # ... a profile optimum whose importance weight exceeds the mean of the
                                        # posterior draws' by more than this (ln) lies where the proposal has
                                        # too little mass: refine
-    finer_check: bool = False          # the finer-grid check (torchslide.diagnose.finer): when two candidates pass the
-                                       # evidence check and one of them every check, their order from profiles on
-                                       # cells model_error_factor times smaller (measurement errors alone)
-    finer_seed: int = 0                # ... its start points' seed (fixed, so that the check can be recomputed from
-                                       # a saved report: experiments/hidden_physics/finer_grid_profile.py)
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -157,15 +151,12 @@ class Diagnosis:
         ``th``; the earlier decision is kept as decision["decision_before"], ``source`` says where ``th``
         came from."""
         keep = {k: self.decision.get(k) for k in ("fit_z", "fit_z_source", "baseline_verification",
-                                                   "baseline_mode_check", "elpd_waic_baseline", "finer_profiles")}
+                                                   "baseline_mode_check", "elpd_waic_baseline")}
         before = {"verdict": self.verdict, "missing_physics": self.missing_physics,
                   "reason": self.decision.get("reason"), "thresholds": self.thresholds.to_json()}
         dec = decide(self.candidates, self.localisation.located, keep["baseline_verification"] or {},
-                     self.fit_before["misfit"], th, fit_z=keep["fit_z"],
-                     finer=None if keep["finer_profiles"] is None else
-                     {n: p["z_max"] for n, p in keep["finer_profiles"].items()})
-        dec.update({k: v for k, v in keep.items() if v is not None or k != "finer_profiles"},
-                   decision_before=before, thresholds_source=source)
+                     self.fit_before["misfit"], th, fit_z=keep["fit_z"])
+        dec.update(keep, decision_before=before, thresholds_source=source)
         self.decision, self.verdict, self.thresholds = dec, dec["verdict"], th
 
     def to_json(self) -> dict:
@@ -557,20 +548,6 @@ def adopt_refined_baseline(v_new: dict, v_old: dict, n_draws: int, ess_min: floa
     return bool(n_draws > 1 and v_new["ess"] >= ess_min and gap > 2 * math.hypot(v_new["se"], v_old["se"]))
 
 
-def finer_profiles(refits: dict, cand_out: list, pair, bud: Budgets, log=print) -> dict:
-    """{name: finer.finer_profile(...)} for the finer-grid check's ``pair`` (decide.finer_pair; None:
-    nothing to compare, {}): each refit's evaluator with the measurement errors alone in its likelihood,
-    profiled on cells bud.model_error_factor times smaller from its reported parameters."""
-    out = {}
-    for n in pair or []:
-        par = next(c for c in cand_out if c["name"] == n)["parameters"]
-        out[n] = finer_profile(refits[n][0].with_model_error(None), par, factor=max(2, bud.model_error_factor),
-                               seed=bud.finer_seed)
-        log(f"[diagnose] finer-grid check: {n} profile max {out[n]['z_max']:.2f} at {CANDIDATES[n].param} = "
-            f"{out[n]['best']:.4g} ({out[n]['runs']} runs, {out[n]['wall_s']:.0f} s)")
-    return out
-
-
 def _best_draws(evaluator, pred: Predictive, n: int) -> np.ndarray:
     """(n, p) the ``n`` posterior-predictive draws of ``pred`` with the largest solver z (failed last)."""
     z = solver_z(evaluator, pred)
@@ -821,16 +798,8 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     T["consistency_s"] = time.perf_counter() - t0
     fit_before = _fit(evaluator, pred, loc, base_ver["log_evidence"])
     fit_before["log_evidence_emulator"] = baseline.log_evidence
-    finer = None
-    if bud.finer_check:
-        t0 = time.perf_counter()
-        finer = finer_profiles(refits, cand_out, finer_pair(cand_out, base_ver, misfit_before, th), bud, log)
-        T["finer_s"] = time.perf_counter() - t0
-    dec = decide(cand_out, loc.located, base_ver, misfit_before, th, fit_z=fit_z_first,
-                 finer=None if finer is None else {n: p["z_max"] for n, p in finer.items()})
+    dec = decide(cand_out, loc.located, base_ver, misfit_before, th, fit_z=fit_z_first)
     dec.update(fit_z=fit_z_first, fit_z_source="calibrated baseline")
-    if finer is not None:
-        dec["finer_profiles"] = finer
     dec["baseline_verification"] = dict(base_ver, source=base_source)
     dec["baseline_mode_check"] = base_check
     dec["elpd_waic_baseline"] = elpd_b["elpd"]

@@ -79,26 +79,6 @@ def write_figures(diag, out: Path) -> list[str]:
     return files
 
 
-def _finer_check_lines(dec: dict) -> list[str]:
-    """report.md's finer-grid check section (torchslide.diagnose.finer; nothing when it was off)."""
-    fc, prof = dec.get("finer_check"), dec.get("finer_profiles") or {}
-    if fc is None:
-        return []
-    L = ["", "## Finer-grid check", ""]
-    if not fc.get("applied"):
-        return L + [f"Not applied: {fc.get('why')}."]
-    a, b = fc["pair"]
-    L += [f"{a} and {b} both pass the evidence check; profiled along their switch on cells half as large "
-          f"(measurement errors alone), {fc['leader']} leads by 2 ln profile ratio {fc['two_ln_ratio']:.1f} "
-          f"(against margin_min), and that order decides between them.", "",
-          "| candidate | max ln L + ln prior | at switch | runs | wall s |", "|---|---|---|---|---|"]
-    for n in (a, b):
-        p = prof.get(n, {})
-        L.append(f"| {n} | {_fmt(fc['z_max'][n], '{:.2f}')} | {_fmt(p.get('best'))} | {p.get('runs', '-')} | "
-                 f"{_fmt(p.get('wall_s'), '{:.0f}')} |")
-    return L
-
-
 def _refit_check(c: dict) -> str:
     """One cell: the mode search's outcome, the re-check and the profile along the switch when they
     refined the refit, and the evidence's convergence ('-' when not refitted)."""
@@ -202,7 +182,6 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         L.append(f"| {c['name']} | {_fmt(c['screening_score'], '{:.1f}')} | {_fmt(c.get('mimic'), '{:.2f}')} | "
                  f"{_fmt(c['log_evidence'], '{:.2f}')} | {_fmt(c['two_ln_bf'], '{:.1f}')} | {_fmt(p.get('mean'))} | "
                  f"{[round(v, 5) for v in p.get('hdi90', p['hdr90'])] if p else '-'} | {_refit_check(c)} |")
-    L += _finer_check_lines(j["decision"])
     fb, fa = j["fit_before"], j["fit_after"]
     L += ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
     src = (j["decision"].get("baseline_verification") or {}).get("source")
