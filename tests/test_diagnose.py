@@ -2298,14 +2298,21 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
                                 "candidate": "yield_stress"}]))
     calls = []
 
-    def fake(run, case, cand=None):
-        calls.append((run, case, cand))
-        return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand}
+    def fake(run, case, cand=None, finer_inputs="dem"):
+        calls.append((run, case, cand, finer_inputs))
+        return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand, "finer_inputs": finer_inputs}
 
+    real = fgp.profile_case
     monkeypatch.setattr(fgp, "profile_case", fake)
     fgp.main(["--cases", "resolved_20m:yield_stress_s0,resolved_20m:yield_stress_s0:mu_i", "--out", str(out)])
-    assert calls == [("resolved_20m", "yield_stress_s0", "mu_i")]      # the true term's row was there
+    assert calls == [("resolved_20m", "yield_stress_s0", "mu_i", "dem")]      # the true term's row was there
     assert [r["candidate"] for r in json.loads(out.read_text())] == ["yield_stress", "mu_i"]
+    # another finer-grid input is another row (the saved row without the key counts as "dem")
+    fgp.main(["--cases", "resolved_20m:yield_stress_s0", "--out", str(out), "--finer-inputs", "terrain_volume"])
+    assert calls[-1] == ("resolved_20m", "yield_stress_s0", None, "terrain_volume")
+    assert [r.get("finer_inputs", "dem") for r in json.loads(out.read_text())] == ["dem", "dem", "terrain_volume"]
+    with pytest.raises(ValueError, match="finer_inputs must be one of"):
+        real("resolved_20m", "yield_stress_s0", finer_inputs="lidar")
 
 
 def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):

@@ -147,3 +147,28 @@ def test_finer_check_script_redecides_saved_cases_and_the_page_shows_them(tmp_pa
     assert "Cases lacking a profile (decided as before): yield_stress_s1" in md
     with pytest.raises(SystemExit, match="no profile file"):
         main(["--results", str(res), "--profiles", str(tmp_path / "none.json"), "--out", str(out)])
+
+
+def test_case_evaluator_finer_inputs():
+    """finer_grid_profile.case_evaluator: "dem" runs the finer grid over the inversion DEM (no fine
+    terrain), "terrain" over the recording grid's own surface, "terrain_volume" also with the
+    recording's release volume on both grids."""
+    import json
+
+    from experiments.hidden_physics.finer_grid_profile import RESULTS, case_evaluator
+
+    D = json.loads((RESULTS["narrow"] / "yield_stress_s4.json").read_text())
+    rec, ev = case_evaluator(D, "dem")
+    assert ev.fine_terrain is None
+    _, ev_t = case_evaluator(D, "terrain")
+    _, ev_v = case_evaluator(D, "terrain_volume")
+    assert ev_t.fine_terrain is not None and ev_t.fine_terrain.dem.cellsize == ev.dem.cellsize / 2
+    vol = lambda r, c: float(np.asarray(r).sum()) * c ** 2  # noqa: E731
+    v0 = vol(ev.release, ev.dem.cellsize)
+    assert vol(ev_t.release, ev.dem.cellsize) == pytest.approx(v0)
+    assert vol(ev_v.release, ev.dem.cellsize) == pytest.approx(v0 * rec.volume_factor)
+    c_f = ev_t.fine_terrain.dem.cellsize
+    assert vol(ev_v.fine_terrain.release, c_f) == pytest.approx(vol(ev_t.fine_terrain.release, c_f) * rec.volume_factor)
+    assert abs(rec.volume_factor - 1) > 0.01
+    with pytest.raises(ValueError, match="finer_inputs must be one of"):
+        case_evaluator(D, "lidar")

@@ -108,23 +108,46 @@ def _parse(spec: str) -> tuple[str, str, str | None]:
     return parts[0], parts[1], parts[2] if len(parts) == 3 else None
 
 
-def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0) -> dict:
+FINER_INPUTS = ("dem", "terrain", "terrain_volume")
+
+
+def case_evaluator(D: dict, finer_inputs: str = "dem"):
+    """(recording, evaluator) of the saved harness case ``D`` (its terrain, cell size and recording
+    grid), the evaluator's finer-grid inputs as ``finer_inputs`` says (profile_case)."""
+    if finer_inputs not in FINER_INPUTS:
+        raise ValueError(f"finer_inputs must be one of {FINER_INPUTS}, got {finer_inputs!r}")
+    cellsize = float(D.get("cellsize", 40.0))
+    with scenarios.terrain_variant(D.get("terrain", "narrow")):
+        rec = make_recording(D["scenario"], int(D["seed"]), cellsize=cellsize, fine_factor=D.get("fine_factor", 2))
+        ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=finer_inputs != "dem")
+    if finer_inputs == "terrain_volume":
+        vf = rec.volume_factor
+        ft = ev.fine_terrain
+        ev = ev._copy(release=ev.release * vf, fine_terrain=dataclasses.replace(ft, release=ft.release * vf),
+                      fixed=dict(ev.fixed))
+    return rec, ev
+
+
+def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
+                 finer_inputs: str = "dem") -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
-    read unless ``results`` is given). Row: {terrain, cellsize, case, candidate, param, truth,
-    refit_hdr90, profiles: {inversion_grid, finer_grid: {switch, z, best, wall_s}}}."""
-    sc, s = case.rsplit("_s", 1)
+    read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
+    inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
+    recording grid's own surface: scenarios.make_evaluator(fine_terrain=True)) or "terrain_volume"
+    (that, and on both grids the recording's own release volume instead of the nominal one: what
+    remains is the noise and the grid). Row: {terrain, cellsize, case, candidate, param, truth,
+    finer_inputs, refit_hdr90, profiles: {inversion_grid, finer_grid: {switch, z, best, z_max, runs, wall_s}}}."""
     D = json.loads((Path(results or RESULTS[run]) / f"{case}.json").read_text())
     terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
-    with scenarios.terrain_variant(terrain):
-        rec = make_recording(sc, int(s), cellsize=cellsize, fine_factor=D.get("fine_factor", 2))
-        ev = make_evaluator(rec, cellsize=cellsize)
+    rec, ev = case_evaluator(D, finer_inputs)
+    sc = D["scenario"]
     cand = candidate or SCENARIOS[sc][0]
     C = CANDIDATES[cand]
     prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
     ev_c = ev.with_prior(prior, fixed=dict(C.fixed))
     P = next(c for c in D["diagnosis"]["candidates"] if c["name"] == cand)["parameters"]
     row = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
-           "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None,
+           "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None, "finer_inputs": finer_inputs,
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
     for label, f in (("inversion_grid", 1), ("finer_grid", 2)):
         row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed)
@@ -137,6 +160,9 @@ def main(argv=None) -> int:
     a.add_argument("--cases", default=DEFAULT_CASES, help="comma-separated run:case[:candidate]")
     a.add_argument("--out", default=str(HERE / "results" / "finer_grid_profile.json"),
                    help="rows file; an existing one is kept and its cases are skipped (resume)")
+    a.add_argument("--finer-inputs", default="dem", choices=FINER_INPUTS,
+                   help="what the finer grid runs on (profile_case): the inversion DEM interpolated (default), the "
+                        "recording grid's own terrain, or that and the recording's release volume")
     args = a.parse_args(argv)
     specs = [_parse(c) for c in args.cases.split(",") if c]
     for run, case, _ in specs:
@@ -147,11 +173,13 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     for run, case, cand in specs:
         cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
-        key = (cs.get("terrain", run), float(cs.get("cellsize", 40.0)), case, cand or SCENARIOS[cs["scenario"]][0])
-        if any((r["terrain"], float(r.get("cellsize", 40.0)), r["case"], r["candidate"]) == key for r in rows):
+        key = (cs.get("terrain", run), float(cs.get("cellsize", 40.0)), case, cand or SCENARIOS[cs["scenario"]][0],
+               args.finer_inputs)
+        if any((r["terrain"], float(r.get("cellsize", 40.0)), r["case"], r["candidate"], r.get("finer_inputs", "dem"))
+               == key for r in rows):
             print("already in", out, *key)
             continue
-        rows.append(profile_case(run, case, cand))
+        rows.append(profile_case(run, case, cand, finer_inputs=args.finer_inputs))
         out.write_text(json.dumps(rows, indent=1))      # after every case: an interrupted run loses one
     print("wrote", out)
     return 0
