@@ -1840,12 +1840,13 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
                           "finer_grid": {"switch": [0.3, 0.35], "z": [-6080.5, -6070.0], "best": 0.35}}}
     f, f20 = tmp_path / "fgp.json", tmp_path / "fgp20.json"
     f.write_text(json.dumps([row]))
-    f20.write_text(json.dumps([row20]))
+    f20.write_text(json.dumps([row20, dict(row20, finer_inputs="terrain_volume")]))
     text = "\n".join(_finer_grid_profile_section([f, f20, tmp_path / "absent.json"]))
-    assert ("| resolved | 40 | earth_pressure_s0 | earth_pressure | 1 | [0.35, 0.625] | 0.75 | 0.5 | -1308.3 | -1302.0 | "
-            "0.5: -0.2, 0.75: 0.0, 1: -1.7 | 0.5: 0.0, 0.75: -23.8, 1: -42.0 |") in text
-    assert ("| resolved | 20 | yield_stress_s0 | mu_i | - | [0.29, 0.4] | 0.35 | 0.35 | -6055.2 | -6070.0 | "
+    assert ("| resolved | 40 | earth_pressure_s0 | earth_pressure | 1 | [0.35, 0.625] | dem | 0.75 | 0.5 | -1308.3 | "
+            "-1302.0 | 0.5: -0.2, 0.75: 0.0, 1: -1.7 | 0.5: 0.0, 0.75: -23.8, 1: -42.0 |") in text
+    assert ("| resolved | 20 | yield_stress_s0 | mu_i | - | [0.29, 0.4] | dem | 0.35 | 0.35 | -6055.2 | -6070.0 | "
             "0.3: -4.8, 0.35: 0.0 | 0.3: -10.5, 0.35: 0.0 |") in text
+    assert "| [0.29, 0.4] | terrain_volume | 0.35 |" in text
     assert "\n".join(_finer_grid_profile_section(f)).count("| resolved |") == 1
     assert _finer_grid_profile_section(tmp_path / "absent.json") == []
 

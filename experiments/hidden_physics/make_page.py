@@ -652,7 +652,8 @@ def _finer_grid_profile_section(files=None) -> list[str]:
     the profile along the switch on the inversion grid and on cells half as large over the same DEM,
     and the best ln L + ln prior each reached (comparable between two candidates of the same case)."""
     if files is None:
-        files = [HERE / "results" / "finer_grid_profile.json", HERE / "results" / "finer_grid_profile_20m.json"]
+        files = [HERE / "results" / "finer_grid_profile.json", HERE / "results" / "finer_grid_profile_20m.json",
+                 HERE / "results" / "finer_grid_inputs_20m.json"]
     elif isinstance(files, (str, Path)):
         files = [files]
     rows = [r for f in map(Path, files) if f.exists() for r in json.loads(f.read_text())]
@@ -667,10 +668,13 @@ def _finer_grid_profile_section(files=None) -> list[str]:
          "(model_error.fine_run, what the grid's model error compares with). If the inversion grid's solver "
          "caused the switch's bias, the finer grid would move the profile's maximum towards the truth. "
          "'Profile': the best ln L + ln prior at each switch value minus the largest; 'max': the largest "
-         "(two candidates of the same case compare by it; their switches' priors differ by a few units of ln).", "",
-         "| terrain | cells, m | case | candidate | truth | refit's hdr90 | best switch, inversion grid | "
-         "best switch, cells halved | max, inversion grid | max, cells halved | profile, inversion grid | "
-         "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "(two candidates of the same case compare by it; their switches' priors differ by a few units of ln). "
+         "'Cells halved on': the inversion DEM interpolated (dem, the default), the recording grid's own terrain "
+         "(terrain), or that with the recording's own release volume on both grids (terrain_volume; "
+         "`--finer-inputs`).", "",
+         "| terrain | cells, m | case | candidate | truth | refit's hdr90 | cells halved on | best switch, inversion "
+         "grid | best switch, cells halved | max, inversion grid | max, cells halved | profile, inversion grid | "
+         "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def prof(p):
         z = np.asarray(p["z"], float)
@@ -681,7 +685,8 @@ def _finer_grid_profile_section(files=None) -> list[str]:
         lo, hi = r["refit_hdr90"]
         truth = "-" if r["truth"] is None else f"{r['truth']:.3g}"
         L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {r['case']} | {r['candidate']} | {truth} | "
-                 f"[{lo:.3g}, {hi:.3g}] | {a['best']:.3g} | {b['best']:.3g} | {max(a['z']):.1f} | {max(b['z']):.1f} | "
+                 f"[{lo:.3g}, {hi:.3g}] | {r.get('finer_inputs', 'dem')} | {a['best']:.3g} | {b['best']:.3g} | "
+                 f"{max(a['z']):.1f} | {max(b['z']):.1f} | "
                  f"{prof(a)} | {prof(b)} |")
     return L + [""]
 
