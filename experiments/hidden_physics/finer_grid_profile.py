@@ -1,6 +1,6 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
-[--out FILE]``
+[--out FILE] [--finer-inputs dem|terrain|terrain_volume]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
