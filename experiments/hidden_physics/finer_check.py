@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     a.add_argument("--profiles", default=str(DEFAULT_PROFILES), help="comma-separated finer_grid_profile.py row files")
     a.add_argument("--out", default=str(HERE / "results" / "finer_check_resolved_20m.json"))
     args = a.parse_args(argv)
-    res = Path(args.results)
+    res = Path(args.results).resolve()
     files = [Path(f) for f in args.profiles.split(",") if f]
     bad = [str(f) for f in files if not f.exists()]
     if not res.is_dir() or bad:
