@@ -647,13 +647,14 @@ def _design_check_section(work: Path | None = None) -> list[str]:
 
 
 def _finer_grid_profile_section(files=None) -> list[str]:
-    """finer_grid_profile.py's rows (default results/finer_grid_profile.json for the 40 m runs and
-    results/finer_grid_profile_20m.json for the 20 m ones; absent files are skipped): per saved case,
+    """finer_grid_profile.py's rows (default results/finer_grid_profile.json for the 40 m runs,
+    results/finer_grid_profile_20m.json for the 20 m ones and results/finer_grid_inputs.json for the
+    runs with other finer-grid inputs, --finer-inputs; absent files are skipped): per saved case,
     the profile along the switch on the inversion grid and on cells half as large over the same DEM,
     and the best ln L + ln prior each reached (comparable between two candidates of the same case)."""
     if files is None:
         files = [HERE / "results" / "finer_grid_profile.json", HERE / "results" / "finer_grid_profile_20m.json",
-                 HERE / "results" / "finer_grid_inputs_20m.json"]
+                 HERE / "results" / "finer_grid_inputs.json"]
     elif isinstance(files, (str, Path)):
         files = [files]
     rows = [r for f in map(Path, files) if f.exists() for r in json.loads(f.read_text())]
