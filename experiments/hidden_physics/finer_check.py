@@ -17,8 +17,9 @@ both profiles are in ``--profiles`` (a missing one is listed and the case stays 
 and the 2 ln profile ratio, the verdict and name before and after, and two strict-success checks after:
 ``strict_after`` (the page's rule, with the Bayes factors' margin: a name they rank second fails it)
 and ``strict_after_finer`` (the margin from the finer grid, as the check decides). Rows go to ``--out``
-(default results/finer_check_resolved_20m.json); the results page reads it. The check was not put in
-the diagnosis: see the page's section for why.
+(default results/finer_check_resolved_20m.json); the results page reads it. ``--truth``: also z at
+the true parameters on the finer grid, against the profiles' maxima (is the profile's local search
+converged there?). The check was not put in the diagnosis: see the page's section for why.
 """
 from __future__ import annotations
 
@@ -69,8 +70,30 @@ def finer_order(candidates: list, pair, z_max: dict) -> tuple[list, dict]:
                  "two_ln_ratio": 2 * abs(d)}
 
 
-def redecide_case(case: dict, name: str, rows: list) -> dict:
-    """The row of one saved harness case (module doc)."""
+def truth_on_finer_grid(case: dict) -> float:
+    """z = ln L + ln prior of the true term at the true parameters (the case's truth) on cells half as
+    large over the inversion DEM (the finer grid of the check's profiles), measurement errors alone:
+    what the true term's finer-grid profile should reach at least, if its local search converged."""
+    import torch
+
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.physics import CANDIDATES
+
+    from .finer_grid_profile import case_evaluator, finer_grid_evaluator
+
+    t = case["truth"]
+    C = CANDIDATES[t["term"]]
+    _, ev = case_evaluator(case, "dem")
+    prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
+    ev_c = ev.with_prior(prior, fixed=dict(C.fixed))
+    x = torch.tensor([[t["mu"], t["xi"], t[C.param]]], dtype=torch.float64)
+    r = finer_grid_evaluator(ev_c).evaluate(x)[0]
+    return float("nan") if bool(r.failed[0]) else float(r.z[0])
+
+
+def redecide_case(case: dict, name: str, rows: list, truth: bool = False) -> dict:
+    """The row of one saved harness case (module doc); ``truth``: also truth_on_finer_grid for a case
+    whose true term is in the pair (one finer-grid run)."""
     j = case["diagnosis"]
     th = Thresholds(**j["thresholds"])
     cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
@@ -107,6 +130,11 @@ def redecide_case(case: dict, name: str, rows: list) -> dict:
         row["strict_after_finer"] = strict_success(dict(after, diagnosis=dict(after["diagnosis"], decision=d2)))
     else:
         row["strict_after_finer"] = row["strict_after"]
+    if truth and fc is not None and case["truth"].get("term") in fc["pair"]:
+        t = case["truth"]["term"]
+        other = next(n for n in fc["pair"] if n != t)
+        row["z_truth_finer"] = z = truth_on_finer_grid(case)
+        row["truth_minus_profile_max"] = {t: z - fc["z_max"][t], other: z - fc["z_max"][other]}
     return row
 
 
@@ -115,6 +143,9 @@ def main(argv=None) -> int:
     a.add_argument("--results", default=str(DEFAULT_RESULTS), help="a harness results folder")
     a.add_argument("--profiles", default=str(DEFAULT_PROFILES), help="comma-separated finer_grid_profile.py row files")
     a.add_argument("--out", default=str(HERE / "results" / "finer_check_resolved_20m.json"))
+    a.add_argument("--truth", action="store_true",
+                   help="also z at the true parameters on the finer grid (truth_on_finer_grid: one run per case whose "
+                        "true term is in the pair), against both profiles' maxima")
     args = a.parse_args(argv)
     res = Path(args.results).resolve()
     files = [Path(f) for f in args.profiles.split(",") if f]
@@ -127,12 +158,14 @@ def main(argv=None) -> int:
         case = json.loads(p.read_text())
         if "diagnosis" not in case:
             continue
-        r = redecide_case(case, p.stem, rows)
+        r = redecide_case(case, p.stem, rows, truth=args.truth)
         out.append(r)
         if r["pair"]:
             print(f"{p.stem}: pair {r['pair']}" + (f", missing profiles {r['missing_profiles']}" if r["missing_profiles"]
                                                    else f", {r['leader']} ahead by {r['two_ln_ratio']:.1f}")
-                  + f"; {r['verdict_before']} ({r['named_before']}) -> {r['verdict_after']} ({r['named_after']})")
+                  + f"; {r['verdict_before']} ({r['named_before']}) -> {r['verdict_after']} ({r['named_after']})"
+                  + (f"; truth on the finer grid minus the profiles' maxima {r['truth_minus_profile_max']}"
+                     if "truth_minus_profile_max" in r else ""))
     Path(args.out).write_text(json.dumps({"results": str(res.relative_to(HERE)) if res.is_relative_to(HERE) else str(res),
                                           "profiles": [f.name for f in files], "rows": out}, indent=1))
     bad = [r["case"] for r in out if not r["reproduced"]]
