@@ -140,6 +140,11 @@ def test_finer_check_script_redecides_saved_cases_and_the_page_shows_them(tmp_pa
     assert r1["missing_profiles"] == ["yield_stress", "mu_i"] and not r1["applied"]
     assert r1["named_after"] == r1["named_before"] == "yield_stress"
     assert rows["null_s0"]["pair"] is None and rows["null_s0"]["verdict_after"] == rows["null_s0"]["verdict_before"]
+    D = json.loads(out.read_text())
+    next(r for r in D["rows"] if r["case"] == "yield_stress_s0")["truth_minus_profile_max"] = {"yield_stress": 2.5,
+                                                                                             "mu_i": -0.25}
+    (tmp_path / "fc_truth.json").write_text(json.dumps(D))
+    assert "| yield_stress_s0 | +2.5 | mu_i: -0.2 |" in "\n".join(_finer_check_section([tmp_path / "fc_truth.json"]))
     md = "\n".join(_finer_check_section([out]))
     assert "| yield_stress_s0 | mu_i > yield_stress | yield_stress, 20.0 | mu_i | yield_stress | True | " \
            "False -> False (True) |" in md
@@ -172,3 +177,17 @@ def test_case_evaluator_finer_inputs():
     assert abs(rec.volume_factor - 1) > 0.01
     with pytest.raises(ValueError, match="finer_inputs must be one of"):
         case_evaluator(D, "lidar")
+
+
+def test_truth_on_finer_grid_is_the_true_terms_z_there():
+    """finer_check.truth_on_finer_grid: z of the true term at the case's truth on cells half as large
+    (finite, and far above the same model at a switch four times the truth)."""
+    import json
+
+    from experiments.hidden_physics.finer_check import truth_on_finer_grid
+    from experiments.hidden_physics.finer_grid_profile import RESULTS
+
+    D = json.loads((RESULTS["narrow"] / "yield_stress_s1.json").read_text())
+    z = truth_on_finer_grid(D)
+    far = dict(D, truth=dict(D["truth"], tau_y=4 * D["truth"]["tau_y"]))
+    assert np.isfinite(z) and z > truth_on_finer_grid(far) + 10

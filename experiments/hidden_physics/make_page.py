@@ -736,6 +736,16 @@ def _finer_check_section(files=None) -> list[str]:
         for sc, (n, nb, na, sb, sa, sf, npair) in by.items():
             named = f"{nb} -> {na}" if sc in SWITCH else "-"
             L.append(f"| {sc} | {n} | {npair} | {named} | {sb} -> {sa} ({sf}) |")
+        tr = [r for r in rows if "truth_minus_profile_max" in r]
+        if tr:
+            L += ["", "The true parameters on the finer grid (`finer_check --truth`: one run each) minus each profile's "
+                  "maximum there: a positive value for the true term means its profile's local search did not "
+                  "converge; against the other term, how far the truth itself fits better.", "",
+                  "| case | truth minus the true term's maximum | truth minus the other's maximum |", "|---|---|---|"]
+            for r in tr:
+                t = r["scenario"]
+                o = next(n for n in r["truth_minus_profile_max"] if n != t)
+                L.append(f"| {r['case']} | {r['truth_minus_profile_max'][t]:+.1f} | {o}: {r['truth_minus_profile_max'][o]:+.1f} |")
         miss = [r["case"] for r in rows if r["missing_profiles"]]
         wrong = [f"{r['case']} ({r['named_after']})" for r in rows if r["named_after"] not in (None, r["scenario"])]
         unrep = [r["case"] for r in rows if not r.get("reproduced", True)]
