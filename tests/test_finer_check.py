@@ -191,3 +191,61 @@ def test_truth_on_finer_grid_is_the_true_terms_z_there():
     z = truth_on_finer_grid(D)
     far = dict(D, truth=dict(D["truth"], tau_y=4 * D["truth"]["tau_y"]))
     assert np.isfinite(z) and z > truth_on_finer_grid(far) + 10
+
+
+def test_converged_maxima_climb_from_the_profile_and_the_truth():
+    """finer_check.converged_maxima: per candidate of the pair, the best ln L + ln prior on the finer grid
+    after a search over every parameter; at least the profile's maximum and, for the true term, the
+    truth's z; the finer grid's z at the returned x is the returned z."""
+    import json
+
+    from experiments.hidden_physics.finer_check import _candidate_evaluator, converged_maxima
+    from experiments.hidden_physics.finer_grid_profile import RESULTS
+
+    D = json.loads((RESULTS["narrow"] / "yield_stress_s1.json").read_text())
+    cm = converged_maxima(D, ["yield_stress", "mu_i"], n_iter=1, pop=3, profile={"n_values": 3, "n_iter": 1, "pop": 2})
+    y, m = cm["yield_stress"], cm["mu_i"]
+    assert m["truth_z"] is None and np.isfinite(y["truth_z"])
+    assert y["z"] >= max(y["profile_z"], y["truth_z"]) and m["z"] >= m["profile_z"]
+    for name, v in cm.items():
+        e = finer_grid_evaluator(_candidate_evaluator(D, name))
+        b = e.prior.bounds.numpy()
+        assert len(v["x"]) == 3 and (np.array(v["x"]) >= b[0]).all() and (np.array(v["x"]) <= b[1]).all()
+        assert float(e.evaluate(torch.tensor([v["x"]], dtype=torch.float64))[0].z[0]) == pytest.approx(v["z"], abs=1e-6)
+
+
+def test_finer_check_converge_redecides_from_the_converged_maxima(tmp_path, monkeypatch):
+    """--converge: a case whose true term is in the pair gets row["converged"], the check's verdict from
+    converged_maxima (here mu_i's profile lead of 10 becomes a tie: "unexplained"); other cases none."""
+    import json
+
+    import experiments.hidden_physics.finer_check as fc
+
+    res = tmp_path / "results"
+    res.mkdir()
+    _saved_case(res, "yield_stress", 0, [_cand("mu_i", 60.0), _cand("yield_stress", 35.0)])
+    _saved_case(res, "null", 0, [_cand("curvature", 10.0, two_ln_bf_lower=8.0)])
+    prof = tmp_path / "profiles.json"
+    prof.write_text(json.dumps([_profile_row("yield_stress_s0", "mu_i", -10.0),
+                                _profile_row("yield_stress_s0", "yield_stress", -20.0)]))
+    calls = []
+
+    def fake(case, pair):
+        calls.append(list(pair))
+        z = {"mu_i": -9.5, "yield_stress": -9.0}
+        return {n: {"profile_z": -10.0, "truth_z": None, "z": z[n], "x": [0.2, 500.0, 1.0], "runs": 7} for n in pair}
+
+    monkeypatch.setattr(fc, "converged_maxima", fake)
+    out = tmp_path / "fc.json"
+    assert fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--converge"]) == 0
+    rows = {r["case"]: r for r in json.loads(out.read_text())["rows"]}
+    r = rows["yield_stress_s0"]
+    assert calls == [["mu_i", "yield_stress"]]
+    assert (r["leader"], r["named_after"]) == ("mu_i", "mu_i")
+    c = r["converged"]
+    assert c["leader"] == "yield_stress" and c["two_ln_ratio"] == pytest.approx(1.0)
+    assert (c["verdict"], c["named"]) == ("unexplained", None) and c["runs"] == {"mu_i": 7, "yield_stress": 7}
+    assert "converged" not in rows["null_s0"]
+    from experiments.hidden_physics.make_page import _finer_check_section
+    md = "\n".join(_finer_check_section([out]))
+    assert "| yield_stress_s0 | -10.0 -> -9.0 (-) | mu_i: -10.0 -> -9.5 | +0.0 -> +0.5 | mu_i -> unexplained |" in md

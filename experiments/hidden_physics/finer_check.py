@@ -1,5 +1,5 @@
 """Would a finer-grid check tell yield stress from mu(I)? ``python -m experiments.hidden_physics.finer_check
-[--results DIR] [--profiles FILE,...] [--out FILE]``
+[--results DIR] [--profiles FILE,...] [--out FILE] [--truth] [--converge]``
 
 On the resolved terrain inverted on 20 m cells, yield stress and mu(I) both gain strong evidence from a
 yield-stress recording, and mu(I) came out ahead in 2 ln BF in seeds 0 and 1 (named). Profiled along
@@ -19,7 +19,8 @@ and the 2 ln profile ratio, the verdict and name before and after, and two stric
 and ``strict_after_finer`` (the margin from the finer grid, as the check decides). Rows go to ``--out``
 (default results/finer_check_resolved_20m.json); the results page reads it. ``--truth``: also z at
 the true parameters on the finer grid, against the profiles' maxima (is the profile's local search
-converged there?). The check was not put in the diagnosis: see the page's section for why.
+converged there?). ``--converge``: also both maxima after a longer search over every parameter from
+the profiles' optima and the truth (converged_maxima), and the verdict the check would give from them. The check was not put in the diagnosis: see the page's section for why.
 """
 from __future__ import annotations
 
@@ -70,30 +71,87 @@ def finer_order(candidates: list, pair, z_max: dict) -> tuple[list, dict]:
                  "two_ln_ratio": 2 * abs(d)}
 
 
+def _candidate_evaluator(case: dict, name: str):
+    """The evaluator of candidate ``name`` for the saved case (prior: mu, xi, its switch last), on the
+    inversion grid, its finer grid over the inversion DEM (finer_grid_profile.case_evaluator "dem")."""
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.physics import CANDIDATES
+
+    from .finer_grid_profile import case_evaluator
+
+    C = CANDIDATES[name]
+    _, ev = case_evaluator(case, "dem")
+    prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
+    return ev.with_prior(prior, fixed=dict(C.fixed))
+
+
+def _truth_x(case: dict) -> list:
+    """The true term's (mu, xi, switch) of the case, in its evaluator's order."""
+    from torchslide.physics import CANDIDATES
+
+    t = case["truth"]
+    return [t["mu"], t["xi"], t[CANDIDATES[t["term"]].param]]
+
+
 def truth_on_finer_grid(case: dict) -> float:
     """z = ln L + ln prior of the true term at the true parameters (the case's truth) on cells half as
     large over the inversion DEM (the finer grid of the check's profiles), measurement errors alone:
     what the true term's finer-grid profile should reach at least, if its local search converged."""
     import torch
 
-    from torchslide.bayes import Prior, Uniform
-    from torchslide.physics import CANDIDATES
+    from .finer_grid_profile import finer_grid_evaluator
 
-    from .finer_grid_profile import case_evaluator, finer_grid_evaluator
-
-    t = case["truth"]
-    C = CANDIDATES[t["term"]]
-    _, ev = case_evaluator(case, "dem")
-    prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
-    ev_c = ev.with_prior(prior, fixed=dict(C.fixed))
-    x = torch.tensor([[t["mu"], t["xi"], t[C.param]]], dtype=torch.float64)
-    r = finer_grid_evaluator(ev_c).evaluate(x)[0]
+    ev_c = _candidate_evaluator(case, case["truth"]["term"])
+    r = finer_grid_evaluator(ev_c).evaluate(torch.tensor([_truth_x(case)], dtype=torch.float64))[0]
     return float("nan") if bool(r.failed[0]) else float(r.z[0])
 
 
-def redecide_case(case: dict, name: str, rows: list, truth: bool = False) -> dict:
+N_ITER_CONVERGED, POP_CONVERGED = 8, 12     # the longer search of converged_maxima (the check's profile: 2 x 6)
+
+
+def converged_maxima(case: dict, pair, n_iter: int = N_ITER_CONVERGED, pop: int = POP_CONVERGED,
+                     seed: int = 0, profile: dict | None = None) -> dict:
+    """Is the check's lead the search's? For each candidate of ``pair``: its profile on the finer grid
+    as the check runs it (finer_grid_profile.grid_profile, factor 2), then a local search over all
+    its parameters, switch included (torchslide.diagnose.polish.local_search, ``n_iter`` iterations
+    of ``pop`` moves per start), from the profile's optimum and, for the case's true term, also from
+    the true parameters. ``profile``: keyword arguments for grid_profile (default: the check's budget).
+    Returns {name: {profile_z, truth_z (true term only, else None), z, x (3,),
+    runs}}: z, the best ln L + ln prior found, is the maximum the check would compare if its search
+    converged."""
+    import numpy as np
+    import torch
+
+    from torchslide.diagnose.polish import local_search
+
+    from .finer_grid_profile import finer_grid_evaluator, grid_profile
+
+    out = {}
+    for name in pair:
+        ev_c = _candidate_evaluator(case, name)
+        P = next(c for c in case["diagnosis"]["candidates"] if c["name"] == name)["parameters"]
+        prof = grid_profile(ev_c, P, factor=2, seed=seed, **(profile or {}))
+        e = finer_grid_evaluator(ev_c)
+        X, Z = [prof["x"]], [prof["z_max"]]
+        truth_z = None
+        if case["truth"].get("term") == name:
+            r = e.evaluate(torch.tensor([_truth_x(case)], dtype=torch.float64))[0]
+            truth_z = float("nan") if bool(r.failed[0]) else float(r.z[0])
+            X.append(_truth_x(case))
+            Z.append(truth_z if np.isfinite(truth_z) else -np.inf)
+        ls = local_search(e, np.array(X, float), np.array(Z, float), e.prior.bounds.numpy(), n_iter=n_iter, pop=pop,
+                          n_starts=None, seed=seed)
+        k = int(np.argmax(Z))
+        z, x = (float(ls["best_z"]), list(map(float, ls["best_x"]))) if ls["best_z"] > Z[k] else (Z[k], list(X[k]))
+        out[name] = {"profile_z": prof["z_max"], "truth_z": truth_z, "z": z, "x": x, "runs": len(e.records)}
+    return out
+
+
+def redecide_case(case: dict, name: str, rows: list, truth: bool = False, converge: bool = False) -> dict:
     """The row of one saved harness case (module doc); ``truth``: also truth_on_finer_grid for a case
-    whose true term is in the pair (one finer-grid run)."""
+    whose true term is in the pair (one finer-grid run); ``converge``: for such a case also
+    converged_maxima and the verdict the check would give from them (row["converged"]: {z_max,
+    profile_z, truth_z, x, runs, leader, two_ln_ratio, verdict, named})."""
     j = case["diagnosis"]
     th = Thresholds(**j["thresholds"])
     cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
@@ -135,6 +193,14 @@ def redecide_case(case: dict, name: str, rows: list, truth: bool = False) -> dic
         other = next(n for n in fc["pair"] if n != t)
         row["z_truth_finer"] = z = truth_on_finer_grid(case)
         row["truth_minus_profile_max"] = {t: z - fc["z_max"][t], other: z - fc["z_max"][other]}
+    if converge and fc is not None and case["truth"].get("term") in fc["pair"]:
+        cm = converged_maxima(case, fc["pair"])
+        zc = {n: v["z"] for n, v in cm.items()}
+        cands_c, fcc = finer_order(cands, fc["pair"], zc)
+        dc = decide(cands_c, j["located"], base, misfit, th, fit_z=fit_z or None)
+        row["converged"] = {"z_max": zc, **{k: {n: v[k] for n, v in cm.items()} for k in ("profile_z", "truth_z", "x", "runs")},
+                            "leader": fcc["leader"], "two_ln_ratio": fcc["two_ln_ratio"], "verdict": dc["verdict"],
+                            "named": dc["missing_physics"]}
     return row
 
 
@@ -146,6 +212,9 @@ def main(argv=None) -> int:
     a.add_argument("--truth", action="store_true",
                    help="also z at the true parameters on the finer grid (truth_on_finer_grid: one run per case whose "
                         "true term is in the pair), against both profiles' maxima")
+    a.add_argument("--converge", action="store_true",
+                   help="also each pair's maxima after a longer local search over every parameter (converged_maxima: the "
+                        "profiles again, then 8 x 12 moves from their optima and from the truth) and the verdict from them")
     args = a.parse_args(argv)
     res = Path(args.results).resolve()
     files = [Path(f) for f in args.profiles.split(",") if f]
@@ -158,14 +227,16 @@ def main(argv=None) -> int:
         case = json.loads(p.read_text())
         if "diagnosis" not in case:
             continue
-        r = redecide_case(case, p.stem, rows, truth=args.truth)
+        r = redecide_case(case, p.stem, rows, truth=args.truth, converge=args.converge)
         out.append(r)
         if r["pair"]:
             print(f"{p.stem}: pair {r['pair']}" + (f", missing profiles {r['missing_profiles']}" if r["missing_profiles"]
                                                    else f", {r['leader']} ahead by {r['two_ln_ratio']:.1f}")
                   + f"; {r['verdict_before']} ({r['named_before']}) -> {r['verdict_after']} ({r['named_after']})"
                   + (f"; truth on the finer grid minus the profiles' maxima {r['truth_minus_profile_max']}"
-                     if "truth_minus_profile_max" in r else ""))
+                     if "truth_minus_profile_max" in r else "")
+                  + (f"; converged: {r['converged']['leader']} ahead by {r['converged']['two_ln_ratio']:.1f} -> "
+                     f"{r['converged']['verdict']} ({r['converged']['named']})" if "converged" in r else ""), flush=True)
     Path(args.out).write_text(json.dumps({"results": str(res.relative_to(HERE)) if res.is_relative_to(HERE) else str(res),
                                           "profiles": [f.name for f in files], "rows": out}, indent=1))
     bad = [r["case"] for r in out if not r["reproduced"]]

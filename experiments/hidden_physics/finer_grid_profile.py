@@ -85,7 +85,7 @@ def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_value
     """Profile of one candidate along its switch (module doc) on the evaluator's grid (``factor`` 1) or
     on cells ``factor`` times smaller. ``ev_c``: the candidate's evaluator (prior: baseline parameters
     + switch last); ``parameters``: its refit's {name: {mean, hdr90}}. Returns {switch (K,), z (K,),
-    best (switch at the maximum), z_max, runs, wall_s}."""
+    best (switch at the maximum), z_max, x (p,) the parameters there, runs, wall_s}."""
     names = list(ev_c.prior.names)
     b = ev_c.prior.bounds.numpy()
     e = ev_c if factor == 1 else finer_grid_evaluator(ev_c, factor)
@@ -97,7 +97,8 @@ def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_value
         raise RuntimeError(f"profile of {names[-1]}: every run failed")
     k = int(np.argmax(z))
     return {"switch": np.asarray(r["switch"], float).tolist(), "z": np.asarray(r["z"], float).tolist(),
-            "best": float(r["switch"][k]), "z_max": float(z[k]), "runs": len(e.records),
+            "best": float(r["switch"][k]), "z_max": float(z[k]), "x": np.asarray(r["x"][k], float).tolist(),
+            "runs": len(e.records),
             "wall_s": time.perf_counter() - t0}
 
 
