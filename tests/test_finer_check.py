@@ -249,3 +249,10 @@ def test_finer_check_converge_redecides_from_the_converged_maxima(tmp_path, monk
     from experiments.hidden_physics.make_page import _finer_check_section
     md = "\n".join(_finer_check_section([out]))
     assert "| yield_stress_s0 | -10.0 -> -9.0 (-) | mu_i: -10.0 -> -9.5 | +0.0 -> +0.5 | mu_i -> unexplained |" in md
+    # --cases: only the named cases are re-decided (no converged search here); the others' rows are kept
+    assert fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--converge",
+                    "--cases", "null_s0"]) == 0
+    assert calls == [["mu_i", "yield_stress"]]
+    assert {r["case"]: r for r in json.loads(out.read_text())["rows"]} == rows
+    with pytest.raises(SystemExit, match=r"no saved case\(s\) \['mu_i_s9'\]"):
+        fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--cases", "mu_i_s9"])

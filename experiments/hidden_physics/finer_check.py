@@ -1,5 +1,6 @@
 """Would a finer-grid check tell yield stress from mu(I)? ``python -m experiments.hidden_physics.finer_check
-[--results DIR] [--profiles FILE,...] [--out FILE] [--truth] [--converge]``
+[--results DIR] [--profiles FILE,...] [--out FILE] [--truth] [--converge]
+[--cases NAME,...]``
 
 On the resolved terrain inverted on 20 m cells, yield stress and mu(I) both gain strong evidence from a
 yield-stress recording, and mu(I) came out ahead in 2 ln BF in seeds 0 and 1 (named). Profiled along
@@ -20,7 +21,9 @@ and ``strict_after_finer`` (the margin from the finer grid, as the check decides
 (default results/finer_check_resolved_20m.json); the results page reads it. ``--truth``: also z at
 the true parameters on the finer grid, against the profiles' maxima (is the profile's local search
 converged there?). ``--converge``: also both maxima after a longer search over every parameter from
-the profiles' optima and the truth (converged_maxima), and the verdict the check would give from them. The check was not put in the diagnosis: see the page's section for why.
+the profiles' optima and the truth (converged_maxima), and the verdict the check would give from them.
+``--cases``: re-decide only these saved cases, keeping the other rows of an existing ``--out``. The
+check was not put in the diagnosis: see the page's section for why.
 """
 from __future__ import annotations
 
@@ -215,6 +218,8 @@ def main(argv=None) -> int:
     a.add_argument("--converge", action="store_true",
                    help="also each pair's maxima after a longer local search over every parameter (converged_maxima: the "
                         "profiles again, then 8 x 12 moves from their optima and from the truth) and the verdict from them")
+    a.add_argument("--cases", default="",
+                   help="comma-separated case names (file stems) to re-decide; the other rows of an existing --out are kept")
     args = a.parse_args(argv)
     res = Path(args.results).resolve()
     files = [Path(f) for f in args.profiles.split(",") if f]
@@ -222,10 +227,21 @@ def main(argv=None) -> int:
     if not res.is_dir() or bad:
         raise SystemExit(f"finer_check: no results folder {res}" if not res.is_dir() else f"finer_check: no profile file(s) {bad}")
     rows = [r for f in files for r in json.loads(f.read_text())]
+    only = [c for c in args.cases.split(",") if c]
+    unknown = [c for c in only if not (res / f"{c}.json").exists()]
+    if unknown:
+        raise SystemExit(f"finer_check --cases: no saved case(s) {unknown} in {res}")
+    kept = {}
+    if only and Path(args.out).exists():
+        kept = {r["case"]: r for r in json.loads(Path(args.out).read_text())["rows"]}
     out = []
     for p in sorted(res.glob("*.json")):
         case = json.loads(p.read_text())
         if "diagnosis" not in case:
+            continue
+        if only and p.stem not in only:
+            if p.stem in kept:
+                out.append(kept[p.stem])
             continue
         r = redecide_case(case, p.stem, rows, truth=args.truth, converge=args.converge)
         out.append(r)
