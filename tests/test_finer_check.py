@@ -230,8 +230,8 @@ def test_finer_check_converge_redecides_from_the_converged_maxima(tmp_path, monk
                                 _profile_row("yield_stress_s0", "yield_stress", -20.0)]))
     calls = []
 
-    def fake(case, pair):
-        calls.append(list(pair))
+    def fake(case, pair, finer_inputs="dem"):
+        calls.append((list(pair), finer_inputs))
         z = {"mu_i": -9.5, "yield_stress": -9.0}
         return {n: {"profile_z": -10.0, "truth_z": None, "z": z[n], "x": [0.2, 500.0, 1.0], "runs": 7} for n in pair}
 
@@ -240,19 +240,27 @@ def test_finer_check_converge_redecides_from_the_converged_maxima(tmp_path, monk
     assert fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--converge"]) == 0
     rows = {r["case"]: r for r in json.loads(out.read_text())["rows"]}
     r = rows["yield_stress_s0"]
-    assert calls == [["mu_i", "yield_stress"]]
+    assert calls == [(["mu_i", "yield_stress"], "dem")]
     assert (r["leader"], r["named_after"]) == ("mu_i", "mu_i")
-    c = r["converged"]
+    c = r["converged"]["dem"]
     assert c["leader"] == "yield_stress" and c["two_ln_ratio"] == pytest.approx(1.0)
     assert (c["verdict"], c["named"]) == ("unexplained", None) and c["runs"] == {"mu_i": 7, "yield_stress": 7}
     assert "converged" not in rows["null_s0"]
     from experiments.hidden_physics.make_page import _finer_check_section
     md = "\n".join(_finer_check_section([out]))
-    assert "| yield_stress_s0 | -10.0 -> -9.0 (-) | mu_i: -10.0 -> -9.5 | +0.0 -> +0.5 | mu_i -> unexplained |" in md
+    assert "| yield_stress_s0 | dem | -10.0 -> -9.0 (-) | mu_i: -10.0 -> -9.5 | +0.0 -> +0.5 | mu_i -> unexplained |" in md
     # --cases: only the named cases are re-decided (no converged search here); the others' rows are kept
     assert fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--converge",
                     "--cases", "null_s0"]) == 0
-    assert calls == [["mu_i", "yield_stress"]]
+    assert calls == [(["mu_i", "yield_stress"], "dem")]
     assert {r["case"]: r for r in json.loads(out.read_text())["rows"]} == rows
+    # another finer-grid input for the same case: its search is added, the earlier one kept
+    assert fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--converge", "terrain_volume",
+                    "--cases", "yield_stress_s0"]) == 0
+    assert calls[-1] == (["mu_i", "yield_stress"], "terrain_volume")
+    r2 = {r["case"]: r for r in json.loads(out.read_text())["rows"]}["yield_stress_s0"]
+    assert set(r2["converged"]) == {"dem", "terrain_volume"} and r2["converged"]["dem"] == c
+    md = "\n".join(_finer_check_section([out]))
+    assert "| yield_stress_s0 | terrain_volume | -10.0 -> -9.0 (-) | mu_i: -10.0 -> -9.5 | +0.0 -> +0.5 | unexplained |" in md
     with pytest.raises(SystemExit, match=r"no saved case\(s\) \['mu_i_s9'\]"):
         fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--cases", "mu_i_s9"])

@@ -1,5 +1,5 @@
 """Would a finer-grid check tell yield stress from mu(I)? ``python -m experiments.hidden_physics.finer_check
-[--results DIR] [--profiles FILE,...] [--out FILE] [--truth] [--converge]
+[--results DIR] [--profiles FILE,...] [--out FILE] [--truth] [--converge [INPUTS]]
 [--cases NAME,...]``
 
 On the resolved terrain inverted on 20 m cells, yield stress and mu(I) both gain strong evidence from a
@@ -20,8 +20,10 @@ and the 2 ln profile ratio, the verdict and name before and after, and two stric
 and ``strict_after_finer`` (the margin from the finer grid, as the check decides). Rows go to ``--out``
 (default results/finer_check_resolved_20m.json); the results page reads it. ``--truth``: also z at
 the true parameters on the finer grid, against the profiles' maxima (is the profile's local search
-converged there?). ``--converge``: also both maxima after a longer search over every parameter from
-the profiles' optima and the truth (converged_maxima), and the verdict the check would give from them.
+converged there?). ``--converge [dem|terrain|terrain_volume]``: also both maxima after a longer search over every
+parameter from the profiles' optima and the truth (converged_maxima), and the verdict the check would
+give from them; with the finer grid over the inversion DEM, as the check would run it (dem, the
+default), over the recording's own terrain, or that and its release volume (the noise alone left).
 ``--cases``: re-decide only these saved cases, keeping the other rows of an existing ``--out``. The
 check was not put in the diagnosis: see the page's section for why.
 """
@@ -74,16 +76,17 @@ def finer_order(candidates: list, pair, z_max: dict) -> tuple[list, dict]:
                  "two_ln_ratio": 2 * abs(d)}
 
 
-def _candidate_evaluator(case: dict, name: str):
+def _candidate_evaluator(case: dict, name: str, finer_inputs: str = "dem"):
     """The evaluator of candidate ``name`` for the saved case (prior: mu, xi, its switch last), on the
-    inversion grid, its finer grid over the inversion DEM (finer_grid_profile.case_evaluator "dem")."""
+    inversion grid; its finer grid's inputs as ``finer_inputs`` says (finer_grid_profile.case_evaluator:
+    "dem", the inversion DEM, as the check would run it; "terrain", "terrain_volume")."""
     from torchslide.bayes import Prior, Uniform
     from torchslide.physics import CANDIDATES
 
     from .finer_grid_profile import case_evaluator
 
     C = CANDIDATES[name]
-    _, ev = case_evaluator(case, "dem")
+    _, ev = case_evaluator(case, finer_inputs)
     prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
     return ev.with_prior(prior, fixed=dict(C.fixed))
 
@@ -113,12 +116,14 @@ N_ITER_CONVERGED, POP_CONVERGED = 8, 12     # the longer search of converged_max
 
 
 def converged_maxima(case: dict, pair, n_iter: int = N_ITER_CONVERGED, pop: int = POP_CONVERGED,
-                     seed: int = 0, profile: dict | None = None) -> dict:
+                     seed: int = 0, profile: dict | None = None, finer_inputs: str = "dem") -> dict:
     """Is the check's lead the search's? For each candidate of ``pair``: its profile on the finer grid
     as the check runs it (finer_grid_profile.grid_profile, factor 2), then a local search over all
     its parameters, switch included (torchslide.diagnose.polish.local_search, ``n_iter`` iterations
     of ``pop`` moves per start), from the profile's optimum and, for the case's true term, also from
     the true parameters. ``profile``: keyword arguments for grid_profile (default: the check's budget).
+    ``finer_inputs``: what the finer grid runs on (_candidate_evaluator; "terrain_volume" leaves the
+    noise as the only difference between the recording and the true term there).
     Returns {name: {profile_z, truth_z (true term only, else None), z, x (3,),
     runs}}: z, the best ln L + ln prior found, is the maximum the check would compare if its search
     converged."""
@@ -131,7 +136,7 @@ def converged_maxima(case: dict, pair, n_iter: int = N_ITER_CONVERGED, pop: int 
 
     out = {}
     for name in pair:
-        ev_c = _candidate_evaluator(case, name)
+        ev_c = _candidate_evaluator(case, name, finer_inputs)
         P = next(c for c in case["diagnosis"]["candidates"] if c["name"] == name)["parameters"]
         prof = grid_profile(ev_c, P, factor=2, seed=seed, **(profile or {}))
         e = finer_grid_evaluator(ev_c)
@@ -150,11 +155,12 @@ def converged_maxima(case: dict, pair, n_iter: int = N_ITER_CONVERGED, pop: int 
     return out
 
 
-def redecide_case(case: dict, name: str, rows: list, truth: bool = False, converge: bool = False) -> dict:
+def redecide_case(case: dict, name: str, rows: list, truth: bool = False, converge=()) -> dict:
     """The row of one saved harness case (module doc); ``truth``: also truth_on_finer_grid for a case
-    whose true term is in the pair (one finer-grid run); ``converge``: for such a case also
-    converged_maxima and the verdict the check would give from them (row["converged"]: {z_max,
-    profile_z, truth_z, x, runs, leader, two_ln_ratio, verdict, named})."""
+    whose true term is in the pair (one finer-grid run); ``converge``: finer-grid inputs ("dem",
+    "terrain", "terrain_volume") for each of which such a case also gets converged_maxima and the
+    verdict the check would give from them (row["converged"][inputs]: {z_max, profile_z, truth_z, x,
+    runs, leader, two_ln_ratio, verdict, named})."""
     j = case["diagnosis"]
     th = Thresholds(**j["thresholds"])
     cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
@@ -196,14 +202,15 @@ def redecide_case(case: dict, name: str, rows: list, truth: bool = False, conver
         other = next(n for n in fc["pair"] if n != t)
         row["z_truth_finer"] = z = truth_on_finer_grid(case)
         row["truth_minus_profile_max"] = {t: z - fc["z_max"][t], other: z - fc["z_max"][other]}
-    if converge and fc is not None and case["truth"].get("term") in fc["pair"]:
-        cm = converged_maxima(case, fc["pair"])
+    for inputs in converge if fc is not None and case["truth"].get("term") in fc["pair"] else ():
+        cm = converged_maxima(case, fc["pair"], finer_inputs=inputs)
         zc = {n: v["z"] for n, v in cm.items()}
         cands_c, fcc = finer_order(cands, fc["pair"], zc)
         dc = decide(cands_c, j["located"], base, misfit, th, fit_z=fit_z or None)
-        row["converged"] = {"z_max": zc, **{k: {n: v[k] for n, v in cm.items()} for k in ("profile_z", "truth_z", "x", "runs")},
-                            "leader": fcc["leader"], "two_ln_ratio": fcc["two_ln_ratio"], "verdict": dc["verdict"],
-                            "named": dc["missing_physics"]}
+        row.setdefault("converged", {})[inputs] = {
+            "z_max": zc, **{k: {n: v[k] for n, v in cm.items()} for k in ("profile_z", "truth_z", "x", "runs")},
+            "leader": fcc["leader"], "two_ln_ratio": fcc["two_ln_ratio"], "verdict": dc["verdict"],
+            "named": dc["missing_physics"]}
     return row
 
 
@@ -215,9 +222,12 @@ def main(argv=None) -> int:
     a.add_argument("--truth", action="store_true",
                    help="also z at the true parameters on the finer grid (truth_on_finer_grid: one run per case whose "
                         "true term is in the pair), against both profiles' maxima")
-    a.add_argument("--converge", action="store_true",
+    from .finer_grid_profile import FINER_INPUTS
+
+    a.add_argument("--converge", nargs="?", const="dem", choices=FINER_INPUTS, default=None,
                    help="also each pair's maxima after a longer local search over every parameter (converged_maxima: the "
-                        "profiles again, then 8 x 12 moves from their optima and from the truth) and the verdict from them")
+                        "profiles again, then 8 x 12 moves from their optima and from the truth) and the verdict from them; "
+                        "its value: the finer grid's inputs (default dem, as the check; terrain; terrain_volume)")
     a.add_argument("--cases", default="",
                    help="comma-separated case names (file stems) to re-decide; the other rows of an existing --out are kept")
     args = a.parse_args(argv)
@@ -231,8 +241,8 @@ def main(argv=None) -> int:
     unknown = [c for c in only if not (res / f"{c}.json").exists()]
     if unknown:
         raise SystemExit(f"finer_check --cases: no saved case(s) {unknown} in {res}")
-    kept = {}
-    if only and Path(args.out).exists():
+    kept = {}       # an existing --out's rows: other cases' rows (with --cases) and earlier converged searches
+    if Path(args.out).exists():
         kept = {r["case"]: r for r in json.loads(Path(args.out).read_text())["rows"]}
     out = []
     for p in sorted(res.glob("*.json")):
@@ -243,7 +253,9 @@ def main(argv=None) -> int:
             if p.stem in kept:
                 out.append(kept[p.stem])
             continue
-        r = redecide_case(case, p.stem, rows, truth=args.truth, converge=args.converge)
+        r = redecide_case(case, p.stem, rows, truth=args.truth, converge=(args.converge,) if args.converge else ())
+        for inputs, c in kept.get(p.stem, {}).get("converged", {}).items():   # earlier inputs' searches are kept
+            r.setdefault("converged", {}).setdefault(inputs, c)
         out.append(r)
         if r["pair"]:
             print(f"{p.stem}: pair {r['pair']}" + (f", missing profiles {r['missing_profiles']}" if r["missing_profiles"]
@@ -251,8 +263,8 @@ def main(argv=None) -> int:
                   + f"; {r['verdict_before']} ({r['named_before']}) -> {r['verdict_after']} ({r['named_after']})"
                   + (f"; truth on the finer grid minus the profiles' maxima {r['truth_minus_profile_max']}"
                      if "truth_minus_profile_max" in r else "")
-                  + (f"; converged: {r['converged']['leader']} ahead by {r['converged']['two_ln_ratio']:.1f} -> "
-                     f"{r['converged']['verdict']} ({r['converged']['named']})" if "converged" in r else ""), flush=True)
+                  + "".join(f"; converged over {k}: {c['leader']} ahead by {c['two_ln_ratio']:.1f} -> {c['verdict']} "
+                            f"({c['named']})" for k, c in r.get("converged", {}).items()), flush=True)
     Path(args.out).write_text(json.dumps({"results": str(res.relative_to(HERE)) if res.is_relative_to(HERE) else str(res),
                                           "profiles": [f.name for f in files], "rows": out}, indent=1))
     bad = [r["case"] for r in out if not r["reproduced"]]

@@ -746,22 +746,26 @@ def _finer_check_section(files=None) -> list[str]:
                 t = r["scenario"]
                 o = next(n for n in r["truth_minus_profile_max"] if n != t)
                 L.append(f"| {r['case']} | {r['truth_minus_profile_max'][t]:+.1f} | {o}: {r['truth_minus_profile_max'][o]:+.1f} |")
-        cv = [r for r in rows if "converged" in r]
+        cv = [(r, k, c) for r in rows for k, c in r.get("converged", {}).items()]
         if cv:
-            L += ["", "Converged (`finer_check --converge`: each profile again, then a local search over every "
+            L += ["", "Converged (`finer_check --converge [INPUTS]`: each profile again, then a local search over every "
                   "parameter, 8 iterations of 12 moves, from its optimum and, for the true term, from the truth): "
                   "best ln L + ln prior on the finer grid, the true term minus the other, and the check's verdict "
-                  "from these maxima.", "",
-                  "| case | true term: profile -> converged (truth) | other: profile -> converged | true minus other: "
-                  "profile -> converged | check's verdict: profile -> converged |", "|---|---|---|---|---|"]
-            for r in cv:
-                t, c = r["scenario"], r["converged"]
+                  "from these maxima. The finer grid over: 'dem', the inversion's DEM (as the check would run it); "
+                  "'terrain', the recording's own terrain; 'terrain_volume', that and the recording's release volume "
+                  "(the noise alone is left between the recording and the true term there).", "",
+                  "| case | finer grid over | true term: profile -> converged (truth) | other: profile -> converged | "
+                  "true minus other: profile -> converged | check's verdict: profile -> converged |",
+                  "|---|---|---|---|---|---|"]
+            for r, k, c in cv:
+                t = r["scenario"]
                 o = next(n for n in c["z_max"] if n != t)
                 tz = c["truth_z"][t]
-                L.append(f"| {r['case']} | {c['profile_z'][t]:.1f} -> {c['z_max'][t]:.1f} "
+                L.append(f"| {r['case']} | {k} | {c['profile_z'][t]:.1f} -> {c['z_max'][t]:.1f} "
                          f"({'-' if tz is None else f'{tz:.1f}'}) | {o}: {c['profile_z'][o]:.1f} -> {c['z_max'][o]:.1f} | "
                          f"{c['profile_z'][t] - c['profile_z'][o]:+.1f} -> {c['z_max'][t] - c['z_max'][o]:+.1f} | "
-                         f"{lab(r['verdict_after'], r['named_after'])} -> {lab(c['verdict'], c['named'])} |")
+                         + (f"{lab(r['verdict_after'], r['named_after'])} -> " if k == "dem" else "")
+                         + f"{lab(c['verdict'], c['named'])} |")
         miss = [r["case"] for r in rows if r["missing_profiles"]]
         wrong = [f"{r['case']} ({r['named_after']})" for r in rows if r["named_after"] not in (None, r["scenario"])]
         unrep = [r["case"] for r in rows if not r.get("reproduced", True)]
