@@ -24,7 +24,8 @@ converged there?). ``--converge [dem|terrain|terrain_volume]``: also both maxima
 parameter from the profiles' optima and the truth (converged_maxima), and the verdict the check would
 give from them; with the finer grid over the inversion DEM, as the check would run it (dem, the
 default), over the recording's own terrain, or that and its release volume (the noise alone left).
-``--cases``: re-decide only these saved cases, keeping the other rows of an existing ``--out``. The
+``--cases``: re-decide only these saved cases, keeping the other rows of an existing ``--out`` (an
+existing row's converged searches are kept in any run, unless the same inputs are searched again). The
 check was not put in the diagnosis: see the page's section for why.
 """
 from __future__ import annotations
@@ -77,18 +78,15 @@ def finer_order(candidates: list, pair, z_max: dict) -> tuple[list, dict]:
 
 
 def _candidate_evaluator(case: dict, name: str, finer_inputs: str = "dem"):
-    """The evaluator of candidate ``name`` for the saved case (prior: mu, xi, its switch last), on the
-    inversion grid; its finer grid's inputs as ``finer_inputs`` says (finer_grid_profile.case_evaluator:
-    "dem", the inversion DEM, as the check would run it; "terrain", "terrain_volume")."""
-    from torchslide.bayes import Prior, Uniform
-    from torchslide.physics import CANDIDATES
+    """The evaluator of candidate ``name`` for the saved case (torchslide.diagnose.refit.candidate_evaluator:
+    the scenario's prior on mu, xi, the switch last), on the inversion grid; its finer grid's inputs as
+    ``finer_inputs`` says (finer_grid_profile.case_evaluator: "dem", the inversion DEM, as the check
+    would run it; "terrain", "terrain_volume")."""
+    from torchslide.diagnose.refit import candidate_evaluator
 
     from .finer_grid_profile import case_evaluator
 
-    C = CANDIDATES[name]
-    _, ev = case_evaluator(case, finer_inputs)
-    prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
-    return ev.with_prior(prior, fixed=dict(C.fixed))
+    return candidate_evaluator(case_evaluator(case, finer_inputs)[1], name)
 
 
 def _truth_x(case: dict) -> list:

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from torchslide.bayes import Prior, Uniform
 from torchslide.diagnose.model_error import fine_run
 from torchslide.diagnose.profile import switch_profile
+from torchslide.diagnose.refit import candidate_evaluator
 from torchslide.physics import CANDIDATES
 
 from . import scenarios
@@ -137,15 +137,14 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     recording grid's own surface: scenarios.make_evaluator(fine_terrain=True)) or "terrain_volume"
     (that, and on both grids the recording's own release volume instead of the nominal one: what
     remains is the noise and the grid). Row: {terrain, cellsize, case, candidate, param, truth,
-    finer_inputs, refit_hdr90, profiles: {inversion_grid, finer_grid: {switch, z, best, z_max, runs, wall_s}}}."""
+    finer_inputs, refit_hdr90, profiles: {inversion_grid, finer_grid: grid_profile's dict}}."""
     D = json.loads((Path(results or RESULTS[run]) / f"{case}.json").read_text())
     terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
     rec, ev = case_evaluator(D, finer_inputs)
     sc = D["scenario"]
     cand = candidate or SCENARIOS[sc][0]
     C = CANDIDATES[cand]
-    prior = Prior({"mu": Uniform(0.12, 0.4), "xi": Uniform(150.0, 1500.0), C.param: Uniform(*C.prior)})
-    ev_c = ev.with_prior(prior, fixed=dict(C.fixed))
+    ev_c = candidate_evaluator(ev, cand)
     P = next(c for c in D["diagnosis"]["candidates"] if c["name"] == cand)["parameters"]
     row = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
            "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None, "finer_inputs": finer_inputs,
