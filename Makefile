@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo diagnose-demo test test-all bench bench-solver bench-inference clean
+.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-inference clean
 
 venv: $(STAMP)
 
@@ -33,6 +33,10 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto -m "" --timeout=3600 --durations=15
+
+# the CUDA checks alone (tests/test_gpu.py; skipped where torch sees no GPU), on a GPU machine
+test-gpu: $(STAMP)
+	$(PY) -m pytest -q tests/test_gpu.py -m "" --timeout=1800 --durations=10
 
 bench: bench-solver bench-inference
 

@@ -103,7 +103,8 @@ def main(argv=None) -> None:
     ap.add_argument("--full-repeats", type=int, default=1)
     ap.add_argument("--full-t-end", type=float, default=300.0, help="simulated seconds of the full run")
     ap.add_argument("--full-configs", default="eager-f64-whole,eager-f64-crop,compiled-f64-crop,compiled-f32-crop",
-                    help="comma list of {eager|compiled}-{f64|f32}-{whole|crop}[:B] (B defaults to --full-batch)")
+                    help="comma list of {eager|compiled}-{f64|f32}-{whole|crop}[:B] (B defaults to --full-batch); "
+                         "'' skips the full runs")
     ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
     ap.add_argument("--skip-throughput", action="store_true")
     args = ap.parse_args(argv)
@@ -136,7 +137,7 @@ def main(argv=None) -> None:
                 if e:
                     ratios[f"{row['dtype']}_B{row['B']}"] = row["cell_updates_per_s_median"] / e[0]["cell_updates_per_s_median"]
         res["compile_speedup"] = ratios
-    for spec in args.full_configs.split(","):
+    for spec in filter(None, args.full_configs.split(",")):   # "" skips the full runs
         spec, _, b = spec.partition(":")
         mode, prec, dom = spec.split("-")
         if mode == "compiled" and args.no_compile:

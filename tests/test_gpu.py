@@ -1,0 +1,179 @@
+"""On a CUDA device the solver, a calibration and a diagnosis give what they give on the CPU.
+
+Skipped where torch sees no CUDA device (CI has none). On a GPU machine: ``make test-gpu`` (or
+``pytest tests/test_gpu.py``). ``TORCHSLIDE_TEST_DEVICE`` picks another device ("cuda:1"; "cpu" checks
+the tests themselves on a machine without a GPU). Relative differences are ||a - b|| / ||b|| over
+whole rasters.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from torchslide.physics import CANDIDATES, Params
+from torchslide.solver import SolverConfig, simulate
+
+from .test_solver_cases import chute_case
+from .test_solver_terms import BASE, ON, T_END
+
+DEVICE = os.environ.get("TORCHSLIDE_TEST_DEVICE", "cuda")
+ON_CUDA = DEVICE.startswith("cuda")
+pytestmark = pytest.mark.skipif(ON_CUDA and not torch.cuda.is_available(), reason="no CUDA device")
+
+
+def _reset_memory() -> None:
+    if ON_CUDA:
+        torch.cuda.reset_peak_memory_stats(DEVICE)
+
+
+def _used_the_gpu() -> bool:
+    """True when the device's allocator served memory since _reset_memory (always True on the CPU)."""
+    return torch.cuda.max_memory_allocated(DEVICE) > 0 if ON_CUDA else True
+
+CFG = SolverConfig(output_interval=5.0)
+
+
+def _rel(a, b) -> float:
+    a, b = torch.as_tensor(a).double().cpu(), torch.as_tensor(b).double().cpu()
+    return float((a - b).norm() / b.norm().clamp_min(1e-300))
+
+
+def _all_terms():
+    """(dem, release, params, kwargs): member 0 plain Voellmy, then one member per candidate term on
+    at the strength of tests/test_solver_terms.py (B = 1 + number of candidates)."""
+    dem, rel = chute_case()
+    names = sorted(CANDIDATES)
+    vals: dict[str, list[float]] = {}
+    fixed: dict[str, float] = {}
+    for i, name in enumerate(names):
+        c = CANDIDATES[name]
+        fixed.update(dict(c.fixed))
+        vals.setdefault(c.param, [c.baseline] * (len(names) + 1))[i + 1] = ON[c.param]
+    p = Params.make(**BASE, **fixed, **vals)
+    ny, nx = dem.shape
+    gauges = [("G", float(dem.x_centres()[nx // 2]), float(dem.y_centres()[ny // 2]))]
+    return dem, rel, p, dict(erodible_depth=np.full(dem.shape, 1.0), gauges=gauges)
+
+
+def _fields(r):
+    out = {"h_max": r.h_max, "v_max": r.v_max, "h_final": r.h_final, "final_volume": r.final_volume,
+           "bed_change": r.bed_change, "gauge_h": r.gauges["G"].h,
+           "arrival_time": torch.where(torch.isfinite(r.arrival_time), r.arrival_time, torch.zeros_like(r.arrival_time))}
+    return out
+
+
+@pytest.fixture(scope="module")
+def cpu_run():
+    dem, rel, p, kw = _all_terms()
+    return simulate(dem, rel, p, t_end=T_END, config=CFG, **kw)
+
+
+def test_solver_float64_on_cuda_matches_the_cpu(cpu_run):
+    dem, rel, p, kw = _all_terms()
+    r = simulate(dem, rel, p, t_end=T_END, config=CFG, device=DEVICE, **kw)
+    assert r.h_max.device.type in ("cuda", "cpu")
+    assert not bool(r.failed.any())
+    for name, ref in _fields(cpu_run).items():
+        assert _rel(_fields(r)[name], ref) < 1e-6, name
+    assert (r.steps.cpu() - cpu_run.steps).abs().max() <= 1
+    # every term changed its member on the GPU as on the CPU (the switch is applied there too)
+    for b in range(1, p.B):
+        assert not torch.equal(r.h_final[b].cpu(), r.h_final[0].cpu()), b
+
+
+def test_solver_float32_on_cuda_is_close_and_keeps_the_mass(cpu_run):
+    dem, rel, p, kw = _all_terms()
+    r = simulate(dem, rel, p, t_end=T_END, config=CFG, device=DEVICE, dtype=torch.float32, **kw)
+    assert r.h_max.dtype == torch.float32 and not bool(r.failed.any())
+    f32, f64 = _fields(r), _fields(cpu_run)
+    for name in ("h_max", "h_final", "final_volume"):
+        assert _rel(f32[name], f64[name]) < 0.02, name
+    bal = (r.final_volume.double() + r.outflow_volume.double() - r.release_volume.double()
+           - r.entrained_volume.double()).cpu() / r.release_volume.double().cpu()
+    assert float(bal.abs().max()) < 1e-4
+
+
+def test_compiled_solver_on_cuda_matches_eager(cpu_run):
+    dem, rel, p, kw = _all_terms()
+    cfg = SolverConfig(output_interval=5.0, compile=True)
+    r = simulate(dem, rel, p, t_end=T_END, config=cfg, device=DEVICE, **kw)
+    for name, ref in _fields(cpu_run).items():
+        assert _rel(_fields(r)[name], ref) < 1e-6, name
+
+
+# ------------------------------------------------------------------ calibration and diagnosis on the GPU
+def _calibration_config(tmp_path, device: str):
+    from .test_calibrate_cli import BASE as CBASE, CAL, OBS, PRIOR, write
+
+    v = 8.0
+    d = tmp_path
+    d.mkdir(parents=True)
+    text = CBASE.replace("[run]\n", f'[run]\ndevice = "{device}"\n') + PRIOR + OBS.format(value=v, sigma=0.8) + CAL
+    return write(d, text)
+
+
+def test_calibrate_on_cuda_matches_the_cpu(tmp_path):
+    """Same seeds on both devices: the same initial design, the same z to round-off, and a posterior
+    that agrees (the GP and the acquisition run in float64 on the CPU in both cases)."""
+    from torchslide.cli import main
+
+    posts = {}
+    for key, device in (("cpu", "cpu"), ("gpu", DEVICE)):
+        cfg = _calibration_config(tmp_path / key, device)
+        out = tmp_path / key / "cal"
+        _reset_memory()
+        assert main(["calibrate", str(cfg), "--out", str(out), "--quiet"]) == 0
+        if key == "gpu":
+            assert _used_the_gpu()      # the runs used the GPU
+        posts[key] = json.loads((out / "posterior.json").read_text())
+    c, g = posts["cpu"], posts["gpu"]
+    n0 = 6
+    for rc, rg in zip(c["runs"][:n0], g["runs"][:n0]):
+        assert rc["x"] == pytest.approx(rg["x"], rel=1e-12)
+        assert rc["z"] == pytest.approx(rg["z"], rel=1e-7, abs=1e-7)
+    assert g["n_runs"] == c["n_runs"] == 10
+    assert g["mean"]["mu"] == pytest.approx(c["mean"]["mu"], abs=0.02 * 0.45)
+    assert g["mean"]["xi"] == pytest.approx(c["mean"]["xi"], abs=0.05 * 1800.0)
+
+
+def test_diagnose_on_cuda_end_to_end(tmp_path):
+    """`torchslide diagnose` with [run] device = "cuda": exit 0, the report's keys, the runs on the GPU."""
+    from torchslide.cli import main
+
+    from .test_diagnose import _setup
+    from torchslide.terrain.synthetic import inclined_plane
+
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    tiny = ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
+            'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
+            'model_error_runs = 2\nmode_search_iters = 1\n'
+            '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
+    p.write_text(p.read_text().replace("[run]\n", f'[run]\ndevice = "{DEVICE}"\n'))
+    _reset_memory()
+    out = tmp_path / "out"
+    assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "0"]) == 0
+    assert _used_the_gpu()
+    j = json.loads((out / "report.json").read_text())
+    assert j["verdict"] in ("missing_physics", "no_missing_physics", "unexplained")
+    for key in ("missing_physics", "located", "candidates", "fit_before", "fit_after"):
+        assert key in j
+    assert np.isfinite(j["fit_before"]["misfit"])
+
+
+def test_harness_case_on_cuda(tmp_path):
+    """One blind-harness case with the inversion's runs on the GPU (the recording is made on the CPU)."""
+    from experiments.hidden_physics.harness import run_case
+
+    bud = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
+               baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1, n_perm=19,
+               mcmc_steps=200, model_error_runs=0, mode_search_iters=1)
+    _reset_memory()
+    c = run_case("entrainment", 0, tmp_path / "res", budgets=bud, candidates=["entrainment", "mu_i"],
+                 log=lambda s: None, device=DEVICE, max_batch=64)
+    assert _used_the_gpu()
+    assert c["diagnosis"]["screening"]["ranking"][0] == "entrainment"
