@@ -759,15 +759,15 @@ def test_harness_skips_strengths_beyond_a_switch_range():
 
 def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     """``harness --cellsize 20`` runs its cases on a 20 m inversion grid (recordings at 10 m), with
-    --device / --max-batch / --fine-terrain / --fine-factor passed on; the defaults stay 40 m, cpu, 16,
-    off, 2; saved cases are skipped on a rerun."""
+    --device / --max-batch / --fine-terrain / --fine-factor / --compile passed on; the defaults stay 40 m,
+    cpu, 16, off, 2, eager; saved cases are skipped on a rerun."""
     import experiments.hidden_physics.harness as H
 
     calls = []
 
     def fake(sc, seed, out, cellsize=40.0, **kw):
         calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"], kw["fine_factor"],
-                      kw["budgets"]))
+                      kw["budgets"], kw["compile_solver"]))
         out.mkdir(parents=True, exist_ok=True)
         (out / f"{sc}_s{seed}.json").write_text("{}")
         return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
@@ -775,17 +775,29 @@ def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     monkeypatch.setattr(H, "run_case", fake)
     assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
                    "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1",
-                   "--model-error", "0", "--mode-search-iters", "12", "--profile-top", "5"]) == 0
+                   "--model-error", "0", "--mode-search-iters", "12", "--profile-top", "5", "--compile"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert calls == [("null", 3, 20.0, "cuda", 64, True, 1,
-                      {"model_error_runs": 0, "mode_search_iters": 12, "profile_top": 5}),
-                     ("null", 3, 40.0, "cpu", 16, False, 2, None)]
+                      {"model_error_runs": 0, "mode_search_iters": 12, "profile_top": 5}, True),
+                     ("null", 3, 40.0, "cpu", 16, False, 2, None, False)]
     # a case another process holds (its .running claim) is skipped; the claim goes when a case ends
     (tmp_path / "b" / "null_s4.running").write_text("")
     assert H.main(["--seed-list", "4,5", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert [c[:2] for c in calls[2:]] == [("null", 5)]
     assert sorted(p.name for p in (tmp_path / "b").glob("*.running")) == ["null_s4.running"]
+
+
+def test_make_evaluator_compiles_the_solver_on_request():
+    """scenarios.make_evaluator(compile_solver=True): the diagnosis' solver steps compiled, on the device
+    given; eager by default (the harness' --compile)."""
+    from experiments.hidden_physics.scenarios import SOLVER, make_evaluator, make_recording
+
+    rec = make_recording("null", 0)
+    eager, comp = make_evaluator(rec), make_evaluator(rec, compile_solver=True, max_batch=64)
+    assert not eager.solver_config.compile and comp.solver_config.compile and comp.max_batch == 64
+    for k, v in SOLVER.items():
+        assert getattr(comp.solver_config, k) == v
 
 
 def test_harness_terrain_variants(tmp_path, monkeypatch):

@@ -81,19 +81,20 @@ def coverage(diag: dict, truth: dict) -> tuple:
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None,
              fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16, fine_factor: int = 2,
-             sigma_scale: float = 1.0) -> dict:
+             sigma_scale: float = 1.0, compile_solver: bool = False) -> dict:
     t0 = time.perf_counter()
     out = Path(out)
     rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor,
                          sigma_scale=sigma_scale)
-    ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch)
+    ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch,
+                        compile_solver=compile_solver)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
     d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
             "fine_terrain": fine_terrain, "fine_factor": fine_factor, "extra_gauges": list(scenarios.EXTRA_GAUGES),
-            "sigma_scale": sigma_scale, "truth": rec.truth,
+            "sigma_scale": sigma_scale, "device": str(device), "compile_solver": compile_solver, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
@@ -153,6 +154,9 @@ def main(argv=None) -> int:
                         "drawn; scenarios.make_recording); another value needs its own null seeds and --out")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
+    p.add_argument("--compile", action="store_true",
+                   help="torch.compile the diagnosis' solver steps (pays off on a GPU with a large --max-batch: "
+                        "README, 'On a GPU'; the recordings are made eager on the CPU either way)")
     a = p.parse_args(argv)
     if a.max_batch < 1:
         p.error(f"--max-batch must be >= 1, got {a.max_batch}")
@@ -213,7 +217,8 @@ def _run_all(a) -> int:
                 try:
                     c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
                                  fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
-                                 fine_factor=a.fine_factor, sigma_scale=a.sigma_scale, log=lambda s: print(s, flush=True))
+                                 fine_factor=a.fine_factor, sigma_scale=a.sigma_scale, compile_solver=a.compile,
+                                 log=lambda s: print(s, flush=True))
                 finally:
                     claim.unlink(missing_ok=True)
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "

@@ -207,9 +207,10 @@ def fine_terrain_grids(cellsize: float = 40.0) -> tuple:
 
 
 def make_evaluator(rec: Recording, cellsize: float = 40.0, max_batch: int = 16, fine_terrain: bool = False,
-                   device: str = "cpu"):
+                   device: str = "cpu", compile_solver: bool = False):
     """The diagnosis' evaluator on ``cellsize`` m cells (nominal release volume), its solver runs on
-    ``device`` ("cpu", "cuda", ...; the recordings are made on the CPU). ``fine_terrain``: give
+    ``device`` ("cpu", "cuda", ...; the recordings are made on the CPU), compiled when
+    ``compile_solver`` (SolverConfig.compile). ``fine_terrain``: give
     it the terrain on cells half as large (the recording grid's surface, nominal release, no hidden
     term) for the model error's finer runs, as a user coarsening a finer DEM for the inversion would."""
     from torchslide.bayes import Prior, Uniform
@@ -223,5 +224,6 @@ def make_evaluator(rec: Recording, cellsize: float = 40.0, max_batch: int = 16, 
         ft = FineTerrain(dem_f, rel_f, erodible_depth=erod_f)
     return DiagnosisEvaluator(dem=dem, release=release(dem, V_NOMINAL), observations=rec.observations, prior=prior,
                               t_end=T_END, gauges=gauges(), erodible_depth=erod,
-                              solver_config=SolverConfig(**SOLVER), max_batch=max_batch, fine_terrain=ft,
+                              solver_config=SolverConfig(**SOLVER, compile=compile_solver), max_batch=max_batch,
+                              fine_terrain=ft,
                               device=device)
