@@ -25,6 +25,26 @@ def test_fit_predict_interpolates_and_unit_scaling():
     assert len(hp["lengthscale"]) == 2 and hp["noise"] > 0
 
 
+def test_mean_alone_equals_the_predictive_mean_and_follows_refits():
+    """mean() (k(x, X) alpha from the prediction cache) equals predict()[0] to round-off, in 2 and 3
+    dimensions, in chunks, after a refit on more points (no stale cache), and in z units (Standardize)."""
+    g = torch.Generator().manual_seed(1)
+    for dim, n in ((2, 25), (3, 60)):
+        b = torch.stack([-torch.ones(dim), 2 * torch.ones(dim)]).double()
+        h = lambda x: -3.0 * ((x - 0.3) ** 2).sum(-1) + 100.0       # an offset the Standardize must restore
+        x = b[0] + torch.rand(n, dim, generator=g, dtype=torch.float64) * (b[1] - b[0])
+        em = LogPosteriorEmulator(b).fit(x, h(x))
+        xt = b[0] + torch.rand(500, dim, generator=g, dtype=torch.float64) * (b[1] - b[0])
+        first = em.mean(xt, batch=77)
+        assert first.shape == (500,)
+        assert torch.allclose(first, em.predict(xt)[0], rtol=1e-9, atol=1e-8)
+        x2 = torch.cat([x, b[0] + torch.rand(n, dim, generator=g, dtype=torch.float64) * (b[1] - b[0])])
+        em.fit(x2, h(x2) + 5.0)                     # refit: other data, other values
+        again = em.mean(xt)
+        assert torch.allclose(again, em.predict(xt)[0], rtol=1e-9, atol=1e-8)
+        assert float((again - first).abs().mean()) > 1.0
+
+
 def test_warm_start_and_jitter_retry_on_duplicates():
     x = torch.tensor([[0.0, 0.0], [0.0, 0.0], [1.0, -1.0], [-1.0, 0.5], [0.5, 0.5]], dtype=torch.float64)
     em = LogPosteriorEmulator(B, noise_floor=1e-12).fit(x, f(x))  # duplicated point: must not crash

