@@ -87,6 +87,15 @@ def _setup(tmp_path, csv="t,h,speed\n1,0,0\n2,1,3\n3,2,4\n", grid=(6, 24), candi
     return p, dem
 
 
+def tiny_budgets(extra: str = "") -> str:
+    """The [diagnose] candidates value ["mu_i"] followed by tiny budgets (``extra``: more [diagnose] keys)
+    and a tiny [calibration] section, for _setup(candidates=...)."""
+    return ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
+            'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
+            'model_error_runs = 2\nmode_search_iters = 1\n' + extra +
+            '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
+
+
 @pytest.mark.parametrize("case", ["times", "grid", "candidate"])
 def test_cli_bad_input_exit_2(tmp_path, capsys, case):
     from torchslide.terrain.synthetic import inclined_plane
@@ -343,11 +352,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     import json
     from torchslide.terrain.synthetic import inclined_plane
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
-    tiny = ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
-            'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
-            'model_error_runs = 2\nmode_search_iters = 1\nrelease_volume_sd = 0.05\nfit_max = -1000\n'
-            '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
-    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets("release_volume_sd = 0.05\nfit_max = -1000\n"))
     out = tmp_path / "out"
     assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "-1"]) == 2
     # null runs that fail (a finer-grid run): exit 1, the report with the thresholds given is written

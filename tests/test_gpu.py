@@ -144,15 +144,12 @@ def test_diagnose_on_cuda_end_to_end(tmp_path):
     """`torchslide diagnose` with [run] device = "cuda": exit 0, the report's keys, the runs on the GPU."""
     from torchslide.cli import main
 
-    from .test_diagnose import _setup
     from torchslide.terrain.synthetic import inclined_plane
 
+    from .test_diagnose import _setup, tiny_budgets
+
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
-    tiny = ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
-            'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
-            'model_error_runs = 2\nmode_search_iters = 1\n'
-            '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
-    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets())
     p.write_text(p.read_text().replace("[run]\n", f'[run]\ndevice = "{DEVICE}"\n'))
     _reset_memory()
     out = tmp_path / "out"
