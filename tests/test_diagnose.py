@@ -121,15 +121,19 @@ def test_cli_bad_input_exit_2(tmp_path, capsys, case):
 
 
 # ---------------------------------------------------------------------------------- small blind harness
+TINY_HARNESS_BUDGETS = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
+                            baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1,
+                            n_perm=19, mcmc_steps=200, model_error_runs=0, mode_search_iters=2)
+"""Budgets of the small harness cases in the tests (harness.run_case(budgets=...))."""
+
+
 def test_small_harness(tmp_path):
     """Null + entrainment on the coarse channel with tiny budgets: runs end to end, writes reports,
     and the screening ranks entrainment first where entrainment is hidden."""
     from experiments.hidden_physics.harness import run_case
     from experiments.hidden_physics.make_page import build_page
 
-    bud = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
-               baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1, n_perm=19,
-               mcmc_steps=200, model_error_runs=0, mode_search_iters=2)
+    bud = TINY_HARNESS_BUDGETS
     cands = ["entrainment", "yield_stress", "mu_i"]
     out = tmp_path / "res"
     cases = {sc: run_case(sc, 0, out, budgets=bud, candidates=cands, log=lambda s: None) for sc in ("null", "entrainment")}

@@ -34,6 +34,7 @@ def _used_the_gpu() -> bool:
     """True when the device's allocator served memory since _reset_memory (always True on the CPU)."""
     return torch.cuda.max_memory_allocated(DEVICE) > 0 if ON_CUDA else True
 
+
 CFG = SolverConfig(output_interval=5.0)
 
 
@@ -74,8 +75,9 @@ def cpu_run():
 
 def test_solver_float64_on_cuda_matches_the_cpu(cpu_run):
     dem, rel, p, kw = _all_terms()
+    _reset_memory()
     r = simulate(dem, rel, p, t_end=T_END, config=CFG, device=DEVICE, **kw)
-    assert r.h_max.device.type in ("cuda", "cpu")
+    assert _used_the_gpu()
     assert not bool(r.failed.any())
     for name, ref in _fields(cpu_run).items():
         assert _rel(_fields(r)[name], ref) < 1e-6, name
@@ -109,11 +111,9 @@ def test_compiled_solver_on_cuda_matches_eager(cpu_run):
 def _calibration_config(tmp_path, device: str):
     from .test_calibrate_cli import BASE as CBASE, CAL, OBS, PRIOR, write
 
-    v = 8.0
-    d = tmp_path
-    d.mkdir(parents=True)
-    text = CBASE.replace("[run]\n", f'[run]\ndevice = "{device}"\n') + PRIOR + OBS.format(value=v, sigma=0.8) + CAL
-    return write(d, text)
+    tmp_path.mkdir(parents=True)
+    text = CBASE.replace("[run]\n", f'[run]\ndevice = "{device}"\n') + PRIOR + OBS.format(value=8.0, sigma=0.8) + CAL
+    return write(tmp_path, text)
 
 
 def test_calibrate_on_cuda_matches_the_cpu(tmp_path):
@@ -166,11 +166,12 @@ def test_harness_case_on_cuda(tmp_path):
     """One blind-harness case with the inversion's runs on the GPU (the recording is made on the CPU)."""
     from experiments.hidden_physics.harness import run_case
 
-    bud = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
-               baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1, n_perm=19,
-               mcmc_steps=200, model_error_runs=0, mode_search_iters=1)
+    from .test_diagnose import TINY_HARNESS_BUDGETS
+
+    bud = {**TINY_HARNESS_BUDGETS, "mode_search_iters": 1}
     _reset_memory()
     c = run_case("entrainment", 0, tmp_path / "res", budgets=bud, candidates=["entrainment", "mu_i"],
                  log=lambda s: None, device=DEVICE, max_batch=64)
     assert _used_the_gpu()
+    assert c["device"] == DEVICE and c["compile_solver"] is False
     assert c["diagnosis"]["screening"]["ranking"][0] == "entrainment"
