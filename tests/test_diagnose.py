@@ -929,6 +929,41 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     assert "### Two of them re-run with the refit re-check" in rerun2 and "resolved20_recheck" in rerun2
 
 
+def test_strength_table_counts_every_seed_per_scenario_and_strength():
+    """make_page's table of detection against effect strength: one row per hidden scenario and strength over
+    all its seeds (the true term named, strict successes, the true term the best candidate, its median lower
+    bound, the true switch covered); the out-of-library patch has no library columns; null cases no row."""
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _seed_list, _strength_table
+
+    th = Thresholds(bf_min=12.5, located_min=9.0)
+    par = {"yield_stress": {"tau_y": {"mean": 3.1, "hdr90": [2.0, 4.0], "hdi90": [2.1, 3.9]}}}
+    ys = lambda v: dict(_cand("yield_stress", v), param="tau_y", parameters=par["yield_stress"], two_ln_bf_lower=v)
+    mi = lambda v: dict(_cand("mu_i", v), param="mu_i", parameters={}, two_ln_bf_lower=v)
+    diag = lambda verdict, name, cands, margin: {
+        "verdict": verdict, "missing_physics": name, "candidates": cands, "located": [],
+        "decision": {"two_ln_bf_over_runner_up": margin}, "fit_before": {"misfit": 100.0},
+        "fit_after": {"misfit": 60.0}, "thresholds": asdict(th)}
+    mk = lambda sc, term, seed, st, cover, d: {"scenario": sc, "seed": seed, "strength": st,
+                                               "truth": {"term": term, "tau_y": 3.0 * st},
+                                               "true_term_covered_hdr90": cover, "diagnosis": d}
+    cases = [mk("yield_stress", "yield_stress", 0, 2.0, True, diag("missing_physics", "yield_stress", [ys(40.0), mi(20.0)], 20.0)),
+             mk("yield_stress", "yield_stress", 1, 2.0, False, diag("unexplained", None, [ys(10.0), mi(30.0)], 20.0)),
+             mk("yield_stress", "yield_stress", 2, 2.0, True, diag("missing_physics", "yield_stress", [ys(30.0), mi(27.0)], 3.0)),
+             mk("yield_stress", "yield_stress", 0, 1.0, True, diag("no_missing_physics", None, [ys(5.0)], None)),
+             mk("low_friction_patch", "outside", 0, 2.0, None, diag("unexplained", None, [mi(9.0)], None)),
+             mk("low_friction_patch", "outside", 1, 2.0, None, diag("missing_physics", "mu_i", [mi(60.0)], 50.0)),
+             mk("null", None, 0, 1.0, None, diag("no_missing_physics", None, [mi(1.0)], None))]
+    text = "\n".join(_strength_table(cases))
+    # s0 strict (named, margin 20, covered, misfit down); s2 named but margin 3 < 6; s1 mu(I) best
+    assert "| yield_stress | x2 | 3 | unexplained 1, yield_stress 2 | 2 | 1 | 2 | 30.0 | 2 |" in text
+    assert "| yield_stress | x1 | 1 | none 1 | 0 | 0 | 1 | 5.0 | 1 |" in text
+    # the patch: strict when no library name is given (s0), not when mu(I) is named (s1)
+    assert "| low_friction_patch | x2 | 2 | mu_i 1, unexplained 1 | - | 1 | - | - | - |" in text
+    assert "| null |" not in text
+    assert _seed_list({0, 1, 2, 3, 4}) == "0-4" and _seed_list({0, 2}) == "0, 2" and _seed_list({0}) == "0"
+
+
 def test_page_section_of_the_release_volume_run(tmp_path):
     """make_page's section of the resolved terrain run with the release volume's error: the sd the cases
     ran with (from their model-error summary), the targets, a row per case with that run's own

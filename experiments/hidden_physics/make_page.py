@@ -1007,6 +1007,39 @@ def _resolved_20m_section(d=None, prev=None, effect=None) -> list[str]:
         "on 10 m. Each with thresholds from its own null seeds.")
 
 
+def _seed_list(seeds) -> str:
+    """'0-4' for consecutive seeds, else '0, 2, 5'."""
+    s = sorted(seeds)
+    return f"{s[0]}-{s[-1]}" if len(s) > 2 and s == list(range(s[0], s[-1] + 1)) else ", ".join(map(str, s))
+
+
+def _strength_table(cases) -> list[str]:
+    """Per hidden scenario and effect strength: what was found (count), the true term named, strict successes,
+    the true term the best candidate (largest lower-bound 2 ln BF) and its median lower bound, and how often its
+    refit's 90 % HDI covered the true switch (the targets' columns, at every strength)."""
+    per = defaultdict(list)
+    for c in cases:
+        if true_label(c) != "none":
+            per[(c["scenario"], c["strength"])].append(c)
+    L = ["| scenario | strength | cases | found (count) | true term named | strict successes | true term best candidate "
+         "| its median lower 2 ln BF | true switch in 90 % HDI |", "|---" * 9 + "|"]
+    for (sc, st), cs in sorted(per.items()):
+        tl = true_label(cs[0])
+        found = defaultdict(int)
+        for c in cs:
+            found[found_label(c)] += 1
+        lib = tl != "unexplained"
+        lows = [_lower_bounds(c).get(tl) for c in cs] if lib else []
+        lows = [v for v in lows if v is not None]
+        cov = [c.get("true_term_covered_hdr90") for c in cs] if lib else []
+        L.append(f"| {sc} | x{st:g} | {len(cs)} | {', '.join(f'{k} {v}' for k, v in sorted(found.items()))} | "
+                 f"{sum(found_label(c) == tl for c in cs) if lib else '-'} | {sum(strict_success(c) for c in cs)} | "
+                 f"{sum(_best_lower(c)[0] == tl for c in cs) if lib else '-'} | "
+                 f"{f'{np.median(lows):.1f}' if lows else '-'} | "
+                 f"{sum(bool(v) for v in cov) if cov and any(v is not None for v in cov) else '-'} |")
+    return L
+
+
 def _targets_table(cases) -> list[str]:
     """Per scenario: cases, strict successes, what was found (count), the target."""
     per = defaultdict(list)
@@ -1689,14 +1722,21 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         other = sorted({(c["strength"], c["seed"]) for c in cases if c["strength"] != 1.0})
         L += ["## Detection rate against effect strength", "", "![detection](figures/detection_vs_strength.png)", ""]
         if other:
-            L += [f"Strengths other than 1: {', '.join(f'x{st:g} (seed {sd})' for st, sd in other)}, one case per "
-                  "point; earth pressure and curvature cannot be doubled (their switches end at 1; "
-                  "harness.out_of_range). Solid lines: the true term named. Dashed lines: any verdict but \"nothing "
-                  "missing\" (the true term or another named, or \"unexplained\", e.g. by a fit flag); for the "
-                  "out-of-library patch the right verdict is \"unexplained\", which it got at every strength. The "
-                  "cases at x0.5 and x2 were re-decided with the fit flags in session 18, their Z_fit from "
-                  "block_fit_probe `--strengths 0.5,2` (which re-runs each case's baseline stage: its located scores "
-                  "equal the saved case's where the baseline was not refined later).", ""]
+            seeds = defaultdict(set)
+            for st, sd in other:
+                seeds[st].add(sd)
+            which = "; ".join(f"x{st:g} (seed{'s' if len(sds) > 1 else ''} {_seed_list(sds)})"
+                              for st, sds in sorted(seeds.items()))
+            L += [f"Strengths other than 1: {which}"
+                  "; earth pressure and curvature cannot be doubled (their switches end at 1; harness.out_of_range). "
+                  "Solid lines: the true term named. Dashed lines: any verdict but \"nothing missing\" (the true term "
+                  "or another named, or \"unexplained\", e.g. by a fit flag); for the out-of-library patch the right "
+                  "verdict is \"unexplained\". Small numbers: cases per point. Seed 0's cases at x0.5 and x2 ran in "
+                  "session 13 and were re-decided with the fit flags in session 18 (their Z_fit from block_fit_probe "
+                  "`--strengths 0.5,2`)" + ("; seeds 1-4 ran in session 32 with the same method (session 31's faster "
+                  "emulator mean reproduces a saved case to 3e-8), the fit flags deciding as they ran"
+                  if any(sd > 0 for _, sd in other) else "") + ".", ""]
+            L += _strength_table(cases) + [""]
     if "detection_vs_effect_size.png" in files:
         L += ["Against the measured effect (strength 1; effect_size.py: the part of each term's effect that "
               "re-tuning mu and xi cannot mimic, in units of the 40 m grid's discretisation error against the 20 m "
