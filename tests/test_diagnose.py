@@ -914,7 +914,13 @@ def test_page_section_of_the_resolved_terrain_run(tmp_path):
     assert "bf_min 12.5" in text and "located_min 9.0" in text
     assert "| mu_i | 2 | 1 | mu_i 1, unexplained 1 | >= 4 of 5 |" in text
     assert "| mu_i_s0 | mu_i | True | mu_i 30.2, earth_pressure 14.0 | 16.2 | 0.21, [0.12, 0.3]; hdr90 [0.1, 0.32] (0.2) |" in text
-    assert "| mu_i_s1 | unexplained | False |" in text and "x0.5" not in text
+    assert "| mu_i_s1 | unexplained | False |" in text
+    # other strengths: their own subsection (per case and per strength), not in the strength-1 targets
+    head, strengths = text.split("### Effect strength on this terrain")
+    assert "x0.5" not in head and "mu_i recorded at x0.5 (seed 0)" in strengths
+    assert "| mu_i_s0_x0.5 | mu_i | False | mu_i 30.2 | - |" in strengths
+    assert "| mu_i | x0.5 | 1 | mu_i 1 | 1 | 0 | 1 | 30.2 | 1 |" in strengths
+    assert "| mu_i | x1 | 2 | mu_i 1, unexplained 1 | 1 | 1 | 2 | 30.2 | 2 |" in strengths
     assert "Median wall time per case 300 s." in text
     assert _resolved_terrain_section(tmp_path / "absent") == []
     probe = "\n".join(_resolved_terrain_section(tmp_path, gc=tmp_path / "absent.json", d20=tmp_path,

@@ -909,7 +909,8 @@ def _case_rows(cases) -> list[str]:
             lo, hi = p.get("hdi90", p["hdr90"])
             eq = "; hdr90 [{:.3g}, {:.3g}]".format(*p["hdr90"]) if list(p["hdr90"]) != [lo, hi] else ""
             sw = f"{p['mean']:.3g}, [{lo:.3g}, {hi:.3g}]{eq} ({c['truth'][x['param']]:g})"
-        L.append(f"| {c['scenario']}_s{c['seed']} | {found_label(c)} | "
+        x_st = "" if c.get("strength", 1.0) == 1.0 else f"_x{c['strength']:g}"
+        L.append(f"| {c['scenario']}_s{c['seed']}{x_st} | {found_label(c)} | "
                  f"{strict_success(c)} | {bfs} | "
                  f"{'-' if m is None else f'{m:.1f}'} | {sw or '-'} |")
     return L
@@ -1013,6 +1014,12 @@ def _seed_list(seeds) -> str:
     return f"{s[0]}-{s[-1]}" if len(s) > 2 and s == list(range(s[0], s[-1] + 1)) else ", ".join(map(str, s))
 
 
+def _seeds_phrase(seeds) -> str:
+    """'seed 0' or 'seeds 0-4'."""
+    seeds = set(seeds)
+    return f"seed{'s' if len(seeds) > 1 else ''} {_seed_list(seeds)}"
+
+
 def _strength_table(cases) -> list[str]:
     """Per hidden scenario and effect strength: what was found (count), the true term named, strict successes,
     the true term the best candidate (largest lower-bound 2 ln BF) and its median lower bound, and how often its
@@ -1084,10 +1091,10 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
     and its cases re-run with the baseline mode check (``d20_check``, default results/resolved20_modecheck)
     and then also with the refit re-check (``d20_recheck``, default results/resolved20_recheck)."""
     d = Path(d) if d is not None else HERE / "results" / "resolved" / "results"
-    cases, th = _variant_cases(d)
+    every, th = _variant_cases(d)
+    cases = [c for c in every if c.get("strength", 1.0) == 1.0]
     if not cases:
         return []
-    cases = [c for c in cases if c.get("strength", 1.0) == 1.0]
     from .scenarios import TERRAINS
     (gn, rn, xn), (gr, rr, xr) = TERRAINS["narrow"], TERRAINS["resolved"]
     L = ["## The harness on a terrain the 40 m grid resolves (`harness --terrain resolved`)", "",
@@ -1100,6 +1107,17 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
          "The same terrain with the method before the profile along the switch (sessions 9-10) is archived in "
          "EARLIER.md under the same heading.", ""]
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
+    other = [c for c in every if c.get("strength", 1.0) != 1.0]
+    if other:
+        scen = sorted({c["scenario"] for c in other})
+        L += ["### Effect strength on this terrain", "",
+              f"{', '.join(scen)} recorded at " + " and ".join(
+                  f"x{st:g} ({_seeds_phrase(c['seed'] for c in other if c['strength'] == st)})"
+                  for st in sorted({c["strength"] for c in other}))
+              + " (session 32), with the same method and this terrain's thresholds, beside the cases above at "
+              "strength 1. Per case at these strengths:", ""]
+        L += _case_rows(other) + ["", "Per scenario and strength:", ""]
+        L += _strength_table([c for c in every if c["scenario"] in scen]) + [""]
     gc = Path(gc) if gc is not None else HERE / "results" / "grid_convergence_resolved.json"
     d20 = Path(d20) if d20 is not None else HERE / "results" / "resolved20"
     d20_check = Path(d20_check) if d20_check is not None else HERE / "results" / "resolved20_modecheck"
@@ -1725,8 +1743,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
             seeds = defaultdict(set)
             for st, sd in other:
                 seeds[st].add(sd)
-            which = "; ".join(f"x{st:g} (seed{'s' if len(sds) > 1 else ''} {_seed_list(sds)})"
-                              for st, sds in sorted(seeds.items()))
+            which = "; ".join(f"x{st:g} ({_seeds_phrase(sds)})" for st, sds in sorted(seeds.items()))
             L += [f"Strengths other than 1: {which}"
                   "; earth pressure and curvature cannot be doubled (their switches end at 1; harness.out_of_range). "
                   "Solid lines: the true term named. Dashed lines: any verdict but \"nothing missing\" (the true term "
