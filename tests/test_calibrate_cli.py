@@ -117,6 +117,14 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     ("[prior]\nfriction = [0.1, 0.3]\n", OBS.format(value=10.0, sigma=1.0), "friction"),
     (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\nn_initial = 10\nn_total = 5\n", "n_total"),
     (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\ntruth = { mu = 0.2 }\n", "truth"),
+    # a prior reaching values the model refuses (mu <= 0; a switch beyond [0, 1]), before any run
+    ("[prior]\nmu = [-0.1, 0.4]\n", OBS.format(value=10.0, sigma=1.0), "range low = -0.1 is outside the allowed values (0, inf)"),
+    ("[prior]\nmu = { dist = \"truncnormal\", mean = 0.2, sd = 0.1, low = 0.0, high = 0.5 }\n",
+     OBS.format(value=10.0, sigma=1.0), "parameter mu: range low = 0.0"),
+    ("[prior]\nmu = [0.1, 0.4]\nearth_pressure = [0.0, 1.5]\n", OBS.format(value=10.0, sigma=1.0),
+     "parameter earth_pressure: range high = 1.5 is outside the allowed values [0, 1]"),
+    # a recorded speed cannot be negative
+    (PRIOR, OBS.format(value=-3.0, sigma=1.0), "a recorded max_velocity cannot be negative, got -3.0 m/s"),
 ])
 def test_bad_input_is_refused_before_any_run(tmp_path, capsys, prior, obs, msg):
     cfg = write(tmp_path, BASE + prior + obs)
@@ -126,3 +134,38 @@ def test_bad_input_is_refused_before_any_run(tmp_path, capsys, prior, obs, msg):
     assert err.startswith("torchslide: error:") and msg in err
     assert len(err.strip().splitlines()) == 1
     assert not out.exists()
+
+
+def test_every_documented_prior_distribution_parses_to_its_density(tmp_path):
+    """The [prior] forms of the command's doc (uniform, truncnormal (mean, sd), lognormal (mean_log, sd_log),
+    gamma (concentration, rate)) build the bayes components with those values, and their log densities
+    are the truncated scipy ones."""
+    from scipy import stats
+
+    from torchslide.bayes import Gamma, LogNormal, TruncatedNormal, Uniform
+    from torchslide.commands.calibrate import load_calibration_config
+
+    prior = """
+[prior]
+mu = { dist = "truncnormal", mean = 0.2, sd = 0.1, low = 0.05, high = 0.5 }
+xi = { dist = "lognormal", mean_log = 6.9, sd_log = 0.5, low = 100.0, high = 2200.0 }
+tau_y = { dist = "gamma", concentration = 2.0, rate = 0.5, low = 0.0, high = 20.0 }
+kappa = { dist = "uniform", low = 0.0, high = 0.01 }
+"""
+    cfg = load_calibration_config(write(tmp_path, BASE + prior + OBS.format(value=10.0, sigma=1.0)))
+    c = cfg.extra["prior"].components
+    assert isinstance(c["mu"], TruncatedNormal) and (c["mu"].loc, c["mu"].scale) == (0.2, 0.1)
+    assert isinstance(c["xi"], LogNormal) and (c["xi"].mu, c["xi"].sigma) == (6.9, 0.5)
+    assert isinstance(c["tau_y"], Gamma) and (c["tau_y"].concentration, c["tau_y"].rate) == (2.0, 0.5)
+    assert isinstance(c["kappa"], Uniform) and (c["kappa"].low, c["kappa"].high) == (0.0, 0.01)
+    checks = [("mu", stats.truncnorm((0.05 - 0.2) / 0.1, (0.5 - 0.2) / 0.1, loc=0.2, scale=0.1), [0.1, 0.3]),
+              ("xi", stats.lognorm(0.5, scale=np.exp(6.9)), [300.0, 1500.0]),
+              ("tau_y", stats.gamma(2.0, scale=2.0), [1.0, 7.0])]
+    for name, d, v in checks:
+        lp = c[name].log_prob(np.asarray(v)).numpy()
+        if name in ("xi", "tau_y"):     # truncated to [low, high]: renormalised by the mass inside
+            lo, hi = c[name].low, c[name].high
+            expect = d.logpdf(v) - np.log(d.cdf(hi) - d.cdf(lo))
+        else:
+            expect = d.logpdf(v)
+        assert lp == pytest.approx(expect, rel=1e-9), name

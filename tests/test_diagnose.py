@@ -120,6 +120,61 @@ def test_cli_bad_input_exit_2(tmp_path, capsys, case):
         assert "dark_matter" in err and "unknown candidate" in err
 
 
+def _last_value(path, token: str) -> None:
+    """Replace the last data value of an ESRI ASCII grid with ``token``."""
+    text = path.read_text().rstrip().rsplit(" ", 1)[0]
+    path.write_text(text + " " + token + "\n")
+
+
+@pytest.mark.parametrize("case, msg", [
+    ("gauge_after_t_end", "recorded until t = 90 s, after the simulated time t_end = 60 s"),
+    ("gauge_negative_time", "row 2: times are seconds since the release and must be >= 0, got t = -1"),
+    ("candidate_twice", "candidates lists ['mu_i'] more than once"),
+    ("map_infinite_cell", "1 infinite cells, first at row 0 from the south, col 23"),
+    ("map_all_nodata", "map has no finite cells"),
+    ("impact_map_not_0_1", "an impact map holds 0 (not reached) or 1 (reached)"),
+    ("bf_min_negative", "bf_min must be >= 0"),
+    ("prior_below_zero", "[prior] parameter mu: range low = -0.05 is outside the allowed values (0, inf)"),
+    ("negative_volume", "a recorded final_volume cannot be negative, got -1.0 m^3"),
+])
+def test_cli_refuses_more_bad_input_before_any_run(tmp_path, capsys, case, msg):
+    """Each bad input gets one line naming the field and the value, exit 2, before any solver run."""
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    kw = {"grid": dem.shape, "candidates": '["mu_i"]'}
+    if case == "gauge_after_t_end":
+        kw["csv"] = "t,h,speed\n1,0,0\n30,1,3\n90,2,4\n"
+    elif case == "gauge_negative_time":
+        kw["csv"] = "t,h,speed\n-1,0,0\n2,1,3\n3,2,4\n"
+    elif case == "candidate_twice":
+        kw["candidates"] = '["mu_i", "entrainment", "mu_i"]'
+    elif case == "bf_min_negative":
+        kw["candidates"] = '["mu_i"]\nbf_min = -1.0'
+    p, _ = _setup(tmp_path, **kw)
+    toml = p.read_text()
+    if case == "map_infinite_cell":
+        _last_value(tmp_path / "dep.asc", "inf")
+    elif case == "map_all_nodata":
+        head = tmp_path / "dep.asc"
+        lines = head.read_text().splitlines()
+        head.write_text("\n".join(lines[:6] + [" ".join(["nan"] * dem.shape[1])] * dem.shape[0]) + "\n")
+    elif case == "impact_map_not_0_1":
+        write_asc(tmp_path / "imp.asc", np.full(dem.shape, 0.5), dem)
+        toml += '\n[[observations]]\nkind = "impact_map"\nfile = "imp.asc"\nsigma = 0.3\n'
+    elif case == "prior_below_zero":
+        toml = toml.replace("mu = [0.05, 0.5]", "mu = [-0.05, 0.5]")
+    elif case == "negative_volume":
+        toml += '\n[[observations]]\nkind = "final_volume"\nvalue = -1.0\nsigma = 1000.0\n'
+    p.write_text(toml)
+    rc = main(["diagnose", str(p), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert not (tmp_path / "out").exists()
+    assert err.startswith("torchslide: error:") and len(err.strip().splitlines()) == 1, err
+    assert msg in err, err
+    assert "Traceback" not in err
+
+
 # ---------------------------------------------------------------------------------- small blind harness
 TINY_HARNESS_BUDGETS = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
                             baseline_n_initial=6, baseline_n_total=8, baseline_n_total_max=8, batch_size=8, top_k=1,

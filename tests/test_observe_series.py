@@ -50,7 +50,8 @@ def test_gauge_csv_and_interp(tmp_path):
     assert torch.allclose(y, torch.tensor([[0.0, 0.25, 1.0]]))
 
 
-@pytest.mark.parametrize("text,row", [("t,h\n0,1\n1,2\n1,3\n", 4), ("t,h\n0,1\n2,2\n1,3\n", 4), ("t,h\n0,1\nx,2\n", 3)])
+@pytest.mark.parametrize("text,row", [("t,h\n0,1\n1,2\n1,3\n", 4), ("t,h\n0,1\n2,2\n1,3\n", 4), ("t,h\n0,1\nx,2\n", 3),
+                                      ("t,h\n-0.5,1\n1,2\n", 2)])
 def test_gauge_csv_errors_name_file_and_row(tmp_path, text, row):
     f = tmp_path / "bad.csv"
     f.write_text(text)
@@ -124,3 +125,20 @@ def test_sample_errors_have_the_stated_covariance():
     iid = SeriesObservation("gauge_series", np.zeros(30), 0.2, name="g:h", gauge="g", times=np.arange(30) * 2.0)
     ei = iid.sample_errors(rng, 4000) / 0.2
     assert abs(ei.var() - 1) < 0.05 and abs(np.mean(ei[:, 1:] * ei[:, :-1])) < 0.03
+
+
+def test_series_and_maps_refuse_negative_times_infinite_cells_and_non_binary_impact_maps():
+    """Built in code rather than read from files, the same input errors as from files (name and value)."""
+    dem = DEM(z=np.zeros((3, 4)), cellsize=10.0, xll=100.0, yll=200.0)
+    with pytest.raises(GaugeSeriesError, match="since the release"):
+        SeriesObservation("gauge_series", np.ones(3), 0.5, name="G:h", gauge="G", times=np.array([-1.0, 0.0, 1.0])).validate()
+    a = np.zeros(dem.shape)
+    a[1, 2] = -np.inf
+    with pytest.raises(ValueError, match=r"1 infinite cells, first at row 1 from the south, col 2 \(x=125 m, y=215 m\): -inf"):
+        SeriesObservation.from_array("deposit_map", a, dem, 0.5)
+    b = np.ones(dem.shape)
+    b[0, 0] = np.nan          # nodata: not mapped, allowed
+    assert SeriesObservation.from_array("impact_map", b, dem, 0.5).m == 11
+    b[2, 3] = 2.0
+    with pytest.raises(ValueError, match="1 cells hold other values, first at row 2 from the south, col 3"):
+        SeriesObservation.from_array("impact_map", b, dem, 0.5)

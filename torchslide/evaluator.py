@@ -23,7 +23,7 @@ import torch
 
 from .bayes import EvaluationResult, GaussianLikelihood, Prior
 from .observe import Observation
-from .physics import Params
+from .physics import Params, check_range
 from .result import SimulationResult
 from .terrain.grid import DEM
 
@@ -98,6 +98,8 @@ class LandslideEvaluator:
         both = set(self.prior.names) & set(self.fixed)
         if both:
             raise ValueError(f"parameter(s) {sorted(both)} are both calibrated and fixed")
+        for n, c in self.prior.components.items():     # a prior reaching e.g. mu <= 0: refused before any run
+            check_range(n, c.low, c.high)
         if "mu" not in self.prior.names and "mu" not in self.fixed:
             raise ValueError("mu must be calibrated (in the prior) or fixed")
 

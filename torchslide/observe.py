@@ -200,6 +200,8 @@ class ObservationKind:
     uses_threshold: bool = False
     description: str = ""
     validate: Callable[["Observation", DEM], None] | None = None
+    nonnegative: bool = False
+    """A recorded value of this kind is >= 0 (an area, a volume, a length, a speed, a thickness)."""
 
 
 KINDS: dict[str, ObservationKind] = {}
@@ -208,35 +210,37 @@ KINDS: dict[str, ObservationKind] = {}
 def register_kind(name: str, fn: Callable[[SimulationResult, "Observation"], torch.Tensor], *, unit: str,
                   needs_point: bool = False, needs_thalweg: bool = False, uses_threshold: bool = False,
                   description: str = "", validate: Callable[["Observation", DEM], None] | None = None,
-                  overwrite: bool = False) -> ObservationKind:
+                  overwrite: bool = False, nonnegative: bool = False) -> ObservationKind:
     """Add an observation kind to :data:`KINDS`. ``fn(result, obs)`` must return a (B,) tensor.
 
     ``validate(obs, dem)`` (optional) runs after the generic checks and raises ValueError.
+    ``nonnegative``: a recorded value must be >= 0 (:meth:`Observation.check_recorded`).
     """
     if name in KINDS and not overwrite:
         raise ValueError(f"observation kind {name!r} is already registered")
-    kind = ObservationKind(name, fn, unit, needs_point, needs_thalweg, uses_threshold, description, validate)
+    kind = ObservationKind(name, fn, unit, needs_point, needs_thalweg, uses_threshold, description, validate,
+                           nonnegative)
     KINDS[name] = kind
     return kind
 
 
 register_kind("impact_area", lambda r, o: impact_area(r, o.threshold), unit="m^2", uses_threshold=True,
-              description="area with h_max > threshold")
+              nonnegative=True, description="area with h_max > threshold")
 register_kind("deposit_area", lambda r, o: deposit_area(r, o.threshold), unit="m^2", uses_threshold=True,
-              description="area with h_final > threshold")
+              nonnegative=True, description="area with h_final > threshold")
 register_kind("deposit_volume", lambda r, o: deposit_volume(r, o.threshold), unit="m^3", uses_threshold=True,
-              description="volume of h_final over cells with h_final > threshold")
+              nonnegative=True, description="volume of h_final over cells with h_final > threshold")
 register_kind("final_volume", lambda r, o: final_volume(r), unit="m^3",
-              description="all material in the domain at the end")
+              nonnegative=True, description="all material in the domain at the end")
 register_kind("max_velocity", lambda r, o: max_velocity(r, o.x, o.y, o.method), unit="m/s", needs_point=True,
-              description="v_max at a point")
+              nonnegative=True, description="v_max at a point")
 register_kind("max_height", lambda r, o: max_height(r, o.x, o.y, o.method), unit="m", needs_point=True,
-              description="h_max at a point")
+              nonnegative=True, description="h_max at a point")
 register_kind("deposit_height", lambda r, o: deposit_height(r, o.x, o.y, o.method), unit="m", needs_point=True,
-              description="h_final at a point")
+              nonnegative=True, description="h_final at a point")
 register_kind("runout_length",
               lambda r, o: runout_length(r, o.thalweg, o.threshold, o.options.get("max_offset")),
-              unit="m", needs_thalweg=True, uses_threshold=True,
+              unit="m", needs_thalweg=True, uses_threshold=True, nonnegative=True,
               description="distance along the thalweg of the farthest cell with h_max > threshold")
 
 
@@ -317,6 +321,16 @@ class Observation:
                 raise ValueError(f"{label}: thalweg must be an (N >= 2, 2) array of finite x, y, got shape {P.shape}")
         if spec.validate is not None:
             spec.validate(self, dem)
+        return self
+
+    def check_recorded(self) -> "Observation":
+        """Checks a value a user recorded must pass beyond :meth:`validate`: ValueError for a negative value
+        of a kind that cannot be negative (an area, a volume, a length, a speed, a thickness). Not part of
+        validate, since simulated recordings with noise (e.g. the null runs of torchslide.diagnose.null) may
+        fall below zero."""
+        if self.spec.nonnegative and float(self.value) < 0:
+            raise ValueError(f"observation {self.name!r}: a recorded {self.kind} cannot be negative, got "
+                             f"{self.value!r} {self.spec.unit}")
         return self
 
     def predict(self, result: SimulationResult) -> torch.Tensor:

@@ -138,7 +138,8 @@ def read_gauge_csv(path) -> dict[str, np.ndarray]:
     """Read a gauge CSV (header ``t`` plus ``h`` and/or ``speed``) -> {column: (m,) array}.
 
     Raises GaugeSeriesError naming the file and the (1-based, header = row 1) row for missing columns,
-    non-numeric values or times that do not increase strictly.
+    non-numeric values, negative times (t is seconds since the release) or times that do not increase
+    strictly.
     """
     path = Path(path)
     if not path.is_file():
@@ -166,6 +167,8 @@ def read_gauge_csv(path) -> dict[str, np.ndarray]:
     t = np.asarray(cols["t"])
     if t.size < 2:
         raise GaugeSeriesError(f"{path}: need at least 2 samples, got {t.size}")
+    if t[0] < 0:
+        raise GaugeSeriesError(f"{path}: row 2: times are seconds since the release and must be >= 0, got t = {t[0]:g}")
     bad = np.nonzero(np.diff(t) <= 0)[0]
     if bad.size:
         k = int(bad[0]) + 1
@@ -252,10 +255,27 @@ class SeriesObservation:
         a = np.asarray(array, dtype=np.float64)
         if a.shape != dem.shape:
             raise TerrainError(f"{source or name or kind}: map has shape {a.shape}, the DEM grid is {dem.shape}")
+        label = source or name or kind
+
+        def first_cell(bad: np.ndarray) -> str:
+            r, c = (int(v) for v in np.argwhere(bad)[0])
+            return (f"first at row {r} from the south, col {c} (x={dem.xll + (c + 0.5) * dem.cellsize:g} m, "
+                    f"y={dem.yll + (r + 0.5) * dem.cellsize:g} m): {float(a[r, c])!r}")
+
+        inf = np.isinf(a)
+        if inf.any():
+            raise ValueError(f"{label}: {int(inf.sum())} infinite cells, {first_cell(inf)}; "
+                             f"mark cells without a recording as nodata (NaN)")
+        if kind == "impact_map":
+            not01 = np.isfinite(a) & (a != 0) & (a != 1)
+            if not01.any():
+                raise ValueError(f"{label}: an impact map holds 0 (not reached) or 1 (reached) per cell, and "
+                                 f"nodata where not mapped; {int(not01.sum())} cells hold other values, "
+                                 f"{first_cell(not01)}")
         ok = np.isfinite(a) if mask is None else (np.isfinite(a) & mask)
         idx = np.flatnonzero(ok.ravel())
         if idx.size == 0:
-            raise ValueError(f"{source or name or kind}: map has no finite cells")
+            raise ValueError(f"{label}: map has no finite cells")
         return cls(kind, a.ravel()[idx], sigma, name=name or kind, cell_index=idx, grid_shape=dem.shape,
                    cellsize=float(dem.cellsize), threshold=threshold, corr_length=corr_length, source=source)
 
@@ -336,6 +356,8 @@ class SeriesObservation:
             t = np.asarray(self.times, dtype=np.float64)
             if t.shape != v.shape:
                 raise ValueError(f"{label}: {t.size} times for {v.size} values")
+            if not np.isfinite(t).all() or t[0] < 0:
+                raise GaugeSeriesError(f"{label}: times are finite seconds since the release (>= 0), first t = {t[0]:g}")
             bad = np.nonzero(np.diff(t) <= 0)[0]
             if bad.size:
                 raise GaugeSeriesError(f"{label}: times must increase strictly (sample {int(bad[0]) + 2}: "

@@ -70,6 +70,39 @@ _DEFAULTS: dict[str, float | None] = {
 }
 
 
+# The values each parameter may take (low, high, low_open, high_open): the rules of Params.validate as
+# intervals, so that a prior's range can be checked before any run (check_range). phi_int's second rule
+# (phi_int >= atan(mu)) couples two parameters and is checked per member by Params.validate.
+DOMAINS: dict[str, tuple[float, float, bool, bool]] = {
+    "mu": (0.0, math.inf, True, True),
+    "xi": (0.0, math.inf, True, False),
+    "k_ap": (0.0, math.inf, True, True),
+    "phi_int": (0.0, 90.0, True, True),
+    "earth_pressure": (0.0, 1.0, False, False),
+    "curvature": (0.0, math.inf, False, True),
+    "kappa": (0.0, math.inf, False, True),
+    "tau_y": (0.0, math.inf, False, True),
+    "mu_i": (0.0, math.inf, False, True),
+    "deposition": (0.0, math.inf, False, True),
+}
+
+
+def check_range(name: str, low: float, high: float) -> None:
+    """Raise ValueError naming the parameter and the bound when [low, high] leaves its allowed values.
+
+    ``name`` must be a :class:`Params` field; the allowed values are :data:`DOMAINS` (the module table).
+    Used on prior ranges, so that a prior reaching e.g. mu <= 0 is refused before any solver run.
+    """
+    if name not in DOMAINS:
+        raise ValueError(f"unknown parameter {name!r}; known: {list(DOMAINS)}")
+    lo, hi, lo_open, hi_open = DOMAINS[name]
+    allowed = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+    if low < lo or (lo_open and low == lo):
+        raise ValueError(f"parameter {name}: range low = {low!r} is outside the allowed values {allowed}")
+    if high > hi or (hi_open and high == hi):
+        raise ValueError(f"parameter {name}: range high = {high!r} is outside the allowed values {allowed}")
+
+
 @dataclass
 class Params:
     """B parameter sets of the run-out model; every field is a (B,) tensor (see the module table).

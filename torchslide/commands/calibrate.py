@@ -56,10 +56,13 @@ _PRIOR_DISTS = {
 }
 
 
+_PRIOR_ARGS = {"truncnormal": {"mean": "loc", "sd": "scale"}, "lognormal": {"mean_log": "mu", "sd_log": "sigma"}}
+
+
 def parse_prior(table: Any, cfg: Config):
     """[prior] -> torchslide.bayes.Prior (raises ConfigError naming the parameter)."""
     from ..bayes import Gamma, LogNormal, Prior, TruncatedNormal, Uniform
-    from ..physics import Params
+    from ..physics import Params, check_range
 
     path = cfg.path
     if not isinstance(table, dict) or not table:
@@ -87,7 +90,8 @@ def parse_prior(table: Any, cfg: Config):
             missing = sorted(_PRIOR_DISTS[dist][0] - set(spec))
             if missing:
                 raise ConfigError(f"{path}: [prior] {name}: dist {dist!r} needs {', '.join(missing)}")
-            kw = {k: float(v) for k, v in spec.items() if k != "dist"}
+            rename = _PRIOR_ARGS.get(dist, {})      # config key -> torchslide.bayes constructor argument
+            kw = {rename.get(k, k): float(v) for k, v in spec.items() if k != "dist"}
             cls = {"uniform": Uniform, "truncnormal": TruncatedNormal, "lognormal": LogNormal, "gamma": Gamma}[dist]
             comp = cls(**kw)
             comp._check(name)
@@ -97,6 +101,8 @@ def parse_prior(table: Any, cfg: Config):
         except (TypeError, ValueError) as e:
             raise ConfigError(f"{path}: [prior] {name}: {e}") from None
     try:
+        for name, comp in comps.items():       # a range the model refuses (mu <= 0, a switch beyond 1, ...)
+            check_range(name, comp.low, comp.high)
         return Prior(comps)
     except ValueError as e:
         raise ConfigError(f"{path}: [prior] {e}") from None
@@ -117,7 +123,7 @@ def parse_observations(table: Any, cfg: Config) -> list[Observation]:
             if d.get("kind") == "runout_length" and "thalweg" not in d and thalweg is not None:
                 d["thalweg"] = np.asarray(thalweg).tolist()
             o = Observation.from_dict(d)
-            o.validate(cfg.terrain.dem)
+            o.validate(cfg.terrain.dem).check_recorded()
         except ValueError as e:
             raise ConfigError(f"{path}: observation {i + 1}: {e}") from None
         out.append(o)

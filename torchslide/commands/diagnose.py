@@ -140,6 +140,8 @@ def parse_observations(table: Any, cfg: Config) -> list:
                                                       corr_length=d.get("corr_length"),
                                                       threshold=float(d.get("threshold", 0.5)))
                     out.append(o.validate(dem))
+            except ConfigError:
+                raise
             except GaugeSeriesError as e:
                 raise ConfigError(f"{path}: {where}: {e}") from None
             except (TypeError, ValueError) as e:
@@ -149,7 +151,7 @@ def parse_observations(table: Any, cfg: Config) -> list:
             continue
         try:
             o = Observation.from_dict(dict(d))
-            o.validate(dem)
+            o.validate(dem).check_recorded()
         except ValueError as e:
             raise ConfigError(f"{path}: observation {i + 1}: {e}") from None
         out.append(o)
@@ -169,6 +171,9 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     bad = [n for n in c["candidates"] if n not in CANDIDATES]
     if bad:
         raise ConfigError(f"{path}: [diagnose] unknown candidate(s) {bad} (known: {', '.join(CANDIDATES)})")
+    dup = sorted({n for n in c["candidates"] if c["candidates"].count(n) > 1})
+    if dup:
+        raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
         low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
                "profile_top": 0, "model_error_factor": 2}.get(k, 1)
@@ -197,6 +202,10 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     for k in ("margin_min", "located_min", "z_threshold"):
         if c[k] <= 0:
             raise ConfigError(f"{path}: [diagnose] {k} must be > 0, got {c[k]!r}")
+    for k in ("bf_min", "waic_min"):      # 2 ln BF / 2 delta elpd a candidate must beat the baseline by
+        if c[k] < 0:
+            raise ConfigError(f"{path}: [diagnose] {k} must be >= 0 (a candidate must do at least as well as "
+                              f"the baseline), got {c[k]!r}")
     if not 0.0 <= c["explain_min"] <= 1.0:
         raise ConfigError(f"{path}: [diagnose] explain_min is a fraction in [0, 1], got {c['explain_min']!r}")
     if c["ess_min"] < 1.0:

@@ -71,6 +71,11 @@ class DiagnosisEvaluator(LandslideEvaluator):
         for o in self.observations:
             if isinstance(o, SeriesObservation):
                 o.validate(self.dem, gauge_names)
+                if o.kind == "gauge_series" and float(o.times[-1]) > self.t_end:
+                    raise ValueError(f"observation {o.name!r}" + (f" ({o.source})" if o.source else "")
+                                     + f": recorded until t = {float(o.times[-1]):g} s, after the simulated time "
+                                     f"t_end = {self.t_end:g} s; raise t_end ([run] t_end) to cover the recording "
+                                     f"(a run still stops early once the flow has stopped)")
             else:
                 o.validate(self.dem)
         names = [str(o.name) for o in self.observations]

@@ -119,7 +119,7 @@ def read_asc_array(path) -> tuple[np.ndarray, float, float, float]:
             n += 1
             continue
         key = parts[0].lower()
-        if key[0].isalpha():
+        if not _isfloat(key) and key[0].isalpha():   # a number ("nan" and "inf" too) starts the data
             if key not in _KNOWN:
                 raise TerrainError(f"{path}, line {n + 1}: unknown header key {parts[0]!r}")
             if len(parts) != 2:
