@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from torchslide.physics import Params
@@ -81,6 +82,42 @@ def test_mass_conserved_with_outflow():
     assert float(bal.abs().max()) < 1e-12
     hist = r.mass_history
     assert bool((hist[:, 1:] <= hist[:, :-1] * (1 + 1e-12)).all())  # volume in the domain only decreases
+
+
+def test_outflow_boundary_lets_nothing_into_the_domain():
+    """A release touching the upslope edge of the DEM: with the default boundary ("outflow") the volume
+    in the domain never grows (nothing comes in through the edge) and the balance holds; with the
+    transmissive "open" boundary the edge keeps feeding the flow (the case the default exists for)."""
+    dem = chute_dem(nx=30, ny=12, dx=10.0, x_break=1e9)          # all slope, falling towards +x
+    rel = np.zeros(dem.shape)
+    rel[3:9, 0:6] = 4.0                                           # touches the upslope edge x = 0
+    P = Params.make(mu=[0.2, 0.35], xi=[1000.0, 500.0])
+    r = simulate(dem, rel, P, t_end=30.0, config=SolverConfig(output_interval=1.0))
+    hist = r.mass_history
+    assert bool((hist[:, 1:] <= hist[:, :-1] * (1 + 1e-12)).all())
+    assert bool((r.outflow_volume >= 0).all())
+    bal = (r.final_volume + r.outflow_volume - r.release_volume) / r.release_volume
+    assert float(bal.abs().max()) < 1e-12
+    o = simulate(dem, rel, P, t_end=30.0, config=SolverConfig(output_interval=1.0, boundary="open"))
+    assert bool((o.final_volume + o.outflow_volume.clamp(min=0) > 1.05 * o.release_volume).any())
+    assert bool((o.outflow_volume < 0).any())
+
+
+def test_outflow_boundary_leaves_an_outgoing_flow_unchanged():
+    """Where the flow only leaves the domain, "outflow" and "open" give the same run (bitwise)."""
+    dem = chute_dem(nx=30, ny=16, dx=10.0, x_break=1e9)
+    rel = cap_release(dem, 80.0, 80.0, 40.0, 5.0)
+    P = Params.make(mu=[0.2, 0.3], xi=[2000.0, 1000.0])
+    a = simulate(dem, rel, P, t_end=40.0, config=SolverConfig(output_interval=5.0, boundary="outflow"))
+    b = simulate(dem, rel, P, t_end=40.0, config=SolverConfig(output_interval=5.0, boundary="open"))
+    assert bool((a.outflow_volume > 0.05 * a.release_volume).all())
+    assert torch.equal(a.h_final, b.h_final) and torch.equal(a.outflow_volume, b.outflow_volume)
+
+
+def test_boundary_setting_is_validated():
+    with pytest.raises(ValueError, match="SolverConfig.boundary = 'wall' is invalid"):
+        simulate(chute_dem(nx=10, ny=6, dx=10.0), np.ones((6, 10)), Params.make(mu=0.3), t_end=1.0,
+                 config=SolverConfig(boundary="wall"))
 
 
 def test_entrainment_volume_balance():

@@ -22,8 +22,9 @@ def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.
     tt = math.tan(math.radians(theta))
     dem = DEM(np.tile(-xc * tt, (3, 1)), dx, xll=x0)
     rel = np.tile(np.where(xc < 0, h0, 0.0), (3, 1))
+    # the reference is an infinite reservoir: the upslope edge must feed it (boundary "open")
     r = simulate(dem, rel, Params.make(mu=math.tan(math.radians(delta))), t_end=t,
-                 config=SolverConfig(output_interval=t))
+                 config=SolverConfig(output_interval=t, boundary="open"))
     cs = math.cos(math.radians(theta))
     m = G * cs * (tt - math.tan(math.radians(delta)))
     c0 = math.sqrt(G * cs * h0)

@@ -38,6 +38,12 @@ class SolverConfig:
             wetted support grows by at most one cell per stage, and the box keeps a margin of
             2 * crop_every + 3 dry cells; outside it every field is exactly zero / unchanged.
         crop_every: steps between two checks of the box (one host synchronisation each).
+        boundary: the DEM edge. "outflow" (default): mass and momentum leave through it and nothing
+            enters (a boundary face whose flux points into the domain carries only its pressure, like a
+            wall), so the volume in the domain never grows through the edge, also where a release or a
+            flow touches the upslope edge of the DEM. "open": transmissive, the state continues through
+            the edge as on an infinite domain (the uniform-layer verification cases); where a flow at the
+            edge moves into the domain this feeds it without limit.
     """
 
     cfl: float = 0.45
@@ -58,6 +64,7 @@ class SolverConfig:
     compile: bool = False
     crop: bool = True
     crop_every: int = 2
+    boundary: str = "outflow"
 
     def validate(self) -> None:
         def need(ok: bool, name: str, rule: str) -> None:
@@ -76,3 +83,4 @@ class SolverConfig:
         need(self.check_every >= 1, "check_every", "need >= 1")
         need(self.max_steps >= 1, "max_steps", "need >= 1")
         need(self.crop_every >= 1, "crop_every", "need >= 1")
+        need(self.boundary in ("outflow", "open"), "boundary", "need 'outflow' or 'open'")

@@ -3,10 +3,11 @@
 Every function here works along a tensor dimension ``d`` (2 = x, columns; 1 = y, rows) of (B, ny, nx)
 fields, so the x and y sweeps run the same code (rotations and mirrors of the grid are exact).
 
-Ghost cells (2 per side, open boundaries): the bed and the thickness are extrapolated linearly (the
-thickness clipped at 0), so the surface w = h + z is too: a lake at rest and a uniform layer on a plane
-continue unchanged through the boundary. Velocities and per-cell coefficients are replicated (zero
-gradient, transmissive).
+Ghost cells (2 per side): the bed and the thickness are extrapolated linearly (the thickness clipped at
+0), so the surface w = h + z is too: a lake at rest and a uniform layer on a plane continue unchanged
+through the boundary. Velocities and per-cell coefficients are replicated (zero gradient, transmissive).
+What a boundary face may carry into the domain is set by ``draining_factors``' ``ghost`` factor
+(SolverConfig.boundary): "outflow" lets mass leave and nothing enter, "open" is fully transmissive.
 """
 from __future__ import annotations
 
@@ -169,12 +170,15 @@ def diff(F: Tensor, d: int) -> Tensor:
     return F.narrow(d, 1, n) - F.narrow(d, 0, n)
 
 
-def draining_factors(h: Tensor, Fx: Tensor, Fy: Tensor, dt: Tensor, dx: float) -> tuple[Tensor, Tensor]:
+def draining_factors(h: Tensor, Fx: Tensor, Fy: Tensor, dt: Tensor, dx: float,
+                     ghost: float = 0.0) -> tuple[Tensor, Tensor]:
     """Draining-flux limiter (Bollermann et al. 2013): keeps h >= 0 for any time step.
 
     A cell whose outgoing mass in one step would exceed its content scales all its outgoing fluxes by
     content / outgoing. Returns the factors for the x faces (B, ny, nx+1) and y faces (B, ny+1, nx);
-    each face is scaled by the factor of its upwind cell (the ghost cells supply without limit).
+    each face is scaled by the factor of its upwind cell. ``ghost`` is the factor of the ghost cells,
+    i.e. of a boundary face whose flux points into the domain: 0 (outflow boundary: nothing enters; the
+    face keeps only its pressure, like a wall) or 1 (open: the ghost cells supply without limit).
     """
     nx, ny = h.shape[2], h.shape[1]
     outx = torch.relu(Fx.narrow(2, 1, nx)) + torch.relu(-Fx.narrow(2, 0, nx))
@@ -182,8 +186,8 @@ def draining_factors(h: Tensor, Fx: Tensor, Fy: Tensor, dt: Tensor, dx: float) -
     out = (outx + outy) * (dt / dx)
     over = out > h
     fac = torch.where(over, h / torch.where(over, out, torch.ones_like(out)), torch.ones_like(out))
-    fx = pad_const(fac, 2, 1.0)
-    fy = pad_const(fac, 1, 1.0)
+    fx = pad_const(fac, 2, ghost)
+    fy = pad_const(fac, 1, ghost)
     facx = torch.where(Fx > 0, fx.narrow(2, 0, nx + 1), fx.narrow(2, 1, nx + 1))
     facy = torch.where(Fy > 0, fy.narrow(1, 0, ny + 1), fy.narrow(1, 1, ny + 1))
     return facx, facy

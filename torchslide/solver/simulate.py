@@ -195,7 +195,8 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
         arrival_threshold=cfg.arrival_threshold, entrain_h_min=cfg.entrain_h_min,
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,
         use_ep=bool((P0.earth_pressure > 0).any()), use_curv=bool((P0.curvature > 0).any()),
-        use_ent=use_ent, use_dep=use_dep, use_mu_i=bool((P0.mu_i > 0).any()), use_mu_scale=ms is not None)
+        use_ent=use_ent, use_dep=use_dep, use_mu_i=bool((P0.mu_i > 0).any()), use_mu_scale=ms is not None,
+        inflow=cfg.boundary == "open")
     step = _get_step(F, cfg.compile)
 
     # member parameters as (B, 1, 1)

@@ -41,6 +41,7 @@ class StepFlags:
     use_dep: bool
     use_mu_i: bool
     use_mu_scale: bool
+    inflow: bool = False      # SolverConfig.boundary == "open": boundary faces may carry mass into the domain
 
 
 def _geometry(z: Tensor, F: StepFlags):
@@ -112,7 +113,7 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
         dt = torch.minimum(F.cfl * dx / (ax + ay), dt_cap)
         dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
     dtb = dt.view(-1, 1, 1)
-    facx, facy = draining_factors(h, Fhx, Fhy, dtb, dx)
+    facx, facy = draining_factors(h, Fhx, Fhy, dtb, dx, ghost=1.0 if F.inflow else 0.0)
     Fhx, Fqnx, Fqtx = Fhx * facx, Fqnx * facx, Fqtx * facx
     Fhy, Fqny, Fqty = Fhy * facy, Fqny * facy, Fqty * facy
     lam = dtb / dx
