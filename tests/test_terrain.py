@@ -231,6 +231,9 @@ def test_release_from_shape_volume_any_resolution():
     assert set(np.unique(h)) <= {0.0, 4.0}
     with pytest.raises(TerrainError, match="outside the DEM"):
         release_from_shape(dem, (-10.0, 0.0), 50.0, volume=1.0)
+    # centre inside, ellipse cut by the edge: refused (the volume would be kept in a thicker cut body)
+    with pytest.raises(TerrainError, match=r"radii \(80, 50\) m extends beyond the DEM \(x in \[0, 800\], y in \[0, 400\]\)"):
+        release_from_shape(dem, (300.0, 380.0), (80.0, 50.0), volume=1e5)
 
 
 @pytest.mark.parametrize("cs", [20.0, 40.0])

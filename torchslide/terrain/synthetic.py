@@ -195,6 +195,12 @@ def release_from_shape(dem: DEM, centre: tuple[float, float], radii: tuple[float
     xc, yc = centre
     if not dem.contains(xc, yc):
         dem.index(xc, yc, what="release centre")
+    xmin, ymin, xmax, ymax = dem.extent
+    if xc - rx < xmin or xc + rx > xmax or yc - ry < ymin or yc + ry > ymax:
+        # a cut ellipse would silently be a thicker release of another shape (its volume kept)
+        raise TerrainError(
+            f"release ellipse at ({xc:g}, {yc:g}) with radii ({rx:g}, {ry:g}) m extends beyond the DEM "
+            f"(x in [{xmin:g}, {xmax:g}], y in [{ymin:g}, {ymax:g}]); move it inside or make it smaller")
     X, Y = np.meshgrid(dem.x_centres(), dem.y_centres())
     rho2 = ((X - xc) / rx) ** 2 + ((Y - yc) / ry) ** 2
     base = np.clip(1.0 - rho2, 0.0, None) if shape == "ellipse" else (rho2 < 1.0).astype(np.float64)
