@@ -1558,6 +1558,49 @@ def test_page_section_of_the_narrow_terrain_on_20m_cells(tmp_path):
     assert "floor (" not in "\n".join(_resolved_20m_section(now, before, effect=tmp_path / "no.json"))
 
 
+def test_page_section_of_the_resolved_terrain_with_the_outflow_edge(tmp_path):
+    """make_page's section for the resolved terrain re-run with the outflow edge: what the old edge fed
+    (from boundary_inflow.py's file), its own thresholds, the targets, a row per case and the cases run with
+    the transmissive edge (before -> now)."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _resolved_outflow_section
+
+    th = Thresholds(bf_min=14.0, located_min=8.0)
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+
+    def case(seed, verdict, name, lo, hi, covered):
+        ep = dict(_cand("earth_pressure", 60.0), param="earth_pressure", parameters={"earth_pressure": par(0.8, lo, hi)})
+        return {"scenario": "earth_pressure", "seed": seed, "strength": 1.0, "wall_s": 250.0,
+                "truth": {"term": "earth_pressure", "earth_pressure": 1.0}, "true_term_covered_hdr90": covered,
+                "diagnosis": {"verdict": verdict, "missing_physics": name, "candidates": [ep], "located": [],
+                              "decision": {"two_ln_bf_over_runner_up": 40.0}, "fit_before": {"misfit": 100.0},
+                              "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}}
+
+    now, before = tmp_path / "now", tmp_path / "before"
+    (now / "null_calib").mkdir(parents=True)
+    before.mkdir()
+    (now / "earth_pressure_s0.json").write_text(json.dumps(case(0, "missing_physics", "earth_pressure", 0.6, 1.0, True)))
+    (before / "earth_pressure_s0.json").write_text(json.dumps(case(0, "unexplained", None, 0.3, 0.65, False)))
+    (now / "null_calib" / "thresholds.json").write_text(json.dumps(
+        {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 11.2, "max_located": 4.0}],
+         "thresholds": asdict(th)}))
+    inflow = tmp_path / "inflow.json"
+    inflow.write_text(json.dumps({"resolved": {
+        "40": {"null": {"inflow_open": 8940.0, "inflow_outflow": 0.0, "inflow_open_fraction": 0.0447, "max_abs_dh_final": 0.485},
+               "yield_stress": {"inflow_open": 0.0, "inflow_outflow": 0.0, "inflow_open_fraction": 0.0, "max_abs_dh_final": 0.0}},
+        "20": {"null": {"inflow_open": 0.0, "inflow_outflow": 0.0, "inflow_open_fraction": 0.0, "max_abs_dh_final": 0.0}}}}))
+    text = "\n".join(_resolved_outflow_section(now, before, inflow=inflow))
+    assert text.startswith("## The resolved terrain with the outflow edge")
+    assert "(inflow.json; share of the release): null 4.5 %, yield_stress 0.0 %" in text
+    assert "largest change of the deposit was 0.48 m, while the 20 m recording runs gained at most 0.0 m3" in text
+    assert "bf_min 14.0" in text and "Median wall time per case 250 s" in text
+    assert "| earth_pressure | 1 | 1 | earth_pressure 1 | >= 4 of 5 |" in text
+    assert "| earth_pressure | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
+    assert "share of the release" not in "\n".join(_resolved_outflow_section(now, before, inflow=tmp_path / "no.json"))
+    assert _resolved_outflow_section(tmp_path / "absent", before) == []
+
+
 def test_page_section_of_the_grid_convergence_study(tmp_path):
     """make_page's grid-convergence section: a row per scenario and cell size (the finest without rms),
     the terrain / numerics split and the noise-free switch scan's best switch against the truth."""

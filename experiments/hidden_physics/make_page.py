@@ -949,6 +949,43 @@ def _variant_section(d: Path, prev: Path, heading: str, describe, versus_heading
                                versus)
 
 
+def _resolved_outflow_section(d=None, prev=None, inflow=None) -> list[str]:
+    """The resolved terrain's harness re-run with the solver's outflow edge (``harness --terrain resolved
+    --out results/resolved_outflow/results``, session 33): its cases in ``d`` (default
+    results/resolved_outflow/results; null seeds and thresholds in d/null_calib), the targets, every case,
+    and the same cases run with the transmissive edge (``prev``, default results/resolved/results).
+    ``inflow``: boundary_inflow.py's file (default results/boundary_inflow.json), for what the old edge fed."""
+    inf = Path(inflow) if inflow is not None else HERE / "results" / "boundary_inflow.json"
+
+    def describe(cases, th):
+        e = json.loads(inf.read_text()).get("resolved") if inf.exists() else None
+        fed = ""
+        if e and "40" in e:
+            rows = e["40"]
+            per = ", ".join(f"{sc} {100 * r['inflow_open_fraction']:.1f} %" for sc, r in rows.items())
+            fine = max((r["inflow_open"] for r in e.get("20", {}).values()), default=None)
+            fed = (f"With the old edge the 40 m runs at the scenarios' true parameters gained through it "
+                   f"({inf.name}; share of the release): {per}; the largest change of the deposit was "
+                   f"{max(r['max_abs_dh_final'] for r in rows.values()):.2f} m"
+                   + (f", while the 20 m recording runs gained at most {fine:.1f} m3" if fine is not None else "")
+                   + ". So the grid error the diagnosis estimates (40 m against 20 m runs) held this artefact, and "
+                   "its size depended on the candidate term (less with earth pressure or mu(I), none with yield "
+                   "stress, which holds the thin material at the edge). ")
+        return ("The resolved terrain's harness with one change: the solver's DEM edge lets nothing in "
+                "(SolverConfig.boundary \"outflow\", the default since session 33; before, the edge was "
+                "transmissive and fed a flow that moved into the domain there). " + fed
+                + "Same terrain, scenarios, seeds, noise, release error, grids, budgets and method as the run above. "
+                f"Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s (two cases in "
+                "parallel on 2 cores). " + _thresholds_sentence(th, "on this terrain with the outflow edge"))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "resolved_outflow" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "resolved" / "results",
+        "## The resolved terrain with the outflow edge (`harness --terrain resolved`, session 33)", describe,
+        "Against the same cases with the transmissive edge",
+        "'Before': the resolved terrain's harness with the transmissive edge; 'now': with the outflow edge. "
+        "Each with thresholds from its own null seeds.")
+
+
 def _narrow_20m_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
     --cellsize 20 --out results/narrow_20m/results``, sessions 23, 25 and 26): its cases in ``d`` (default
@@ -1105,7 +1142,11 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
          f"instead of {xn:g} m (at the deposit's front there). Median wall time per case "
          f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "on this terrain"), "",
          "The same terrain with the method before the profile along the switch (sessions 9-10) is archived in "
-         "EARLIER.md under the same heading.", ""]
+         "EARLIER.md under the same heading.", "",
+         "These cases ran with the solver's DEM edge transmissive (before session 33): on 40 m cells this "
+         "terrain's release touched the upslope edge's neighbourhood and was fed through it, on the 20 m "
+         "recording grid it was not. The same cases with the outflow edge: section 'The resolved terrain with "
+         "the outflow edge'.", ""]
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
     other = [c for c in every if c.get("strength", 1.0) != 1.0]
     if other:
@@ -1114,7 +1155,7 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
               f"{', '.join(scen)} recorded at " + " and ".join(
                   f"x{st:g} ({_seeds_phrase(c['seed'] for c in other if c['strength'] == st)})"
                   for st in sorted({c["strength"] for c in other}))
-              + " (session 32), with the same method and this terrain's thresholds, beside the cases above at "
+              + ", with the same method and this terrain's thresholds, beside the cases above at "
               "strength 1. Per case at these strengths:", ""]
         L += _case_rows(other) + ["", "Per scenario and strength:", ""]
         L += _strength_table([c for c in every if c["scenario"] in scen]) + [""]
@@ -1821,6 +1862,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
         L += ["", f"Resulting thresholds: {t['thresholds']}.", ""]
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _resolved_terrain_section()
+    L += _resolved_outflow_section()
     L += _release_volume_section()
     L += _release_volume_narrow_section()
     L += _narrow_20m_section()
