@@ -157,3 +157,34 @@ def test_overwrite(case, capsys):
     code, _, err = run_cli(["simulate", case / "c.toml", "--out", out, "-q", "--overwrite"], capsys)
     assert code == 0, err
     assert not (out / "old.txt").exists() and (out / "h_max.asc").is_file()
+
+
+SHORT_PLANE = """
+[terrain]
+synthetic = "inclined_plane"
+cellsize = 50.0
+options = {{ theta_deg = 30.0, slope_length = 500.0, runout_length = {runout}, width = {width} }}
+release = {{ centre = [250.0, {yc}], radii = [120.0, 100.0], volume = 1.0e5 }}
+
+[model]
+rheology = "voellmy"
+mu = 0.15
+xi = 1000.0
+
+[run]
+t_end = 60.0
+"""
+
+
+@pytest.mark.parametrize("runout, width, warned", [(100.0, 300.0, True), (1500.0, 1000.0, False)])
+def test_simulate_warns_when_the_flow_leaves_the_dem(tmp_path, capsys, runout, width, warned):
+    """A DEM cut short below the slope: the run loses part of its release through the edge, which the
+    summary counts (outflow_volume) and a warning names; with a long and wide run-out zone no warning."""
+    (tmp_path / "c.toml").write_text(SHORT_PLANE.format(runout=runout, width=width, yc=width / 2))
+    code, _, err = run_cli(["simulate", tmp_path / "c.toml", "--out", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert (s["outflow_volume"] > 0.01 * s["release_volume"]) == warned
+    assert ("of its release through the DEM edge" in err) == warned
+    if warned:
+        assert f"lost {100 * s['outflow_volume'] / s['release_volume']:.1f} %" in err

@@ -131,6 +131,10 @@ def write_member(folder: Path, result, b: int, fmt: str) -> None:
         write_asc(folder / "bed_change.asc", arr(result.bed_change), dem, fmt=fmt)
 
 
+OUTFLOW_WARN = 0.01
+"""Share of the release leaving through the DEM edge above which ``simulate`` warns."""
+
+
 def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict[str, Any]]:
     """Write every member's files and the summaries into ``tmp``; return the member summaries."""
     import torch
@@ -195,4 +199,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {out}")
     for i in failed:
         print(f"torchslide: warning: member {i} failed: {summaries[i]['failure_reason']}", file=sys.stderr)
+    for i, s in enumerate(summaries):
+        share = s["outflow_volume"] / s["release_volume"] if s["release_volume"] > 0 else 0.0
+        if share > OUTFLOW_WARN:
+            tag = f"member {i}" if len(summaries) > 1 else "the run"
+            print(f"torchslide: warning: {tag} lost {100 * share:.1f} % of its release through the DEM edge "
+                  f"(outflow_volume {s['outflow_volume']:.4g} m^3); if the run-out should stay inside, extend "
+                  f"the DEM", file=sys.stderr)
     return 1 if failed else 0
