@@ -34,8 +34,8 @@ layer on a plane exactly (VERIFICATION 1-2). Positivity for any dt: draining-flu
 et al. 2013), so the mass update is conservative to round-off (outflow through the boundaries is
 counted). The DEM edge is an outflow boundary by default (zero-gradient ghost cells; a face whose flux
 points into the domain carries nothing in, so a flow touching the upslope edge is not fed from outside);
-SolverConfig(boundary="open") makes it transmissive, as the infinite-plane verification cases need. SSP-RK2 (Heun) in time; each stage is flux + bed source, then entrainment /
-deposition, then friction on the whole momentum vector (friction.py: stops, never reverses; turbulent
+SolverConfig(boundary="open") makes it transmissive, as the infinite-plane verification cases need.
+SSP-RK2 (Heun) in time; each stage is flux + bed source, then entrainment / deposition, then friction on the whole momentum vector (friction.py: stops, never reverses; turbulent
 term implicit). A cell stopped by friction in both stages is set exactly at rest. No creep: a face
 between two resting cells whose driving jump |k g_n dh + g_n dz| friction can hold passes no flux
 (D-Claw rule).
