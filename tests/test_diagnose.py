@@ -1598,6 +1598,24 @@ def test_page_section_of_the_resolved_terrain_with_the_outflow_edge(tmp_path):
     assert "| earth_pressure | 1 | 1 | earth_pressure 1 | >= 4 of 5 |" in text
     assert "| earth_pressure | 1 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
     assert "share of the release" not in "\n".join(_resolved_outflow_section(now, before, inflow=tmp_path / "no.json"))
+    assert "Effect strength" not in text
+    # cases at other strengths: their own subsection, and the same seeds with the old edge (before -> now)
+    for folder, seed, verdict, name, lo, hi, covered in ((now, 0, "missing_physics", "earth_pressure", 0.2, 0.55, True),
+                                                         (now, 1, "unexplained", None, 0.1, 0.3, False),
+                                                         (before, 0, "unexplained", None, 0.1, 0.3, False)):
+        c = case(seed, verdict, name, lo, hi, covered)
+        c["strength"] = 0.5
+        c["truth"]["earth_pressure"] = 0.5
+        (folder / f"earth_pressure_s{seed}_x0.5.json").write_text(json.dumps(c))
+    text = "\n".join(_resolved_outflow_section(now, before, inflow=inflow))
+    assert "### Effect strength with the outflow edge" in text
+    assert "earth_pressure recorded at x0.5 (seeds 0, 1), with the same method and the thresholds" in text
+    assert "| earth_pressure_s1_x0.5 | unexplained | False |" in text
+    assert "| earth_pressure | x0.5 | 2 | earth_pressure 1, unexplained 1 | 1 | 1 |" in text
+    # only seed 0 ran at x0.5 with the old edge
+    assert "| earth_pressure | x0.5 | 0 | 0 -> 1 | 0 -> 1 | 0 -> 1 |" in text
+    # the strength-1 targets table is unchanged by them
+    assert "| earth_pressure | 1 | 1 | earth_pressure 1 | >= 4 of 5 |" in text
     assert _resolved_outflow_section(tmp_path / "absent", before) == []
 
 

@@ -953,7 +953,8 @@ def _resolved_outflow_section(d=None, prev=None, inflow=None) -> list[str]:
     """The resolved terrain's harness re-run with the solver's outflow edge (``harness --terrain resolved
     --out results/resolved_outflow/results``, session 33): its cases in ``d`` (default
     results/resolved_outflow/results; null seeds and thresholds in d/null_calib), the targets, every case,
-    and the same cases run with the transmissive edge (``prev``, default results/resolved/results).
+    and the same cases run with the transmissive edge (``prev``, default results/resolved/results); then its
+    cases at other strengths (``--strengths 0.5,2``, session 34), if any, against the same seeds in ``prev``.
     ``inflow``: boundary_inflow.py's file (default results/boundary_inflow.json), for what the old edge fed."""
     inf = Path(inflow) if inflow is not None else HERE / "results" / "boundary_inflow.json"
 
@@ -977,13 +978,23 @@ def _resolved_outflow_section(d=None, prev=None, inflow=None) -> list[str]:
                 + "Same terrain, scenarios, seeds, noise, release error, grids, budgets and method as the run above. "
                 f"Median wall time per case {np.median([c['wall_s'] for c in cases]):.0f} s (two cases in "
                 "parallel on 2 cores). " + _thresholds_sentence(th, "on this terrain with the outflow edge"))
-    return _variant_section(
-        Path(d) if d is not None else HERE / "results" / "resolved_outflow" / "results",
-        Path(prev) if prev is not None else HERE / "results" / "resolved" / "results",
-        "## The resolved terrain with the outflow edge (`harness --terrain resolved`, session 33)", describe,
+    d = Path(d) if d is not None else HERE / "results" / "resolved_outflow" / "results"
+    prev = Path(prev) if prev is not None else HERE / "results" / "resolved" / "results"
+    L = _variant_section(
+        d, prev, "## The resolved terrain with the outflow edge (`harness --terrain resolved`, session 33)", describe,
         "Against the same cases with the transmissive edge",
         "'Before': the resolved terrain's harness with the transmissive edge; 'now': with the outflow edge. "
         "Each with thresholds from its own null seeds.")
+    if not L:
+        return L
+    every, _ = _variant_cases(d)
+    sub = _strength_subsection(every, "### Effect strength with the outflow edge",
+                               "the thresholds of this run's own null seeds")
+    vs = _strength_versus(every, _variant_cases(prev)[0])
+    if vs:
+        sub += ["The same seeds and strengths with the transmissive edge ('before', its own thresholds) and with "
+                "the outflow edge ('now'):", ""] + vs
+    return L + sub
 
 
 def _narrow_20m_section(d=None, prev=None) -> list[str]:
@@ -1084,6 +1095,49 @@ def _strength_table(cases) -> list[str]:
     return L
 
 
+def _strength_subsection(every, heading: str, whose: str) -> list[str]:
+    """The cases of ``every`` at strengths other than 1 (none: nothing): ``heading``, which scenarios ran at
+    which strengths and seeds (``whose``: whose thresholds decided them), every such case, and the
+    per-scenario table of :func:`_strength_table` with the same scenarios' strength-1 cases beside them."""
+    other = [c for c in every if c.get("strength", 1.0) != 1.0]
+    if not other:
+        return []
+    scen = sorted({c["scenario"] for c in other})
+    L = [heading, "",
+         f"{', '.join(scen)} recorded at " + " and ".join(
+             f"x{st:g} ({_seeds_phrase(c['seed'] for c in other if c['strength'] == st)})"
+             for st in sorted({c["strength"] for c in other}))
+         + f", with the same method and {whose}, beside the cases above at strength 1. Per case at these "
+         "strengths:", ""]
+    L += _case_rows(other) + ["", "Per scenario and strength:", ""]
+    return L + _strength_table([c for c in every if c["scenario"] in scen]) + [""]
+
+
+def _strength_versus(now, before) -> list[str]:
+    """Per hidden scenario and strength other than 1 present in both ``now`` and ``before`` (lists of cases;
+    the same seeds compared): true term named, strict successes and true switch in the 90 % HDI, before -> now."""
+    def per(cases):
+        out = defaultdict(dict)
+        for c in cases:
+            if c.get("strength", 1.0) != 1.0 and true_label(c) not in ("none", "unexplained"):
+                out[(c["scenario"], c["strength"])][c["seed"]] = c
+        return out
+    a, b = per(before), per(now)
+    keys = sorted(k for k in b if k in a)
+    if not keys:
+        return []
+    L = ["| scenario | strength | seeds | true term named (before -> now) | strict successes (before -> now) "
+         "| true switch in 90 % HDI (before -> now) |", "|---" * 6 + "|"]
+    for k in keys:
+        seeds = sorted(set(a[k]) & set(b[k]))
+        row = []
+        for f in (lambda c: found_label(c) == true_label(c), strict_success,
+                  lambda c: bool(c.get("true_term_covered_hdr90"))):
+            row.append(f"{sum(f(a[k][s]) for s in seeds)} -> {sum(f(b[k][s]) for s in seeds)}")
+        L.append(f"| {k[0]} | x{k[1]:g} | {_seed_list(seeds)} | " + " | ".join(row) + " |")
+    return L + [""]
+
+
 def _targets_table(cases) -> list[str]:
     """Per scenario: cases, strict successes, what was found (count), the target."""
     per = defaultdict(list)
@@ -1148,17 +1202,7 @@ def _resolved_terrain_section(d=None, gc=None, d20=None, d20_check=None, d20_rec
          "recording grid it was not. The same cases with the outflow edge: section 'The resolved terrain with "
          "the outflow edge'.", ""]
     L += _targets_table(cases) + [""] + _case_rows(cases) + [""]
-    other = [c for c in every if c.get("strength", 1.0) != 1.0]
-    if other:
-        scen = sorted({c["scenario"] for c in other})
-        L += ["### Effect strength on this terrain", "",
-              f"{', '.join(scen)} recorded at " + " and ".join(
-                  f"x{st:g} ({_seeds_phrase(c['seed'] for c in other if c['strength'] == st)})"
-                  for st in sorted({c["strength"] for c in other}))
-              + ", with the same method and this terrain's thresholds, beside the cases above at "
-              "strength 1. Per case at these strengths:", ""]
-        L += _case_rows(other) + ["", "Per scenario and strength:", ""]
-        L += _strength_table([c for c in every if c["scenario"] in scen]) + [""]
+    L += _strength_subsection(every, "### Effect strength on this terrain", "this terrain's thresholds")
     gc = Path(gc) if gc is not None else HERE / "results" / "grid_convergence_resolved.json"
     d20 = Path(d20) if d20 is not None else HERE / "results" / "resolved20"
     d20_check = Path(d20_check) if d20_check is not None else HERE / "results" / "resolved20_modecheck"
