@@ -70,6 +70,7 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     assert v > 1.0
     cfg = write(tmp_path, BASE + PRIOR + OBS.format(value=v, sigma=0.1 * v) + CAL)
     out = tmp_path / "cal"
+    capsys.readouterr()
     assert main(["calibrate", str(cfg), "--out", str(out), "--quiet"]) == 0
     post = json.loads((out / "posterior.json").read_text())
     for key in ("mean", "sd", "map", "hdr90", "log_evidence", "runs"):
@@ -95,6 +96,15 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
         assert float(r["z"]) == pytest.approx(expect, rel=1e-9, abs=1e-9)
     assert (out / "posterior.png").exists()
     assert any((out / "tensorboard").rglob("events.out.tfevents*"))
+    # the best run's fit of every observation: that run's prediction, standardised by sigma
+    fit = post["best_run_fit"]
+    best = max(rows, key=lambda r: float(r["z"]))
+    assert fit["x"] == pytest.approx({"mu": float(best["mu"]), "xi": float(best["xi"])}, rel=1e-9)
+    (o,) = fit["observations"]
+    assert o["name"] == "v_plane" and o["predicted"] == pytest.approx(float(best["v_plane"]), rel=1e-9)
+    assert o["standardised_residual"] == pytest.approx((o["predicted"] - v) / sigma, rel=1e-9)
+    assert abs(o["standardised_residual"]) < 3
+    assert "misses" not in capsys.readouterr().err
 
     # a second call without --resume refuses to overwrite the earlier calibration
     assert main(["calibrate", str(cfg), "--out", str(out), "--quiet"]) == 2
@@ -125,6 +135,13 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
      "parameter earth_pressure: range high = 1.5 is outside the allowed values [0, 1]"),
     # a recorded speed cannot be negative
     (PRIOR, OBS.format(value=-3.0, sigma=1.0), "a recorded max_velocity cannot be negative, got -3.0 m/s"),
+    # budgets the active learner cannot start with, and settings of the wrong type (were tracebacks)
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\nn_initial = 1\nn_total = 1\n", "n_initial must be >= 2"),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\ngrid_size = 1\n", "grid_size must be >= 2"),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\nseed = -1\n", "seed must be an integer >= 0, got -1"),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\nclip_range = 0.0\n", "clip_range must be a finite number > 0"),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + '[calibration]\ntv_threshold = "small"\n',
+     "tv_threshold must be a finite number >= 0, got 'small'"),
 ])
 def test_bad_input_is_refused_before_any_run(tmp_path, capsys, prior, obs, msg):
     cfg = write(tmp_path, BASE + prior + obs)
@@ -169,3 +186,19 @@ kappa = { dist = "uniform", low = 0.0, high = 0.01 }
         else:
             expect = d.logpdf(v)
         assert lp == pytest.approx(expect, rel=1e-9), name
+
+
+def test_a_datum_no_run_reproduces_is_reported(tmp_path, capsys):
+    """A recorded speed ten times what any parameter set gives (a typo, a wrong unit): the posterior can only
+    follow the prior, so calibrate says which observation the best run misses, by how many sigma."""
+    v = truth_velocity(tmp_path)
+    cal = CAL.replace("n_initial = 6\nn_total = 10", "n_initial = 4\nn_total = 4")
+    cfg = write(tmp_path, BASE + PRIOR + OBS.format(value=10 * v, sigma=0.1 * v) + cal)
+    capsys.readouterr()
+    assert main(["calibrate", str(cfg), "--out", str(tmp_path / "cal"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    fit = json.loads((tmp_path / "cal" / "posterior.json").read_text())["best_run_fit"]
+    r = fit["observations"][0]["standardised_residual"]
+    assert r < -3 and fit["n_runs"] == 4
+    assert f"torchslide: warning: the best of 4 runs misses v_plane by {r:+.1f} sigma" in err
+    assert "does the flow reach it by t_end?" in err

@@ -165,3 +165,25 @@ class LandslideEvaluator:
 
     def __call__(self, x: torch.Tensor) -> EvaluationResult:
         return self.evaluate(x)[0]
+
+    def best_fit(self) -> dict | None:
+        """How well the best run seen (largest z among the ``records`` that did not fail) reproduces each
+        observation: {"x": {name: value}, "z", "n_runs": records considered, "observations": [{name, kind,
+        value, sigma, predicted, standardised_residual = (predicted - value) / sigma}]} (sigma the
+        likelihood's marginal sd, also with a full covariance). None when no run succeeded.
+
+        A residual of several sigma on the best run means that no parameter set tried reproduces that
+        datum (a wrong value, unit or location, a point the flow never reaches, or physics the model
+        lacks): the posterior then follows the other data or the prior, not this observation."""
+        ok = [r for r in self.records if not r.failed and np.all(np.isfinite(r.predictions))]
+        if not ok:
+            return None
+        best = max(ok, key=lambda r: r.z)
+        lik = self.likelihood
+        sd = (lik.sigma if lik.chol is None else torch.sqrt(torch.diagonal(lik.chol @ lik.chol.T))).numpy()
+        obs = [{"name": str(o.name), "kind": o.kind, "value": float(o.value), "sigma": float(sd[k]),
+                "predicted": float(best.predictions[k]),
+                "standardised_residual": float((best.predictions[k] - float(o.value)) / sd[k])}
+               for k, o in enumerate(self.observations)]
+        return {"x": {n: float(v) for n, v in zip(self.names, best.x)}, "z": float(best.z), "n_runs": len(ok),
+                "observations": obs}

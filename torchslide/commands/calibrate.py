@@ -28,7 +28,9 @@ The config is the ``simulate`` config plus::
 [model] gives the values of the parameters that are not calibrated (mu and xi in [model] are
 ignored when they are in [prior]). Writes posterior.json, posterior.npz, posterior.png, tv.png,
 runs.csv, a checkpoint (so ``--resume`` continues an interrupted run without repeating a finished
-run) and TensorBoard logs under DIR/tensorboard.
+run) and TensorBoard logs under DIR/tensorboard. posterior.json's ``best_run_fit`` gives each
+observation's standardised residual on the best run, and calibrate warns (stderr) about every
+observation that even the best run misses by more than 3 sigma.
 """
 from __future__ import annotations
 
@@ -149,8 +151,22 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
     for k in ("n_initial", "n_total", "batch_size", "grid_size", "max_batch"):
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < 1:
             raise ConfigError(f"{path}: [calibration] {k} must be a positive integer, got {c[k]!r}")
+    if c["n_initial"] < 2:
+        raise ConfigError(f"{path}: [calibration] n_initial must be >= 2 (the emulator needs two runs to start), "
+                          f"got {c['n_initial']}")
+    if c["grid_size"] < 2:
+        raise ConfigError(f"{path}: [calibration] grid_size must be >= 2 points per axis, got {c['grid_size']}")
     if c["n_total"] < c["n_initial"]:
         raise ConfigError(f"{path}: [calibration] n_total ({c['n_total']}) must be >= n_initial ({c['n_initial']})")
+    if not isinstance(c["seed"], int) or isinstance(c["seed"], bool) or c["seed"] < 0:
+        raise ConfigError(f"{path}: [calibration] seed must be an integer >= 0, got {c['seed']!r}")
+    for k, lo in (("clip_range", "> 0"), ("tv_threshold", ">= 0")):
+        v = c[k]
+        if v is None:
+            continue
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(v) or \
+                (v <= 0 if lo == "> 0" else v < 0):
+            raise ConfigError(f"{path}: [calibration] {k} must be a finite number {lo}, got {v!r}")
     if c.get("truth") is not None:
         t = c["truth"]
         if not isinstance(t, dict) or not all(isinstance(v, (int, float)) for v in t.values()):
@@ -216,6 +232,24 @@ def write_runs_csv(path: Path, res, obs_names, records) -> None:
                                                                str(int(i < res.n_initial))]) + "\n")
 
 
+FIT_WARN_Z = 3.0  # |standardised residual| of the best run above which calibrate warns
+
+
+def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
+    """One line per observation that even the best run (LandslideEvaluator.best_fit) misses by more than
+    ``z_max`` sigma: the calibration cannot have learnt from it, and the user should know why."""
+    out = []
+    for o in fit["observations"]:
+        r = o["standardised_residual"]
+        if abs(r) > z_max:
+            out.append(f"the best of {fit['n_runs']} runs misses {o['name']} by {r:+.1f} sigma (predicted "
+                       f"{o['predicted']:.4g}, recorded {o['value']:.4g} +- {o['sigma']:.3g}): no parameter set tried "
+                       "reproduces it, so the posterior follows the other data or the prior there. Check its value, "
+                       "unit and location (does the flow reach it by t_end?), or run `torchslide diagnose` for "
+                       "missing physics.")
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     from ..calibration import calibrate
     from ..figures import plot_posterior, plot_tv
@@ -244,6 +278,12 @@ def run(args: argparse.Namespace) -> int:
     info["solver_seconds_this_session"] = ev.solver_seconds
     (out / "posterior.json").write_text(json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
+    fit = ev.best_fit()
+    if fit is not None:
+        info["best_run_fit"] = fit
+        (out / "posterior.json").write_text(json.dumps(info, indent=2))
+        for w in misfit_warnings(fit):
+            print(f"torchslide: warning: {w}", file=sys.stderr)
     truth = cal.get("truth")
     if truth is not None:
         info["truth"] = {n: float(truth[n]) for n in prior.names}
