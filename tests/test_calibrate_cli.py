@@ -115,6 +115,8 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     assert post2["n_runs"] == 10
     assert [r["x"] for r in post2["runs"]] == [r["x"] for r in post["runs"]]
     assert post2["map"] == pytest.approx(post["map"])
+    # the resumed session ran nothing: the best-run fit of the first session's runs is kept
+    assert post2["best_run_fit"] == post["best_run_fit"]
 
 
 @pytest.mark.parametrize("prior, obs, msg", [
@@ -202,3 +204,14 @@ def test_a_datum_no_run_reproduces_is_reported(tmp_path, capsys):
     assert r < -3 and fit["n_runs"] == 4
     assert f"torchslide: warning: the best of 4 runs misses v_plane by {r:+.1f} sigma" in err
     assert "does the flow reach it by t_end?" in err
+
+
+def test_best_run_fits_of_two_sessions_merge():
+    """A resumed calibration's best run is the better of the two sessions' bests, out of all their runs."""
+    from torchslide.commands.calibrate import merge_best_fits
+
+    a = {"x": {"mu": 0.1}, "z": -5.0, "n_runs": 6, "observations": []}
+    b = {"x": {"mu": 0.2}, "z": -3.0, "n_runs": 4, "observations": []}
+    assert merge_best_fits(a, b) == dict(b, n_runs=10)
+    assert merge_best_fits(b, a) == dict(b, n_runs=10)
+    assert merge_best_fits(None, b) == b and merge_best_fits(a, None) == a and merge_best_fits(None, None) is None

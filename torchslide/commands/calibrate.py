@@ -235,6 +235,16 @@ def write_runs_csv(path: Path, res, obs_names, records) -> None:
 FIT_WARN_Z = 3.0  # |standardised residual| of the best run above which calibrate warns
 
 
+def merge_best_fits(earlier: dict | None, now: dict | None) -> dict | None:
+    """The best-run fit over two sessions of one calibration (a resume): the one with the larger z, its
+    ``n_runs`` the runs of both."""
+    if earlier is None or now is None:
+        return now if earlier is None else earlier
+    best = dict(now if now["z"] >= earlier["z"] else earlier)
+    best["n_runs"] = int(earlier["n_runs"]) + int(now["n_runs"])
+    return best
+
+
 def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
     """One line per observation that even the best run (LandslideEvaluator.best_fit) misses by more than
     ``z_max`` sigma: the calibration cannot have learnt from it, and the user should know why."""
@@ -271,6 +281,13 @@ def run(args: argparse.Namespace) -> int:
                     acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
                     tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
                     clip_range=cal["clip_range"])
+    # the best-run fit of the runs an earlier (interrupted) session made: this session's records lack them
+    prev_fit = None
+    if args.resume and (out / "posterior.json").exists():
+        try:
+            prev_fit = json.loads((out / "posterior.json").read_text()).get("best_run_fit")
+        except (OSError, ValueError):
+            prev_fit = None
     res.save(out)
     info = json.loads((out / "posterior.json").read_text())
     info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
@@ -278,7 +295,7 @@ def run(args: argparse.Namespace) -> int:
     info["solver_seconds_this_session"] = ev.solver_seconds
     (out / "posterior.json").write_text(json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
-    fit = ev.best_fit()
+    fit = merge_best_fits(prev_fit, ev.best_fit())
     if fit is not None:
         info["best_run_fit"] = fit
         (out / "posterior.json").write_text(json.dumps(info, indent=2))
