@@ -136,6 +136,8 @@ def _last_value(path, token: str) -> None:
     ("bf_min_negative", "bf_min must be >= 0"),
     ("prior_below_zero", "[prior] parameter mu: range low = -0.05 is outside the allowed values (0, inf)"),
     ("negative_volume", "a recorded final_volume cannot be negative, got -1.0 m^3"),
+    # a refit budget the active learner cannot start with (was a traceback after the baseline's runs)
+    ("refit_n_initial_one", "[diagnose] n_initial must be an integer >= 2, got 1"),
 ])
 def test_cli_refuses_more_bad_input_before_any_run(tmp_path, capsys, case, msg):
     """Each bad input gets one line naming the field and the value, exit 2, before any solver run."""
@@ -150,6 +152,8 @@ def test_cli_refuses_more_bad_input_before_any_run(tmp_path, capsys, case, msg):
         kw["candidates"] = '["mu_i", "entrainment", "mu_i"]'
     elif case == "bf_min_negative":
         kw["candidates"] = '["mu_i"]\nbf_min = -1.0'
+    elif case == "refit_n_initial_one":
+        kw["candidates"] = '["mu_i"]\nn_initial = 1'
     p, _ = _setup(tmp_path, **kw)
     toml = p.read_text()
     if case == "map_infinite_cell":

@@ -176,7 +176,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
         low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
-               "profile_top": 0, "model_error_factor": 2}.get(k, 1)
+               "profile_top": 0, "model_error_factor": 2, "n_initial": 2}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
