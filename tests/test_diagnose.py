@@ -1623,6 +1623,36 @@ def test_page_section_of_the_resolved_terrain_with_the_outflow_edge(tmp_path):
     assert _resolved_outflow_section(tmp_path / "absent", before) == []
 
 
+def test_page_overview_of_every_run_against_the_targets(tmp_path):
+    """make_page's overview: per run (folders without cases left out) the strict successes / cases per
+    scenario at strength 1 and seeds < 100, bold where the target (>= 4 of 5) is met, and the targets met."""
+    import json
+    from experiments.hidden_physics.make_page import _overview_section
+
+    def case(scenario, seed, verdict, strength=1.0):
+        return {"scenario": scenario, "seed": seed, "strength": strength, "truth": {"term": None},
+                "true_term_covered_hdr90": None,
+                "diagnosis": {"verdict": verdict, "missing_physics": None, "candidates": [], "decision": {},
+                              "fit_before": {"misfit": 1.0}, "fit_after": None}}
+
+    full, part = tmp_path / "full", tmp_path / "part"
+    full.mkdir(), part.mkdir()
+    for seed in range(5):
+        (full / f"null_s{seed}.json").write_text(json.dumps(case("null", seed, "no_missing_physics" if seed else "unexplained")))
+        (part / f"null_s{seed}.json").write_text(json.dumps(case("null", seed, "unexplained" if seed < 2 else "no_missing_physics")))
+    # a null-calibration seed and a case at another strength do not count
+    (full / "null_s100.json").write_text(json.dumps(case("null", 100, "unexplained")))
+    (full / "null_s1_x2.json").write_text(json.dumps(case("null", 1, "unexplained", strength=2.0)))
+    runs = [("full run", "full"), ("a few", "part"), ("never ran", "absent")]
+    text = "\n".join(_overview_section(runs, root=tmp_path))
+    assert text.startswith("## Overview: every run against the targets")
+    assert "| full run (`full`) | **4/5** | - |" in text and "| a few (`part`) | 3/5 | - |" in text
+    assert "never ran" not in text
+    assert text.count("partial run: 1 of the 1 scenarios with 5 seeds") == 1
+    assert "partial run: 0 of the 1 scenarios with 5 seeds" in text
+    assert _overview_section([("none", "absent")], root=tmp_path) == []
+
+
 def test_page_section_of_the_grid_convergence_study(tmp_path):
     """make_page's grid-convergence section: a row per scenario and cell size (the finest without rms),
     the terrain / numerics split and the noise-free switch scan's best switch against the truth."""
