@@ -293,18 +293,16 @@ def run(args: argparse.Namespace) -> int:
     info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
                              "x": o.x, "y": o.y} for o in ev.observations]
     info["solver_seconds_this_session"] = ev.solver_seconds
-    (out / "posterior.json").write_text(json.dumps(info, indent=2))
-    write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
     fit = merge_best_fits(prev_fit, ev.best_fit())
     if fit is not None:
         info["best_run_fit"] = fit
-        (out / "posterior.json").write_text(json.dumps(info, indent=2))
-        for w in misfit_warnings(fit):
-            print(f"torchslide: warning: {w}", file=sys.stderr)
     truth = cal.get("truth")
     if truth is not None:
         info["truth"] = {n: float(truth[n]) for n in prior.names}
-        (out / "posterior.json").write_text(json.dumps(info, indent=2))
+    (out / "posterior.json").write_text(json.dumps(info, indent=2))
+    write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
+    for w in misfit_warnings(fit) if fit is not None else []:
+        print(f"torchslide: warning: {w}", file=sys.stderr)
     if res.posterior_grid is not None and len(prior.names) == 2:
         plot_posterior(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
     if res.tv_history:
