@@ -1040,7 +1040,7 @@ def _resolved_20m_section(d=None, prev=None, effect=None) -> list[str]:
                 + (f"; not yet run: {', '.join(left)}" if left else "") + ". Session 26 began it with earth "
                 "pressure, whose 40 m refits were supported by the evidence but whose intervals missed the truth "
                 "in every seed (the switch's bias, section 'Would a finer grid over the same DEM correct the "
-                "switches?' in the README). "
+                "switches?' in NOTES.md). "
                 + (f"Unmimicked effect over the 20 m grid's floor ({ef.name}): {ratios}. " if ratios else "")
                 + "Fit flags are off here (no fit_max: no block-fit probe on 20 m cells), so a located mismatch or a "
                 "candidate's evidence alone decides. Session 8 probed curvature and yield stress on this terrain at "
