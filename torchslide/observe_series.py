@@ -178,22 +178,9 @@ def read_gauge_csv(path) -> dict[str, np.ndarray]:
 
 def read_map(path, dem: DEM, what: str = "map") -> np.ndarray:
     """A raster on ``dem``'s grid (ny, nx), nodata as NaN; TerrainError naming the file and both grids otherwise."""
-    return _read_keep_nan(path, dem, what)
+    from .terrain.io import read_raster_on_grid
 
-
-def _read_keep_nan(path, dem, what):
-    from .terrain import io as tio
-    if tio._kind(path) == "asc":
-        z, cs, xll, yll = tio.read_asc_array(path)
-    else:
-        z, cs, xll, yll = tio._read_geotiff_array(path)
-    ny, nx = z.shape
-    same = ((ny, nx) == dem.shape and abs(cs - dem.cellsize) <= 1e-9 * dem.cellsize
-            and abs(xll - dem.xll) <= 1e-6 * dem.cellsize and abs(yll - dem.yll) <= 1e-6 * dem.cellsize)
-    if not same:
-        raise TerrainError(f"{path}: {what} grid ({ny}x{nx} cells of {cs:g} m at xll={xll:g}, yll={yll:g}) "
-                           f"does not match the DEM grid ({tio._grid_str(dem)})")
-    return np.asarray(z, dtype=np.float64)
+    return read_raster_on_grid(path, dem, what)
 
 
 # ------------------------------------------------------------------------------------ the observation

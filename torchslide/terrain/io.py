@@ -30,6 +30,7 @@ __all__ = [
     "read_dem",
     "write_raster",
     "read_raster_like",
+    "read_raster_on_grid",
 ]
 
 ASC_EXTENSIONS = (".asc", ".txt", ".grd")
@@ -223,8 +224,13 @@ def _rasterio():
     return rasterio
 
 
-def read_geotiff(path, *, fill_nodata: bool = False, band: int = 1) -> DEM:
-    """Read one band of a GeoTIFF into a :class:`DEM` (needs rasterio). Square, north-up pixels only."""
+def _geotiff(path, band: int = 1):
+    """(z (ny, nx) row 0 south with NaN at nodata, cellsize, xll, yll, crs WKT or None) of one band.
+
+    Every GeoTIFF read goes through here, so a DEM and a map or release raster get the same checks:
+    north-up or south-up, unrotated, square pixels, an existing band. Raises TerrainError naming the
+    file and what is wrong.
+    """
     rasterio = _rasterio()
     path = Path(path)
     if not path.exists():
@@ -232,37 +238,39 @@ def read_geotiff(path, *, fill_nodata: bool = False, band: int = 1) -> DEM:
     with rasterio.open(path) as src:
         t = src.transform
         if abs(t.b) > 0 or abs(t.d) > 0:
-            raise TerrainError(f"{path}: rotated rasters are not supported")
+            raise TerrainError(f"{path}: rotated rasters are not supported (transform {tuple(t)[:6]})")
         if not np.isclose(abs(t.a), abs(t.e), rtol=1e-9):
-            raise TerrainError(f"{path}: pixels are not square ({abs(t.a)} x {abs(t.e)} m)")
+            raise TerrainError(f"{path}: pixels are not square ({abs(t.a):g} x {abs(t.e):g} m)")
+        if t.a < 0:
+            raise TerrainError(f"{path}: columns run east to west (pixel width {t.a:g}); not supported")
+        if not 1 <= band <= src.count:
+            raise TerrainError(f"{path}: band {band} does not exist (the file has {src.count})")
         z = src.read(band).astype(np.float64)
         nodata = src.nodata
         cs = abs(t.a)
         xll = t.c
-        yll = t.f - src.height * cs if t.e < 0 else t.f
-        if t.e > 0:
+        if t.e < 0:  # north-up: row 0 is the north edge
+            yll = t.f - src.height * cs
             z = z[::-1]
+        else:  # south-up: row 0 is already the south edge
+            yll = t.f
         crs = src.crs.to_wkt() if src.crs else None
-    z = z[::-1].copy()
+    z = z.copy()
     if nodata is not None:
         z[z == nodata] = np.nan
+    return z, cs, xll, yll, crs
+
+
+def read_geotiff(path, *, fill_nodata: bool = False, band: int = 1) -> DEM:
+    """Read one band of a GeoTIFF into a :class:`DEM` (needs rasterio). Square, unrotated pixels only."""
+    z, cs, xll, yll, crs = _geotiff(path, band)
     z = _handle_nodata(z, path, cs, xll, yll, fill_nodata)
     return DEM(z=z, cellsize=cs, xll=xll, yll=yll, crs=crs)
 
 
 def _read_geotiff_array(path, band: int = 1):
-    """(z (ny, nx) row 0 south with NaN at nodata, cellsize, xll, yll) of a north-up GeoTIFF."""
-    rasterio = _rasterio()
-    path = Path(path)
-    if not path.exists():
-        raise TerrainError(f"{path}: file not found")
-    with rasterio.open(path) as src:
-        t = src.transform
-        z = src.read(band).astype(np.float64)[::-1].copy()
-        if src.nodata is not None:
-            z[z == src.nodata] = np.nan
-        cs = abs(t.a)
-        return z, cs, t.c, t.f - src.height * cs
+    """(z (ny, nx) row 0 south with NaN at nodata, cellsize, xll, yll) of a GeoTIFF (checks of _geotiff)."""
+    return _geotiff(path, band)[:4]
 
 
 def write_geotiff(path, array, dem: DEM, *, nodata_value: float = -9999.0) -> None:
@@ -324,12 +332,11 @@ def _grid_str(dem: DEM) -> str:
     return f"{dem.ny}x{dem.nx} cells of {dem.cellsize:g} m at xll={dem.xll:g}, yll={dem.yll:g}"
 
 
-def read_raster_like(path, dem: DEM, what: str = "release", *, nodata_as_zero: bool = True) -> np.ndarray:
-    """Read a raster that must lie on ``dem``'s grid; returns its (ny, nx) array (row 0 south).
+def read_raster_on_grid(path, dem: DEM, what: str = "map") -> np.ndarray:
+    """A raster (.asc or .tif) that must lie on ``dem``'s grid: its (ny, nx) array, row 0 south, nodata as NaN.
 
-    Raises :class:`TerrainError` naming the file, ``what`` it is, and both grids when shape,
-    cell size or origin differ. Nodata cells become 0 (``nodata_as_zero``; usual for release and
-    erodible-depth rasters) or raise.
+    Raises :class:`TerrainError` naming the file, ``what`` it is, and both grids when shape, cell size
+    or origin differ.
     """
     if _kind(path) == "asc":
         z, cs, xll, yll = read_asc_array(path)
@@ -347,10 +354,19 @@ def read_raster_like(path, dem: DEM, what: str = "release", *, nodata_as_zero: b
             f"{path}: {what} grid ({ny}x{nx} cells of {cs:g} m at xll={xll:g}, yll={yll:g}) "
             f"does not match the DEM grid ({_grid_str(dem)})"
         )
+    return np.asarray(z, dtype=np.float64)
+
+
+def read_raster_like(path, dem: DEM, what: str = "release", *, nodata_as_zero: bool = True) -> np.ndarray:
+    """Read a raster that must lie on ``dem``'s grid (:func:`read_raster_on_grid`); returns its (ny, nx)
+    array (row 0 south). Nodata cells become 0 (``nodata_as_zero``; usual for release and erodible-depth
+    rasters) or raise.
+    """
+    z = read_raster_on_grid(path, dem, what)
     bad = ~np.isfinite(z)
     if bad.any():
         if nodata_as_zero:
             z = np.where(bad, 0.0, z)
         else:
-            _handle_nodata(z, path, cs, xll, yll, False)
+            _handle_nodata(z, path, dem.cellsize, dem.xll, dem.yll, False)
     return z
