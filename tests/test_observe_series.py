@@ -60,6 +60,34 @@ def test_gauge_csv_errors_name_file_and_row(tmp_path, text, row):
     assert str(f) in str(e.value) and f"row {row}" in str(e.value)
 
 
+def test_gauge_csv_gaps_are_left_out_per_quantity(tmp_path):
+    """A sensor drop-out (empty, NA, NaN or '-' in h or speed) drops that sample from that quantity only."""
+    f = tmp_path / "g.csv"
+    f.write_text("t,h,speed\n0.5,1.0,\n1.0,NA,1.5\n1.5,3.0,2.0\n2.0,nan,-\n2.5,4.0,2.5\n")
+    cols = read_gauge_csv(f)
+    assert np.isnan(cols["h"][[1, 3]]).all() and np.isnan(cols["speed"][[0, 3]]).all()
+    h, sp = SeriesObservation.from_gauge_csv(f, "G", {"h": 0.1, "speed": 0.2})
+    np.testing.assert_array_equal(h.times, [0.5, 1.5, 2.5])
+    np.testing.assert_array_equal(h.values, [1.0, 3.0, 4.0])
+    np.testing.assert_array_equal(sp.times, [1.0, 1.5, 2.5])
+    np.testing.assert_array_equal(sp.values, [1.5, 2.0, 2.5])
+    dem, res = _result()
+    assert h.predict(res).shape == (2, 3) and torch.isfinite(h.predict(res)).all()
+    assert sp.labels() == ["G:speed@t=1", "G:speed@t=1.5", "G:speed@t=2.5"]
+
+
+@pytest.mark.parametrize("text,match", [
+    ("t,h\n0,1\n,2\n", "row 3: has no time"),
+    ("t,h\n0,1\n1,inf\n", "row 3: column 'h' is not finite.*empty cell or NA"),
+    ("t,h,speed\n0,1,2\n1,NA,3\n", "column 'h' has 1 recorded samples \\(1 missing\\)"),
+])
+def test_gauge_csv_gap_errors(tmp_path, text, match):
+    f = tmp_path / "bad.csv"
+    f.write_text(text)
+    with pytest.raises(GaugeSeriesError, match=match):
+        SeriesObservation.from_gauge_csv(f, "G", 0.1)
+
+
 def test_gauge_csv_missing_columns(tmp_path):
     f = tmp_path / "bad.csv"
     f.write_text("time,h\n0,1\n1,2\n")

@@ -11,7 +11,8 @@ returns (B, m), which is why they are listed in :data:`VECTOR_KINDS` and must be
 
 * ``gauge_series``: flow thickness ("h", m) or speed ("speed", m/s) of a named gauge at the observed
   times t (s), linearly interpolated between the solver's output samples (clamped at both ends).
-  CSV input: a header row with ``t`` and ``h`` and/or ``speed`` columns; times must increase strictly.
+  CSV input: a header row with ``t`` and ``h`` and/or ``speed`` columns; times must increase strictly;
+  an empty (or NA) h or speed cell is a gap in that recording, left out of its series.
 * ``deposit_map``: final thickness h_final (m) on every cell of the DEM grid with a finite value in the
   raster (nodata cells are left out).
 * ``impact_map``: 1 where h_max > threshold, else 0, per cell (the indicator of ``impact_area``).
@@ -134,12 +135,17 @@ def exponential_field(shape: tuple, cellsize: float, corr_length: float, rng: np
 
 
 # -------------------------------------------------------------------------------------------- readers
+MISSING = ("", "na", "nan", "-")  # a gauge CSV's marks of a missing h or speed sample (case-insensitive)
+
+
 def read_gauge_csv(path) -> dict[str, np.ndarray]:
     """Read a gauge CSV (header ``t`` plus ``h`` and/or ``speed``) -> {column: (m,) array}.
 
-    Raises GaugeSeriesError naming the file and the (1-based, header = row 1) row for missing columns,
-    non-numeric values, negative times (t is seconds since the release) or times that do not increase
-    strictly.
+    A gap in a recording (a sensor drop-out) is an empty h or speed cell, or ``NA`` / ``NaN`` / ``-``
+    there: it comes back as NaN, and :meth:`SeriesObservation.from_gauge_csv` leaves that sample out of
+    that quantity's series. Times must all be given. Raises GaugeSeriesError naming the file and the
+    (1-based, header = row 1) row for missing columns, non-numeric values, infinite values, a missing or
+    negative time (t is seconds since the release) or times that do not increase strictly.
     """
     path = Path(path)
     if not path.is_file():
@@ -157,12 +163,17 @@ def read_gauge_csv(path) -> dict[str, np.ndarray]:
             raise GaugeSeriesError(f"{path}: row {r_i}: expected {len(header)} values, got {len(row)}")
         for c in cols:
             s = row[header.index(c)].strip()
+            if c != "t" and s.lower() in MISSING:
+                cols[c].append(math.nan)
+                continue
             try:
                 v = float(s)
             except ValueError:
-                raise GaugeSeriesError(f"{path}: row {r_i}: column {c!r} is not a number: {s!r}") from None
+                what = "has no time" if c == "t" and s.lower() in MISSING else f"column {c!r} is not a number: {s!r}"
+                raise GaugeSeriesError(f"{path}: row {r_i}: {what}") from None
             if not math.isfinite(v):
-                raise GaugeSeriesError(f"{path}: row {r_i}: column {c!r} is not finite: {s!r}")
+                raise GaugeSeriesError(f"{path}: row {r_i}: column {c!r} is not finite: {s!r}"
+                                       + ("; mark a missing sample with an empty cell or NA" if c != "t" else ""))
             cols[c].append(v)
     t = np.asarray(cols["t"])
     if t.size < 2:
@@ -230,8 +241,12 @@ class SeriesObservation:
             s = sigma.get(q) if isinstance(sigma, dict) else sigma
             if s is None:
                 raise GaugeSeriesError(f"{path}: sigma for {q!r} is missing")
-            out.append(cls("gauge_series", cols[q], s, name=f"{name or gauge}:{q}", gauge=gauge, quantity=q,
-                           times=cols["t"], corr_length=corr_time, source=str(path)))
+            have = np.isfinite(cols[q])  # gaps in the recording are left out of this quantity's series
+            if have.sum() < 2:
+                raise GaugeSeriesError(f"{path}: column {q!r} has {int(have.sum())} recorded samples "
+                                       f"({int((~have).sum())} missing); need at least 2")
+            out.append(cls("gauge_series", cols[q][have], s, name=f"{name or gauge}:{q}", gauge=gauge, quantity=q,
+                           times=cols["t"][have], corr_length=corr_time, source=str(path)))
         return out
 
     @classmethod
