@@ -94,6 +94,34 @@ class CalibrationResult:
         return d
 
 
+    @classmethod
+    def load(cls, directory: str | os.PathLike) -> "CalibrationResult":
+        """Read what :meth:`save` wrote (posterior.json and posterior.npz; the emulator is not saved).
+
+        Raises FileNotFoundError naming the missing file, ValueError when the two files disagree."""
+        d = Path(directory)
+        for f in ("posterior.json", "posterior.npz"):
+            if not (d / f).is_file():
+                raise FileNotFoundError(f"{d}: no {f} (is this the --out folder of a finished `torchslide "
+                                        f"calibrate`?)")
+        info = json.loads((d / "posterior.json").read_text())
+        with np.load(d / "posterior.npz") as a:
+            arrays = {k: a[k] for k in a.files}
+        names = list(info["names"])
+        if arrays["x"].ndim != 2 or arrays["x"].shape[1] != len(names):
+            raise ValueError(f"{d}: posterior.npz holds runs of {arrays['x'].shape[-1]} parameters, posterior.json "
+                             f"names {names}")
+        axes = [arrays[f"axis_{i}"] for i in range(len(names))] if "posterior_grid" in arrays else None
+        summary = {k: info[k] for k in ("names", "mean", "sd", "map", "hdr90", "log_evidence") if k in info}
+        return cls(names=names, bounds=arrays["bounds"], x=arrays["x"], z=arrays["z"], failed=arrays["failed"],
+                   reasons=[r.get("reason", "") for r in info.get("runs", [])] or [""] * len(arrays["x"]),
+                   n_initial=int(info.get("n_initial", 0)), grid_axes=axes,
+                   posterior_grid=arrays.get("posterior_grid"), log_evidence=float(info["log_evidence"]),
+                   tv_history=[tuple(r) for r in arrays["tv_history"].tolist()], summary=summary,
+                   samples=arrays.get("samples"), stopped_reason=info.get("stopped_reason", ""),
+                   timings=info.get("timings", {}))
+
+
 def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int = 120, batch_size: int = 1,
               seed: int = 0, grid_size: int = 100, acquisition: str = "entropy",
               checkpoint: str | os.PathLike | None = None, log_dir: str | os.PathLike | None = None,

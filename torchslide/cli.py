@@ -21,6 +21,7 @@ import sys
 SUBCOMMANDS: dict[str, str] = {
     "simulate": "torchslide.commands.simulate",
     "calibrate": "torchslide.commands.calibrate",
+    "predict": "torchslide.commands.predict",
     "diagnose": "torchslide.commands.diagnose",
     "sweep": "torchslide.commands.sweep",
 }

@@ -166,6 +166,12 @@ class LandslideEvaluator:
     def __call__(self, x: torch.Tensor) -> EvaluationResult:
         return self.evaluate(x)[0]
 
+    def observation_sd(self) -> np.ndarray:
+        """(k,) the likelihood's marginal sd of each observation (sigma, or the square root of the full
+        covariance's diagonal)."""
+        lik = self.likelihood
+        return (lik.sigma if lik.chol is None else torch.sqrt(torch.diagonal(lik.chol @ lik.chol.T))).numpy()
+
     def best_fit(self) -> dict | None:
         """How well the best run seen (largest z among the ``records`` that did not fail) reproduces each
         observation: {"x": {name: value}, "z", "n_runs": records considered, "observations": [{name, kind,
@@ -179,8 +185,7 @@ class LandslideEvaluator:
         if not ok:
             return None
         best = max(ok, key=lambda r: r.z)
-        lik = self.likelihood
-        sd = (lik.sigma if lik.chol is None else torch.sqrt(torch.diagonal(lik.chol @ lik.chol.T))).numpy()
+        sd = self.observation_sd()
         obs = [{"name": str(o.name), "kind": o.kind, "value": float(o.value), "sigma": float(sd[k]),
                 "predicted": float(best.predictions[k]),
                 "standardised_residual": float((best.predictions[k] - float(o.value)) / sd[k])}

@@ -66,3 +66,31 @@ def plot_tv(tv_histories: dict, path, n_initial: int | None = None, threshold: f
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return Path(path)
+
+
+def plot_predictive_check(checks: list, path):
+    """Posterior-predictive check (torchslide.predict.observation_check): one row per observation, its
+    recorded value (dot, +- sigma) against the 90 % interval of a new recording (bar) and the model's
+    median (tick), in units of the recorded value so that rows of different kinds share an axis."""
+    n = len(checks)
+    fig, ax = plt.subplots(figsize=(6.5, 0.5 * n + 1.4))
+    for i, c in enumerate(checks):
+        scale = abs(c["value"]) if c["value"] != 0 else max(c["sigma"], 1e-12)
+        lo, hi = (np.asarray(c["interval90"]) - c["value"]) / scale
+        med = (c["model_quantiles"]["0.5"] - c["value"]) / scale
+        colour = "tab:blue" if c["inside"] else "tab:red"
+        ax.plot([lo, hi], [i, i], "-", lw=6, color=colour, alpha=0.35, solid_capstyle="butt")
+        ax.plot([med], [i], "|", ms=14, mew=2, color=colour)
+        ax.errorbar([0.0], [i], xerr=[[c["sigma"] / scale]], fmt="o", color="k", ms=5, capsize=3)
+    ax.axvline(0.0, color="k", lw=0.5)
+    ax.set_yticks(range(n))
+    ax.set_yticklabels([c["name"] for c in checks], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("(prediction - recorded) / |recorded|")
+    ax.set_title("recorded (dot, +- sigma); 90 % of a new recording (bar); model median (tick)", fontsize=8)
+    ax.grid(alpha=0.3, axis="x")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)

@@ -6,24 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-
-def posterior_samples(cal, M: int, seed: int = 0) -> np.ndarray:
-    """(M, p) draws from a CalibrationResult: its MCMC samples (p > 2) or its grid density (p <= 2),
-    jittered uniformly within the grid cell."""
-    rng = np.random.default_rng(seed)
-    if cal.samples is not None and len(cal.samples):
-        idx = rng.choice(len(cal.samples), size=M, replace=len(cal.samples) < M)
-        return np.asarray(cal.samples)[idx]
-    dens = np.asarray(cal.posterior_grid, dtype=np.float64)
-    p = dens.ravel() / dens.sum()
-    flat = rng.choice(p.size, size=M, p=p)
-    ii = np.unravel_index(flat, dens.shape)
-    out = np.empty((M, len(cal.grid_axes)))
-    for d, ax in enumerate(cal.grid_axes):
-        h = (ax[1] - ax[0]) if len(ax) > 1 else 0.0
-        out[:, d] = ax[ii[d]] + rng.uniform(-0.5, 0.5, size=M) * h
-        out[:, d] = np.clip(out[:, d], cal.bounds[0, d], cal.bounds[1, d])
-    return out
+from ..predict import posterior_samples  # noqa: F401  (re-exported: the diagnosis draws with it)
 
 
 def posterior_mode(cal) -> np.ndarray:

@@ -1,0 +1,172 @@
+"""``torchslide predict CONFIG.toml --calibration CAL_DIR --out DIR``: posterior-predictive runs.
+
+Draws ``--n`` parameter sets from the posterior that ``torchslide calibrate CONFIG.toml --out CAL_DIR``
+wrote, runs them in batched solver calls with the config's terrain, fixed parameters and solver
+settings, and writes (all rasters on the DEM grid, ESRI ASCII)::
+
+    DIR/impact_probability.asc   share of the draws with h_max > --threshold (0-1)
+    DIR/h_max_p05.asc, h_max_p50.asc, h_max_p95.asc       per-cell quantiles of h_max, m
+    DIR/v_max_p50.asc, v_max_p95.asc                      of v_max, m/s
+    DIR/h_final_p50.asc, h_final_p95.asc                  of the deposit, m
+    DIR/predictive.json          the draws' summary and each observation's posterior-predictive check
+    DIR/draws.csv                one line per successful draw: parameters and predicted observables
+    DIR/impact_probability.png   the impact probability over the hillshaded terrain, observations marked
+    DIR/observations.png         each observation: the 90 % interval of a new recording against the value
+
+predictive.json ``observations``: per observation the model's mean, sd and 5/50/95 % quantiles over the
+draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
+percentile in it, and ``inside``. A value outside is one the calibrated model does not reproduce (see also
+posterior.json's ``best_run_fit``).
+
+The config must be the one the calibration ran with (same calibrated parameters and prior box); nothing is
+half-written (a temporary folder next to DIR is moved into place at the end). Exit code 0; 1 when some draws
+failed (they are left out and listed in predictive.json); 2 on bad input.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..config import ConfigError
+
+HELP = "posterior-predictive runs of a calibration: impact probability and quantile maps, data checks"
+
+MAP_QUANTILES = {"h_max": (0.05, 0.5, 0.95), "v_max": (0.5, 0.95), "h_final": (0.5, 0.95)}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("config", help="the TOML config the calibration ran with")
+    p.add_argument("--calibration", required=True, metavar="CAL_DIR",
+                   help="the --out folder of `torchslide calibrate` (posterior.json, posterior.npz)")
+    p.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (must not exist or be empty)")
+    p.add_argument("--n", type=int, default=64, help="posterior draws to run (default 64)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
+    p.add_argument("--threshold", type=float, default=0.5, metavar="M",
+                   help="h_max above which a cell counts as reached, m (default 0.5, as impact_area)")
+    p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+
+def load_calibration(directory, prior):
+    """The CalibrationResult in ``directory``, checked against the config's prior: ConfigError otherwise."""
+    from ..calibration import CalibrationResult
+
+    try:
+        cal = CalibrationResult.load(directory)
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        raise ConfigError(f"--calibration: {e}") from None
+    if list(cal.names) != list(prior.names):
+        raise ConfigError(f"--calibration {directory} calibrated {list(cal.names)}, but the config's [prior] "
+                          f"names {list(prior.names)}: pass the config the calibration ran with")
+    if not np.allclose(np.asarray(cal.bounds, dtype=float), np.asarray(prior.bounds, dtype=float), rtol=1e-9):
+        raise ConfigError(f"--calibration {directory} ran on the prior box {np.asarray(cal.bounds).tolist()}, the "
+                          f"config's [prior] is {np.asarray(prior.bounds).tolist()}: pass the config it ran with")
+    return cal
+
+
+def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndarray) -> None:
+    with open(path, "w") as f:
+        f.write(",".join(list(names) + list(obs_names)) + "\n")
+        for xi, pi in zip(x, preds):
+            f.write(",".join(f"{v:.10g}" for v in list(xi) + list(pi)) + "\n")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..figures import plot_predictive_check
+    from ..mapplots import plot_field_map
+    from ..predict import observation_check, posterior_samples, run_predictive
+    from ..terrain.io import write_asc
+    from .calibrate import load_calibration_config, make_evaluator
+    from .simulate import check_output
+
+    if args.n < 1:
+        raise ConfigError(f"--n must be >= 1 posterior draws, got {args.n}")
+    if args.seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {args.seed}")
+    if not (math.isfinite(args.threshold) and args.threshold >= 0):
+        raise ConfigError(f"--threshold must be >= 0 m, got {args.threshold}")
+    cfg = load_calibration_config(args.config)
+    ev = make_evaluator(cfg)
+    cal = load_calibration(args.calibration, ev.prior)
+    out = Path(args.out)
+    anc = check_output(out, args.overwrite)
+
+    samples = posterior_samples(cal, args.n, seed=args.seed)
+    bar = None
+    if not args.quiet:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=args.n, desc="predictive runs", unit="run")
+    done = [0]
+
+    def progress(n):
+        if bar is not None:
+            bar.update(n - done[0])
+        done[0] = n
+
+    try:
+        pr = run_predictive(ev, samples, args.threshold, progress=progress)
+    except RuntimeError as e:
+        raise ConfigError(str(e)) from None
+    finally:
+        if bar is not None:
+            bar.close()
+
+    values = np.array([float(o.value) for o in ev.observations])
+    checks = observation_check(pr.predictions, values, ev.observation_sd(), ev.observation_names, seed=args.seed)
+    dem = cfg.terrain.dem
+    points = {o.name: (o.x, o.y) for o in ev.observations if o.x is not None and o.y is not None}
+    tmp = Path(tempfile.mkdtemp(prefix=".torchslide-predict-", dir=anc))
+    try:
+        write_asc(tmp / "impact_probability.asc", pr.impact_probability, dem, fmt="%.6g")
+        for name, qs in MAP_QUANTILES.items():
+            for q in qs:
+                write_asc(tmp / f"{name}_p{round(100 * q):02d}.asc", pr.quantiles[name][q], dem, fmt="%.6g")
+        _write_draws_csv(tmp / "draws.csv", ev.names, ev.observation_names, pr.x, pr.predictions)
+        info = {
+            "calibration": str(Path(args.calibration)), "config": str(Path(args.config)),
+            "n_draws": int(args.n), "n_ok": int(len(pr.x)), "n_failed": pr.n_failed, "failures": pr.failures,
+            "seed": int(args.seed), "threshold_m": float(args.threshold),
+            "parameters": {n: {"mean": float(pr.x[:, i].mean()), "sd": float(pr.x[:, i].std(ddof=1)) if len(pr.x) > 1
+                               else 0.0} for i, n in enumerate(ev.names)},
+            "fixed": {k: float(v) for k, v in ev.fixed.items()},
+            "impact_area_m2": {"mean": float(pr.impact_probability.sum() * dem.cellsize ** 2),
+                               "p50_map": float((pr.impact_probability >= 0.5).sum() * dem.cellsize ** 2)},
+            "observations": checks,
+            "n_inside_90": int(sum(c["inside"] for c in checks)),
+        }
+        (tmp / "predictive.json").write_text(json.dumps(info, indent=2))
+        plot_field_map(dem, pr.impact_probability, tmp / "impact_probability.png", points=points,
+                       label=f"P(h_max > {args.threshold:g} m)", cmap="inferno_r", vmin=0.0, vmax=1.0,
+                       title=f"Impact probability over {len(pr.x)} posterior draws")
+        plot_predictive_check(checks, tmp / "observations.png")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if not args.quiet:
+        for c in checks:
+            lo, hi = c["interval90"]
+            print(f"{c['name']}: recorded {c['value']:.4g}, predicted {c['model_quantiles']['0.5']:.4g} "
+                  f"(90 % of a new recording: [{lo:.4g}, {hi:.4g}]){'' if c['inside'] else '  <- outside'}")
+        print(f"impact area (mean over the draws) {info['impact_area_m2']['mean']:.4g} m^2; wrote {out}")
+    for c in checks:
+        if not c["inside"]:
+            print(f"torchslide: warning: {c['name']} = {c['value']:.4g} lies outside the 90 % posterior-predictive "
+                  f"interval [{c['interval90'][0]:.4g}, {c['interval90'][1]:.4g}] (percentile "
+                  f"{100 * c['percentile']:.1f}): the calibrated model does not reproduce it", file=sys.stderr)
+    if pr.n_failed:
+        print(f"torchslide: warning: {pr.n_failed} of {args.n} draws failed and were left out (predictive.json "
+              f"'failures'); first: {pr.failures[0]['reason']}", file=sys.stderr)
+    return 1 if pr.n_failed else 0

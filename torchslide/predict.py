@@ -1,0 +1,115 @@
+"""Posterior-predictive runs of a calibration: what the calibrated model says will happen, with its spread.
+
+M parameter sets drawn from the posterior run in batched solver calls (chunks of ``max_batch``); from
+them:
+
+* hazard maps on the DEM grid: the impact probability P(h_max > threshold) per cell (the share of the
+  draws that reach it), and per-cell quantiles of h_max, v_max and the deposit h_final;
+* each observation's predictive distribution against its recorded value (a posterior-predictive
+  check): the model's spread f(x) over the draws, and the spread of a new recording f(x) + e with e
+  drawn from the likelihood's error model. A recorded value far in a tail of the latter is one the
+  calibrated model does not reproduce (its percentile near 0 or 1).
+
+Shapes: M draws, p calibrated parameters, k observations, (ny, nx) the DEM grid.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+QUANTILES = (0.05, 0.5, 0.95)
+
+
+def posterior_samples(cal, M: int, seed: int = 0) -> np.ndarray:
+    """(M, p) draws from a CalibrationResult: its MCMC samples (p > 2) or its grid density (p <= 2),
+    jittered uniformly within the grid cell (clipped to the prior box)."""
+    rng = np.random.default_rng(seed)
+    if cal.samples is not None and len(cal.samples):
+        idx = rng.choice(len(cal.samples), size=M, replace=len(cal.samples) < M)
+        return np.asarray(cal.samples)[idx]
+    dens = np.asarray(cal.posterior_grid, dtype=np.float64)
+    p = dens.ravel() / dens.sum()
+    flat = rng.choice(p.size, size=M, p=p)
+    ii = np.unravel_index(flat, dens.shape)
+    out = np.empty((M, len(cal.grid_axes)))
+    for d, ax in enumerate(cal.grid_axes):
+        h = (ax[1] - ax[0]) if len(ax) > 1 else 0.0
+        out[:, d] = ax[ii[d]] + rng.uniform(-0.5, 0.5, size=M) * h
+        out[:, d] = np.clip(out[:, d], cal.bounds[0, d], cal.bounds[1, d])
+    return out
+
+
+@dataclass
+class PredictiveRuns:
+    """The successful draws of a posterior-predictive run set.
+
+    x: (M_ok, p) parameters; predictions: (M_ok, k) observables; threshold: m.
+    impact_probability: (ny, nx) share of the draws with h_max > threshold.
+    quantiles: {"h_max" | "v_max" | "h_final": {q: (ny, nx)}} for q in QUANTILES (m, m/s, m).
+    n_failed: draws whose run failed (left out; their reasons in ``failures``).
+    """
+
+    x: np.ndarray
+    predictions: np.ndarray
+    threshold: float
+    impact_probability: np.ndarray
+    quantiles: dict
+    n_failed: int = 0
+    failures: list = field(default_factory=list)
+
+
+def run_predictive(evaluator, samples: np.ndarray, threshold: float,
+                   quantiles: tuple = QUANTILES, progress=None) -> PredictiveRuns:
+    """Run ``samples`` (M, p) through ``evaluator`` (a LandslideEvaluator: its terrain, fixed parameters,
+    solver settings and observations), ``evaluator.max_batch`` members per solver call, and reduce the
+    maps. ``progress``: an optional callable(n_done) after each call. Raises RuntimeError when every run
+    failed."""
+    x = torch.as_tensor(np.asarray(samples, dtype=np.float64)).reshape(-1, len(evaluator.names))
+    keep_x, preds_all, fields, failures = [], [], {"h_max": [], "v_max": [], "h_final": []}, []
+    for s in range(0, x.shape[0], evaluator.max_batch):
+        xb = x[s:s + evaluator.max_batch]
+        res = evaluator.simulate(xb)
+        preds, failed, why = evaluator.predict(res)
+        ok = ~failed.numpy()
+        failures += [{"x": xb[i].tolist(), "reason": why[i]} for i in np.nonzero(~ok)[0]]
+        keep_x.append(xb.numpy()[ok])
+        preds_all.append(preds.numpy()[ok])
+        for name in fields:  # float32 on the host: M maps of the grid fit in memory
+            fields[name].append(getattr(res, name).detach().cpu().float().numpy()[ok])
+        if progress is not None:
+            progress(min(s + evaluator.max_batch, x.shape[0]))
+    maps = {k: np.concatenate(v) for k, v in fields.items()}
+    if maps["h_max"].shape[0] == 0:
+        raise RuntimeError(f"all {x.shape[0]} posterior-predictive runs failed; first: {failures[0]['reason']}")
+    qs = {k: {q: np.quantile(v, q, axis=0).astype(np.float64) for q in quantiles} for k, v in maps.items()}
+    return PredictiveRuns(x=np.concatenate(keep_x), predictions=np.concatenate(preds_all), threshold=float(threshold),
+                          impact_probability=(maps["h_max"] > threshold).mean(axis=0).astype(np.float64),
+                          quantiles=qs, n_failed=len(failures), failures=failures)
+
+
+def observation_check(predictions: np.ndarray, values: np.ndarray, sigma: np.ndarray, names, seed: int = 0,
+                      level: float = 0.9) -> list[dict]:
+    """Each observation's predictive distribution against its recorded value.
+
+    predictions: (M, k) f(x) of the draws; values: (k,) recorded; sigma: (k,) the likelihood's marginal
+    sd. Per observation: the model's mean, sd and quantiles over the draws; the ``level`` interval of a
+    new recording f(x) + e, e ~ N(0, sigma^2) (one e per draw and 200 per draw for the quantiles); the
+    recorded value's percentile in that distribution, and whether it lies inside the interval.
+    """
+    rng = np.random.default_rng(seed)
+    P = np.asarray(predictions, dtype=np.float64)
+    lo_q, hi_q = (1 - level) / 2, 1 - (1 - level) / 2
+    out = []
+    for j, name in enumerate(names):
+        f = P[:, j]
+        rep = (f[:, None] + sigma[j] * rng.standard_normal((f.size, 200))).ravel()
+        lo, hi = np.quantile(rep, [lo_q, hi_q])
+        v = float(values[j])
+        out.append({"name": str(name), "value": v, "sigma": float(sigma[j]),
+                    "model_mean": float(f.mean()), "model_sd": float(f.std(ddof=1)) if f.size > 1 else 0.0,
+                    "model_quantiles": {f"{q:g}": float(np.quantile(f, q)) for q in QUANTILES},
+                    f"interval{int(round(level * 100))}": [float(lo), float(hi)],
+                    "percentile": float((rep < v).mean()), "inside": bool(lo <= v <= hi)})
+    return out
