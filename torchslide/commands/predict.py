@@ -27,10 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -85,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     from ..predict import observation_check, posterior_samples, run_predictive
     from ..terrain.io import write_asc
     from .calibrate import load_calibration_config, make_evaluator
-    from .simulate import check_output
+    from .simulate import check_output, staged_output
 
     if args.n < 1:
         raise ConfigError(f"--n must be >= 1 posterior draws, got {args.n}")
@@ -124,8 +121,7 @@ def run(args: argparse.Namespace) -> int:
     checks = observation_check(pr.predictions, values, ev.observation_sd(), ev.observation_names, seed=args.seed)
     dem = cfg.terrain.dem
     points = {o.name: (o.x, o.y) for o in ev.observations if o.x is not None and o.y is not None}
-    tmp = Path(tempfile.mkdtemp(prefix=".torchslide-predict-", dir=anc))
-    try:
+    with staged_output(out, anc, "predict") as tmp:
         write_asc(tmp / "impact_probability.asc", pr.impact_probability, dem, fmt="%.6g")
         for name, qs in MAP_QUANTILES.items():
             for q in qs:
@@ -148,13 +144,6 @@ def run(args: argparse.Namespace) -> int:
                        label=f"P(h_max > {args.threshold:g} m)", cmap="inferno_r", vmin=0.0, vmax=1.0,
                        title=f"Impact probability over {len(pr.x)} posterior draws")
         plot_predictive_check(checks, tmp / "observations.png")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     if not args.quiet:
         for c in checks:
             lo, hi = c["interval90"]

@@ -33,6 +33,7 @@ import os
 import shutil
 import sys
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +71,22 @@ def check_output(out: Path, overwrite: bool) -> Path:
     if not anc.is_dir() or not os.access(anc, os.W_OK):
         raise ConfigError(f"cannot write the output folder {out}: {anc} is not a writable folder")
     return anc
+
+
+@contextmanager
+def staged_output(out: Path, anc: Path, command: str):
+    """Write into a temporary folder next to ``out`` (in ``anc``, from :func:`check_output`) and move it into
+    place when the block ends; on any error (or Ctrl-C) remove it, so nothing is half-written."""
+    tmp = Path(tempfile.mkdtemp(prefix=f".torchslide-{command}-", dir=anc))
+    try:
+        yield tmp
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.exists():
+            shutil.rmtree(out)
+        os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
 
 
 def _f(x) -> Any:
@@ -176,17 +193,9 @@ def run(args: argparse.Namespace) -> int:
     from ..solver import simulate
 
     kwargs = cfg.simulate_kwargs()
-    tmp = Path(tempfile.mkdtemp(prefix=".torchslide-simulate-", dir=anc))
-    try:
+    with staged_output(out, anc, "simulate") as tmp:
         result = simulate(**kwargs, progress=not args.quiet)
         summaries = write_outputs(tmp, cfg, result, args.threshold)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     failed = [i for i, s in enumerate(summaries) if s["failed"]]
     if not args.quiet:
         for i, s in enumerate(summaries):
