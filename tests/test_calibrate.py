@@ -91,3 +91,23 @@ def test_package_level_entry_point():
             "print(any(m.startswith(('botorch', 'torchslide.solver')) for m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+@pytest.mark.parametrize("p", [1, 3])
+def test_posterior_figure_for_one_and_three_parameters(tmp_path, p):
+    """calibrate writes posterior.png for any p: the 1-D grid density with its HDR, or a corner plot."""
+    from torchslide.figures import plot_posterior_any
+
+    names = ["a", "b", "c"][:p]
+    res = calibrate(lambda x: -((x - 0.3) ** 2).sum(-1) / 0.02, bounds={n: (0.0, 1.0) for n in names},
+                               n_initial=8, n_total=12, batch_size=4, progress=False, grid_size=40)
+    assert (res.samples is not None) == (p > 2)
+    path = plot_posterior_any(res, tmp_path / "posterior.png", truth=[0.3] * p)
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(path)
+    assert img.shape[0] > 200 and img.shape[1] > 300 and img.std() > 0.05  # a drawn figure, not a blank canvas
+    res.samples = None
+    if p > 2:
+        with pytest.raises(ValueError, match="needs its MCMC samples"):
+            plot_posterior_any(res, tmp_path / "x.png")

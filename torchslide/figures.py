@@ -48,6 +48,77 @@ def plot_posterior(result, path, truth=None, names=None, level: float = 0.9, tit
     return Path(path)
 
 
+def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9):
+    """The posterior figure for any number p of calibrated parameters: Fig. 3 for p = 2
+    (:func:`plot_posterior`), the grid density with its ``level`` HDR shaded for p = 1, and for p > 2 a
+    corner plot of the MCMC samples (1-D histograms on the diagonal with the equal-tailed ``level``
+    interval, 2-D histograms below it with the runs as dots). ``truth``: (p,) values or None."""
+    names = list(names or result.names)
+    p = len(names)
+    if p == 2 and result.posterior_grid is not None:
+        return plot_posterior(result, path, truth=truth, names=names, level=level)
+    x = np.asarray(result.x)
+    ok = ~np.asarray(result.failed, dtype=bool)
+    b = np.asarray(result.bounds, dtype=float)
+    if p == 1:
+        if result.posterior_grid is None:
+            raise ValueError("a 1-parameter calibration needs its grid posterior")
+        ax0, dens = np.asarray(result.grid_axes[0]), np.asarray(result.posterior_grid)
+        fig, ax = plt.subplots(figsize=(5.5, 3.6))
+        ax.plot(ax0, dens, "-", color="tab:blue")
+        ax.fill_between(ax0, 0, dens, where=hdr_mask(dens, level), color="tab:blue", alpha=0.3,
+                        label=f"{int(level * 100)} % HDR")
+        ax.plot(x[ok, 0], np.zeros(int(ok.sum())), "|", color="k", ms=10, label="runs")
+        if truth is not None:
+            ax.axvline(truth[0], color="k", ls="--", label="truth")
+        ax.set_xlim(b[0, 0], b[1, 0])
+        ax.set_xlabel(names[0])
+        ax.set_ylabel("posterior density")
+        ax.legend(fontsize=7)
+        ax.set_title(f"posterior after {len(x)} runs", fontsize=10)
+    else:
+        if result.samples is None or not len(result.samples):
+            raise ValueError(f"a {p}-parameter calibration needs its MCMC samples")
+        smp = np.asarray(result.samples)
+        lo_q, hi_q = (1 - level) / 2, 1 - (1 - level) / 2
+        fig, axes = plt.subplots(p, p, figsize=(2.3 * p, 2.3 * p), squeeze=False)
+        for i in range(p):
+            for j in range(p):
+                ax = axes[i, j]
+                if j > i:
+                    ax.set_visible(False)
+                    continue
+                if i == j:
+                    ax.hist(smp[:, i], bins=40, range=(b[0, i], b[1, i]), color="tab:blue", alpha=0.6)
+                    for q in np.quantile(smp[:, i], [lo_q, hi_q]):
+                        ax.axvline(q, color="tab:blue", ls=":")
+                    if truth is not None:
+                        ax.axvline(truth[i], color="k", ls="--")
+                    ax.set_yticks([])
+                else:
+                    ax.hist2d(smp[:, j], smp[:, i], bins=40, range=[[b[0, j], b[1, j]], [b[0, i], b[1, i]]],
+                              cmap="viridis")
+                    ax.plot(x[ok, j], x[ok, i], ".", color="w", ms=2, alpha=0.7)
+                    if truth is not None:
+                        ax.plot([truth[j]], [truth[i]], "+", color="red", ms=10, mew=2)
+                ax.set_xlim(b[0, j], b[1, j])
+                if i == p - 1:
+                    ax.set_xlabel(names[j])
+                else:
+                    ax.set_xticklabels([])
+                if j == 0 and i > 0:
+                    ax.set_ylabel(names[i])
+                elif j > 0:
+                    ax.set_yticklabels([])
+        fig.suptitle(f"posterior after {len(x)} runs: MCMC samples, {int(level * 100)} % intervals dotted, "
+                     "runs as white dots", fontsize=9)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)
+
+
 def plot_tv(tv_histories: dict, path, n_initial: int | None = None, threshold: float | None = None):
     """Fig. 4: TV(p_i, p_{i-10}) against the number of runs; tv_histories maps label -> [(n, tv), ...]."""
     fig, ax = plt.subplots(figsize=(5.5, 3.8))

@@ -262,7 +262,7 @@ def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     from ..calibration import calibrate
-    from ..figures import plot_posterior, plot_tv
+    from ..figures import plot_posterior_any, plot_tv
 
     cfg = load_calibration_config(args.config)
     cal = cfg.extra["calibration"]
@@ -303,8 +303,7 @@ def run(args: argparse.Namespace) -> int:
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
     for w in misfit_warnings(fit) if fit is not None else []:
         print(f"torchslide: warning: {w}", file=sys.stderr)
-    if res.posterior_grid is not None and len(prior.names) == 2:
-        plot_posterior(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
+    plot_posterior_any(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
     if res.tv_history:
         plot_tv({Path(args.config).stem: res.tv_history}, out / "tv.png")
     s = res.summary
