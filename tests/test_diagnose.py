@@ -2072,7 +2072,11 @@ def test_cli_on_an_exported_case_reproduces_the_saved_harness_case(tmp_path):
     from pathlib import Path
     from experiments.hidden_physics import export_case
 
-    export_case.main(["entrainment", "1", "--out", str(tmp_path)])
+    from experiments.hidden_physics.scenarios import dem_edge
+
+    with dem_edge("open"):  # the saved case ran with the transmissive edge of before session 33
+        export_case.main(["entrainment", "1", "--out", str(tmp_path)])
+    assert 'boundary = "open"' in (tmp_path / "diagnose.toml").read_text()
     assert main(["diagnose", str(tmp_path / "diagnose.toml"), "--out", str(tmp_path / "diag"), "--quiet"]) == 0
     got = json.loads((tmp_path / "diag" / "report.json").read_text())
     saved = json.loads((Path(export_case.__file__).parent / "results" / "harness" / "entrainment_s1.json")
@@ -2141,7 +2145,10 @@ def test_detectability_script_reproduces_the_saved_screening():
     from experiments.hidden_physics.detectability import detectability_case
     from experiments.hidden_physics.harness import LIBRARY
 
-    r = detectability_case("narrow", "curvature_s0")
+    from experiments.hidden_physics.scenarios import dem_edge
+
+    with dem_edge("open"):  # the saved case ran before the outflow edge (session 33)
+        r = detectability_case("narrow", "curvature_s0")
     assert r["screening_reproduced"] and r["true_term"] == "curvature" and r["truth"] == 1.0
     assert sorted(r["detectable"]) == sorted(LIBRARY)
     cv = r["detectable"]["curvature"]
@@ -2190,12 +2197,13 @@ def test_block_fit_whitens_correlated_errors_and_sees_a_real_offset():
 @pytest.mark.slow
 def test_block_fit_probe_reproduces_a_saved_row():
     """block_fit_probe.case_row re-runs the first stage of a harness case exactly: null seed 100 on the
-    resolved terrain gives the saved Z_fit of every observable and the saved scans (~40 s)."""
+    resolved terrain with the outflow edge (session 33's file) gives the saved Z_fit of every observable and
+    the saved scans (~40 s)."""
     import json
     from pathlib import Path
     from experiments.hidden_physics import block_fit_probe
     from experiments.hidden_physics.scenarios import terrain_variant
-    saved = json.loads((Path(block_fit_probe.HERE) / "results" / "block_fit_resolved.json").read_text())["cases"]
+    saved = json.loads((Path(block_fit_probe.HERE) / "results" / "block_fit_resolved_outflow.json").read_text())["cases"]
     want = next(r for r in saved if r["scenario"] == "null" and r["seed"] == 100)
     with terrain_variant("resolved"):
         got = block_fit_probe.case_row("null", 100)

@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         }
         (tmp / "predictive.json").write_text(json.dumps(info, indent=2))
         plot_field_map(dem, pr.impact_probability, tmp / "impact_probability.png", points=points,
-                       label=f"P(h_max > {args.threshold:g} m)", cmap="inferno_r", vmin=0.0, vmax=1.0,
+                       label=f"P(h_max > {args.threshold:g} m)", cmap="YlOrRd", vmin=0.0, vmax=1.0,
                        title=f"Impact probability over {len(pr.x)} posterior draws")
         plot_predictive_check(checks, tmp / "observations.png")
     if not args.quiet:
