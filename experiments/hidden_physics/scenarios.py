@@ -85,23 +85,6 @@ def terrain_variant(name: str):
         use_terrain(previous)
 
 
-@contextmanager
-def dem_edge(boundary: str):
-    """``with dem_edge("open"): ...`` -- every harness run of the block (recordings, inversion, exported
-    configs) with that DEM edge (SolverConfig.boundary), restored after. The cases saved before session 33
-    (results/harness, results/resolved, ...) ran with the transmissive edge, "open" now; reproducing one
-    exactly needs it."""
-    previous = SOLVER.get("boundary")
-    SOLVER["boundary"] = boundary
-    try:
-        yield
-    finally:
-        if previous is None:
-            SOLVER.pop("boundary", None)
-        else:
-            SOLVER["boundary"] = previous
-
-
 def yc(x):
     L = GEOM["slope_length"]
     return 0.5 * GEOM["width"] + float(_bends(x, 0.15 * L, 0.85 * L, GEOM["amplitude"]))
