@@ -82,6 +82,19 @@ def test_predict_flags_a_value_the_model_cannot_reproduce(calibrated, capsys, tm
     assert "area = " in err and "outside the 90 % posterior-predictive interval" in err
 
 
+def test_predict_map_threshold_follows_the_impact_area_observation(calibrated, capsys, tmp_path):
+    """Without --threshold the map uses the impact_area observation's threshold, so its mean impact area
+    (sum of P times the solver's cell area) is the draws' own impact-area prediction."""
+    d, cfg, _ = calibrated
+    c = write(tmp_path, cfg.read_text().replace('name = "area"\n', 'name = "area"\nthreshold = 2.0\n'))
+    assert main(["predict", str(c), "--calibration", str(d / "cal"), "--out", str(tmp_path / "p"), "--n", "6",
+                 "--quiet"]) == 0
+    info = json.loads((tmp_path / "p" / "predictive.json").read_text())
+    rows = np.genfromtxt(tmp_path / "p" / "draws.csv", delimiter=",", names=True)
+    assert info["threshold_m"] == 2.0
+    assert info["impact_area_m2"]["mean"] == pytest.approx(rows["area"].mean(), rel=1e-9)
+
+
 @pytest.mark.parametrize("mutate,args,match", [
     (None, ["--n", "0"], "--n must be >= 1"),
     (None, ["--threshold", "-1"], "--threshold must be >= 0"),

@@ -47,6 +47,8 @@ class PredictiveRuns:
 
     x: (M_ok, p) parameters; predictions: (M_ok, k) observables; threshold: m.
     impact_probability: (ny, nx) share of the draws with h_max > threshold.
+    cell_area: (ny, nx) m^2, the solver's (what observe's areas sum), so sum(P * cell_area) is the
+        draws' mean impact area.
     quantiles: {"h_max" | "v_max" | "h_final": {q: (ny, nx)}} for q in QUANTILES (m, m/s, m).
     n_failed: draws whose run failed (left out; their reasons in ``failures``).
     """
@@ -55,6 +57,7 @@ class PredictiveRuns:
     predictions: np.ndarray
     threshold: float
     impact_probability: np.ndarray
+    cell_area: np.ndarray
     quantiles: dict
     n_failed: int = 0
     failures: list = field(default_factory=list)
@@ -68,9 +71,11 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
     failed."""
     x = torch.as_tensor(np.asarray(samples, dtype=np.float64)).reshape(-1, len(evaluator.names))
     keep_x, preds_all, fields, failures = [], [], {"h_max": [], "v_max": [], "h_final": []}, []
+    cell_area = None
     for s in range(0, x.shape[0], evaluator.max_batch):
         xb = x[s:s + evaluator.max_batch]
         res = evaluator.simulate(xb)
+        cell_area = res.cell_area.detach().cpu().double().numpy()
         preds, failed, why = evaluator.predict(res)
         ok = ~failed.numpy()
         failures += [{"x": xb[i].tolist(), "reason": why[i]} for i in np.nonzero(~ok)[0]]
@@ -86,7 +91,7 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
     qs = {k: {q: np.quantile(v, q, axis=0).astype(np.float64) for q in quantiles} for k, v in maps.items()}
     return PredictiveRuns(x=np.concatenate(keep_x), predictions=np.concatenate(preds_all), threshold=float(threshold),
                           impact_probability=(maps["h_max"] > threshold).mean(axis=0).astype(np.float64),
-                          quantiles=qs, n_failed=len(failures), failures=failures)
+                          cell_area=np.broadcast_to(cell_area, maps["h_max"].shape[1:]).copy(), quantiles=qs, n_failed=len(failures), failures=failures)
 
 
 def observation_check(predictions: np.ndarray, values: np.ndarray, sigma: np.ndarray, names, seed: int = 0,

@@ -4,7 +4,8 @@ Draws ``--n`` parameter sets from the posterior that ``torchslide calibrate CONF
 wrote, runs them in batched solver calls with the config's terrain, fixed parameters and solver
 settings, and writes (all rasters on the DEM grid, ESRI ASCII)::
 
-    DIR/impact_probability.asc   share of the draws with h_max > --threshold (0-1)
+    DIR/impact_probability.asc   share of the draws with h_max > --threshold (0-1; default: the config's
+                                 impact_area threshold, else 0.5 m)
     DIR/h_max_p05.asc, h_max_p50.asc, h_max_p95.asc       per-cell quantiles of h_max, m
     DIR/v_max_p50.asc, v_max_p95.asc                      of v_max, m/s
     DIR/h_final_p50.asc, h_final_p95.asc                  of the deposit, m
@@ -33,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ConfigError
+from ..observe import DEFAULT_THRESHOLD
 
 HELP = "posterior-predictive runs of a calibration: impact probability and quantile maps, data checks"
 
@@ -46,8 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (must not exist or be empty)")
     p.add_argument("--n", type=int, default=64, help="posterior draws to run (default 64)")
     p.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
-    p.add_argument("--threshold", type=float, default=0.5, metavar="M",
-                   help="h_max above which a cell counts as reached, m (default 0.5, as impact_area)")
+    p.add_argument("--threshold", type=float, default=None, metavar="M",
+                   help="h_max above which a cell counts as reached, m (default: the threshold of the config's "
+                        "impact_area observation, else 0.5)")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
@@ -88,10 +91,13 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--n must be >= 1 posterior draws, got {args.n}")
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
-    if not (math.isfinite(args.threshold) and args.threshold >= 0):
+    if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold >= 0):
         raise ConfigError(f"--threshold must be >= 0 m, got {args.threshold}")
     cfg = load_calibration_config(args.config)
     ev = make_evaluator(cfg)
+    if args.threshold is None:  # the map then agrees with the impact area the calibration fitted
+        args.threshold = next((float(o.threshold) for o in ev.observations if o.kind == "impact_area"),
+                              DEFAULT_THRESHOLD)
     cal = load_calibration(args.calibration, ev.prior)
     out = Path(args.out)
     anc = check_output(out, args.overwrite)
@@ -134,8 +140,8 @@ def run(args: argparse.Namespace) -> int:
             "parameters": {n: {"mean": float(pr.x[:, i].mean()), "sd": float(pr.x[:, i].std(ddof=1)) if len(pr.x) > 1
                                else 0.0} for i, n in enumerate(ev.names)},
             "fixed": {k: float(v) for k, v in ev.fixed.items()},
-            "impact_area_m2": {"mean": float(pr.impact_probability.sum() * dem.cellsize ** 2),
-                               "p50_map": float((pr.impact_probability >= 0.5).sum() * dem.cellsize ** 2)},
+            "impact_area_m2": {"mean": float((pr.impact_probability * pr.cell_area).sum()),
+                               "p50_map": float(pr.cell_area[pr.impact_probability >= 0.5].sum())},
             "observations": checks,
             "n_inside_90": int(sum(c["inside"] for c in checks)),
         }
