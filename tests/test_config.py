@@ -124,6 +124,9 @@ def test_extra_sections(case):
         (lambda t: t.replace("mu = 0.2", "mu = 0.2\nmue = 0.3"), r"unknown key 'mue' in \[model\]"),
         (lambda t: t.replace("mu = 0.2", "mu = 'abc'"), "mu must be a number"),
         (lambda t: t.replace("[run]", "[run\n"), "invalid TOML"),
+        (lambda t: t + '\n[output]\nformat = "nc"\n', r"\[output\] format must be one of asc, tif, got 'nc'"),
+        (lambda t: t + '\n[output]\nfromat = "tif"\n', r"unknown key 'fromat' in \[output\]"),
+        (lambda t: t + "\n[sweep]\nn = 24\n", r"unknown section \[sweep\]"),  # no command reads it
     ],
 )
 def test_bad_configs(case, mutate, match):
@@ -133,6 +136,19 @@ def test_bad_configs(case, mutate, match):
         load_config(d / "c.toml")
     assert "\n" not in str(e.value)
     assert "c.toml" in str(e.value)
+
+
+def test_output_format(case, monkeypatch):
+    """[output] format: "asc" by default; "tif" needs rasterio, refused with the install hint without it."""
+    import sys
+
+    d, _, _ = case
+    (d / "c.toml").write_text(cfg_text())
+    assert load_config(d / "c.toml").output_format == "asc"
+    (d / "c.toml").write_text(cfg_text(extra='\n[output]\nformat = "TIF"\n'))
+    monkeypatch.setitem(sys.modules, "rasterio", None)
+    with pytest.raises(ConfigError, match=r"\[output\] format = \"tif\" needs rasterio.*torchslide\[geo\]"):
+        load_config(d / "c.toml")
 
 
 def test_bad_rasters(tmp_path):

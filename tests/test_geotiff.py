@@ -100,3 +100,25 @@ def test_a_case_given_as_geotiffs_loads_like_the_asc_case(tmp_path):
     assert t.terrain.dem.same_grid(a.terrain.dem)
     np.testing.assert_allclose(t.terrain.dem.z, a.terrain.dem.z, rtol=0, atol=1e-9)
     np.testing.assert_allclose(t.terrain.release, a.terrain.release, rtol=0, atol=1e-12)
+
+
+def test_simulate_writes_geotiffs_with_the_dems_crs(tmp_path, capsys):
+    """`[output] format = "tif"`: simulate writes .tif rasters on the DEM's grid with its CRS, equal to the
+    .asc run's values."""
+    from torchslide.cli import main
+
+    dem, rel = write_case(tmp_path)
+    crs = rasterio.crs.CRS.from_string(CRS).to_wkt()
+    write_raster(tmp_path / "dem.tif", dem.z, DEM(z=dem.z, cellsize=dem.cellsize, xll=dem.xll, yll=dem.yll, crs=crs))
+    write_raster(tmp_path / "release.tif", rel, dem)
+    text = cfg_text().replace('"dem.asc"', '"dem.tif"').replace('"release.asc"', '"release.tif"')
+    (tmp_path / "tif.toml").write_text(text.replace("t_end = 20.0", "t_end = 6.0") + '\n[output]\nformat = "tif"\n')
+    (tmp_path / "asc.toml").write_text(cfg_text().replace("t_end = 20.0", "t_end = 6.0"))
+    assert main(["simulate", str(tmp_path / "tif.toml"), "--out", str(tmp_path / "t"), "-q"]) == 0
+    assert main(["simulate", str(tmp_path / "asc.toml"), "--out", str(tmp_path / "a"), "-q"]) == 0
+    tifs = sorted(p.name for p in (tmp_path / "t").glob("*.tif"))
+    assert tifs == ["arrival_time.tif", "h_final.tif", "h_max.tif", "v_max.tif"]
+    assert not list((tmp_path / "t").glob("*.asc"))
+    h = read_raster(tmp_path / "t" / "h_max.tif")
+    assert h.same_grid(dem) and h.crs is not None and "2056" in h.crs
+    np.testing.assert_allclose(h.z, read_raster(tmp_path / "a" / "h_max.asc").z, rtol=1e-12, atol=1e-12)

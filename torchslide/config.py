@@ -26,6 +26,10 @@ A configuration file (paths are relative to the file)::
     x = 1700.0
     y = 1331.0
 
+    [output]
+    format = "asc"               # rasters that simulate / predict write: "asc" (ESRI ASCII) or "tif"
+                                 # (GeoTIFF with the DEM's CRS; needs rasterio, the geo extra)
+
 Every problem raises :class:`ConfigError` with a one-line message naming the file, section and key.
 
 Extending: the calibrate/diagnose configs are the same file plus more sections. Call
@@ -73,14 +77,15 @@ class ConfigError(ValueError):
     """Bad configuration or input data; the message is one line naming the file, section and key."""
 
 
-BASE_SECTIONS = ("terrain", "model", "run", "gauges")
-OTHER_SECTIONS: set[str] = {"prior", "observations", "calibration", "diagnose", "sweep", "output"}
+BASE_SECTIONS = ("terrain", "model", "run", "gauges", "output")
+OTHER_SECTIONS: set[str] = {"prior", "observations", "calibration", "diagnose"}
 """Sections of other commands' configs that the base loader accepts without a parser."""
 
 _TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata"}
 _RELEASE_TABLE_KEYS = {"centre", "center", "radii", "volume", "thickness", "shape"}
 _RUN_KEYS = {"t_end", "dtype", "device", "cfl"}
 _GAUGE_KEYS = {"name", "x", "y"}
+OUTPUT_FORMATS = ("asc", "tif")
 RHEOLOGIES = ("voellmy", "coulomb")
 
 
@@ -157,6 +162,7 @@ class Config:
     gauges: list[GaugeConfig] = field(default_factory=list)
     raw: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
+    output_format: str = "asc"
 
     @property
     def batch_size(self) -> int:
@@ -451,6 +457,21 @@ def _parse_gauges(g: Any, dem: DEM, path: Path) -> list[GaugeConfig]:
 
 
 # ------------------------------------------------------------------------------------ entry points
+def _parse_output(o: Any, path: Path) -> str:
+    """[output] -> the raster format ("asc" or "tif"); "tif" is refused here when rasterio is missing."""
+    o = check_keys(o, {"format"}, "[output]", path)
+    fmt = str(o.get("format", "asc")).lower()
+    if fmt not in OUTPUT_FORMATS:
+        raise ConfigError(f"{path}: [output] format must be one of {', '.join(OUTPUT_FORMATS)}, got {o['format']!r}")
+    if fmt == "tif":
+        try:
+            import rasterio  # noqa: F401
+        except ImportError:
+            raise ConfigError(f"{path}: [output] format = \"tif\" needs rasterio, which is not installed: "
+                              f"`pip install torchslide[geo]`") from None
+    return fmt
+
+
 def parse_config(raw: dict[str, Any], path, extra_sections: dict[str, Callable[[Any, Config], Any]] | None = None) -> Config:
     """Validate an already-parsed TOML dict (``path`` anchors relative file paths and messages)."""
     path = Path(path)
@@ -466,7 +487,8 @@ def parse_config(raw: dict[str, Any], path, extra_sections: dict[str, Callable[[
     model = _parse_model(raw["model"], path)
     run = _parse_run(raw["run"], path)
     gauges = _parse_gauges(raw.get("gauges", []), terrain.dem, path)
-    cfg = Config(path=path, terrain=terrain, model=model, run=run, gauges=gauges, raw=raw)
+    fmt = _parse_output(raw.get("output", {}), path)
+    cfg = Config(path=path, terrain=terrain, model=model, run=run, gauges=gauges, raw=raw, output_format=fmt)
     for name, parser in extra_sections.items():
         if name in raw:
             cfg.extra[name] = parser(raw[name], cfg)

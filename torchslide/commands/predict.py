@@ -2,7 +2,7 @@
 
 Draws ``--n`` parameter sets from the posterior that ``torchslide calibrate CONFIG.toml --out CAL_DIR``
 wrote, runs them in batched solver calls with the config's terrain, fixed parameters and solver
-settings, and writes (all rasters on the DEM grid, ESRI ASCII)::
+settings, and writes (all rasters on the DEM grid; ESRI ASCII, or GeoTIFF with ``[output] format = "tif"``)::
 
     DIR/impact_probability.asc   share of the draws with h_max > --threshold (0-1; default: the config's
                                  impact_area threshold, else 0.5 m)
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     from ..figures import plot_predictive_check
     from ..mapplots import plot_field_map
     from ..predict import observation_check, posterior_samples, run_predictive
-    from ..terrain.io import write_asc
+    from ..terrain.io import write_named_raster
     from .calibrate import load_calibration_config, make_evaluator
     from .simulate import check_output, staged_output
 
@@ -128,10 +128,11 @@ def run(args: argparse.Namespace) -> int:
     dem = cfg.terrain.dem
     points = {o.name: (o.x, o.y) for o in ev.observations if o.x is not None and o.y is not None}
     with staged_output(out, anc, "predict") as tmp:
-        write_asc(tmp / "impact_probability.asc", pr.impact_probability, dem, fmt="%.6g")
+        fmt = cfg.output_format
+        write_named_raster(tmp, "impact_probability", pr.impact_probability, dem, fmt)
         for name, qs in MAP_QUANTILES.items():
             for q in qs:
-                write_asc(tmp / f"{name}_p{round(100 * q):02d}.asc", pr.quantiles[name][q], dem, fmt="%.6g")
+                write_named_raster(tmp, f"{name}_p{round(100 * q):02d}", pr.quantiles[name][q], dem, fmt)
         _write_draws_csv(tmp / "draws.csv", ev.names, ev.observation_names, pr.x, pr.predictions)
         info = {
             "calibration": str(Path(args.calibration)), "config": str(Path(args.config)),

@@ -1,6 +1,7 @@
 """``torchslide simulate CONFIG.toml --out DIR``: run the solver and write rasters and a JSON summary.
 
-Output (one batch member, B = 1), all on the DEM grid as ESRI ASCII::
+Output (one batch member, B = 1), all on the DEM grid as ESRI ASCII (``.tif`` GeoTIFFs with the DEM's CRS
+instead with ``[output] format = "tif"``)::
 
     DIR/h_max.asc          maximum flow thickness, m
     DIR/v_max.asc          maximum speed, m/s
@@ -131,21 +132,19 @@ def member_summary(result, b: int, threshold: float, thalweg=None) -> dict[str, 
     return s
 
 
-def write_member(folder: Path, result, b: int, fmt: str) -> None:
-    """Rasters of member b into ``folder``."""
-    from ..terrain.io import write_asc
+def write_member(folder: Path, result, b: int, fmt: str, output_format: str = "asc") -> None:
+    """Rasters of member b into ``folder`` (``output_format`` "asc" with values as ``fmt``, or "tif")."""
+    from ..terrain.io import write_named_raster
 
-    dem = result.dem
+    def put(name: str, t) -> None:
+        write_named_raster(folder, name, t[b].detach().cpu().double().numpy(), result.dem, output_format, fmt)
 
-    def arr(t) -> np.ndarray:
-        return t[b].detach().cpu().double().numpy()
-
-    write_asc(folder / "h_max.asc", arr(result.h_max), dem, fmt=fmt)
-    write_asc(folder / "v_max.asc", arr(result.v_max), dem, fmt=fmt)
-    write_asc(folder / "h_final.asc", arr(result.h_final), dem, fmt=fmt)
-    write_asc(folder / "arrival_time.asc", arr(result.arrival_time), dem, fmt=fmt)
+    put("h_max", result.h_max)
+    put("v_max", result.v_max)
+    put("h_final", result.h_final)
+    put("arrival_time", result.arrival_time)
     if result.bed_change is not None:
-        write_asc(folder / "bed_change.asc", arr(result.bed_change), dem, fmt=fmt)
+        put("bed_change", result.bed_change)
 
 
 OUTFLOW_WARN = 0.01
@@ -163,7 +162,7 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
     for b in range(B):
         folder = tmp if B == 1 else tmp / f"member-{b:03d}"
         folder.mkdir(exist_ok=True)
-        write_member(folder, result, b, fmt)
+        write_member(folder, result, b, fmt, cfg.output_format)
         s = member_summary(result, b, threshold, thalweg)
         (folder / "summary.json").write_text(json.dumps(s, indent=2) + "\n")
         s["folder"] = "." if B == 1 else folder.name

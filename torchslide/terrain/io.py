@@ -31,6 +31,7 @@ __all__ = [
     "write_raster",
     "read_raster_like",
     "read_raster_on_grid",
+    "write_named_raster",
 ]
 
 ASC_EXTENSIONS = (".asc", ".txt", ".grd")
@@ -326,6 +327,20 @@ def write_raster(path, array, dem: DEM, **kwargs) -> None:
         write_asc(path, array, dem, **kwargs)
     else:
         write_geotiff(path, array, dem, **kwargs)
+
+
+def write_named_raster(folder, name: str, array, dem: DEM, output_format: str = "asc",
+                       number_format: str = "%.6g") -> Path:
+    """Write ``array`` ((ny, nx), row 0 south) as ``folder/name.asc`` (ESRI ASCII, values as
+    ``number_format``) or ``folder/name.tif`` (float64 GeoTIFF with the DEM's CRS); returns the path."""
+    if output_format not in ("asc", "tif"):
+        raise TerrainError(f"unknown raster output format {output_format!r} (asc or tif)")
+    path = Path(folder) / f"{name}.{output_format}"
+    if output_format == "asc":
+        write_raster(path, array, dem, fmt=number_format)
+    else:
+        write_raster(path, array, dem)
+    return path
 
 
 def _grid_str(dem: DEM) -> str:
