@@ -23,6 +23,7 @@ SUBCOMMANDS: dict[str, str] = {
     "calibrate": "torchslide.commands.calibrate",
     "predict": "torchslide.commands.predict",
     "diagnose": "torchslide.commands.diagnose",
+    "sweep": "torchslide.commands.sweep",
 }
 
 

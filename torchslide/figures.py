@@ -48,7 +48,7 @@ def plot_posterior(result, path, truth=None, names=None, level: float = 0.9, tit
     return Path(path)
 
 
-def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9):
+def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9, title: str | None = None):
     """The posterior figure for any number p of calibrated parameters: Fig. 3 for p = 2
     (:func:`plot_posterior`), the grid density with its ``level`` HDR shaded for p = 1, and for p > 2 a
     corner plot of the MCMC samples (1-D histograms on the diagonal with the equal-tailed ``level``
@@ -56,7 +56,7 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9)
     names = list(names or result.names)
     p = len(names)
     if p == 2 and result.posterior_grid is not None:
-        return plot_posterior(result, path, truth=truth, names=names, level=level)
+        return plot_posterior(result, path, truth=truth, names=names, level=level, title=title)
     x = np.asarray(result.x)
     ok = ~np.asarray(result.failed, dtype=bool)
     b = np.asarray(result.bounds, dtype=float)
@@ -75,7 +75,7 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9)
         ax.set_xlabel(names[0])
         ax.set_ylabel("posterior density")
         ax.legend(fontsize=7)
-        ax.set_title(f"posterior after {len(x)} runs", fontsize=10)
+        ax.set_title(title or f"posterior after {len(x)} runs", fontsize=10)
     else:
         if result.samples is None or not len(result.samples):
             raise ValueError(f"a {p}-parameter calibration needs its MCMC samples")
@@ -110,8 +110,8 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9)
                     ax.set_ylabel(names[i])
                 elif j > 0:
                     ax.set_yticklabels([])
-        fig.suptitle(f"posterior after {len(x)} runs: MCMC samples, {int(level * 100)} % intervals dotted, "
-                     "runs as white dots", fontsize=9)
+        fig.suptitle(title or f"posterior after {len(x)} runs: MCMC samples, {int(level * 100)} % intervals "
+                     "dotted, runs as white dots", fontsize=9)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
