@@ -1114,7 +1114,7 @@ def test_block_fit_section_and_the_sigma_scale_rule(tmp_path):
     f = tmp_path / "block_fit_resolved.json"
     f.write_text(json.dumps({"terrain": "resolved", "cases": rows}))
     text = "\n".join(_block_fit_section([f]))
-    assert "### resolved terrain" in text and "**0.5**" in text
+    assert "### resolved terrain (block_fit_resolved.json)" in text and "**0.5**" in text
     assert "| null (calibration seeds 100-101) | 2 | -3.0 (-3.0 to -3.0) | -3.0 (-3.0 to -3.0) | 4.0 |" in text
     assert "| low_friction_patch | 1 | +1.0 (+1.0 to +1.0) |" in text
     assert "| chi2 / m | 7.00 | 2.20 | 0.60 | 0.15 |" in text
@@ -1136,6 +1136,7 @@ def test_fit_flag_section_counts_flags_per_group(tmp_path):
     f = tmp_path / "block_fit_resolved.json"
     f.write_text(json.dumps({"terrain": "resolved", "cases": rows}))
     text = "\n".join(_fit_flag_section([f]))
+    assert "### resolved terrain (block_fit_resolved.json)" in text
     assert "Levels from 5 null calibration seeds: g1:speed" in text
     assert "| low_friction_patch | 1 | 1 | low_friction_patch_s0: g1:speed +0.5 |" in text
     assert "| null | 1 | 0 | - |" in text
@@ -1631,6 +1632,52 @@ def test_page_section_of_the_resolved_terrain_with_the_outflow_edge(tmp_path):
     # the strength-1 targets table is unchanged by them
     assert "| earth_pressure | 1 | 1 | earth_pressure 1 | >= 4 of 5 |" in text
     assert _resolved_outflow_section(tmp_path / "absent", before) == []
+
+
+def test_page_section_of_the_main_harness_with_the_current_solver(tmp_path):
+    """make_page's section for the main harness re-run with the current solver (session 36): its own
+    thresholds, the targets, a row per case and the main run's same cases (before -> now)."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.make_page import _narrow_current_section
+
+    th = Thresholds(bf_min=30.0, located_min=8.0)
+    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+
+    def case(seed, verdict, name, covered, wall):
+        ep = dict(_cand("earth_pressure", 50.0), param="earth_pressure", parameters={"earth_pressure": par(0.8, 0.5, 1.0)})
+        return {"scenario": "earth_pressure", "seed": seed, "strength": 1.0, "wall_s": wall,
+                "truth": {"term": "earth_pressure", "earth_pressure": 1.0}, "true_term_covered_hdr90": covered,
+                "diagnosis": {"verdict": verdict, "missing_physics": name, "candidates": [ep], "located": [],
+                              "decision": {"two_ln_bf_over_runner_up": 40.0}, "fit_before": {"misfit": 100.0},
+                              "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}}
+
+    now, before = tmp_path / "now", tmp_path / "before"
+    (now / "null_calib").mkdir(parents=True)
+    before.mkdir()
+    (now / "earth_pressure_s0.json").write_text(json.dumps(case(0, "unexplained", None, True, 300.0)))
+    (now / "earth_pressure_s1.json").write_text(json.dumps(case(1, "missing_physics", "earth_pressure", True, 340.0)))
+    (before / "earth_pressure_s0.json").write_text(json.dumps(case(0, "missing_physics", "earth_pressure", True, 290.0)))
+    (now / "null_calib" / "thresholds.json").write_text(json.dumps(
+        {"null_cases": [{"case": "null_s100", "max_two_ln_bf_lower": 24.0, "max_located": 5.0}],
+         "thresholds": asdict(th)}))
+    text = "\n".join(_narrow_current_section(now, before))
+    assert text.startswith("## The main harness with the current solver")
+    assert "bf_min 30.0" in text and "Median wall time per case 320 s" in text
+    assert "| earth_pressure | 2 | 1 | earth_pressure 1, unexplained 1 | >= 4 of 5 |" in text
+    # seed 0 named before, "unexplained" now
+    assert "| earth_pressure | 1 | 1 -> 0 | 1 -> 0 | 1 -> 1 |" in text
+    assert "reference re-make" not in text
+    # a case also re-made on this machine: its interval in all three runs
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    c = case(0, "missing_physics", "earth_pressure", True, 310.0)
+    c["diagnosis"]["candidates"][0]["parameters"]["earth_pressure"]["hdi90"] = [0.62, 0.97]
+    (ref / "earth_pressure_s0.json").write_text(json.dumps(c))
+    text = "\n".join(_narrow_current_section(now, before, ref=ref))
+    assert "| earth_pressure_s0 | 1.0 | [0.5, 1] (named) | [0.62, 0.97] (named) | [0.5, 1] (not named) |" in text
+    assert "earth_pressure_s1 | 1.0" not in text
+    assert _narrow_current_section(tmp_path / "absent", before) == []
 
 
 def test_page_overview_of_every_run_against_the_targets(tmp_path):

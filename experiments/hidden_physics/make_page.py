@@ -997,6 +997,67 @@ def _resolved_outflow_section(d=None, prev=None, inflow=None) -> list[str]:
     return L + sub
 
 
+def _switch_interval(c) -> str:
+    """The true term's refitted switch in case ``c``: '[lo, hi] (named / not named)', or '-'."""
+    j = c["diagnosis"]
+    x = next((x for x in j["candidates"] if x["name"] == c["truth"].get("term")), None)
+    if x is None:
+        return "-"
+    p = x["parameters"][x["param"]]
+    lo, hi = p.get("hdi90", p["hdr90"])
+    return f"[{lo:.3g}, {hi:.3g}] ({'named' if j['missing_physics'] == x['name'] else 'not named'})"
+
+
+def _rerun_spread(cases, prev, ref) -> list[str]:
+    """Cases run three times with the same inputs and method (the main run ``prev``, the reference re-makes
+    in ``ref`` made on this machine with the current solver, and ``cases``): the true switch's 90 % HDI of
+    each, to show how far the refit's interval moves between numerically different runs."""
+    rows = []
+    for c in cases:
+        tag = f"{c['scenario']}_s{c['seed']}"
+        a, b = prev / f"{tag}.json", ref / f"{tag}.json"
+        if c.get("strength", 1.0) != 1.0 or not (a.exists() and b.exists()):
+            continue
+        ca, cb = (json.loads(q.read_text()) for q in (a, b))
+        t = c["truth"].get("term")
+        truth = c["truth"].get(next((x["param"] for x in c["diagnosis"]["candidates"] if x["name"] == t), ""), "-")
+        rows.append(f"| {tag} | {truth} | {_switch_interval(ca)} | {_switch_interval(cb)} | {_switch_interval(c)} |")
+    if not rows:
+        return []
+    return ["The same recording and method run three times: the main run (solver before sessions 33-34), the "
+            f"reference re-make on this machine with the current solver ({_shown(ref, HERE)}, session 35) and this "
+            "run. The true switch's 90 % HDI of each (the strict check's interval):", "",
+            "| case | truth | main run | reference re-make | this run |", "|---|---|---|---|---|"] + rows + [""]
+
+
+def _narrow_current_section(d=None, prev=None, ref=None) -> list[str]:
+    """The main harness re-run from scratch with the current solver (``harness --out
+    results/narrow_current/results``, session 36): its cases in ``d`` (default
+    results/narrow_current/results; null calibration seeds and thresholds in d/null_calib), the targets,
+    every case, and the same cases as the main run made them (``prev``, default results/harness); the
+    cases also re-made on this machine (``ref``, default results/reference) as :func:`_rerun_spread`."""
+    d = Path(d) if d is not None else HERE / "results" / "narrow_current" / "results"
+    prev = Path(prev) if prev is not None else HERE / "results" / "harness"
+    ref = Path(ref) if ref is not None else HERE / "results" / "reference"
+    def describe(cases, th):
+        return ("The main harness (narrow terrain, 40 m cells, recordings on 20 m) run again from scratch with the "
+                "solver of session 34: the DEM edge lets nothing in (session 33; the narrow terrain's old edge fed "
+                "at most 0.2 m3) and the subnormal-face fix (session 34: a face whose wave speeds span less than "
+                "1e-10 m/s carries no flux). The main run's cases were made before both. Same scenarios, seeds, noise, release error, grids, budgets and method; its own null seeds "
+                "(100-104) and fit levels (block_fit_probe, null seeds 100-124, "
+                "results/block_fit_narrow_current.json). 32 of the 35 cases ran on the CPUs of the GPU machine "
+                "(16 cases at a time, one thread each, torch 2.11), the other 3 and the null seeds on 2 cores "
+                "here (torch 2.13). Median wall time per case "
+                f"{np.median([c['wall_s'] for c in cases]):.0f} s. " + _thresholds_sentence(th, "with this solver"))
+    L = _variant_section(
+        d, prev,
+        "## The main harness with the current solver (`harness --out results/narrow_current/results`, session 36)",
+        describe, "Against the main run's cases",
+        "'Before': the main run (solver before sessions 33-34); 'now': the same cases with the current solver. "
+        "Each with thresholds from its own null seeds.")
+    return L + _rerun_spread(_variant_cases(d, strength1=True)[0], prev, ref) if L else L
+
+
 def _narrow_20m_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
     --cellsize 20 --out results/narrow_20m/results``, sessions 23, 25 and 26): its cases in ``d`` (default
@@ -1141,10 +1202,11 @@ def _strength_versus(now, before) -> list[str]:
 # every harness run on the page: (label, folder under results/), for the overview at the top
 OVERVIEW_RUNS = (
     ("narrow, 40 m (the main run below)", "harness"),
+    ("narrow, 40 m, current solver (session 36)", "narrow_current/results"),
     ("narrow, 40 m, release-volume error in the likelihood", "narrow_vol/results"),
     ("narrow, 20 m", "narrow_20m/results"),
     ("resolved, 40 m, transmissive edge", "resolved/results"),
-    ("resolved, 40 m, outflow edge (current solver)", "resolved_outflow/results"),
+    ("resolved, 40 m, outflow edge (solver of session 33)", "resolved_outflow/results"),
     ("resolved, 40 m, release-volume error in the likelihood", "resolved_vol/results"),
     ("resolved, 40 m, likelihood sigmas halved", "resolved_sig05/results"),
     ("resolved, 40 m, two more gauges", "resolved_gauges/results"),
@@ -1337,9 +1399,15 @@ def _extra_gauges_section(d=None, prev=None) -> list[str]:
 
 
 def _probe_results(files=None) -> list[dict]:
-    """The block_fit_probe result files that exist among ``files`` (default results/block_fit_*.json), loaded."""
+    """The block_fit_probe result files that exist among ``files`` (default results/block_fit_*.json), loaded,
+    each with its file name under ``"file"`` (one terrain can have several: one per solver version)."""
     files = files if files is not None else sorted((HERE / "results").glob("block_fit_*.json"))
-    return [json.loads(Path(f).read_text()) for f in files if Path(f).exists()]
+    return [{**json.loads(Path(f).read_text()), "file": Path(f).name} for f in files if Path(f).exists()]
+
+
+def _probe_heading(d: dict) -> str:
+    """A probe file's subsection heading: its terrain and file (results/block_fit_<terrain>[_<variant>].json)."""
+    return f"### {d['terrain']} terrain ({d['file']})"
 
 
 def _block_fit_section(files=None) -> list[str]:
@@ -1363,7 +1431,7 @@ def _block_fit_section(files=None) -> list[str]:
         rows = d["cases"]
         groups = _probe_groups(rows)
         names = [k for k, v in rows[0]["blocks"].items() if "Z_fit" in v]
-        L += [f"### {d['terrain']} terrain", "",
+        L += [_probe_heading(d), "",
               "Z_fit: median (min to max) over the cases.", "",
               "| cases | n | " + " | ".join(names) + " | largest located score |",
               "|---|---|" + "---|" * len(names) + "---|"]
@@ -1563,7 +1631,7 @@ def _fit_flag_section(files=None) -> list[str]:
         rows = d["cases"]
         cal = [r for r in rows if r["scenario"] == "null" and r["seed"] >= 100]
         fm = fit_max_from_null([{k: v["Z_fit"] for k, v in r["blocks"].items() if "Z_fit" in v} for r in cal])
-        L += [f"### {d['terrain']} terrain", "",
+        L += [_probe_heading(d), "",
               f"Levels from {len(cal)} null calibration seeds: " +
               ", ".join(f"{k} {v:+.1f}" for k, v in fm.items()) + ".", "",
               "| cases | n | flagged | flagged observables (Z_fit) |", "|---|---|---|---|"]
@@ -1576,7 +1644,9 @@ def _fit_flag_section(files=None) -> list[str]:
             L.append(f"| {g} | {len(rs)} | {len(hit)} | " +
                      ("; ".join(f"{k}: {', '.join(v)}" for k, v in hit.items()) or "-") + " |")
         L.append("")
-        L += _heldout_rows(HERE / "results" / "fit_heldout" / d["terrain"], d["terrain"])
+        # the held-out run used the levels of the terrain's first probe file (block_fit_<terrain>.json) only
+        if d["file"] == f"block_fit_{d['terrain']}.json":
+            L += _heldout_rows(HERE / "results" / "fit_heldout" / d["terrain"], d["terrain"])
     return L
 
 
@@ -1957,6 +2027,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _resolved_terrain_section()
     L += _resolved_outflow_section()
+    L += _narrow_current_section()
     L += _release_volume_section()
     L += _release_volume_narrow_section()
     L += _narrow_20m_section()
