@@ -1573,6 +1573,19 @@ def test_page_section_of_the_narrow_terrain_on_20m_cells(tmp_path):
     assert "floor (" not in "\n".join(_resolved_20m_section(now, before, effect=tmp_path / "no.json"))
 
 
+def _earth_pressure_case(seed, verdict, name, lo, hi, covered, th, wall=250.0):
+    """A saved earth-pressure harness case for the page-section tests: the switch's 90 % interval [lo, hi]
+    (truth 1), the verdict and named term, decided with thresholds ``th``."""
+    from dataclasses import asdict
+    par = {"mean": 0.8, "hdr90": [lo, hi], "hdi90": [lo, hi]}
+    ep = dict(_cand("earth_pressure", 60.0), param="earth_pressure", parameters={"earth_pressure": par})
+    return {"scenario": "earth_pressure", "seed": seed, "strength": 1.0, "wall_s": wall,
+            "truth": {"term": "earth_pressure", "earth_pressure": 1.0}, "true_term_covered_hdr90": covered,
+            "diagnosis": {"verdict": verdict, "missing_physics": name, "candidates": [ep], "located": [],
+                          "decision": {"two_ln_bf_over_runner_up": 40.0}, "fit_before": {"misfit": 100.0},
+                          "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}}
+
+
 def test_page_section_of_the_resolved_terrain_with_the_outflow_edge(tmp_path):
     """make_page's section for the resolved terrain re-run with the outflow edge: what the old edge fed
     (from boundary_inflow.py's file), its own thresholds, the targets, a row per case and the cases run with
@@ -1582,15 +1595,8 @@ def test_page_section_of_the_resolved_terrain_with_the_outflow_edge(tmp_path):
     from experiments.hidden_physics.make_page import _resolved_outflow_section
 
     th = Thresholds(bf_min=14.0, located_min=8.0)
-    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
-
     def case(seed, verdict, name, lo, hi, covered):
-        ep = dict(_cand("earth_pressure", 60.0), param="earth_pressure", parameters={"earth_pressure": par(0.8, lo, hi)})
-        return {"scenario": "earth_pressure", "seed": seed, "strength": 1.0, "wall_s": 250.0,
-                "truth": {"term": "earth_pressure", "earth_pressure": 1.0}, "true_term_covered_hdr90": covered,
-                "diagnosis": {"verdict": verdict, "missing_physics": name, "candidates": [ep], "located": [],
-                              "decision": {"two_ln_bf_over_runner_up": 40.0}, "fit_before": {"misfit": 100.0},
-                              "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}}
+        return _earth_pressure_case(seed, verdict, name, lo, hi, covered, th)
 
     now, before = tmp_path / "now", tmp_path / "before"
     (now / "null_calib").mkdir(parents=True)
@@ -1642,15 +1648,8 @@ def test_page_section_of_the_main_harness_with_the_current_solver(tmp_path):
     from experiments.hidden_physics.make_page import _narrow_current_section
 
     th = Thresholds(bf_min=30.0, located_min=8.0)
-    par = lambda m, lo, hi: {"mean": m, "hdr90": [lo, hi], "hdi90": [lo, hi]}
-
     def case(seed, verdict, name, covered, wall):
-        ep = dict(_cand("earth_pressure", 50.0), param="earth_pressure", parameters={"earth_pressure": par(0.8, 0.5, 1.0)})
-        return {"scenario": "earth_pressure", "seed": seed, "strength": 1.0, "wall_s": wall,
-                "truth": {"term": "earth_pressure", "earth_pressure": 1.0}, "true_term_covered_hdr90": covered,
-                "diagnosis": {"verdict": verdict, "missing_physics": name, "candidates": [ep], "located": [],
-                              "decision": {"two_ln_bf_over_runner_up": 40.0}, "fit_before": {"misfit": 100.0},
-                              "fit_after": {"misfit": 60.0} if name else None, "thresholds": asdict(th)}}
+        return _earth_pressure_case(seed, verdict, name, 0.5, 1.0, covered, th, wall)
 
     now, before = tmp_path / "now", tmp_path / "before"
     (now / "null_calib").mkdir(parents=True)
@@ -1678,6 +1677,33 @@ def test_page_section_of_the_main_harness_with_the_current_solver(tmp_path):
     assert "| earth_pressure_s0 | 1.0 | [0.5, 1] (named) | [0.62, 0.97] (named) | [0.5, 1] (not named) |" in text
     assert "earth_pressure_s1 | 1.0" not in text
     assert _narrow_current_section(tmp_path / "absent", before) == []
+
+
+def test_page_section_of_the_refit_spread(tmp_path):
+    """make_page's refit_spread section: per case the runs' means, their sd against the intervals' width,
+    coverage and the evidence's range; refit_spread refuses a scenario without a library term before any run."""
+    import json
+    from experiments.hidden_physics.make_page import _refit_spread_section
+    from experiments.hidden_physics.refit_spread import main as spread_main
+
+    def run(s, m, lo, hi, bf):
+        return {"scenario": "entrainment", "seed": 1, "inference_seed": s, "term": "entrainment", "truth": 0.0015,
+                "mean": m, "hdi90": [lo, hi], "two_ln_bf": bf, "terrain": "narrow"}
+    f = tmp_path / "refit_spread_narrow_entrainment_s1.json"
+    f.write_text(json.dumps({"runs": [run(1, 0.0017, 0.0015, 0.0019, 200.0), run(2, 0.0019, 0.0018, 0.0021, 250.0)]}))
+    text = "\n".join(_refit_spread_section([f]))
+    # means 0.0017, 0.0019: sd 0.000141; widths 0.0004, 0.0003: median 0.00035 -> ratio 0.000141 / (0.00035 / 3.29)
+    assert ("| entrainment_s1 (narrow) | entrainment | 0.0015 | 2 | 0.0017 to 0.0019 | 0.000141 | 0.00035 | 1.33 | "
+            "1 of 2 | 200.0 to 250.0 |") in text
+    assert "seed 2: 0.0019 [0.0018, 0.0021], 2 ln BF 250.0" in text
+    g = tmp_path / "refit_spread_narrow_entrainment_s1_me1.json"
+    g.write_text(json.dumps({"runs": [dict(run(3, 0.0016, 0.0014, 0.0018, 210.0), model_error_seed=1)]}))
+    text = "\n".join(_refit_spread_section([f, g]))
+    assert "| entrainment_s1 (narrow, grid error held at seed 1) | entrainment | 0.0015 | 1 | 0.0016 to 0.0016 | nan |" in text
+    assert _refit_spread_section([tmp_path / "absent.json"]) == []
+    with pytest.raises(SystemExit, match="no library term"):
+        spread_main(["null", "0", "--out", str(tmp_path / "x.json")])
+    assert not (tmp_path / "x.json").exists()
 
 
 def test_page_overview_of_every_run_against_the_targets(tmp_path):

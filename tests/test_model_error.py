@@ -167,6 +167,22 @@ def test_grid_model_error_from_a_pilot_calibration(tmp_path):
         diagnose(ev, ["mu_i"], bud, baseline=object(), workdir=tmp_path)
 
 
+def test_model_error_seed_holds_the_grid_error_estimate_fixed(tmp_path):
+    """Budgets.model_error_seed seeds the pilot and its draws (None: Budgets.seed), so the likelihood can be
+    held fixed while the rest of the inference's seed changes (experiments/hidden_physics/refit_spread.py)."""
+    from torchslide.diagnose import Budgets
+    from torchslide.diagnose.pipeline import grid_model_error
+
+    ev = _evaluator()
+    small = dict(baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40, model_error_runs=3, batch_size=8,
+                 mcmc_steps=200)
+    x = {}
+    for tag, kw in (("fixed", dict(seed=0, model_error_seed=7)), ("seed7", dict(seed=7)), ("seed0", dict(seed=0))):
+        x[tag] = grid_model_error(ev, Budgets(**small, **kw), tmp_path / tag, log=lambda s: None)[1].x
+    assert np.array_equal(x["fixed"], x["seed7"])
+    assert not np.array_equal(x["fixed"], x["seed0"])
+
+
 def test_release_volume_error_enters_the_covariance_through_its_jacobian():
     """release_sd > 0: J = dy/d(relative volume) by central differences at the same draws. Without
     entrainment the final volume is the release volume (mass conservation), so its row of J is V and its

@@ -1058,6 +1058,47 @@ def _narrow_current_section(d=None, prev=None, ref=None) -> list[str]:
     return L + _rerun_spread(_variant_cases(d, strength1=True)[0], prev, ref) if L else L
 
 
+def _refit_spread_section(files=None) -> list[str]:
+    """refit_spread.py's files (default results/refit_spread_*.json): per case, the true term's refit run
+    again with other inference seeds (the same recording), each run's mean, 90 % HDI and verified 2 ln BF,
+    and how the spread of the means compares with the intervals' width."""
+    files = files if files is not None else sorted((HERE / "results").glob("refit_spread_*.json"))
+    data = [(Path(f).name, json.loads(Path(f).read_text())["runs"]) for f in files if Path(f).exists()]
+    data = [(n, rows) for n, rows in data if rows]
+    if not data:
+        return []
+    L = ["## How far a refit's interval moves between runs of one case (`refit_spread`, session 36)", "",
+         "`python -m experiments.hidden_physics.refit_spread SCENARIO SEED --inference-seeds ...`: the harness "
+         "recording of one case, diagnosed with only its true term as candidate and the harness budgets, once per "
+         "inference seed (Budgets.seed: the Latin hypercubes, the acquisition's restarts, the posterior draws, and "
+         "the pilot whose draws give the grid's approximation error, so the likelihood's model-error covariance "
+         "is re-estimated too; rows 'grid error held at seed K': `--model-error-seed K` keeps that estimate, and "
+         "so the likelihood, fixed). Nothing else changes. 'Spread / width': the sd of the runs' means over the median "
+         "90 % HDI width / 3.29 (the sd a normal posterior of that width has); near 0 the interval is "
+         "reproducible, near 1 the runs disagree by as much as one interval claims to know.", "",
+         "| case | term | truth | runs | means (min to max) | sd of means | median HDI width | spread / width "
+         "| HDI covers truth | verified 2 ln BF (min to max) |", "|---" * 10 + "|"]
+    detail = []
+    for name, rows in data:
+        r0 = rows[0]
+        means = np.array([r["mean"] for r in rows], float)
+        widths = np.array([r["hdi90"][1] - r["hdi90"][0] for r in rows], float)
+        cov = sum(r["hdi90"][0] <= r["truth"] <= r["hdi90"][1] for r in rows)
+        bf = [r["two_ln_bf"] for r in rows if r.get("two_ln_bf") is not None]
+        sd = float(np.std(means, ddof=1)) if len(rows) > 1 else float("nan")
+        ratio = sd / (float(np.median(widths)) / 3.29) if len(rows) > 1 else float("nan")
+        me = r0.get("model_error_seed")
+        held = "" if me is None else f", grid error held at seed {me}"
+        L.append(f"| {r0['scenario']}_s{r0['seed']} ({r0.get('terrain', 'narrow')}{held}) | {r0['term']} | {r0['truth']:g} | "
+                 f"{len(rows)} | {means.min():.4g} to {means.max():.4g} | {sd:.3g} | {np.median(widths):.3g} | "
+                 f"{ratio:.2f} | {cov} of {len(rows)} | "
+                 + (f"{min(bf):.1f} to {max(bf):.1f}" if bf else "-") + " |")
+        detail += [f"{r0['scenario']}_s{r0['seed']}{held} ({name}): " + "; ".join(
+            f"seed {r['inference_seed']}: {r['mean']:.4g} [{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}]"
+            + (f", 2 ln BF {r['two_ln_bf']:.1f}" if r.get("two_ln_bf") is not None else "") for r in rows) + "."]
+    return L + [""] + detail + [""]
+
+
 def _narrow_20m_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's harness on 20 m cells (recordings on 10 m) with the current method (``harness
     --cellsize 20 --out results/narrow_20m/results``, sessions 23, 25 and 26): its cases in ``d`` (default
@@ -2028,6 +2069,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _resolved_terrain_section()
     L += _resolved_outflow_section()
     L += _narrow_current_section()
+    L += _refit_spread_section()
     L += _release_volume_section()
     L += _release_volume_narrow_section()
     L += _narrow_20m_section()

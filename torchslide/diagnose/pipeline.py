@@ -109,6 +109,9 @@ class Budgets:
     top_k: int = 2
     n_perm: int = 99
     seed: int = 0
+    model_error_seed: int | None = None  # seed of the pilot calibration and draws that estimate the grid's
+                                       # approximation error (None: seed); fixing it holds the likelihood
+                                       # constant while seed changes the rest of the inference
     mcmc_steps: int = 1500             # emulator MCMC steps per chain (p > 2 refits)
 
 
@@ -571,10 +574,11 @@ def grid_model_error(evaluator, bud: Budgets, workdir, log=print):
     inversion grid and on cells ``model_error_factor`` times smaller (torchslide.diagnose.model_error)."""
     from .model_error import approximation_error
 
+    seed = bud.seed if bud.model_error_seed is None else bud.model_error_seed
     pilot = calibrate_evaluator(evaluator, bud.baseline_n_initial, bud.baseline_n_total, batch_size=bud.batch_size,
-                                seed=bud.seed, mcmc_steps=bud.mcmc_steps, checkpoint=Path(workdir) / "pilot.pt",
+                                seed=seed, mcmc_steps=bud.mcmc_steps, checkpoint=Path(workdir) / "pilot.pt",
                                 grid_size=bud.baseline_grid_size)
-    x = posterior_samples(pilot, bud.model_error_runs, seed=bud.seed + 5)
+    x = posterior_samples(pilot, bud.model_error_runs, seed=seed + 5)
     me = approximation_error(evaluator, x, bud.model_error_factor, release_sd=bud.release_volume_sd)
     s = me.summary(evaluator.blocks)
     log(f"[diagnose] approximation error of the grid from {s['n']} run pairs (x{s['factor']} finer): " +

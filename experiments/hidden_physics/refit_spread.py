@@ -1,0 +1,89 @@
+"""How far a refit's 90 % interval moves between runs of one case: ``python -m
+experiments.hidden_physics.refit_spread SCENARIO SEED --inference-seeds 0,1,2 [--model-error-seed K]
+[--terrain narrow] [--out FILE]``.
+
+The recording of harness case (SCENARIO, SEED) is made once; the diagnosis is then run with only the true
+term as candidate and the harness budgets, each time with another inference seed (Budgets.seed: the
+Latin hypercubes, the acquisition's restarts, the posterior draws, and the pilot calibration whose draws
+estimate the grid's approximation error, so the likelihood's model-error covariance is re-estimated too).
+``--model-error-seed K`` holds that estimate, and so the likelihood, fixed (Budgets.model_error_seed): the
+remaining spread is the emulator's and the refit's alone. Per run: the true switch's 90 % HDI (the
+harness' strict check), its mean and the verified 2 ln BF. If the runs' means disagree by as much as
+their intervals are wide, an interval from one run claims more than the inference knows (session 36:
+entrainment seed 1 gave intervals that overlap little on two machines). Rows are added to ``--out``
+(JSON; runs already there are skipped), so several processes can share a file, each with its own seeds.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+from torchslide.diagnose import Budgets, diagnose
+
+from .harness import HARNESS_BUDGETS, harness_thresholds
+from .scenarios import SCENARIOS, SWITCH, TERRAINS, make_evaluator, make_recording, terrain_variant
+
+HERE = Path(__file__).parent
+
+
+def run_one(scenario: str, seed: int, inference_seed: int, model_error_seed: int | None = None,
+            log=lambda *a: None) -> dict:
+    """One diagnosis of case (scenario, seed) with only the true term, its inference seeded by
+    ``inference_seed`` (and the grid-error estimate by ``model_error_seed``, None: the same seed): the
+    true switch's interval, mean and the verified 2 ln BF."""
+    term = SCENARIOS[scenario][0]
+    if term not in SWITCH:
+        raise SystemExit(f"scenario {scenario!r} has no library term to refit (library terms: "
+                         f"{sorted(s for s, (t, _) in SCENARIOS.items() if t in SWITCH)})")
+    t0 = time.perf_counter()
+    rec = make_recording(scenario, seed)
+    ev = make_evaluator(rec)
+    bud = Budgets(**{**HARNESS_BUDGETS, "top_k": 1, "seed": inference_seed, "model_error_seed": model_error_seed})
+    j = diagnose(ev, [term], bud, harness_thresholds(), log=log).to_json()
+    c = next(x for x in j["candidates"] if x["name"] == term)
+    p = c["parameters"][SWITCH[term]]
+    return {"scenario": scenario, "seed": seed, "inference_seed": inference_seed,
+            "model_error_seed": model_error_seed, "term": term,
+            "truth": rec.truth[SWITCH[term]], "mean": p["mean"], "hdi90": p.get("hdi90", p["hdr90"]),
+            "two_ln_bf": c.get("two_ln_bf"), "two_ln_bf_lower": c.get("two_ln_bf_lower"),
+            "wall_s": time.perf_counter() - t0}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenario", choices=sorted(SCENARIOS))
+    ap.add_argument("seed", type=int)
+    ap.add_argument("--inference-seeds", default="0,1,2", help="comma-separated Budgets seeds")
+    ap.add_argument("--model-error-seed", type=int, default=None,
+                    help="hold the grid-error estimate (and so the likelihood) fixed at this seed while the "
+                         "inference seeds vary (default: each run re-estimates it with its own seed)")
+    ap.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
+    ap.add_argument("--out", default=None, help="JSON file (default results/refit_spread_<terrain>_<case>.json, "
+                                                "with _me<seed> before .json under --model-error-seed)")
+    a = ap.parse_args(argv)
+    try:
+        seeds = [int(v) for v in a.inference_seeds.split(",")]
+    except ValueError:
+        ap.error(f"--inference-seeds must be comma-separated integers, got {a.inference_seeds!r}")
+    me = "" if a.model_error_seed is None else f"_me{a.model_error_seed}"
+    out = Path(a.out) if a.out else HERE / "results" / f"refit_spread_{a.terrain}_{a.scenario}_s{a.seed}{me}.json"
+    with terrain_variant(a.terrain):
+        for s in seeds:
+            rows = json.loads(out.read_text())["runs"] if out.exists() else []
+            if any(r["inference_seed"] == s for r in rows):
+                continue
+            r = run_one(a.scenario, a.seed, s, a.model_error_seed)
+            r["terrain"] = a.terrain
+            print(f"{a.scenario}_s{a.seed} inference seed {s}: {r['term']} mean {r['mean']:.4g}, 90 % HDI "
+                  f"[{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}] (truth {r['truth']:g}), 2 ln BF "
+                  f"{r['two_ln_bf']:.1f} ({r['wall_s']:.0f} s)", flush=True)
+            rows = json.loads(out.read_text())["runs"] if out.exists() else []   # another process may have added
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps({"runs": sorted(rows + [r], key=lambda x: x["inference_seed"])}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
