@@ -1701,6 +1701,21 @@ def test_page_section_of_the_refit_spread(tmp_path):
     text = "\n".join(_refit_spread_section([f, g]))
     assert "| entrainment_s1 (narrow, grid error held at seed 1) | entrainment | 0.0015 | 1 | 0.0016 to 0.0016 | nan |" in text
     assert _refit_spread_section([tmp_path / "absent.json"]) == []
+    from experiments.hidden_physics.make_page import _refit_reference_rows
+    ref = tmp_path / "refit_reference_narrow_entrainment_s1_me1.json"
+    ref.write_text(json.dumps({"scenario": "entrainment", "seed": 1, "model_error_seed": 1, "names": ["mu", "xi", "kappa"],
+                               "box": [[0.2, 0.3], [300, 800], [0.001, 0.0026]], "n": 12, "runs": 1728, "mean": 0.0018,
+                               "hdi90": [0.0017, 0.0019], "truth": 0.0015,
+                               "edge_mass": {"mu": 0.01, "xi": 0.002, "kappa": 0.0}}))
+    text = "\n".join(_refit_reference_rows([ref]))
+    assert ("| entrainment_s1 | 1 | 1728 (12^3) | mu [0.2, 0.3], xi [300, 800], kappa [0.001, 0.0026] | 0.0018 | "
+            "[0.0017, 0.0019] | 0.0015 | False | 0.01 |") in text
+    assert _refit_reference_rows([tmp_path / "absent.json"]) == []
+    from experiments.hidden_physics.refit_spread import reference_posterior
+    with pytest.raises(ValueError, match=r"kappa \[0.001, 0.03\] \(prior \[0, 0.02\]\)"):
+        reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800, 0.001, 0.03], n=2)
+    with pytest.raises(ValueError, match="6 numbers, got 4"):
+        reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800], n=2)
     with pytest.raises(SystemExit, match="no library term"):
         spread_main(["null", "0", "--out", str(tmp_path / "x.json")])
     assert not (tmp_path / "x.json").exists()

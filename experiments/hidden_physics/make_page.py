@@ -1096,7 +1096,30 @@ def _refit_spread_section(files=None) -> list[str]:
         detail += [f"{r0['scenario']}_s{r0['seed']}{held} ({name}): " + "; ".join(
             f"seed {r['inference_seed']}: {r['mean']:.4g} [{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}]"
             + (f", 2 ln BF {r['two_ln_bf']:.1f}" if r.get("two_ln_bf") is not None else "") for r in rows) + "."]
-    return L + [""] + detail + [""]
+    return L + [""] + detail + [""] + _refit_reference_rows()
+
+
+def _refit_reference_rows(files=None) -> list[str]:
+    """refit_spread --reference files (default results/refit_reference_*.json): the brute-force posterior of
+    a case's true-term model under one grid-error estimate, against which the refits' intervals above are
+    judged."""
+    files = files if files is not None else sorted((HERE / "results").glob("refit_reference_*.json"))
+    rows = [json.loads(Path(f).read_text()) for f in files if Path(f).exists()]
+    if not rows:
+        return []
+    L = ["The brute-force posterior of the same model and likelihood (`refit_spread --reference N --box ... "
+         "--model-error-seed K`: one solver run per node of an N^p grid over the box, the switch's marginal on "
+         "the grid; edge mass: each parameter's marginal mass in the box's two edge cells, near 0 when the box "
+         "holds the posterior):", "",
+         "| case | grid error seed | runs | box | switch mean | 90 % HDI | truth | truth inside | largest edge mass |",
+         "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        box = ", ".join(f"{n} [{a:g}, {b:g}]" for n, (a, b) in zip(r["names"], r["box"]))
+        lo, hi = r["hdi90"]
+        L.append(f"| {r['scenario']}_s{r['seed']} | {r['model_error_seed']} | {r['runs']} ({r['n']}^{len(r['names'])}) | "
+                 f"{box} | {r['mean']:.4g} | [{lo:.4g}, {hi:.4g}] | {r['truth']:g} | {lo <= r['truth'] <= hi} | "
+                 f"{max(r['edge_mass'].values()):.2g} |")
+    return L + [""]
 
 
 def _narrow_20m_section(d=None, prev=None) -> list[str]:

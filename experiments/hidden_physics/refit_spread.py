@@ -51,6 +51,68 @@ def run_one(scenario: str, seed: int, inference_seed: int, model_error_seed: int
             "wall_s": time.perf_counter() - t0}
 
 
+def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n: int = 16, chunk: int = 64,
+                        log=print) -> dict:
+    """The brute-force posterior of the true-term model for case (scenario, seed) with the grid-error
+    estimate of ``model_error_seed`` (the likelihood the refits of ``--model-error-seed`` see): z = ln L +
+    ln prior on every node of an n^p grid over ``box`` ((lo, hi) per parameter, the candidate evaluator's
+    order, e.g. mu, xi, switch), one solver run per node in batches of ``chunk``. Returns the switch's mean
+    and 90 % HDI from the grid's marginal (verify.hdi_from_grid, cell edges), each parameter's marginal
+    mass in the box's edge cells (the box must hold the posterior: both near 0), and the log evidence
+    over the box. ``box`` must lie inside the prior."""
+    import tempfile
+
+    import numpy as np
+    import torch
+
+    from torchslide.diagnose.pipeline import grid_model_error
+    from torchslide.diagnose.refit import candidate_evaluator
+    from torchslide.diagnose.verify import hdi_from_grid
+    from torchslide.posterior import marginals
+
+    term = SCENARIOS[scenario][0]
+    if term not in SWITCH:
+        raise ValueError(f"scenario {scenario!r} has no library term")
+    rec = make_recording(scenario, seed)
+    ev0 = make_evaluator(rec)
+    prior = candidate_evaluator(ev0, term).prior
+    names = list(prior.names)
+    lo_p, hi_p = prior.bounds[0].numpy(), prior.bounds[1].numpy()
+    box = np.asarray(box, float)
+    if box.size != 2 * len(names):
+        raise ValueError(f"reference box needs lo, hi for each of {names}: {2 * len(names)} numbers, got {box.size}")
+    box = box.reshape(len(names), 2)
+    bad = [f"{nm} [{a:g}, {b:g}] (prior [{l:g}, {h:g}])" for nm, (a, b), l, h in zip(names, box, lo_p, hi_p)
+           if not l <= a < b <= h]
+    if bad:
+        raise ValueError("reference box must lie inside the prior, with lo < hi: " + "; ".join(bad))
+    with tempfile.TemporaryDirectory(prefix="refit_spread_") as tmp:
+        ev, _ = grid_model_error(ev0, Budgets(**{**HARNESS_BUDGETS, "seed": model_error_seed}), tmp, log=log)
+    evc = candidate_evaluator(ev, term)
+    axes = [np.linspace(a, b, n) for a, b in box]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
+    z = np.empty(len(X))
+    t0 = time.perf_counter()
+    for i in range(0, len(X), chunk):
+        z[i:i + chunk] = evc(torch.as_tensor(X[i:i + chunk])).z.numpy()
+        log(f"[reference] {min(i + chunk, len(X))}/{len(X)} runs ({time.perf_counter() - t0:.0f} s)")
+    zz = z.reshape([n] * len(names))
+    fin = np.isfinite(zz)
+    dens = np.where(fin, np.exp(zz - zz[fin].max()), 0.0)
+    marg = marginals(dens, axes)
+    k = len(names) - 1
+    w = marg[k] / marg[k].sum()
+    cell = np.prod([(b - a) / (n - 1) for a, b in box])
+    return {"scenario": scenario, "seed": seed, "model_error_seed": model_error_seed, "term": term, "names": names,
+            "box": box.tolist(), "n": n, "runs": int(len(X)), "failed_runs": int((~fin).sum()),
+            "truth": rec.truth[SWITCH[term]], "switch": names[k], "mean": float(np.sum(w * axes[k])),
+            "hdi90": hdi_from_grid(dens, axes, k),
+            "edge_mass": {nm: float((m[0] + m[-1]) / m.sum()) for nm, m in zip(names, marg)},
+            "log_evidence_box": float(zz[fin].max() + np.log(dens.sum() * cell)),
+            "best_x": X[int(np.nanargmax(np.where(np.isfinite(z), z, -np.inf)))].tolist(), "best_z": float(np.nanmax(z)),
+            "wall_s": time.perf_counter() - t0}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scenario", choices=sorted(SCENARIOS))
@@ -59,6 +121,10 @@ def main(argv=None) -> int:
     ap.add_argument("--model-error-seed", type=int, default=None,
                     help="hold the grid-error estimate (and so the likelihood) fixed at this seed while the "
                          "inference seeds vary (default: each run re-estimates it with its own seed)")
+    ap.add_argument("--reference", type=int, default=0, metavar="N",
+                    help="instead of refits: the brute-force posterior on an N^p grid over --box with the grid "
+                         "error of --model-error-seed (reference_posterior), written to --out")
+    ap.add_argument("--box", default=None, help="with --reference: lo,hi per parameter (e.g. mu, xi, switch)")
     ap.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
     ap.add_argument("--out", default=None, help="JSON file (default results/refit_spread_<terrain>_<case>.json, "
                                                 "with _me<seed> before .json under --model-error-seed)")
@@ -68,6 +134,21 @@ def main(argv=None) -> int:
     except ValueError:
         ap.error(f"--inference-seeds must be comma-separated integers, got {a.inference_seeds!r}")
     me = "" if a.model_error_seed is None else f"_me{a.model_error_seed}"
+    if a.reference:
+        if a.model_error_seed is None or not a.box:
+            ap.error("--reference needs --model-error-seed and --box")
+        try:
+            box = [float(v) for v in a.box.split(",")]
+        except ValueError:
+            ap.error(f"--box must be comma-separated numbers, got {a.box!r}")
+        out = Path(a.out) if a.out else HERE / "results" / f"refit_reference_{a.terrain}_{a.scenario}_s{a.seed}{me}.json"
+        with terrain_variant(a.terrain):
+            r = reference_posterior(a.scenario, a.seed, a.model_error_seed, box, a.reference)
+        r["terrain"] = a.terrain
+        out.write_text(json.dumps(r, indent=1))
+        print(f"{r['switch']}: mean {r['mean']:.4g}, 90 % HDI [{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}] "
+              f"(truth {r['truth']:g}); edge mass {r['edge_mass']}; {r['runs']} runs in {r['wall_s']:.0f} s")
+        return 0
     out = Path(a.out) if a.out else HERE / "results" / f"refit_spread_{a.terrain}_{a.scenario}_s{a.seed}{me}.json"
     with terrain_variant(a.terrain):
         for s in seeds:
