@@ -1716,6 +1716,8 @@ def test_page_section_of_the_refit_spread(tmp_path):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800, 0.001, 0.03], n=2)
     with pytest.raises(ValueError, match="6 numbers, got 4"):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800], n=2)
+    with pytest.raises(SystemExit):     # the CLI: a usage error naming the box, no traceback
+        spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1", "--box", "0.2,0.3,300,800"])
     with pytest.raises(SystemExit, match="no library term"):
         spread_main(["null", "0", "--out", str(tmp_path / "x.json")])
     assert not (tmp_path / "x.json").exists()

@@ -2,8 +2,8 @@
 experiments.hidden_physics.refit_spread SCENARIO SEED --inference-seeds 0,1,2 [--model-error-seed K]
 [--terrain narrow] [--out FILE]``.
 
-The recording of harness case (SCENARIO, SEED) is made once; the diagnosis is then run with only the true
-term as candidate and the harness budgets, each time with another inference seed (Budgets.seed: the
+The recording of harness case (SCENARIO, SEED) is the same in every run (seeded by SEED); the diagnosis is
+run with only the true term as candidate and the harness budgets, each time with another inference seed (Budgets.seed: the
 Latin hypercubes, the acquisition's restarts, the posterior draws, and the pilot calibration whose draws
 estimate the grid's approximation error, so the likelihood's model-error covariance is re-estimated too).
 ``--model-error-seed K`` holds that estimate, and so the likelihood, fixed (Budgets.model_error_seed): the
@@ -142,8 +142,11 @@ def main(argv=None) -> int:
         except ValueError:
             ap.error(f"--box must be comma-separated numbers, got {a.box!r}")
         out = Path(a.out) if a.out else HERE / "results" / f"refit_reference_{a.terrain}_{a.scenario}_s{a.seed}{me}.json"
-        with terrain_variant(a.terrain):
-            r = reference_posterior(a.scenario, a.seed, a.model_error_seed, box, a.reference)
+        try:
+            with terrain_variant(a.terrain):
+                r = reference_posterior(a.scenario, a.seed, a.model_error_seed, box, a.reference)
+        except ValueError as e:
+            ap.error(str(e))
         r["terrain"] = a.terrain
         out.write_text(json.dumps(r, indent=1))
         print(f"{r['switch']}: mean {r['mean']:.4g}, 90 % HDI [{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}] "
@@ -159,7 +162,8 @@ def main(argv=None) -> int:
             r["terrain"] = a.terrain
             print(f"{a.scenario}_s{a.seed} inference seed {s}: {r['term']} mean {r['mean']:.4g}, 90 % HDI "
                   f"[{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}] (truth {r['truth']:g}), 2 ln BF "
-                  f"{r['two_ln_bf']:.1f} ({r['wall_s']:.0f} s)", flush=True)
+                  + ("-" if r["two_ln_bf"] is None else f"{r['two_ln_bf']:.1f}") + f" ({r['wall_s']:.0f} s)",
+                  flush=True)
             rows = json.loads(out.read_text())["runs"] if out.exists() else []   # another process may have added
             out.parent.mkdir(parents=True, exist_ok=True)
             out.write_text(json.dumps({"runs": sorted(rows + [r], key=lambda x: x["inference_seed"])}, indent=1))
