@@ -1704,12 +1704,15 @@ def test_page_section_of_the_refit_spread(tmp_path):
     from experiments.hidden_physics.make_page import _refit_reference_rows
     ref = tmp_path / "refit_reference_narrow_entrainment_s1_me1.json"
     ref.write_text(json.dumps({"scenario": "entrainment", "seed": 1, "model_error_seed": 1, "names": ["mu", "xi", "kappa"],
+                               "term": "entrainment", "switch": "kappa",
                                "box": [[0.2, 0.3], [300, 800], [0.001, 0.0026]], "n": 12, "runs": 1728, "mean": 0.0018,
-                               "hdi90": [0.0017, 0.0019], "truth": 0.0015,
+                               "hdi90": [0.0017, 0.0019], "truth": 0.0015, "best_x": [0.22, 380.0, 0.0017],
+                               "best_z": -1348.76, "points": [{"x": [0.27, 630.0, 0.0019], "z": -1368.0}],
                                "edge_mass": {"mu": 0.01, "xi": 0.002, "kappa": 0.0}}))
     text = "\n".join(_refit_reference_rows([ref]))
-    assert ("| entrainment_s1 | 1 | 1728 (12^3) | mu [0.2, 0.3], xi [300, 800], kappa [0.001, 0.0026] | 0.0018 | "
-            "[0.0017, 0.0019] | 0.0015 | False | 0.01 |") in text
+    assert ("| entrainment_s1 (entrainment: kappa) | 1 | 1728 (12^3) | mu [0.2, 0.3], xi [300, 800], kappa [0.001, 0.0026] "
+            "| 0.0018 | [0.0017, 0.0019] | 0.0015 | False | 0.01 | (0.22, 380, 0.0017) (-1348.8) | "
+            "(0.27, 630, 0.0019): -1368.0 |") in text
     assert _refit_reference_rows([tmp_path / "absent.json"]) == []
     from experiments.hidden_physics.refit_spread import reference_posterior
     with pytest.raises(ValueError, match=r"kappa \[0.001, 0.03\] \(prior \[0, 0.02\]\)"):
@@ -1718,6 +1721,9 @@ def test_page_section_of_the_refit_spread(tmp_path):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800], n=2)
     with pytest.raises(SystemExit):     # the CLI: a usage error naming the box, no traceback
         spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1", "--box", "0.2,0.3,300,800"])
+    with pytest.raises(SystemExit):     # a point with the wrong number of parameters
+        spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1",
+                     "--box", "0.2,0.3,300,800,0.001,0.002", "--points", "0.25,500"])
     with pytest.raises(SystemExit, match="no library term"):
         spread_main(["null", "0", "--out", str(tmp_path / "x.json")])
     assert not (tmp_path / "x.json").exists()

@@ -1111,14 +1111,18 @@ def _refit_reference_rows(files=None) -> list[str]:
          "--model-error-seed K`: one solver run per node of an N^p grid over the box, the switch's marginal on "
          "the grid; edge mass: each parameter's marginal mass in the box's two edge cells, near 0 when the box "
          "holds the posterior):", "",
-         "| case | grid error seed | runs | box | switch mean | 90 % HDI | truth | truth inside | largest edge mass |",
-         "|---|---|---|---|---|---|---|---|---|"]
+         "| case (model: parameter) | grid error seed | runs | box | mean | 90 % HDI | truth | truth inside | "
+         "largest edge mass | best node: x (z) | z at the given points |",
+         "|---|---|---|---|---|---|---|---|---|---|---|"]
+    fx = lambda x: "(" + ", ".join(f"{v:.4g}" for v in x) + ")"
     for r in rows:
         box = ", ".join(f"{n} [{a:g}, {b:g}]" for n, (a, b) in zip(r["names"], r["box"]))
         lo, hi = r["hdi90"]
-        L.append(f"| {r['scenario']}_s{r['seed']} | {r['model_error_seed']} | {r['runs']} ({r['n']}^{len(r['names'])}) | "
-                 f"{box} | {r['mean']:.4g} | [{lo:.4g}, {hi:.4g}] | {r['truth']:g} | {lo <= r['truth'] <= hi} | "
-                 f"{max(r['edge_mass'].values()):.2g} |")
+        pts = "; ".join(f"{fx(q['x'])}: {q['z']:.1f}" for q in r.get("points", [])) or "-"
+        L.append(f"| {r['scenario']}_s{r['seed']} ({r['term']}: {r['switch']}) | {r['model_error_seed']} | "
+                 f"{r['runs']} ({r['n']}^{len(r['names'])}) | {box} | {r['mean']:.4g} | [{lo:.4g}, {hi:.4g}] | "
+                 f"{r['truth']:g} | {lo <= r['truth'] <= hi} | {max(r['edge_mass'].values()):.2g} | "
+                 f"{fx(r['best_x'])} ({r['best_z']:.1f}) | {pts} |")
     return L + [""]
 
 

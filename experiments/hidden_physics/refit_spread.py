@@ -52,14 +52,17 @@ def run_one(scenario: str, seed: int, inference_seed: int, model_error_seed: int
 
 
 def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n: int = 16, chunk: int = 64,
-                        log=print) -> dict:
+                        baseline: bool = False, points=None, log=print) -> dict:
     """The brute-force posterior of the true-term model for case (scenario, seed) with the grid-error
     estimate of ``model_error_seed`` (the likelihood the refits of ``--model-error-seed`` see): z = ln L +
     ln prior on every node of an n^p grid over ``box`` ((lo, hi) per parameter, the candidate evaluator's
     order, e.g. mu, xi, switch), one solver run per node in batches of ``chunk``. Returns the switch's mean
     and 90 % HDI from the grid's marginal (verify.hdi_from_grid, cell edges), each parameter's marginal
     mass in the box's edge cells (the box must hold the posterior: both near 0), and the log evidence
-    over the box. ``box`` must lie inside the prior."""
+    over the box. ``box`` must lie inside the prior. ``baseline``: the baseline model (mu, xi) instead, its
+    last parameter's marginal in place of the switch's (the reference for the baseline's calibration).
+    ``points``: parameter vectors (e.g. a refit's best run) where z is evaluated too, to compare with the
+    grid's best node."""
     import tempfile
 
     import numpy as np
@@ -75,7 +78,8 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
         raise ValueError(f"scenario {scenario!r} has no library term")
     rec = make_recording(scenario, seed)
     ev0 = make_evaluator(rec)
-    prior = candidate_evaluator(ev0, term).prior
+    model = (lambda e: e) if baseline else (lambda e: candidate_evaluator(e, term))
+    prior = model(ev0).prior
     names = list(prior.names)
     lo_p, hi_p = prior.bounds[0].numpy(), prior.bounds[1].numpy()
     box = np.asarray(box, float)
@@ -88,7 +92,7 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
         raise ValueError("reference box must lie inside the prior, with lo < hi: " + "; ".join(bad))
     with tempfile.TemporaryDirectory(prefix="refit_spread_") as tmp:
         ev, _ = grid_model_error(ev0, Budgets(**{**HARNESS_BUDGETS, "seed": model_error_seed}), tmp, log=log)
-    evc = candidate_evaluator(ev, term)
+    evc = model(ev)
     axes = [np.linspace(a, b, n) for a, b in box]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
     z = np.empty(len(X))
@@ -96,6 +100,8 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
     for i in range(0, len(X), chunk):
         z[i:i + chunk] = evc(torch.as_tensor(X[i:i + chunk])).z.numpy()
         log(f"[reference] {min(i + chunk, len(X))}/{len(X)} runs ({time.perf_counter() - t0:.0f} s)")
+    pts = np.asarray(points if points is not None else np.zeros((0, len(names))), float).reshape(-1, len(names))
+    z_pts = evc(torch.as_tensor(pts)).z.numpy() if len(pts) else np.zeros(0)
     zz = z.reshape([n] * len(names))
     fin = np.isfinite(zz)
     dens = np.where(fin, np.exp(zz - zz[fin].max()), 0.0)
@@ -103,13 +109,15 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
     k = len(names) - 1
     w = marg[k] / marg[k].sum()
     cell = np.prod([(b - a) / (n - 1) for a, b in box])
-    return {"scenario": scenario, "seed": seed, "model_error_seed": model_error_seed, "term": term, "names": names,
+    return {"scenario": scenario, "seed": seed, "model_error_seed": model_error_seed,
+            "term": "baseline" if baseline else term, "names": names,
             "box": box.tolist(), "n": n, "runs": int(len(X)), "failed_runs": int((~fin).sum()),
-            "truth": rec.truth[SWITCH[term]], "switch": names[k], "mean": float(np.sum(w * axes[k])),
+            "truth": rec.truth[names[k]] if baseline else rec.truth[SWITCH[term]], "switch": names[k], "mean": float(np.sum(w * axes[k])),
             "hdi90": hdi_from_grid(dens, axes, k),
             "edge_mass": {nm: float((m[0] + m[-1]) / m.sum()) for nm, m in zip(names, marg)},
             "log_evidence_box": float(zz[fin].max() + np.log(dens.sum() * cell)),
             "best_x": X[int(np.nanargmax(np.where(np.isfinite(z), z, -np.inf)))].tolist(), "best_z": float(np.nanmax(z)),
+            "points": [{"x": p.tolist(), "z": float(v)} for p, v in zip(pts, z_pts)],
             "wall_s": time.perf_counter() - t0}
 
 
@@ -125,6 +133,9 @@ def main(argv=None) -> int:
                     help="instead of refits: the brute-force posterior on an N^p grid over --box with the grid "
                          "error of --model-error-seed (reference_posterior), written to --out")
     ap.add_argument("--box", default=None, help="with --reference: lo,hi per parameter (e.g. mu, xi, switch)")
+    ap.add_argument("--baseline", action="store_true", help="with --reference: the baseline model (mu, xi)")
+    ap.add_argument("--points", default="", help="with --reference: ';'-separated parameter vectors "
+                                                 "('0.27,630,0.0019;...') where z is evaluated too")
     ap.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
     ap.add_argument("--out", default=None, help="JSON file (default results/refit_spread_<terrain>_<case>.json, "
                                                 "with _me<seed> before .json under --model-error-seed)")
@@ -139,12 +150,17 @@ def main(argv=None) -> int:
             ap.error("--reference needs --model-error-seed and --box")
         try:
             box = [float(v) for v in a.box.split(",")]
+            pts = [[float(v) for v in q.split(",")] for q in a.points.split(";") if q.strip()]
         except ValueError:
-            ap.error(f"--box must be comma-separated numbers, got {a.box!r}")
-        out = Path(a.out) if a.out else HERE / "results" / f"refit_reference_{a.terrain}_{a.scenario}_s{a.seed}{me}.json"
+            ap.error(f"--box and --points must be comma-separated numbers, got {a.box!r} and {a.points!r}")
+        if any(len(q) != len(box) // 2 for q in pts):
+            ap.error(f"--points: each vector needs {len(box) // 2} numbers (one per parameter of --box), got {a.points!r}")
+        tag = f"{a.scenario}_s{a.seed}{me}" + ("_baseline" if a.baseline else "")
+        out = Path(a.out) if a.out else HERE / "results" / f"refit_reference_{a.terrain}_{tag}.json"
         try:
             with terrain_variant(a.terrain):
-                r = reference_posterior(a.scenario, a.seed, a.model_error_seed, box, a.reference)
+                r = reference_posterior(a.scenario, a.seed, a.model_error_seed, box, a.reference, baseline=a.baseline,
+                                        points=pts)
         except ValueError as e:
             ap.error(str(e))
         r["terrain"] = a.terrain
