@@ -1708,11 +1708,11 @@ def test_page_section_of_the_refit_spread(tmp_path):
                                "box": [[0.2, 0.3], [300, 800], [0.001, 0.0026]], "n": 12, "runs": 1728, "mean": 0.0018,
                                "hdi90": [0.0017, 0.0019], "truth": 0.0015, "best_x": [0.22, 380.0, 0.0017],
                                "best_z": -1348.76, "points": [{"x": [0.27, 630.0, 0.0019], "z": -1368.0}],
-                               "edge_mass": {"mu": 0.01, "xi": 0.002, "kappa": 0.0}}))
+                               "edge_mass": {"mu": 0.01, "xi": 0.002, "kappa": 0.0}, "log_evidence_box": -1358.28}))
     text = "\n".join(_refit_reference_rows([ref]))
     assert ("| entrainment_s1 (entrainment: kappa) | 1 | 1728 (12^3) | mu [0.2, 0.3], xi [300, 800], kappa [0.001, 0.0026] "
             "| 0.0018 | [0.0017, 0.0019] | 0.0015 | False | 0.01 | (0.22, 380, 0.0017) (-1348.8) | "
-            "(0.27, 630, 0.0019): -1368.0 |") in text
+            "(0.27, 630, 0.0019): -1368.0 | -1358.3 |") in text
     assert _refit_reference_rows([tmp_path / "absent.json"]) == []
     from experiments.hidden_physics.refit_spread import reference_posterior
     with pytest.raises(ValueError, match=r"kappa \[0.001, 0.03\] \(prior \[0, 0.02\]\)"):

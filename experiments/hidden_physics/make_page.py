@@ -1110,10 +1110,12 @@ def _refit_reference_rows(files=None) -> list[str]:
     L = ["The brute-force posterior of the same model and likelihood (`refit_spread --reference N --box ... "
          "--model-error-seed K`: one solver run per node of an N^p grid over the box, the switch's marginal on "
          "the grid; edge mass: each parameter's marginal mass in the box's two edge cells, near 0 when the box "
-         "holds the posterior):", "",
+         "holds the posterior; 'z at the given points': z = ln L + ln prior at `--points`, e.g. the truth and "
+         "the harness refits' best runs; log evidence: ln of the integral of exp(z) over the box, the nodes' "
+         "sum times the cell volume):", "",
          "| case (model: parameter) | grid error seed | runs | box | mean | 90 % HDI | truth | truth inside | "
-         "largest edge mass | best node: x (z) | z at the given points |",
-         "|---|---|---|---|---|---|---|---|---|---|---|"]
+         "largest edge mass | best node: x (z) | z at the given points | log evidence (box) |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     fx = lambda x: "(" + ", ".join(f"{v:.4g}" for v in x) + ")"
     for r in rows:
         box = ", ".join(f"{n} [{a:g}, {b:g}]" for n, (a, b) in zip(r["names"], r["box"]))
@@ -1122,7 +1124,7 @@ def _refit_reference_rows(files=None) -> list[str]:
         L.append(f"| {r['scenario']}_s{r['seed']} ({r['term']}: {r['switch']}) | {r['model_error_seed']} | "
                  f"{r['runs']} ({r['n']}^{len(r['names'])}) | {box} | {r['mean']:.4g} | [{lo:.4g}, {hi:.4g}] | "
                  f"{r['truth']:g} | {lo <= r['truth'] <= hi} | {max(r['edge_mass'].values()):.2g} | "
-                 f"{fx(r['best_x'])} ({r['best_z']:.1f}) | {pts} |")
+                 f"{fx(r['best_x'])} ({r['best_z']:.1f}) | {pts} | {r['log_evidence_box']:.1f} |")
     return L + [""]
 
 
