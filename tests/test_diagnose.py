@@ -1721,6 +1721,8 @@ def test_page_section_of_the_refit_spread(tmp_path):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800], n=2)
     with pytest.raises(SystemExit):     # the CLI: a usage error naming the box, no traceback
         spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1", "--box", "0.2,0.3,300,800"])
+    with pytest.raises(SystemExit):     # the mode search needs the likelihood's grid-error seed
+        spread_main(["entrainment", "1", "--search-from", "0.27,630,0.0019"])
     with pytest.raises(SystemExit):     # a point with the wrong number of parameters
         spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1",
                      "--box", "0.2,0.3,300,800,0.001,0.002", "--points", "0.25,500"])

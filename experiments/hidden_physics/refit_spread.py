@@ -63,12 +63,9 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
     last parameter's marginal in place of the switch's (the reference for the baseline's calibration).
     ``points``: parameter vectors (e.g. a refit's best run) where z is evaluated too, to compare with the
     grid's best node."""
-    import tempfile
-
     import numpy as np
     import torch
 
-    from torchslide.diagnose.pipeline import grid_model_error
     from torchslide.diagnose.refit import candidate_evaluator
     from torchslide.diagnose.verify import hdi_from_grid
     from torchslide.posterior import marginals
@@ -90,9 +87,7 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
            if not l <= a < b <= h]
     if bad:
         raise ValueError("reference box must lie inside the prior, with lo < hi: " + "; ".join(bad))
-    with tempfile.TemporaryDirectory(prefix="refit_spread_") as tmp:
-        ev, _ = grid_model_error(ev0, Budgets(**{**HARNESS_BUDGETS, "seed": model_error_seed}), tmp, log=log)
-    evc = model(ev)
+    evc = _likelihood(scenario, seed, model_error_seed, baseline=baseline, log=log)
     axes = [np.linspace(a, b, n) for a, b in box]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
     z = np.empty(len(X))
@@ -121,6 +116,41 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
             "wall_s": time.perf_counter() - t0}
 
 
+def _likelihood(scenario: str, seed: int, model_error_seed: int, baseline: bool = False, log=print):
+    """(evaluator of the true-term model, or of the baseline, with the grid error of ``model_error_seed``)
+    for case (scenario, seed): the likelihood the refits of ``--model-error-seed`` see."""
+    import tempfile
+
+    from torchslide.diagnose.pipeline import grid_model_error
+    from torchslide.diagnose.refit import candidate_evaluator
+
+    term = SCENARIOS[scenario][0]
+    ev0 = make_evaluator(make_recording(scenario, seed))
+    with tempfile.TemporaryDirectory(prefix="refit_spread_") as tmp:
+        ev, _ = grid_model_error(ev0, Budgets(**{**HARNESS_BUDGETS, "seed": model_error_seed}), tmp, log=log)
+    return ev if baseline else candidate_evaluator(ev, term)
+
+
+def search_from(scenario: str, seed: int, model_error_seed: int, starts, iters: int, step: float,
+                log=print) -> dict:
+    """polish.local_search (the refits' mode search, 6 moves per start and iteration) on the true-term model's
+    z from ``starts`` (e.g. a refit's best runs) with initial step ``step`` per axis (unit-cube units):
+    how far the search gets along the posterior's ridge. The pipeline's mode search starts with twice the
+    refit posterior's sd per axis (at least 0.01), the search's own default is 0.05."""
+    import numpy as np
+    import torch
+
+    from torchslide.diagnose.polish import local_search
+
+    evc = _likelihood(scenario, seed, model_error_seed, log=log)
+    X0 = np.asarray(starts, float).reshape(-1, len(evc.prior.names))
+    z0 = evc(torch.as_tensor(X0)).z.numpy()
+    ls = local_search(evc, X0, z0, evc.prior.bounds.numpy(), n_iter=iters, pop=6, step0=[step] * X0.shape[1], seed=11)
+    return {"scenario": scenario, "seed": seed, "model_error_seed": model_error_seed, "names": list(evc.prior.names),
+            "starts": X0.tolist(), "start_z": z0.tolist(), "iters": iters, "step": step, "runs": int(len(ls["z"])),
+            "best_x": np.asarray(ls["best_x"]).tolist(), "best_z": float(ls["best_z"])}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scenario", choices=sorted(SCENARIOS))
@@ -136,6 +166,10 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", action="store_true", help="with --reference: the baseline model (mu, xi)")
     ap.add_argument("--points", default="", help="with --reference: ';'-separated parameter vectors "
                                                  "('0.27,630,0.0019;...') where z is evaluated too")
+    ap.add_argument("--search-from", default="", help="';'-separated start vectors: instead of refits, the mode "
+                                                      "search from them (search_from), printed and added to --out")
+    ap.add_argument("--search-iters", type=int, default=4)
+    ap.add_argument("--search-step", type=float, default=0.05, help="initial step per axis, unit-cube units")
     ap.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
     ap.add_argument("--out", default=None, help="JSON file (default results/refit_spread_<terrain>_<case>.json, "
                                                 "with _me<seed> before .json under --model-error-seed)")
@@ -145,6 +179,22 @@ def main(argv=None) -> int:
     except ValueError:
         ap.error(f"--inference-seeds must be comma-separated integers, got {a.inference_seeds!r}")
     me = "" if a.model_error_seed is None else f"_me{a.model_error_seed}"
+    if a.search_from:
+        if a.model_error_seed is None:
+            ap.error("--search-from needs --model-error-seed")
+        try:
+            starts = [[float(v) for v in q.split(",")] for q in a.search_from.split(";") if q.strip()]
+        except ValueError:
+            ap.error(f"--search-from must be ';'-separated vectors of comma-separated numbers, got {a.search_from!r}")
+        out = Path(a.out) if a.out else HERE / "results" / f"refit_search_{a.terrain}_{a.scenario}_s{a.seed}{me}.json"
+        with terrain_variant(a.terrain):
+            r = search_from(a.scenario, a.seed, a.model_error_seed, starts, a.search_iters, a.search_step)
+        rows = json.loads(out.read_text())["searches"] if out.exists() else []
+        out.write_text(json.dumps({"searches": rows + [r]}, indent=1))
+        print(f"search from {len(starts)} starts (best z {max(r['start_z']):.1f}), {a.search_iters} iterations, "
+              f"step {a.search_step:g}: best z {r['best_z']:.1f} at {[round(v, 5) for v in r['best_x']]} "
+              f"({r['runs']} runs)")
+        return 0
     if a.reference:
         if a.model_error_seed is None or not a.box:
             ap.error("--reference needs --model-error-seed and --box")
