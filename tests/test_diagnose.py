@@ -1679,7 +1679,7 @@ def test_page_section_of_the_main_harness_with_the_current_solver(tmp_path):
     assert _narrow_current_section(tmp_path / "absent", before) == []
 
 
-def test_page_section_of_the_refit_spread(tmp_path):
+def test_page_section_of_the_refit_spread(tmp_path, capsys):
     """make_page's refit_spread section: per case the runs' means, their sd against the intervals' width,
     coverage and the evidence's range; refit_spread refuses a scenario without a library term before any run."""
     import json
@@ -1719,13 +1719,14 @@ def test_page_section_of_the_refit_spread(tmp_path):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800, 0.001, 0.03], n=2)
     with pytest.raises(ValueError, match="6 numbers, got 4"):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800], n=2)
-    with pytest.raises(SystemExit):     # the CLI: a usage error naming the box, no traceback
-        spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1", "--box", "0.2,0.3,300,800"])
-    with pytest.raises(SystemExit):     # the mode search needs the likelihood's grid-error seed
-        spread_main(["entrainment", "1", "--search-from", "0.27,630,0.0019"])
-    with pytest.raises(SystemExit):     # a point with the wrong number of parameters
-        spread_main(["entrainment", "1", "--reference", "2", "--model-error-seed", "1",
-                     "--box", "0.2,0.3,300,800,0.001,0.002", "--points", "0.25,500"])
+    for argv, message in (   # the CLI: usage errors naming the field, no traceback
+            (["--reference", "2", "--model-error-seed", "1", "--box", "0.2,0.3,300,800"], "6 numbers, got 4"),
+            (["--search-from", "0.27,630,0.0019"], "--search-from needs --model-error-seed"),
+            (["--reference", "2", "--model-error-seed", "1", "--box", "0.2,0.3,300,800,0.001,0.002",
+              "--points", "0.25,500"], "--points: each vector needs 3 numbers")):
+        with pytest.raises(SystemExit):
+            spread_main(["entrainment", "1"] + argv)
+        assert message in capsys.readouterr().err
     with pytest.raises(SystemExit, match="no library term"):
         spread_main(["null", "0", "--out", str(tmp_path / "x.json")])
     assert not (tmp_path / "x.json").exists()

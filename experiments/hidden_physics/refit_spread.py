@@ -87,7 +87,7 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
            if not l <= a < b <= h]
     if bad:
         raise ValueError("reference box must lie inside the prior, with lo < hi: " + "; ".join(bad))
-    evc = _likelihood(scenario, seed, model_error_seed, baseline=baseline, log=log)
+    evc = _likelihood(ev0, term, model_error_seed, baseline=baseline, log=log)
     axes = [np.linspace(a, b, n) for a, b in box]
     X = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, len(names))
     z = np.empty(len(X))
@@ -116,16 +116,15 @@ def reference_posterior(scenario: str, seed: int, model_error_seed: int, box, n:
             "wall_s": time.perf_counter() - t0}
 
 
-def _likelihood(scenario: str, seed: int, model_error_seed: int, baseline: bool = False, log=print):
-    """(evaluator of the true-term model, or of the baseline, with the grid error of ``model_error_seed``)
-    for case (scenario, seed): the likelihood the refits of ``--model-error-seed`` see."""
+def _likelihood(ev0, term: str, model_error_seed: int, baseline: bool = False, log=print):
+    """The evaluator of the ``term`` model (or of the baseline) built on ``ev0`` (a case's baseline
+    evaluator, scenarios.make_evaluator) with the grid error of ``model_error_seed``: the likelihood the
+    refits of ``--model-error-seed`` see."""
     import tempfile
 
     from torchslide.diagnose.pipeline import grid_model_error
     from torchslide.diagnose.refit import candidate_evaluator
 
-    term = SCENARIOS[scenario][0]
-    ev0 = make_evaluator(make_recording(scenario, seed))
     with tempfile.TemporaryDirectory(prefix="refit_spread_") as tmp:
         ev, _ = grid_model_error(ev0, Budgets(**{**HARNESS_BUDGETS, "seed": model_error_seed}), tmp, log=log)
     return ev if baseline else candidate_evaluator(ev, term)
@@ -142,7 +141,8 @@ def search_from(scenario: str, seed: int, model_error_seed: int, starts, iters: 
 
     from torchslide.diagnose.polish import local_search
 
-    evc = _likelihood(scenario, seed, model_error_seed, log=log)
+    evc = _likelihood(make_evaluator(make_recording(scenario, seed)), SCENARIOS[scenario][0], model_error_seed,
+                      log=log)
     X0 = np.asarray(starts, float).reshape(-1, len(evc.prior.names))
     z0 = evc(torch.as_tensor(X0)).z.numpy()
     ls = local_search(evc, X0, z0, evc.prior.bounds.numpy(), n_iter=iters, pop=6, step0=[step] * X0.shape[1], seed=11)
