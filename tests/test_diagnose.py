@@ -216,7 +216,8 @@ def test_small_harness(tmp_path):
     assert cases["entrainment"]["diagnosis"]["screening"]["ranking"][0] == "entrainment"
     assert all(c["fine_factor"] == 2 for c in cases.values())     # recordings on cells half the inversion's
     from experiments.hidden_physics.harness import main as harness_main
-    for bad in (["--fine-factor", "0"], ["--mode-search-iters", "-1"], ["--profile-top", "-1"]):
+    for bad in (["--fine-factor", "0"], ["--mode-search-iters", "-1"], ["--mode-search-max-iters", "-1"],
+                ["--profile-top", "-1"]):
         with pytest.raises(SystemExit):
             harness_main(bad + ["--out", str(tmp_path / "never")])
     assert not (tmp_path / "never").exists()
@@ -527,6 +528,7 @@ def test_cli_diagnose_keys(tmp_path):
                        ("refit_refine_rounds = -1", "refit_refine_rounds"),
                        ("model_error_runs = 1", "model_error_runs"), ("model_error_factor = 1", "model_error_factor"),
                        ("mode_search_iters = -1", "mode_search_iters"), ("profile_top = -1", "profile_top"),
+                       ("mode_search_max_iters = -2", r"mode_search_max_iters must be an integer >= 0, got -2"),
                        ("ess_min = 0.5", "ess_min"), ("waic_min = 'x'", "waic_min")):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
         with pytest.raises(ConfigError, match=msg):
@@ -853,11 +855,13 @@ def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     monkeypatch.setattr(H, "run_case", fake)
     assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
                    "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1",
-                   "--model-error", "0", "--mode-search-iters", "12", "--profile-top", "5", "--compile"]) == 0
+                   "--model-error", "0", "--mode-search-iters", "12", "--mode-search-max-iters", "30",
+                   "--profile-top", "5", "--compile"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert calls == [("null", 3, 20.0, "cuda", 64, True, 1,
-                      {"model_error_runs": 0, "mode_search_iters": 12, "profile_top": 5}, True),
+                      {"model_error_runs": 0, "mode_search_iters": 12, "mode_search_max_iters": 30, "profile_top": 5},
+                      True),
                      ("null", 3, 40.0, "cpu", 16, False, 2, None, False)]
     # a case another process holds (its .running claim) is skipped; the claim goes when a case ends
     (tmp_path / "b" / "null_s4.running").write_text("")
@@ -1267,6 +1271,12 @@ def test_mode_search_starts_from_the_nested_baseline():
     z_base = ev(ls["x"][:2]).z.numpy()
     assert ls["best_z"] >= z_base.max() and ls["improvement"] >= z_base.max() - cal.z.max() > 100
     assert Budgets(mode_search_iters=0).mode_search_iters == 0 and _mode_search(ev, cal, Budgets(mode_search_iters=0)) is None
+    # Budgets.mode_search_max_iters: the search goes on while it climbs (from the refit's own runs alone, far
+    # from the peak, 2 iterations do not get there); it says how many iterations it made
+    far = _mode_search(ev, cal, Budgets(mode_search_iters=2))
+    climb = _mode_search(ev, cal, Budgets(mode_search_iters=2, mode_search_max_iters=30, mode_search_tol=0.5))
+    assert far["iters"] == 2 and 2 < climb["iters"] <= 30 and len(climb["z"]) == 12 * climb["iters"]
+    assert climb["best_z"] > far["best_z"] + 10
 
 
 class _GaussianEvaluator:

@@ -168,3 +168,37 @@ def test_switch_profile_searches_a_dip_again_from_its_neighbours():
     assert p["repaired"] == [4.3] and len(calls) == 3 + 3
     k = int(np.flatnonzero(np.isclose(p["switch"], 4.3))[0])
     assert p["z"][k] > -0.5 * ((4.3 - 3) / 2) ** 2 - 1.0
+
+
+
+def test_local_search_goes_on_while_it_climbs():
+    """max_iter: a search started far down a curved ridge goes on after n_iter while it still climbs
+    (more than tol over the last 4 iterations) and gets much closer to the top than n_iter iterations; at
+    the top it stops after n_iter. Same seed: its first n_iter iterations are the fixed search's."""
+    def z_of(x):
+        mu, xi, s = np.asarray(x, float).T
+        return -0.5 * ((mu - (0.2 + 0.03 * s)) / 0.01) ** 2 - 0.5 * ((xi - 0.5) / 0.05) ** 2 - 0.5 * (s - 3) ** 2
+
+    def ev_of(calls):
+        def ev(x):
+            x = np.asarray(torch.as_tensor(x, dtype=torch.float64))
+            calls.append(len(x))
+            return SimpleNamespace(z=torch.as_tensor(z_of(x)), failed=torch.zeros(len(x), dtype=torch.bool))
+        return ev
+
+    x0 = np.array([[0.2 + 0.03 * 8, 0.5, 8.0]])                       # on the ridge at s = 8: z = -12.5
+    kw = dict(pop=6, step0=[0.01] * 3, seed=2)
+    calls = []
+    fixed = local_search(ev_of(calls), x0, z_of(x0), BOX, n_iter=4, **kw)
+    assert fixed["iters"] == 4 and len(fixed["trace"]) == 4 and calls == [6] * 4
+    calls = []
+    climb = local_search(ev_of(calls), x0, z_of(x0), BOX, n_iter=4, max_iter=40, tol=0.5, **kw)
+    assert 4 < climb["iters"] <= 40 and calls == [6] * climb["iters"]
+    assert climb["trace"][3] == fixed["trace"][3] and np.all(np.diff(climb["trace"]) >= 0)
+    assert fixed["best_z"] < -8 and climb["best_z"] > -2                # 4 iterations: halfway up; climbing: the top
+    if climb["iters"] < 40:                                              # it stopped: the last 4 gained <= tol
+        assert climb["trace"][-1] - climb["trace"][-5] <= 0.5
+    top = np.array([[0.29, 0.5, 3.0]])
+    calls = []
+    r = local_search(ev_of(calls), top, z_of(top), BOX, n_iter=2, max_iter=40, **kw)
+    assert r["iters"] == 2 and calls == [6, 6] and r["improvement"] <= 0.0

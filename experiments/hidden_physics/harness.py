@@ -1,5 +1,5 @@
 """Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--model-error N] [--mode-search-iters N] [--profile-top N] [--release-volume-sd S] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
+[--model-error N] [--mode-search-iters N] [--mode-search-max-iters N] [--profile-top N] [--release-volume-sd S] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
 [--max-batch N] [--extra-gauges 300,1200] [--sigma-scale A]``.
 
 Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
@@ -126,6 +126,10 @@ def main(argv=None) -> int:
     p.add_argument("--mode-search-iters", type=int, default=None,
                    help="Budgets.mode_search_iters: iterations of each refit's local search on the solver (default: "
                         "Budgets' default); another value needs its own null seeds and --out")
+    p.add_argument("--mode-search-max-iters", type=int, default=None,
+                   help="Budgets.mode_search_max_iters: every mode search goes on while it climbs (by more than "
+                        "Budgets.mode_search_tol in z over 4 iterations), up to this many iterations (default: "
+                        "Budgets' default, 0: off); another value needs its own null seeds and --out")
     p.add_argument("--profile-top", type=int, default=None,
                    help="Budgets.profile_top: refits profiled along their switch (default: Budgets' default); "
                         "another value needs its own null seeds and --out")
@@ -166,6 +170,8 @@ def main(argv=None) -> int:
         p.error(f"--sigma-scale must be in (0, 10], got {a.sigma_scale}")
     if a.mode_search_iters is not None and a.mode_search_iters < 0:
         p.error(f"--mode-search-iters must be >= 0, got {a.mode_search_iters}")
+    if a.mode_search_max_iters is not None and a.mode_search_max_iters < 0:
+        p.error(f"--mode-search-max-iters must be >= 0, got {a.mode_search_max_iters}")
     if a.release_volume_sd is not None and not 0 <= a.release_volume_sd < 0.5:
         p.error(f"--release-volume-sd must be in [0, 0.5), got {a.release_volume_sd}")
     if a.profile_top is not None and a.profile_top < 0:
@@ -194,7 +200,7 @@ def _run_all(a) -> int:
     th_file = Path(a.thresholds)
     th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
     bud = {k: v for k, v in (("model_error_runs", a.model_error), ("mode_search_iters", a.mode_search_iters),
-                             ("profile_top", a.profile_top), ("release_volume_sd", a.release_volume_sd))
+                             ("mode_search_max_iters", a.mode_search_max_iters), ("profile_top", a.profile_top), ("release_volume_sd", a.release_volume_sd))
            if v is not None} or None
     out = Path(a.out)
     seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))

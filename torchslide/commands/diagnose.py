@@ -39,6 +39,9 @@ and a [diagnose] section::
                                  #     with the grid's error (needs model_error_runs >= 2); 0: taken as exact
     mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
                                  #     is refined with its runs); 0: off
+    mode_search_max_iters = 0    # > mode_search_iters: every mode search goes on while it still climbs (by
+                                 #     more than 1 in ln posterior over 4 iterations), up to this many
+                                 #     iterations (a narrow curved ridge followed to its top); 0: off
     profile_top = 2              # refits (largest verified evidence above the baseline's) profiled along their
                                  #     switch; refined where the profile finds ridge mass they missed; 0: off
     top_k = 2                    # candidates refitted
@@ -86,7 +89,7 @@ HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, 
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
-             "mode_search_iters", "profile_top", "top_k", "batch_size", "n_perm")
+             "mode_search_iters", "mode_search_max_iters", "profile_top", "top_k", "batch_size", "n_perm")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", *_INT_KEYS, *_THRESHOLD_KEYS}
 
@@ -176,7 +179,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
         low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
-               "profile_top": 0, "model_error_factor": 2, "n_initial": 2}.get(k, 1)
+               "mode_search_max_iters": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):

@@ -91,6 +91,12 @@ class Budgets:
                                        # posterior draw, by more than mode_margin in z means the refit missed its
                                        # mode: refined with those runs
     mode_search_pop: int = 6           # ... moves per start and iteration (2 starts; one batched call per iteration)
+    mode_search_max_iters: int = 0     # > mode_search_iters: every mode search (refits', baseline mode check, refit
+                                       # recheck) goes on while it still climbs, by more than mode_search_tol in z
+                                       # over its last 4 iterations, up to this many iterations (polish.local_search
+                                       # max_iter); 0: exactly mode_search_iters (session 36: 4 iterations left an
+                                       # entrainment refit 19 below its mode in z, its 2 ln BF 40 too low)
+    mode_search_tol: float = 1.0
     mode_margin: float = 3.0
     profile_top: int = 2               # refits profiled along their switch (profile.switch_profile): this many with
                                        # the largest verified evidence among those above the baseline's (0: off);
@@ -270,7 +276,7 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base
                         mcmc_steps=bud.mcmc_steps, checkpoint=checkpoint)
     ls = _mode_search(ev_c, cal_c, bud, base_best, starts)
     ls_runs = (ls["x"], ls["z"]) if ls is not None else None
-    search = None if ls is None else {"runs": int(len(ls["z"])), "improvement": ls["improvement"],
+    search = None if ls is None else {"runs": int(len(ls["z"])), "iters": ls["iters"], "improvement": ls["improvement"],
                                       "best_z": ls["best_z"], "missed_mode": bool(ls["improvement"] > bud.mode_margin)}
     if bud.refit_refine_rounds > 0 and needs_bound_probe(cal_c):
         # the MCMC posterior leans against the switch's upper bound where no relevant run was made:
@@ -327,6 +333,11 @@ def refit_candidate(evaluator, c: str, bud: Budgets, checkpoint, log=print, base
     return ev_c, cal_c, p_c, ver, history
 
 
+def _climb(bud: Budgets) -> dict:
+    """polish.local_search's keywords for a search that goes on while it climbs (Budgets.mode_search_max_iters)."""
+    return {"max_iter": bud.mode_search_max_iters, "tol": bud.mode_search_tol}
+
+
 def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None, starts=None):
     """polish.local_search from the best of the refit's runs, of ``base_best`` (baseline points, run
     here with the switch at its lower bound 0) and of ``starts`` ((n, p_c) points of the candidate's
@@ -354,7 +365,7 @@ def _mode_search(ev_c, cal_c, bud: Budgets, base_best=None, starts=None):
     step = (np.clip(2 * np.asarray(samples).std(0) / (b[1] - b[0]), 0.01, 0.1)
             if samples is not None and len(samples) > 1 else None)
     ls = local_search(ev_c, X, z, b, n_iter=bud.mode_search_iters, pop=bud.mode_search_pop, step0=step,
-                      seed=bud.seed + 11)
+                      seed=bud.seed + 11, **_climb(bud))
     if xb is not None:
         # the improvement is over the refit's own runs (did the refit miss its mode?), so the extra
         # points count as search runs
@@ -407,7 +418,8 @@ def baseline_mode_check(evaluator, runs, refits: dict, bud: Budgets, log=print) 
     r = evaluator(torch.as_tensor(xp))
     zp = np.where(r.failed.detach().cpu().numpy(), -np.inf, r.z.detach().cpu().numpy().astype(float))
     X, Z = np.vstack([X0, xp]), np.concatenate([Z0, zp])
-    ls = local_search(evaluator, X, Z, b, n_iter=bud.mode_search_iters, pop=bud.mode_search_pop, seed=bud.seed + 13)
+    ls = local_search(evaluator, X, Z, b, n_iter=bud.mode_search_iters, pop=bud.mode_search_pop, seed=bud.seed + 13,
+                      **_climb(bud))
     Xn, Zn = np.vstack([xp, ls["x"]]), np.concatenate([zp, ls["z"]])
     best = float(np.max(Zn, initial=-np.inf))
     i = int(np.argmax(Zn)) if len(Zn) else None
@@ -464,7 +476,7 @@ def refit_recheck(ev_c, cal_c, p_c, ver: dict, history: list, points, bud: Budge
     X = np.vstack([np.asarray(cal_c.x, float)[ok], p_c.x[fin], xb[good]])
     Z = np.concatenate([np.asarray(cal_c.z, float)[ok], zdraw[fin], zb[good]])
     ls = local_search(ev_c, X, Z, b, n_iter=max(1, bud.mode_search_iters), pop=bud.mode_search_pop,
-                      seed=bud.seed + 17)
+                      seed=bud.seed + 17, **_climb(bud))
     xe = np.vstack([p_c.x[fin], xb[good], ls["x"]])
     ze = np.concatenate([zdraw[fin], zb[good], ls["z"]])
     r_cal, r_p, r_ver, r_hist = _refine(ev_c, cal_c, bud, log, extra=(xe, ze))
