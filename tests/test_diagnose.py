@@ -1689,6 +1689,35 @@ def test_page_section_of_the_main_harness_with_the_current_solver(tmp_path):
     assert _narrow_current_section(tmp_path / "absent", before) == []
 
 
+def test_page_section_of_the_climbing_mode_search(tmp_path):
+    """make_page's section for the harness with the mode search that goes on while it climbs (session 37):
+    the search's iterations, the wall times against the same cases with 4 iterations, the targets, and per
+    case the true term's search (iterations, best ln posterior, verified 2 ln BF) in both runs."""
+    import json
+    from experiments.hidden_physics.make_page import _narrow_climb_section
+
+    th = Thresholds(bf_min=30.0, located_min=8.0)
+    now, before = tmp_path / "now", tmp_path / "before"
+    now.mkdir()
+    before.mkdir()
+    for folder, verdict, name, iters, best_z, bf, wall in ((now, "missing_physics", "earth_pressure", 11, -1350.0, 72.5, 400.0),
+                                                           (before, "unexplained", None, None, -1371.2, 35.0, 300.0)):
+        c = _earth_pressure_case(0, verdict, name, 0.6, 1.0, True, th, wall)
+        x = c["diagnosis"]["candidates"][0]
+        x["two_ln_bf"] = bf
+        x["mode_search"] = {"runs": 53, "improvement": 3.0, "best_z": best_z, **({} if iters is None else {"iters": iters})}
+        (folder / "earth_pressure_s0.json").write_text(json.dumps(c))
+    text = "\n".join(_narrow_climb_section(now, before))
+    assert text.startswith("## The mode search that goes on while it climbs")
+    assert "1 of its 35 cases so far; the refits' searches made 11 iterations (median; at most 11)" in text
+    assert "wall time per case 400 s against 300 s for the same cases with 4 iterations" in text
+    assert "No null seeds of its own yet" in text
+    assert "| earth_pressure | 1 | 1 | earth_pressure 1 | >= 4 of 5 |" in text
+    assert "| earth_pressure | 1 | 0 -> 1 | 0 -> 1 | 1 -> 1 |" in text
+    assert "| earth_pressure_s0 | earth_pressure | - -> 11 | -1371.2 -> -1350.0 | 35.0 -> 72.5 |" in text
+    assert _narrow_climb_section(tmp_path / "absent", before) == []
+
+
 def test_page_section_of_the_refit_spread(tmp_path, capsys):
     """make_page's refit_spread section: per case the runs' means, their sd against the intervals' width,
     coverage and the evidence's range; refit_spread refuses a scenario without a library term before any run."""
