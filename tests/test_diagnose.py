@@ -1753,6 +1753,16 @@ def test_page_section_of_the_refit_spread(tmp_path, capsys):
             "| 0.0018 | [0.0017, 0.0019] | 0.0015 | False | 0.01 | (0.22, 380, 0.0017) (-1348.8) | "
             "(0.27, 630, 0.0019): -1368.0 | -1358.3 |") in text
     assert _refit_reference_rows([tmp_path / "absent.json"]) == []
+    from experiments.hidden_physics.make_page import _refit_search_rows
+    srch = tmp_path / "refit_search_narrow_yield_stress_s2_me2.json"
+    srch.write_text(json.dumps({"searches": [
+        {"scenario": "yield_stress", "seed": 2, "model_error_seed": 2, "names": ["mu", "xi", "tau_y"],
+         "starts": [[0.161, 198.1, 2.375], [0.25, 500.0, 3.0]], "start_z": [-1326.2, -1380.45], "iters": 24,
+         "step": 0.05, "runs": 288, "best_x": [0.1592, 193.8, 2.303], "best_z": -1326.07}]}))
+    assert ("| yield_stress_s2 (refit_search_narrow_yield_stress_s2_me2.json) | mu, xi, tau_y | (0.161, 198.1, 2.375) "
+            "(-1326.2); (0.25, 500, 3) (-1380.5) | 24 | 0.05 | 288 | (0.1592, 193.8, 2.303) (-1326.1) |"
+            ) in "\n".join(_refit_search_rows([srch]))
+    assert _refit_search_rows([tmp_path / "absent.json"]) == []
     from experiments.hidden_physics.refit_spread import reference_posterior
     with pytest.raises(ValueError, match=r"kappa \[0.001, 0.03\] \(prior \[0, 0.02\]\)"):
         reference_posterior("entrainment", 1, 1, [0.2, 0.3, 300, 800, 0.001, 0.03], n=2)

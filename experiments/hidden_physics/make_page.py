@@ -1165,7 +1165,7 @@ def _refit_spread_section(files=None) -> list[str]:
         detail += [f"{r0['scenario']}_s{r0['seed']}{held} ({name}): " + "; ".join(
             f"seed {r['inference_seed']}: {r['mean']:.4g} [{r['hdi90'][0]:.4g}, {r['hdi90'][1]:.4g}]"
             + (f", 2 ln BF {r['two_ln_bf']:.1f}" if r.get("two_ln_bf") is not None else "") for r in rows) + "."]
-    return L + [""] + detail + [""] + _refit_reference_rows()
+    return L + [""] + detail + [""] + _refit_reference_rows() + _refit_search_rows()
 
 
 def _refit_reference_rows(files=None) -> list[str]:
@@ -1194,6 +1194,27 @@ def _refit_reference_rows(files=None) -> list[str]:
                  f"{r['runs']} ({r['n']}^{len(r['names'])}) | {box} | {r['mean']:.4g} | [{lo:.4g}, {hi:.4g}] | "
                  f"{r['truth']:g} | {lo <= r['truth'] <= hi} | {max(r['edge_mass'].values()):.2g} | "
                  f"{fx(r['best_x'])} ({r['best_z']:.1f}) | {pts} | {r['log_evidence_box']:.1f} |")
+    return L + [""]
+
+
+def _refit_search_rows(files=None) -> list[str]:
+    """refit_spread --search-from files (default results/refit_search_*.json): the refits' mode search
+    (polish.local_search) run on a case's true-term model from given starts (a harness refit's end points,
+    the truth) for a given number of iterations: how far up the posterior it gets from there."""
+    files = files if files is not None else sorted((HERE / "results").glob("refit_search_*.json"))
+    rows = [(Path(f).name, r) for f in files if Path(f).exists() for r in json.loads(Path(f).read_text())["searches"]]
+    if not rows:
+        return []
+    fx = lambda x: "(" + ", ".join(f"{v:.4g}" for v in x) + ")"
+    L = ["The refits' mode search run on its own from given starts (`refit_spread SCENARIO SEED --search-from "
+         "... --search-iters I --search-step S --model-error-seed K`: polish.local_search, 6 moves per start and "
+         "iteration, initial step S per axis in unit-cube units), z = ln L + ln prior of the true-term model:", "",
+         "| case (file) | parameters | starts: x (z) | iterations | step | runs | best: x (z) |",
+         "|---|---|---|---|---|---|---|"]
+    for name, r in rows:
+        st = "; ".join(f"{fx(x)} ({z:.1f})" for x, z in zip(r["starts"], r["start_z"]))
+        L.append(f"| {r['scenario']}_s{r['seed']} ({name}) | {', '.join(r['names'])} | {st} | {r['iters']} | "
+                 f"{r['step']:g} | {r['runs']} | {fx(r['best_x'])} ({r['best_z']:.1f}) |")
     return L + [""]
 
 
