@@ -18,11 +18,11 @@ def ridge_z(x):
             - 0.5 * ((s - 3) / 2) ** 2)
 
 
-def make_ev(calls):
+def make_ev(calls, z_of=ridge_z):
     def ev(x):
         x = np.asarray(torch.as_tensor(x, dtype=torch.float64))
         calls.append(len(x))
-        return SimpleNamespace(z=torch.as_tensor(ridge_z(x)), failed=torch.zeros(len(x), dtype=torch.bool))
+        return SimpleNamespace(z=torch.as_tensor(z_of(x)), failed=torch.zeros(len(x), dtype=torch.bool))
     return ev
 
 
@@ -180,11 +180,7 @@ def test_local_search_goes_on_while_it_climbs():
         return -0.5 * ((mu - (0.2 + 0.03 * s)) / 0.01) ** 2 - 0.5 * ((xi - 0.5) / 0.05) ** 2 - 0.5 * (s - 3) ** 2
 
     def ev_of(calls):
-        def ev(x):
-            x = np.asarray(torch.as_tensor(x, dtype=torch.float64))
-            calls.append(len(x))
-            return SimpleNamespace(z=torch.as_tensor(z_of(x)), failed=torch.zeros(len(x), dtype=torch.bool))
-        return ev
+        return make_ev(calls, z_of)
 
     x0 = np.array([[0.2 + 0.03 * 8, 0.5, 8.0]])                       # on the ridge at s = 8: z = -12.5
     kw = dict(pop=6, step0=[0.01] * 3, seed=2)

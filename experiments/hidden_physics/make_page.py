@@ -1112,7 +1112,7 @@ def _narrow_climb_section(d=None, prev=None) -> list[str]:
                 "mode_search_tol = 1; polish.local_search). Session 36 found that 4 iterations left an entrainment "
                 "refit 19 below its mode in ln posterior, and its 2 ln BF 40 below the brute-force value "
                 "(section 'How far a refit's interval moves'). Everything else as in the run with the current "
-                f"solver. {len(cases)} of its 35 cases so far"
+                f"solver. {len(cases)} of its 35 cases" + (" so far" if len(cases) < 35 else "")
                 + (f"; the refits' searches made {int(np.median(its))} iterations (median; at most {max(its)})"
                    if its else "")
                 + (f"; wall time per case {np.median([a for a, _ in same]):.0f} s against "
