@@ -2219,6 +2219,18 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     assert "| [0.29, 0.4] | terrain_volume | 0.35 |" in text
     assert "\n".join(_finer_grid_profile_section(f)).count("| resolved |") == 1
     assert _finer_grid_profile_section(tmp_path / "absent.json") == []
+    # the pair yield stress / mu(I) of one case: the true term's maximum minus the other's per grid, each
+    # profile's rise over its switch at 0; a row with one grid's profile shows '-' for the other
+    ys = dict(row20, candidate="yield_stress", param="tau_y", truth=3.0, refit_hdr90=[0.0, 4.0],
+              profiles={"inversion_grid": {"switch": [0.0, 2.0, 4.0], "z": [-6070.0, -6050.0, -6060.0], "best": 2.0},
+                        "finer_grid": {"switch": [0.0, 2.0, 4.0], "z": [-6090.0, -6060.0, -6075.0], "best": 2.0}})
+    half = dict(row20, case="yield_stress_s1", profiles={"finer_grid": row20["profiles"]["finer_grid"]})
+    fp = tmp_path / "pair.json"
+    fp.write_text(json.dumps([row20, ys, half]))
+    text = "\n".join(_finer_grid_profile_section(fp))
+    assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 | 40.0, 60.0 | -, - |" in text
+    assert "| resolved | 20 | yield_stress_s1 | mu_i | - | [0.29, 0.4] | dem | - | 0.35 | - | -6070.0 | - |" in text
+    assert "| yield_stress_s1 | " not in text.split("The pair yield stress")[1]       # one candidate only: no pair row
 
 
 @pytest.mark.slow
@@ -2669,9 +2681,11 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
                                 "candidate": "yield_stress"}]))
     calls = []
 
-    def fake(run, case, cand=None, finer_inputs="dem"):
+    def fake(run, case, cand=None, finer_inputs="dem", grids=("inversion", "finer"), row=None):
         calls.append((run, case, cand, finer_inputs))
-        return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand, "finer_inputs": finer_inputs}
+        prof = dict((row or {}).get("profiles", {}), **{g + "_grid": {"by": grids} for g in grids})
+        return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand or "yield_stress",
+                "finer_inputs": finer_inputs, "profiles": prof}
 
     real = fgp.profile_case
     monkeypatch.setattr(fgp, "profile_case", fake)
@@ -2684,6 +2698,42 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     assert [r.get("finer_inputs", "dem") for r in json.loads(out.read_text())] == ["dem", "dem", "terrain_volume"]
     with pytest.raises(ValueError, match="finer_inputs must be one of"):
         real("resolved_20m", "yield_stress_s0", finer_inputs="lidar")
+    # one grid at a time: a row with the finer profile alone is completed in place by a run on the other grid
+    out2 = tmp_path / "split.json"
+    with pytest.raises(SystemExit, match="--grids: 'finest'"):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "finest"])
+    fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "finer"])
+    fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "finer"])   # nothing to do
+    assert len(calls) == 3
+    fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "inversion"])
+    (r,) = json.loads(out2.read_text())
+    assert r["profiles"] == {"finer_grid": {"by": ["finer"]}, "inversion_grid": {"by": ["inversion"]}}
+    with pytest.raises(ValueError, match="grids must be a non-empty subset"):
+        real("resolved_20m", "yield_stress_s0", grids=("coarse",))
+
+
+def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
+    """profile_case(grids=..., row=...): the profiles the row has are kept, only the missing grid is run (on
+    cells halved: factor 2), and the row's description comes from the saved case."""
+    from experiments.hidden_physics import finer_grid_profile as fgp
+
+    factors = []
+    monkeypatch.setattr(fgp, "grid_profile", lambda ev_c, P, factor=1, seed=0: factors.append(factor) or
+                        {"switch": [0.0, 1.0], "z": [-2.0, -1.0], "best": 1.0, "factor": factor})
+    monkeypatch.setattr(fgp, "candidate_evaluator", lambda ev, cand: None)
+
+    class Rec:
+        truth = {"term": "yield_stress", "tau_y": 3.0}
+
+    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem": (Rec(), None))
+    kept = {"switch": [2.0], "z": [-5.0], "best": 2.0, "factor": 1}
+    r = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion", "finer"),
+                         row={"profiles": {"inversion_grid": kept}})
+    assert factors == [2]
+    assert r["profiles"] == {"inversion_grid": kept, "finer_grid": {"switch": [0.0, 1.0], "z": [-2.0, -1.0],
+                                                                      "best": 1.0, "factor": 2}}
+    assert (r["case"], r["candidate"], r["param"], r["truth"], r["cellsize"]) == ("yield_stress_s0", "yield_stress",
+                                                                                   "tau_y", 3.0, 20.0)
 
 
 def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):

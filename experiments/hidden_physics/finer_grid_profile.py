@@ -1,6 +1,6 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
-[--out FILE] [--finer-inputs dem|terrain|terrain_volume]``
+[--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
@@ -18,7 +18,9 @@ local search on the solver) with the likelihood of the measurement errors alone 
 the finer grid is what that error stands for), once on the inversion grid and once on cells half as
 large. Start points: 32 draws from a normal with the saved refit's mean and sd = (90 % interval
 width) / 3.3 (the report keeps no samples), clipped to the prior box. Rows go to ``--out`` (default
-results/finer_grid_profile.json); the results page reads them.
+results/finer_grid_profile.json); the results page reads them. ``--grids`` profiles one grid only: a row
+holding one profile is completed by a later run with the other (the costly finer profiles can run on
+another machine than the cheap ones).
 """
 from __future__ import annotations
 
@@ -129,15 +131,23 @@ def case_evaluator(D: dict, finer_inputs: str = "dem"):
     return rec, ev
 
 
+GRIDS = {"inversion": ("inversion_grid", 1), "finer": ("finer_grid", 2)}
+
+
 def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
-                 finer_inputs: str = "dem") -> dict:
+                 finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None) -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
     read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
     inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
     recording grid's own surface: scenarios.make_evaluator(fine_terrain=True)) or "terrain_volume"
     (that, and on both grids the recording's own release volume instead of the nominal one: what
     remains is the noise and the grid). Row: {terrain, cellsize, case, candidate, param, truth,
-    finer_inputs, refit_hdr90, profiles: {inversion_grid, finer_grid: grid_profile's dict}}."""
+    finer_inputs, refit_hdr90, profiles: {inversion_grid, finer_grid: grid_profile's dict}}. ``grids``:
+    which of "inversion" and "finer" to profile; ``row``: a row of the same case to complete (its
+    profiles are kept; those of ``grids`` it lacks are added)."""
+    bad = [g for g in grids if g not in GRIDS]
+    if bad or not grids:
+        raise ValueError(f"grids must be a non-empty subset of {sorted(GRIDS)}, got {list(grids)!r}")
     D = json.loads((Path(results or RESULTS[run]) / f"{case}.json").read_text())
     terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
     rec, ev = case_evaluator(D, finer_inputs)
@@ -146,10 +156,13 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     C = CANDIDATES[cand]
     ev_c = candidate_evaluator(ev, cand)
     P = next(c for c in D["diagnosis"]["candidates"] if c["name"] == cand)["parameters"]
-    row = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
+    new = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
            "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None, "finer_inputs": finer_inputs,
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
-    for label, f in (("inversion_grid", 1), ("finer_grid", 2)):
+    row = {**new, "profiles": dict((row or {}).get("profiles", {}))}
+    for label, f in (GRIDS[g] for g in GRIDS if g in grids):
+        if label in row["profiles"]:
+            continue
         row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed)
         print(terrain, cellsize, case, cand, label, "best", round(row["profiles"][label]["best"], 4), flush=True)
     return row
@@ -163,7 +176,13 @@ def main(argv=None) -> int:
     a.add_argument("--finer-inputs", default="dem", choices=FINER_INPUTS,
                    help="what the finer grid runs on (profile_case): the inversion DEM interpolated (default), the "
                         "recording grid's own terrain, or that and the recording's release volume")
+    a.add_argument("--grids", default="inversion,finer",
+                   help="comma-separated grids to profile: inversion (the case's cells), finer (cells halved); a row "
+                        "lacking one is completed by a later run")
     args = a.parse_args(argv)
+    grids = tuple(g for g in args.grids.split(",") if g)
+    if not grids or any(g not in GRIDS for g in grids):
+        raise SystemExit(f"--grids: {args.grids!r} is not a comma-separated subset of {', '.join(GRIDS)}")
     specs = [_parse(c) for c in args.cases.split(",") if c]
     for run, case, _ in specs:
         if not (RESULTS[run] / f"{case}.json").exists():
@@ -175,11 +194,18 @@ def main(argv=None) -> int:
         cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
         key = (cs.get("terrain", run), float(cs.get("cellsize", 40.0)), case, cand or SCENARIOS[cs["scenario"]][0],
                args.finer_inputs)
-        if any((r["terrain"], float(r.get("cellsize", 40.0)), r["case"], r["candidate"], r.get("finer_inputs", "dem"))
-               == key for r in rows):
+        k = next((i for i, r in enumerate(rows) if (r["terrain"], float(r.get("cellsize", 40.0)), r["case"],
+                                                     r["candidate"], r.get("finer_inputs", "dem")) == key), None)
+        have = set(rows[k].get("profiles", {"inversion_grid": 0, "finer_grid": 0})) if k is not None else set()
+        if all(GRIDS[g][0] in have for g in grids):
             print("already in", out, *key)
             continue
-        rows.append(profile_case(run, case, cand, finer_inputs=args.finer_inputs))
+        r = profile_case(run, case, cand, finer_inputs=args.finer_inputs, grids=grids,
+                         row=rows[k] if k is not None else None)
+        if k is None:
+            rows.append(r)
+        else:
+            rows[k] = r
         out.write_text(json.dumps(rows, indent=1))      # after every case: an interrupted run loses one
     print("wrote", out)
     return 0

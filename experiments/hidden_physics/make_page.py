@@ -654,7 +654,7 @@ def _finer_grid_profile_section(files=None) -> list[str]:
     and the best ln L + ln prior each reached (comparable between two candidates of the same case)."""
     if files is None:
         files = [HERE / "results" / "finer_grid_profile.json", HERE / "results" / "finer_grid_profile_20m.json",
-                 HERE / "results" / "finer_grid_inputs.json"]
+                 HERE / "results" / "finer_grid_profile_narrow_20m.json", HERE / "results" / "finer_grid_inputs.json"]
     elif isinstance(files, (str, Path)):
         files = [files]
     rows = [r for f in map(Path, files) if f.exists() for r in json.loads(f.read_text())]
@@ -678,17 +678,66 @@ def _finer_grid_profile_section(files=None) -> list[str]:
          "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def prof(p):
+        if p is None:
+            return "-"
         z = np.asarray(p["z"], float)
         return ", ".join(f"{s:.3g}: {v - z.max():.1f}" for s, v in zip(p["switch"], z))
 
+    f = lambda p, k: "-" if p is None else (f"{p['best']:.3g}" if k == "best" else f"{max(p['z']):.1f}")  # noqa: E731
     for r in rows:
-        a, b = r["profiles"]["inversion_grid"], r["profiles"]["finer_grid"]
+        a, b = r["profiles"].get("inversion_grid"), r["profiles"].get("finer_grid")
         lo, hi = r["refit_hdr90"]
         truth = "-" if r["truth"] is None else f"{r['truth']:.3g}"
         L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {r['case']} | {r['candidate']} | {truth} | "
-                 f"[{lo:.3g}, {hi:.3g}] | {r.get('finer_inputs', 'dem')} | {a['best']:.3g} | {b['best']:.3g} | "
-                 f"{max(a['z']):.1f} | {max(b['z']):.1f} | "
+                 f"[{lo:.3g}, {hi:.3g}] | {r.get('finer_inputs', 'dem')} | {f(a, 'best')} | {f(b, 'best')} | "
+                 f"{f(a, 'z')} | {f(b, 'z')} | "
                  f"{prof(a)} | {prof(b)} |")
+    return L + [""] + _profile_pair_rows(rows)
+
+
+PAIR = ("yield_stress", "mu_i")
+
+
+def _profile_pair_rows(rows) -> list[str]:
+    """The pair yield stress / mu(I) in finer_grid_profile.py's ``rows``: per case of either scenario with
+    both candidates profiled, the true term's largest ln L + ln prior minus the other's on each grid, and
+    each profile's rise over its switch at 0 (the baseline, where the ladder reaches it), 2 x (max - z(0));
+    rows of one grid only show '-' for the other."""
+    by = {}
+    for r in rows:
+        if r["candidate"] in PAIR:
+            by.setdefault((r["terrain"], r.get("cellsize", 40.0), r["case"], r.get("finer_inputs", "dem")), {})[
+                r["candidate"]] = r
+    keys = [k for k, v in by.items() if len(v) == 2 and k[2].rsplit("_s", 1)[0] in PAIR]
+    if not keys:
+        return []
+
+    def zmax(r, g):
+        p = r["profiles"].get(g)
+        return None if p is None else float(np.max(p["z"]))
+
+    def rise(r, g):
+        p = r["profiles"].get(g)
+        if p is None or 0.0 not in [float(s) for s in p["switch"]]:
+            return "-"
+        z = np.asarray(p["z"], float)
+        return f"{2 * (z.max() - z[[float(s) for s in p['switch']].index(0.0)]):.1f}"
+
+    L = ["The pair yield stress / mu(I) (a pair the diagnosis must tell apart): the true term's best ln L + ln prior "
+         "minus the other's, per grid (positive: the true term fits better), and each profile's 2 x (max - "
+         "value at switch 0), what the term gains over the baseline where its ladder reaches 0.", "",
+         "| terrain | cells, m | case | true minus other, inversion grid | true minus other, cells halved | "
+         "yield stress rise (inversion, halved) | mu(I) rise (inversion, halved) |", "|---|---|---|---|---|---|---|"]
+    for k in keys:
+        t = k[2].rsplit("_s", 1)[0]
+        o = PAIR[1] if t == PAIR[0] else PAIR[0]
+        d = []
+        for g in ("inversion_grid", "finer_grid"):
+            a, b = zmax(by[k][t], g), zmax(by[k][o], g)
+            d.append("-" if a is None or b is None else f"{a - b:+.1f}")
+        ys, mi = by[k]["yield_stress"], by[k]["mu_i"]
+        L.append(f"| {k[0]} | {k[1]:g} | {k[2]} | {d[0]} | {d[1]} | {rise(ys, 'inversion_grid')}, "
+                 f"{rise(ys, 'finer_grid')} | {rise(mi, 'inversion_grid')}, {rise(mi, 'finer_grid')} |")
     return L + [""]
 
 
