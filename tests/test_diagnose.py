@@ -2220,7 +2220,8 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     assert "\n".join(_finer_grid_profile_section(f)).count("| resolved |") == 1
     assert _finer_grid_profile_section(tmp_path / "absent.json") == []
     # the pair yield stress / mu(I) of one case: the true term's maximum minus the other's per grid, each
-    # profile's rise over its switch at 0; a row with one grid's profile shows '-' for the other
+    # term's rise over the better switch-0 value of the two (here yield stress'); a row with one grid's
+    # profile shows '-' for the other
     ys = dict(row20, candidate="yield_stress", param="tau_y", truth=3.0, refit_hdr90=[0.0, 4.0],
               profiles={"inversion_grid": {"switch": [0.0, 2.0, 4.0], "z": [-6070.0, -6050.0, -6060.0], "best": 2.0},
                         "finer_grid": {"switch": [0.0, 2.0, 4.0], "z": [-6090.0, -6060.0, -6075.0], "best": 2.0}})
@@ -2228,7 +2229,7 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     fp = tmp_path / "pair.json"
     fp.write_text(json.dumps([row20, ys, half]))
     text = "\n".join(_finer_grid_profile_section(fp))
-    assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 | 40.0, 60.0 | -, - |" in text
+    assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 | 40.0, 60.0 | 29.5, 40.0 |" in text
     assert "| resolved | 20 | yield_stress_s1 | mu_i | - | [0.29, 0.4] | dem | - | 0.35 | - | -6070.0 | - |" in text
     assert "| yield_stress_s1 | " not in text.split("The pair yield stress")[1]       # one candidate only: no pair row
 

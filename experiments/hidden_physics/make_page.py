@@ -716,16 +716,20 @@ def _profile_pair_rows(rows) -> list[str]:
         p = r["profiles"].get(g)
         return None if p is None else float(np.max(p["z"]))
 
-    def rise(r, g):
+    def at0(r, g):
         p = r["profiles"].get(g)
-        if p is None or 0.0 not in [float(s) for s in p["switch"]]:
-            return "-"
-        z = np.asarray(p["z"], float)
-        return f"{2 * (z.max() - z[[float(s) for s in p['switch']].index(0.0)]):.1f}"
+        return [float(z) for s, z in zip(p["switch"], p["z"]) if float(s) == 0.0] if p else []
+
+    def rise(k, c, g):
+        # the baseline: the better of the two profiles' searches at switch 0 (each a short local search)
+        base = at0(by[k][PAIR[0]], g) + at0(by[k][PAIR[1]], g)
+        m = zmax(by[k][c], g)
+        return "-" if not base or m is None else f"{2 * (m - max(base)):.1f}"
 
     L = ["The pair yield stress / mu(I) (a pair the diagnosis must tell apart): the true term's best ln L + ln prior "
-         "minus the other's, per grid (positive: the true term fits better), and each profile's 2 x (max - "
-         "value at switch 0), what the term gains over the baseline where its ladder reaches 0.", "",
+         "minus the other's, per grid (positive: the true term fits better), and each term's rise over the "
+         "baseline, 2 x (its max - the baseline's), the baseline being the better of the two profiles' values at "
+         "switch 0 where their ladders reach it ('-' where neither does).", "",
          "| terrain | cells, m | case | true minus other, inversion grid | true minus other, cells halved | "
          "yield stress rise (inversion, halved) | mu(I) rise (inversion, halved) |", "|---|---|---|---|---|---|---|"]
     for k in keys:
@@ -735,9 +739,9 @@ def _profile_pair_rows(rows) -> list[str]:
         for g in ("inversion_grid", "finer_grid"):
             a, b = zmax(by[k][t], g), zmax(by[k][o], g)
             d.append("-" if a is None or b is None else f"{a - b:+.1f}")
-        ys, mi = by[k]["yield_stress"], by[k]["mu_i"]
-        L.append(f"| {k[0]} | {k[1]:g} | {k[2]} | {d[0]} | {d[1]} | {rise(ys, 'inversion_grid')}, "
-                 f"{rise(ys, 'finer_grid')} | {rise(mi, 'inversion_grid')}, {rise(mi, 'finer_grid')} |")
+        L.append(f"| {k[0]} | {k[1]:g} | {k[2]} | {d[0]} | {d[1]} | {rise(k, 'yield_stress', 'inversion_grid')}, "
+                 f"{rise(k, 'yield_stress', 'finer_grid')} | {rise(k, 'mu_i', 'inversion_grid')}, "
+                 f"{rise(k, 'mu_i', 'finer_grid')} |")
     return L + [""]
 
 
