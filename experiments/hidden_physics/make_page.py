@@ -746,12 +746,13 @@ def _profile_pair_rows(rows) -> list[str]:
 
 
 def _finer_check_section(files=None) -> list[str]:
-    """finer_check.py's rows (default results/finer_check_resolved_20m.json and
-    results/finer_check_resolved.json; absent files are skipped): saved cases re-decided as a finer-grid
+    """finer_check.py's rows (default results/finer_check_resolved_20m.json,
+    results/finer_check_resolved.json and results/finer_check_narrow_20m.json; absent files are skipped): saved cases re-decided as a finer-grid
     check of the two supported candidates would decide them, per case with a pair and per scenario."""
     from .scenarios import SWITCH
     files = [Path(f) for f in files] if files is not None else \
-        [HERE / "results" / "finer_check_resolved_20m.json", HERE / "results" / "finer_check_resolved.json"]
+        [HERE / "results" / "finer_check_resolved_20m.json", HERE / "results" / "finer_check_resolved.json",
+         HERE / "results" / "finer_check_narrow_20m.json"]
     files = [f for f in files if f.exists()]
     if not files:
         return []
