@@ -2682,10 +2682,10 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
                                 "candidate": "yield_stress"}]))
     calls = []
 
-    def fake(run, case, cand=None, finer_inputs="dem", grids=("inversion", "finer"), row=None):
+    def fake(run, case, cand=None, finer_inputs="dem", grids=("inversion", "finer"), row=None, cellsize=None):
         calls.append((run, case, cand, finer_inputs))
         prof = dict((row or {}).get("profiles", {}), **{g + "_grid": {"by": grids} for g in grids})
-        return {"terrain": "resolved", "cellsize": 20.0, "case": case, "candidate": cand or "yield_stress",
+        return {"terrain": "resolved", "cellsize": cellsize or 20.0, "case": case, "candidate": cand or "yield_stress",
                 "finer_inputs": finer_inputs, "profiles": prof}
 
     real = fgp.profile_case
@@ -2711,6 +2711,13 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     assert r["profiles"] == {"finer_grid": {"by": ["finer"]}, "inversion_grid": {"by": ["inversion"]}}
     with pytest.raises(ValueError, match="grids must be a non-empty subset"):
         real("resolved_20m", "yield_stress_s0", grids=("coarse",))
+    # another inversion cell size is another row (keyed by it), and must be a positive length
+    with pytest.raises(SystemExit, match="--cellsize: -10.0 is not a positive"):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--cellsize", "-10"])
+    fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "inversion", "--cellsize", "10"])
+    assert [r["cellsize"] for r in json.loads(out2.read_text())] == [20.0, 10.0]
+    with pytest.raises(ValueError, match="cellsize must be a positive number"):
+        real("resolved_20m", "yield_stress_s0", cellsize=float("nan"))
 
 
 def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
@@ -2726,7 +2733,8 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
     class Rec:
         truth = {"term": "yield_stress", "tau_y": 3.0}
 
-    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem": (Rec(), None))
+    seen = []
+    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem": seen.append(D["cellsize"]) or (Rec(), None))
     kept = {"switch": [2.0], "z": [-5.0], "best": 2.0, "factor": 1}
     r = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion", "finer"),
                          row={"profiles": {"inversion_grid": kept}})
@@ -2735,6 +2743,11 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
                                                                       "best": 1.0, "factor": 2}}
     assert (r["case"], r["candidate"], r["param"], r["truth"], r["cellsize"]) == ("yield_stress_s0", "yield_stress",
                                                                                    "tau_y", 3.0, 20.0)
+    assert "saved_cellsize" not in r
+    # on other cells than the case's own: the recording and evaluator are made for them, the row says so
+    r10 = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion",), cellsize=10.0)
+    assert seen == [20.0, 10.0] and factors == [2, 1]
+    assert (r10["cellsize"], r10["saved_cellsize"], list(r10["profiles"])) == (10.0, 20.0, ["inversion_grid"])
 
 
 def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):

@@ -1,6 +1,6 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
-[--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer]``
+[--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer] [--cellsize M]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
@@ -20,7 +20,10 @@ large. Start points: 32 draws from a normal with the saved refit's mean and sd =
 width) / 3.3 (the report keeps no samples), clipped to the prior box. Rows go to ``--out`` (default
 results/finer_grid_profile.json); the results page reads them. ``--grids`` profiles one grid only: a row
 holding one profile is completed by a later run with the other (the costly finer profiles can run on
-another machine than the cheap ones).
+another machine than the cheap ones). ``--cellsize M``: re-make the case's recording (same scenario,
+seed and release error; its noise drawn on the new grid) for an inversion on M m cells, i.e. the recording on M / 2 m cells,
+and profile there, started from the saved refit: what an inversion on those cells would see, without
+its cost (rows keyed by M).
 """
 from __future__ import annotations
 
@@ -135,7 +138,8 @@ GRIDS = {"inversion": ("inversion_grid", 1), "finer": ("finer_grid", 2)}
 
 
 def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
-                 finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None) -> dict:
+                 finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None,
+                 cellsize: float | None = None) -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
     read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
     inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
@@ -144,11 +148,18 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     remains is the noise and the grid). Row: {terrain, cellsize, case, candidate, param, truth,
     finer_inputs, refit_hdr90, profiles: {inversion_grid, finer_grid: grid_profile's dict}}. ``grids``:
     which of "inversion" and "finer" to profile; ``row``: a row of the same case to complete (its
-    profiles are kept; those of ``grids`` it lacks are added)."""
+    profiles are kept; those of ``grids`` it lacks are added). ``cellsize``: the inversion grid's cell
+    size in m if not the case's own (the recording re-made on cells half as large; module doc); the row
+    then has ``saved_cellsize``, the case's own."""
+    if cellsize is not None and not (np.isfinite(cellsize) and cellsize > 0):
+        raise ValueError(f"cellsize must be a positive number of m, got {cellsize!r}")
     bad = [g for g in grids if g not in GRIDS]
     if bad or not grids:
         raise ValueError(f"grids must be a non-empty subset of {sorted(GRIDS)}, got {list(grids)!r}")
     D = json.loads((Path(results or RESULTS[run]) / f"{case}.json").read_text())
+    saved = float(D.get("cellsize", 40.0))
+    if cellsize is not None:
+        D = dict(D, cellsize=float(cellsize))
     terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
     rec, ev = case_evaluator(D, finer_inputs)
     sc = D["scenario"]
@@ -159,6 +170,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     new = {"terrain": terrain, "cellsize": cellsize, "case": case, "candidate": cand, "param": C.param,
            "truth": rec.truth.get(C.param) if rec.truth["term"] == cand else None, "finer_inputs": finer_inputs,
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
+    if cellsize != saved:
+        new["saved_cellsize"] = saved
     row = {**new, "profiles": dict((row or {}).get("profiles", {}))}
     for label, f in (GRIDS[g] for g in GRIDS if g in grids):
         if label in row["profiles"]:
@@ -179,7 +192,12 @@ def main(argv=None) -> int:
     a.add_argument("--grids", default="inversion,finer",
                    help="comma-separated grids to profile: inversion (the case's cells), finer (cells halved); a row "
                         "lacking one is completed by a later run")
+    a.add_argument("--cellsize", type=float, default=None,
+                   help="profile on cells of this size (m) against the case's recording re-made on cells half as "
+                        "large, instead of on the case's own grid")
     args = a.parse_args(argv)
+    if args.cellsize is not None and not (np.isfinite(args.cellsize) and args.cellsize > 0):
+        raise SystemExit(f"--cellsize: {args.cellsize!r} is not a positive number of m")
     grids = tuple(g for g in args.grids.split(",") if g)
     if not grids or any(g not in GRIDS for g in grids):
         raise SystemExit(f"--grids: {args.grids!r} is not a comma-separated subset of {', '.join(GRIDS)}")
@@ -192,8 +210,8 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     for run, case, cand in specs:
         cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
-        key = (cs.get("terrain", run), float(cs.get("cellsize", 40.0)), case, cand or SCENARIOS[cs["scenario"]][0],
-               args.finer_inputs)
+        key = (cs.get("terrain", run), args.cellsize or float(cs.get("cellsize", 40.0)), case,
+               cand or SCENARIOS[cs["scenario"]][0], args.finer_inputs)
         k = next((i for i, r in enumerate(rows) if (r["terrain"], float(r.get("cellsize", 40.0)), r["case"],
                                                      r["candidate"], r.get("finer_inputs", "dem")) == key), None)
         have = set(rows[k].get("profiles", {"inversion_grid": 0, "finer_grid": 0})) if k is not None else set()
@@ -201,7 +219,7 @@ def main(argv=None) -> int:
             print("already in", out, *key)
             continue
         r = profile_case(run, case, cand, finer_inputs=args.finer_inputs, grids=grids,
-                         row=rows[k] if k is not None else None)
+                         row=rows[k] if k is not None else None, cellsize=args.cellsize)
         if k is None:
             rows.append(r)
         else:
