@@ -2232,6 +2232,12 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 | 40.0, 60.0 | 29.5, 40.0 |" in text
     assert "| resolved | 20 | yield_stress_s1 | mu_i | - | [0.29, 0.4] | dem | - | 0.35 | - | -6070.0 | - |" in text
     assert "| yield_stress_s1 | " not in text.split("The pair yield stress")[1]       # one candidate only: no pair row
+    # a row profiled on other cells than its case's own, against a re-made recording, is marked and paired apart
+    re10 = [dict(x, cellsize=10.0, saved_cellsize=20.0) for x in (row20, ys)]
+    fp.write_text(json.dumps([row20, ys] + re10))
+    text = "\n".join(_finer_grid_profile_section(fp))
+    assert "| resolved | 10 | yield_stress_s0 (recording re-made on 5 m; saved case 20 m) | +5.2 | +10.0 |" in text
+    assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 |" in text
 
 
 @pytest.mark.slow

@@ -672,7 +672,9 @@ def _finer_grid_profile_section(files=None) -> list[str]:
          "(two candidates of the same case compare by it; their switches' priors differ by a few units of ln). "
          "'Cells halved on': the inversion DEM interpolated (dem, the default), the recording grid's own terrain "
          "(terrain), or that with the recording's own release volume on both grids (terrain_volume; "
-         "`--finer-inputs`).", "",
+         "`--finer-inputs`). A case marked 'recording re-made' was profiled on other cells than its own against its "
+         "recording made again (same scenario, seed and release error) on cells half as large (`--cellsize`): what "
+         "an inversion on those cells would see.", "",
          "| terrain | cells, m | case | candidate | truth | refit's hdr90 | cells halved on | best switch, inversion "
          "grid | best switch, cells halved | max, inversion grid | max, cells halved | profile, inversion grid | "
          "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -688,7 +690,7 @@ def _finer_grid_profile_section(files=None) -> list[str]:
         a, b = r["profiles"].get("inversion_grid"), r["profiles"].get("finer_grid")
         lo, hi = r["refit_hdr90"]
         truth = "-" if r["truth"] is None else f"{r['truth']:.3g}"
-        L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {r['case']} | {r['candidate']} | {truth} | "
+        L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {_remade(r)} | {r['candidate']} | {truth} | "
                  f"[{lo:.3g}, {hi:.3g}] | {r.get('finer_inputs', 'dem')} | {f(a, 'best')} | {f(b, 'best')} | "
                  f"{f(a, 'z')} | {f(b, 'z')} | "
                  f"{prof(a)} | {prof(b)} |")
@@ -696,6 +698,13 @@ def _finer_grid_profile_section(files=None) -> list[str]:
 
 
 PAIR = ("yield_stress", "mu_i")
+
+
+def _remade(r) -> str:
+    """A finer_grid_profile row's case, marked where its recording was re-made for other cells (--cellsize)."""
+    if "saved_cellsize" not in r:
+        return r["case"]
+    return f"{r['case']} (recording re-made on {r['cellsize'] / 2:g} m; saved case {r['saved_cellsize']:g} m)"
 
 
 def _profile_pair_rows(rows) -> list[str]:
@@ -706,8 +715,8 @@ def _profile_pair_rows(rows) -> list[str]:
     by = {}
     for r in rows:
         if r["candidate"] in PAIR:
-            by.setdefault((r["terrain"], r.get("cellsize", 40.0), r["case"], r.get("finer_inputs", "dem")), {})[
-                r["candidate"]] = r
+            by.setdefault((r["terrain"], r.get("cellsize", 40.0), r["case"], r.get("finer_inputs", "dem"),
+                           r.get("saved_cellsize")), {})[r["candidate"]] = r
     keys = [k for k, v in by.items() if len(v) == 2 and k[2].rsplit("_s", 1)[0] in PAIR]
     if not keys:
         return []
@@ -739,7 +748,7 @@ def _profile_pair_rows(rows) -> list[str]:
         for g in ("inversion_grid", "finer_grid"):
             a, b = zmax(by[k][t], g), zmax(by[k][o], g)
             d.append("-" if a is None or b is None else f"{a - b:+.1f}")
-        L.append(f"| {k[0]} | {k[1]:g} | {k[2]} | {d[0]} | {d[1]} | {rise(k, 'yield_stress', 'inversion_grid')}, "
+        L.append(f"| {k[0]} | {k[1]:g} | {_remade(by[k][t])} | {d[0]} | {d[1]} | {rise(k, 'yield_stress', 'inversion_grid')}, "
                  f"{rise(k, 'yield_stress', 'finer_grid')} | {rise(k, 'mu_i', 'inversion_grid')}, "
                  f"{rise(k, 'mu_i', 'finer_grid')} |")
     return L + [""]
