@@ -2812,3 +2812,21 @@ def test_finer_grid_points_on_a_saved_case():
     for p in r["points"]:
         a, b = p["log_lik"]["inversion_grid"], p["log_lik"]["finer_grid"]
         assert math.isfinite(a) and math.isfinite(b) and abs(a - b) > 0.1
+
+
+def test_finer_check_takes_finer_grid_maxima_of_the_case_itself():
+    """finer_check.profile_maxima: the finer-grid maximum per candidate of the case's own grid and recording;
+    rows with the inversion grid's profile alone, another finer-grid input, or a recording re-made for other
+    cells (finer_grid_profile --cellsize) are left out."""
+    from experiments.hidden_physics.finer_check import profile_maxima
+
+    prof = lambda z: {"switch": [0.0, 1.0], "z": z}      # noqa: E731
+    base = {"terrain": "narrow", "cellsize": 20.0, "case": "yield_stress_s0", "finer_inputs": "dem"}
+    rows = [dict(base, candidate="yield_stress", profiles={"inversion_grid": prof([-9.0, -8.0]),
+                                                            "finer_grid": prof([-7.0, -3.0])}),
+            dict(base, candidate="mu_i", profiles={"inversion_grid": prof([-9.0, -1.0])}),
+            dict(base, candidate="mu_i", saved_cellsize=40.0, profiles={"finer_grid": prof([-2.0, 0.0])}),
+            dict(base, candidate="curvature", finer_inputs="terrain", profiles={"finer_grid": prof([-2.0, 0.0])}),
+            dict(base, candidate="entrainment", case="null_s0", profiles={"finer_grid": prof([-2.0, 0.0])})]
+    assert profile_maxima(rows, "narrow", 20.0, "yield_stress_s0") == {"yield_stress": -3.0}
+    assert profile_maxima(rows, "narrow", 10.0, "yield_stress_s0") == {}

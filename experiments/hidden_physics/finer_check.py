@@ -46,10 +46,11 @@ DEFAULT_PROFILES = HERE / "results" / "finer_grid_profile_20m.json"
 
 def profile_maxima(rows: list, terrain: str, cellsize: float, case: str) -> dict:
     """{candidate: max finer-grid profile z} of ``case`` in finer_grid_profile.py's ``rows`` (finer grid over the
-    inversion DEM, as the check would run it)."""
+    inversion DEM, as the check would run it; rows without a finer-grid profile, or whose recording was re-made
+    for other cells (finer_grid_profile --cellsize), are left out)."""
     return {r["candidate"]: max(z for z in r["profiles"]["finer_grid"]["z"] if z is not None)
             for r in rows if r["case"] == case and r["terrain"] == terrain and float(r.get("cellsize", 40.0)) == cellsize
-            and r.get("finer_inputs", "dem") == "dem"}
+            and r.get("finer_inputs", "dem") == "dem" and "finer_grid" in r["profiles"] and "saved_cellsize" not in r}
 
 
 def finer_pair(candidates: list, baseline: dict, misfit_before: float, th: Thresholds) -> list | None:
