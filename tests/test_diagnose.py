@@ -2220,8 +2220,9 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     assert "\n".join(_finer_grid_profile_section(f)).count("| resolved |") == 1
     assert _finer_grid_profile_section(tmp_path / "absent.json") == []
     # the pair yield stress / mu(I) of one case: the true term's maximum minus the other's per grid, each
-    # term's rise over the baseline where one of the two profiles peaks at switch 0 (here mu(I) on the finer
-    # grid, at -6070.0; none on the inversion grid); a row with one grid's profile shows '-' for the other
+    # term's rise over the better switch-0 value of the two where one of the two profiles peaks at switch 0
+    # (mu(I) on the finer grid at -6070.0; yield stress' -6090.0 there is lower; on the inversion grid none
+    # peaks at 0); a row with one grid's profile shows '-' for the other
     ys = dict(row20, candidate="yield_stress", param="tau_y", truth=3.0, refit_hdr90=[0.0, 4.0],
               profiles={"inversion_grid": {"switch": [0.0, 2.0, 4.0], "z": [-6070.0, -6050.0, -6060.0], "best": 2.0},
                         "finer_grid": {"switch": [0.0, 2.0, 4.0], "z": [-6090.0, -6060.0, -6075.0], "best": 2.0}})
@@ -2232,6 +2233,12 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     fp.write_text(json.dumps([mi0, ys, half]))
     text = "\n".join(_finer_grid_profile_section(fp))
     assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 | -, 20.0 | -, 0.0 |" in text
+    # the baseline is the better switch-0 value even where the other profile is the one peaking there
+    ys_hi0 = json.loads(json.dumps(ys))
+    ys_hi0["profiles"]["finer_grid"]["z"][0] = -6065.0
+    fp.write_text(json.dumps([mi0, ys_hi0]))
+    assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 | -, 10.0 | -, -10.0 |" in "\n".join(
+        _finer_grid_profile_section(fp))
     assert "| resolved | 20 | yield_stress_s1 | mu_i | - | [0.29, 0.4] | dem | - | 0.35 | - | -6070.0 | - |" in text
     assert "| yield_stress_s1 | " not in text.split("The pair yield stress")[1]       # one candidate only: no pair row
     # a row profiled on other cells than its case's own, against a re-made recording, is marked and paired apart

@@ -725,21 +725,27 @@ def _profile_pair_rows(rows) -> list[str]:
         p = r["profiles"].get(g)
         return None if p is None else float(np.max(p["z"]))
 
-    def peak0(r, g):
-        # a profile whose maximum lies at switch 0: its search there is its best point (the baseline's value)
+    def at0(r, g):
         p = r["profiles"].get(g)
-        return [float(np.max(p["z"]))] if p and float(p["switch"][int(np.argmax(p["z"]))]) == 0.0 else []
+        return [float(z) for s, z in zip(p["switch"], p["z"]) if float(s) == 0.0] if p else []
+
+    def peaks0(r, g):
+        # a profile whose maximum lies at switch 0: its search there is its best point
+        p = r["profiles"].get(g)
+        return bool(p) and float(p["switch"][int(np.argmax(p["z"]))]) == 0.0
 
     def rise(k, c, g):
-        base = peak0(by[k][PAIR[0]], g) + peak0(by[k][PAIR[1]], g)
+        # the baseline: the better of the two profiles' searches at switch 0, where one of them peaks there
+        if not (peaks0(by[k][PAIR[0]], g) or peaks0(by[k][PAIR[1]], g)):
+            return "-"
         m = zmax(by[k][c], g)
-        return "-" if not base or m is None else f"{2 * (m - max(base)):.1f}"
+        return "-" if m is None else f"{2 * (m - max(at0(by[k][PAIR[0]], g) + at0(by[k][PAIR[1]], g))):.1f}"
 
     L = ["The pair yield stress / mu(I) (a pair the diagnosis must tell apart): the true term's best ln L + ln prior "
          "minus the other's, per grid (positive: the true term fits better), and each term's rise over the "
-         "baseline, 2 x (its max - the baseline's), where one of the two profiles peaks at switch 0, so that its "
-         "search there is its best point and stands for the baseline ('-' elsewhere: a short search at switch 0 "
-         "started from the ridge's trend can stop far below the baseline's best).", "",
+         "baseline, 2 x (its max - the better of the two profiles' values at switch 0), where one of the two "
+         "profiles peaks at switch 0, so that its search there is its best point ('-' elsewhere: a short search at "
+         "switch 0 started from the ridge's trend can stop far below the baseline's best).", "",
          "| terrain | cells, m | case | true minus other, inversion grid | true minus other, cells halved | "
          "yield stress rise (inversion, halved) | mu(I) rise (inversion, halved) |", "|---|---|---|---|---|---|---|"]
     for k in keys:
