@@ -21,9 +21,9 @@ width) / 3.3 (the report keeps no samples), clipped to the prior box. Rows go to
 results/finer_grid_profile.json); the results page reads them. ``--grids`` profiles one grid only: a row
 holding one profile is completed by a later run with the other (the costly finer profiles can run on
 another machine than the cheap ones). ``--cellsize M``: re-make the case's recording (same scenario,
-seed and release error; its noise drawn on the new grid) for an inversion on M m cells, i.e. the recording on M / 2 m cells,
-and profile there, started from the saved refit: what an inversion on those cells would see, without
-its cost (rows keyed by M).
+seed and release error; its noise drawn on the new grid) for an inversion on M m cells, i.e. the
+recording on M / 2 m cells, and profile there, started from the saved refit: what an inversion on those
+cells would see, without its cost (rows keyed by M).
 """
 from __future__ import annotations
 
