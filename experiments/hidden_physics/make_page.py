@@ -709,9 +709,10 @@ def _remade(r) -> str:
 
 def _profile_pair_rows(rows) -> list[str]:
     """The pair yield stress / mu(I) in finer_grid_profile.py's ``rows``: per case of either scenario with
-    both candidates profiled, the true term's largest ln L + ln prior minus the other's on each grid, and
-    each profile's rise over its switch at 0 (the baseline, where the ladder reaches it), 2 x (max - z(0));
-    rows of one grid only show '-' for the other."""
+    both candidates profiled (rows on a re-made recording paired apart), the true term's largest ln L + ln
+    prior minus the other's on each grid, and each term's rise over the baseline, 2 x (its max - the better
+    of the two profiles' values at switch 0), given only where one of the two profiles peaks at switch 0;
+    a grid that a row lacks shows '-'."""
     by = {}
     for r in rows:
         if r["candidate"] in PAIR:
@@ -755,16 +756,16 @@ def _profile_pair_rows(rows) -> list[str]:
         for g in ("inversion_grid", "finer_grid"):
             a, b = zmax(by[k][t], g), zmax(by[k][o], g)
             d.append("-" if a is None or b is None else f"{a - b:+.1f}")
-        L.append(f"| {k[0]} | {k[1]:g} | {_remade(by[k][t])} | {d[0]} | {d[1]} | {rise(k, 'yield_stress', 'inversion_grid')}, "
-                 f"{rise(k, 'yield_stress', 'finer_grid')} | {rise(k, 'mu_i', 'inversion_grid')}, "
-                 f"{rise(k, 'mu_i', 'finer_grid')} |")
+        rs = [rise(k, c, g) for c in PAIR for g in ("inversion_grid", "finer_grid")]
+        L.append(f"| {k[0]} | {k[1]:g} | {_remade(by[k][t])} | {d[0]} | {d[1]} | {rs[0]}, {rs[1]} | {rs[2]}, {rs[3]} |")
     return L + [""]
 
 
 def _finer_check_section(files=None) -> list[str]:
     """finer_check.py's rows (default results/finer_check_resolved_20m.json,
-    results/finer_check_resolved.json and results/finer_check_narrow_20m.json; absent files are skipped): saved cases re-decided as a finer-grid
-    check of the two supported candidates would decide them, per case with a pair and per scenario."""
+    results/finer_check_resolved.json and results/finer_check_narrow_20m.json; absent files are skipped):
+    saved cases re-decided as a finer-grid check of the two supported candidates would decide them, per
+    case with a pair and per scenario."""
     from .scenarios import SWITCH
     files = [Path(f) for f in files] if files is not None else \
         [HERE / "results" / "finer_check_resolved_20m.json", HERE / "results" / "finer_check_resolved.json",
