@@ -85,6 +85,12 @@ def test_grid_profile_on_the_finer_grid():
     assert abs(float(ev_c.evaluate(x)[0].z[0]) - z_fine) > 1e-6
     p1 = grid_profile(ev_c, par, factor=1, seed=0, n_values=3, n_iter=1, pop=2)
     assert p1["z_max"] != pytest.approx(p["z_max"], abs=1e-6)
+    # the ladder over the whole prior: evenly from the switch's lower bound (0: the nested baseline) to its upper
+    pp = grid_profile(ev_c, par, factor=1, seed=0, n_values=3, n_iter=1, pop=2, ladder="prior")
+    assert pp["switch"] == pytest.approx(np.linspace(b[0, -1], b[1, -1], 3).tolist())
+    assert pp["switch"][0] == 0.0 and np.isfinite(pp["z"]).all()
+    with pytest.raises(ValueError, match="ladder must be one of"):
+        grid_profile(ev_c, par, ladder="whole")
 
 
 def _saved_case(tmp_path, scenario, seed, cands, covered=True):

@@ -1,6 +1,7 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
-[--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer] [--cellsize M]``
+[--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer] [--cellsize M]
+[--ladder refit|prior] [--search-iters N]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
@@ -23,7 +24,10 @@ holding one profile is completed by a later run with the other (the costly finer
 another machine than the cheap ones). ``--cellsize M``: re-make the case's recording (same scenario,
 seed and release error; its noise drawn on the new grid) for an inversion on M m cells, i.e. the
 recording on M / 2 m cells, and profile there, started from the saved refit: what an inversion on those
-cells would see, without its cost (rows keyed by M).
+cells would see, without its cost (rows keyed by M). ``--ladder prior``: the switch values evenly over
+the switch's whole prior range instead of around the refit's interval, so that the profile holds switch
+0 and so the term's rise over its nested baseline; ``--search-iters N``: N iterations of the search per
+value instead of 2 (rows keyed by both).
 """
 from __future__ import annotations
 
@@ -85,17 +89,27 @@ def profile_starts(parameters: dict, names, bounds: np.ndarray, n: int = N_START
     return np.clip(m + sd * np.random.default_rng(seed).standard_normal((n, len(names))), b[0], b[1])
 
 
+LADDERS = ("refit", "prior")
+
+
 def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_values: int = 5, n_iter: int = 2,
-                 pop: int = 6) -> dict:
+                 pop: int = 6, ladder: str = "refit") -> dict:
     """Profile of one candidate along its switch (module doc) on the evaluator's grid (``factor`` 1) or
     on cells ``factor`` times smaller. ``ev_c``: the candidate's evaluator (prior: baseline parameters
-    + switch last); ``parameters``: its refit's {name: {mean, hdr90}}. Returns {switch (K,), z (K,),
-    best (switch at the maximum), z_max, x (p,) the parameters there, runs, wall_s}."""
+    + switch last); ``parameters``: its refit's {name: {mean, hdr90}}. ``ladder``: "refit" (the switch
+    values follow the refit's 90 % interval) or "prior" (``n_values`` evenly over the switch's whole
+    prior range, its ends and so switch 0 included: the profile then also gives the term's rise over
+    its nested baseline, wherever the refit sat). Returns {switch (K,), z (K,), best (switch at the
+    maximum), z_max, x (p,) the parameters there, runs, wall_s}."""
+    if ladder not in LADDERS:
+        raise ValueError(f"ladder must be one of {LADDERS}, got {ladder!r}")
     names = list(ev_c.prior.names)
     b = ev_c.prior.bounds.numpy()
     e = ev_c if factor == 1 else finer_grid_evaluator(ev_c, factor)
+    # switch_ladder spans the interval's centre +- half the prior range when given the whole prior
+    interval = parameters[names[-1]]["hdr90"] if ladder == "refit" else (float(b[0, -1]), float(b[1, -1]))
     t0 = time.perf_counter()
-    r = switch_profile(e, profile_starts(parameters, names, b, seed=seed), parameters[names[-1]]["hdr90"], b,
+    r = switch_profile(e, profile_starts(parameters, names, b, seed=seed), interval, b,
                        n_values=n_values, n_iter=n_iter, pop=pop, min_half=MIN_HALF, seed=seed)
     z = np.where(np.isfinite(r["z"]), r["z"], -np.inf)
     if not np.isfinite(z).any():
@@ -139,7 +153,7 @@ GRIDS = {"inversion": ("inversion_grid", 1), "finer": ("finer_grid", 2)}
 
 def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
                  finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None,
-                 cellsize: float | None = None) -> dict:
+                 cellsize: float | None = None, ladder: str = "refit", n_iter: int = 2) -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
     read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
     inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
@@ -150,7 +164,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     which of "inversion" and "finer" to profile; ``row``: a row of the same case to complete (its
     profiles are kept; those of ``grids`` it lacks are added). ``cellsize``: the inversion grid's cell
     size in m if not the case's own (the recording re-made on cells half as large; module doc); the row
-    then has ``saved_cellsize``, the case's own."""
+    then has ``saved_cellsize``, the case's own. ``ladder``, ``n_iter``: grid_profile's (the row keeps
+    them where they are not the defaults "refit" and 2)."""
     if cellsize is not None and not (np.isfinite(cellsize) and cellsize > 0):
         raise ValueError(f"cellsize must be a positive number of m, got {cellsize!r}")
     bad = [g for g in grids if g not in GRIDS]
@@ -172,11 +187,15 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
            "refit_hdr90": P[C.param]["hdr90"], "profiles": {}}
     if cellsize != saved:
         new["saved_cellsize"] = saved
+    if ladder != "refit":
+        new["ladder"] = ladder
+    if n_iter != 2:
+        new["n_iter"] = int(n_iter)
     row = {**new, "profiles": dict((row or {}).get("profiles", {}))}
     for label, f in (GRIDS[g] for g in GRIDS if g in grids):
         if label in row["profiles"]:
             continue
-        row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed)
+        row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed, n_iter=n_iter, ladder=ladder)
         print(terrain, cellsize, case, cand, label, "best", round(row["profiles"][label]["best"], 4), flush=True)
     return row
 
@@ -195,7 +214,14 @@ def main(argv=None) -> int:
     a.add_argument("--cellsize", type=float, default=None,
                    help="profile on cells of this size (m) against the case's recording re-made on cells half as "
                         "large, instead of on the case's own grid")
+    a.add_argument("--ladder", default="refit", choices=LADDERS,
+                   help="switch values around the saved refit's 90 %% interval (default), or evenly over the "
+                        "switch's whole prior range, 0 included (the term's rise over its nested baseline)")
+    a.add_argument("--search-iters", type=int, default=2,
+                   help="local-search iterations (6 moves each) over the baseline parameters per switch value")
     args = a.parse_args(argv)
+    if args.search_iters < 1:
+        raise SystemExit(f"--search-iters: {args.search_iters!r} is not a positive number of iterations")
     if args.cellsize is not None and not (np.isfinite(args.cellsize) and args.cellsize > 0):
         raise SystemExit(f"--cellsize: {args.cellsize!r} is not a positive number of m")
     grids = tuple(g for g in args.grids.split(",") if g)
@@ -211,15 +237,17 @@ def main(argv=None) -> int:
     for run, case, cand in specs:
         cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
         key = (cs.get("terrain", run), args.cellsize or float(cs.get("cellsize", 40.0)), case,
-               cand or SCENARIOS[cs["scenario"]][0], args.finer_inputs)
+               cand or SCENARIOS[cs["scenario"]][0], args.finer_inputs, args.ladder, args.search_iters)
         k = next((i for i, r in enumerate(rows) if (r["terrain"], float(r.get("cellsize", 40.0)), r["case"],
-                                                     r["candidate"], r.get("finer_inputs", "dem")) == key), None)
+                                                     r["candidate"], r.get("finer_inputs", "dem"),
+                                                     r.get("ladder", "refit"), r.get("n_iter", 2)) == key), None)
         have = set(rows[k].get("profiles", {"inversion_grid": 0, "finer_grid": 0})) if k is not None else set()
         if all(GRIDS[g][0] in have for g in grids):
             print("already in", out, *key)
             continue
         r = profile_case(run, case, cand, finer_inputs=args.finer_inputs, grids=grids,
-                         row=rows[k] if k is not None else None, cellsize=args.cellsize)
+                         row=rows[k] if k is not None else None, cellsize=args.cellsize, ladder=args.ladder,
+                         n_iter=args.search_iters)
         if k is None:
             rows.append(r)
         else:

@@ -674,7 +674,9 @@ def _finer_grid_profile_section(files=None) -> list[str]:
          "(terrain), or that with the recording's own release volume on both grids (terrain_volume; "
          "`--finer-inputs`). A case marked 'recording re-made' was profiled on other cells than its own against its "
          "recording made again (same scenario, seed and release error) on cells half as large (`--cellsize`): what "
-         "an inversion on those cells would see.", "",
+         "an inversion on those cells would see. 'Ladder over the whole prior': the switch values evenly from 0 to the "
+         "prior's end (`--ladder prior`) instead of around the refit's interval, so the profile at 0 is the "
+         "term's nested baseline.", "",
          "| terrain | cells, m | case | candidate | truth | refit's hdr90 | cells halved on | best switch, inversion "
          "grid | best switch, cells halved | max, inversion grid | max, cells halved | profile, inversion grid | "
          "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -690,7 +692,7 @@ def _finer_grid_profile_section(files=None) -> list[str]:
         a, b = r["profiles"].get("inversion_grid"), r["profiles"].get("finer_grid")
         lo, hi = r["refit_hdr90"]
         truth = "-" if r["truth"] is None else f"{r['truth']:.3g}"
-        L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {_remade(r)} | {r['candidate']} | {truth} | "
+        L.append(f"| {r['terrain']} | {r.get('cellsize', 40.0):g} | {_case_label(r)} | {r['candidate']} | {truth} | "
                  f"[{lo:.3g}, {hi:.3g}] | {r.get('finer_inputs', 'dem')} | {f(a, 'best')} | {f(b, 'best')} | "
                  f"{f(a, 'z')} | {f(b, 'z')} | "
                  f"{prof(a)} | {prof(b)} |")
@@ -700,24 +702,31 @@ def _finer_grid_profile_section(files=None) -> list[str]:
 PAIR = ("yield_stress", "mu_i")
 
 
-def _remade(r) -> str:
-    """A finer_grid_profile row's case, marked where its recording was re-made for other cells (--cellsize)."""
-    if "saved_cellsize" not in r:
-        return r["case"]
-    return f"{r['case']} (recording re-made on {r['cellsize'] / 2:g} m; saved case {r['saved_cellsize']:g} m)"
+def _case_label(r) -> str:
+    """A finer_grid_profile row's case, marked where its recording was re-made for other cells (--cellsize),
+    where its ladder spans the switch's whole prior (--ladder prior) and where its search was longer."""
+    notes = []
+    if "saved_cellsize" in r:
+        notes.append(f"recording re-made on {r['cellsize'] / 2:g} m; saved case {r['saved_cellsize']:g} m")
+    if r.get("ladder", "refit") == "prior":
+        notes.append("ladder over the whole prior")
+    if r.get("n_iter", 2) != 2:
+        notes.append(f"{r['n_iter']} search iterations")
+    return r["case"] + (f" ({'; '.join(notes)})" if notes else "")
 
 
 def _profile_pair_rows(rows) -> list[str]:
     """The pair yield stress / mu(I) in finer_grid_profile.py's ``rows``: per case of either scenario with
-    both candidates profiled (rows on a re-made recording paired apart), the true term's largest ln L + ln
-    prior minus the other's on each grid, and each term's rise over the baseline, 2 x (its max - the better
-    of the two profiles' values at switch 0), given only where one of the two profiles peaks at switch 0;
-    a grid that a row lacks shows '-'."""
+    both candidates profiled (rows on a re-made recording, with another ladder or search paired apart), the
+    true term's largest ln L + ln prior minus the other's on each grid, and each term's rise over the
+    baseline, 2 x (its max - the better of the two profiles' values at switch 0), given only where one of
+    the two profiles peaks at switch 0; a grid that a row lacks shows '-'."""
     by = {}
     for r in rows:
         if r["candidate"] in PAIR:
             by.setdefault((r["terrain"], r.get("cellsize", 40.0), r["case"], r.get("finer_inputs", "dem"),
-                           r.get("saved_cellsize")), {})[r["candidate"]] = r
+                           r.get("saved_cellsize"), r.get("ladder", "refit"), r.get("n_iter", 2)),
+                          {})[r["candidate"]] = r
     keys = [k for k, v in by.items() if len(v) == 2 and k[2].rsplit("_s", 1)[0] in PAIR]
     if not keys:
         return []
@@ -757,7 +766,7 @@ def _profile_pair_rows(rows) -> list[str]:
             a, b = zmax(by[k][t], g), zmax(by[k][o], g)
             d.append("-" if a is None or b is None else f"{a - b:+.1f}")
         rs = [rise(k, c, g) for c in PAIR for g in ("inversion_grid", "finer_grid")]
-        L.append(f"| {k[0]} | {k[1]:g} | {_remade(by[k][t])} | {d[0]} | {d[1]} | {rs[0]}, {rs[1]} | {rs[2]}, {rs[3]} |")
+        L.append(f"| {k[0]} | {k[1]:g} | {_case_label(by[k][t])} | {d[0]} | {d[1]} | {rs[0]}, {rs[1]} | {rs[2]}, {rs[3]} |")
     return L + [""]
 
 
