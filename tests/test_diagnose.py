@@ -2248,10 +2248,11 @@ def test_page_section_of_the_finer_grid_profile(tmp_path):
     assert "| resolved | 10 | yield_stress_s0 (recording re-made on 5 m; saved case 20 m) | +5.2 | +10.0 |" in text
     assert "| resolved | 20 | yield_stress_s0 | +5.2 | +10.0 |" in text
     # so is one whose ladder spans the whole prior with a longer search (marked in both tables)
-    wp = [dict(x, cellsize=10.0, saved_cellsize=20.0, ladder="prior", n_iter=4) for x in (row20, ys)]
+    wp = [dict(x, cellsize=10.0, saved_cellsize=20.0, ladder="prior", n_iter=4, sweeps=2) for x in (row20, ys)]
     fp.write_text(json.dumps(re10 + wp))
     text = "\n".join(_finer_grid_profile_section(fp))
-    lab = "yield_stress_s0 (recording re-made on 5 m; saved case 20 m; ladder over the whole prior; 4 search iterations)"
+    lab = ("yield_stress_s0 (recording re-made on 5 m; saved case 20 m; ladder over the whole prior; 4 search iterations; "
+           "up to 2 continuation sweeps)")
     assert f"| resolved | 10 | {lab} | +5.2 | +10.0 |" in text and f"| resolved | 10 | {lab} | yield_stress |" in text
     assert text.count("| resolved | 10 | yield_stress_s0 (recording re-made on 5 m; saved case 20 m) | +5.2") == 1
 
@@ -2705,12 +2706,13 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     calls = []
 
     def fake(run, case, cand=None, finer_inputs="dem", grids=("inversion", "finer"), row=None, cellsize=None,
-             ladder="refit", n_iter=2):
+             ladder="refit", n_iter=2, sweeps=0):
         calls.append((run, case, cand, finer_inputs))
         prof = dict((row or {}).get("profiles", {}), **{g + "_grid": {"by": grids} for g in grids})
         r = {"terrain": "resolved", "cellsize": cellsize or 20.0, "case": case, "candidate": cand or "yield_stress",
              "finer_inputs": finer_inputs, "profiles": prof}
-        return dict(r, **({"ladder": ladder} if ladder != "refit" else {}), **({"n_iter": n_iter} if n_iter != 2 else {}))
+        return dict(r, **({"ladder": ladder} if ladder != "refit" else {}), **({"n_iter": n_iter} if n_iter != 2 else {}),
+                    **({"sweeps": sweeps} if sweeps else {}))
 
     real = fgp.profile_case
     monkeypatch.setattr(fgp, "profile_case", fake)
@@ -2751,6 +2753,11 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     assert [(r.get("ladder", "refit"), r.get("n_iter", 2)) for r in json.loads(out2.read_text())] == [
         ("refit", 2), ("refit", 2), ("prior", 2), ("prior", 4)]
     assert len(calls) == 7          # the repeated whole-prior run found its row: resumed, no call
+    with pytest.raises(SystemExit, match="--sweeps: -1 is not a number of sweeps"):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--sweeps", "-1"])
+    fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "inversion", "--cellsize", "10",
+              "--ladder", "prior", "--search-iters", "4", "--sweeps", "2"])
+    assert len(calls) == 8 and json.loads(out2.read_text())[-1]["sweeps"] == 2
 
 
 def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
@@ -2759,7 +2766,7 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
     from experiments.hidden_physics import finer_grid_profile as fgp
 
     factors = []
-    monkeypatch.setattr(fgp, "grid_profile", lambda ev_c, P, factor=1, seed=0, n_iter=2, ladder="refit":
+    monkeypatch.setattr(fgp, "grid_profile", lambda ev_c, P, factor=1, seed=0, n_iter=2, ladder="refit", sweeps=0:
                         factors.append(factor) or {"switch": [0.0, 1.0], "z": [-2.0, -1.0], "best": 1.0,
                                                    "factor": factor})
     monkeypatch.setattr(fgp, "candidate_evaluator", lambda ev, cand: None)
@@ -2783,8 +2790,8 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
     assert seen == [20.0, 10.0] and factors == [2, 1]
     assert (r10["cellsize"], r10["saved_cellsize"], list(r10["profiles"])) == (10.0, 20.0, ["inversion_grid"])
     assert "ladder" not in r10 and "n_iter" not in r10
-    rp = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion",), ladder="prior", n_iter=4)
-    assert (rp["ladder"], rp["n_iter"]) == ("prior", 4)
+    rp = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion",), ladder="prior", n_iter=4, sweeps=2)
+    assert (rp["ladder"], rp["n_iter"], rp["sweeps"]) == ("prior", 4, 2)
 
 
 def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):

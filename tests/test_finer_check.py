@@ -270,3 +270,27 @@ def test_finer_check_converge_redecides_from_the_converged_maxima(tmp_path, monk
     assert "| yield_stress_s0 | terrain_volume | -10.0 -> -9.0 (-) | mu_i: -10.0 -> -9.5 | +0.0 -> +0.5 | unexplained |" in md
     with pytest.raises(SystemExit, match=r"no saved case\(s\) \['mu_i_s9'\]"):
         fc.main(["--results", str(res), "--profiles", str(prof), "--out", str(out), "--cases", "mu_i_s9"])
+
+
+def test_neighbour_sweeps_lift_a_profile_value_its_search_left_off_the_ridge():
+    """finer_grid_profile.neighbour_sweeps: on a ridge z = -100 (mu - (0.3 - 0.5 s))^2 (its top 0 at every
+    switch s), a profile value whose search stopped off the ridge (s = 0 at mu 0.1: z = -4) is searched again
+    from its neighbour's optimum and reaches the ridge; values already on it stay; the switch stays held."""
+    from types import SimpleNamespace
+
+    from experiments.hidden_physics.finer_grid_profile import neighbour_sweeps
+
+    def ev_c(x):
+        x = torch.as_tensor(x, dtype=torch.float64)
+        z = -100.0 * (x[:, 0] - (0.3 - 0.5 * x[:, 1])) ** 2
+        return SimpleNamespace(z=z, failed=torch.zeros(len(x), dtype=torch.bool))
+
+    b = np.array([[0.0, 0.0], [1.0, 0.4]])
+    S = np.array([0.0, 0.2, 0.4])
+    px = np.array([[0.1, 0.0], [0.2, 0.2], [0.1, 0.4]])
+    pz = ev_c(px).z.numpy()
+    assert pz[0] == pytest.approx(-4.0) and pz[1] == pytest.approx(0.0)
+    z, x, rises = neighbour_sweeps(ev_c, S, pz, px, b, sweeps=3, n_iter=3, pop=6)
+    assert z[0] > -0.05 and z[1] == pytest.approx(0.0) and z[2] == pytest.approx(0.0)
+    assert np.array_equal(x[:, -1], S) and rises[0] > 3.9 and len(rises) <= 3
+    assert (z >= pz).all()

@@ -1,7 +1,7 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
 [--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer] [--cellsize M]
-[--ladder refit|prior] [--search-iters N]``
+[--ladder refit|prior] [--search-iters N] [--sweeps N]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
@@ -27,7 +27,8 @@ recording on M / 2 m cells, and profile there, started from the saved refit: wha
 cells would see, without its cost (rows keyed by M). ``--ladder prior``: the switch values evenly over
 the switch's whole prior range instead of around the refit's interval, so that the profile holds switch
 0 and so the term's rise over its nested baseline; ``--search-iters N``: N iterations of the search per
-value instead of 2 (rows keyed by both).
+value instead of 2; ``--sweeps N``: up to N continuation sweeps after the profile, each value searched
+again from its neighbours' optima (rows keyed by all three).
 """
 from __future__ import annotations
 
@@ -38,8 +39,10 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from torchslide.diagnose.model_error import fine_run
+from torchslide.diagnose.polish import local_search
 from torchslide.diagnose.profile import switch_profile
 from torchslide.diagnose.refit import candidate_evaluator
 from torchslide.physics import CANDIDATES
@@ -92,15 +95,54 @@ def profile_starts(parameters: dict, names, bounds: np.ndarray, n: int = N_START
 LADDERS = ("refit", "prior")
 
 
+def neighbour_sweeps(ev_c, S, pz, px, bounds, sweeps: int, n_iter: int = 2, pop: int = 6, tol: float = 0.5,
+                     seed: int = 0) -> tuple[np.ndarray, np.ndarray, list[float]]:
+    """Continuation sweeps over a profile: every switch value S[k] searched again (local search over the
+    other parameters, the switch held; polish.local_search) from its neighbours' optima px[k - 1], px[k + 1]
+    with the switch set to S[k], keeping the better; repeated up to ``sweeps`` times, while some value
+    rises by more than ``tol``. A profile's searches start from one trend line, so a value far from the
+    refit it was started from (switch 0 when the refit sat at 0.3) can stop far below its optimum; its
+    neighbour's optimum is a start on the ridge. ``S`` (K,) sorted, ``pz`` (K,), ``px`` (K, p).
+    Returns (pz, px) updated and the largest rise of each sweep."""
+    b = np.asarray(bounds, float)
+    pz, px = np.array(pz, float), np.array(px, float)
+    hold = np.zeros(b.shape[1], bool)
+    hold[-1] = True
+    rises = []
+    for it in range(sweeps):
+        st = np.array([np.append(px[j, :-1], S[k]) for k in range(len(S)) for j in (k - 1, k + 1)
+                       if 0 <= j < len(S)])
+        st = np.clip(st, b[0], b[1])
+        r = ev_c(torch.as_tensor(st))
+        z0 = np.where(r.failed.detach().cpu().numpy(), -np.inf, r.z.detach().cpu().numpy().astype(float))
+        ls = local_search(ev_c, st, z0, b, n_iter=n_iter, pop=pop, n_starts=None, seed=seed + 211 + it, hold=hold)
+        X = np.vstack([st, ls["x"]]) if len(ls["x"]) else st
+        Z = np.concatenate([z0, ls["z"]])
+        rise = 0.0
+        for k in range(len(S)):
+            on = np.isclose(X[:, -1], S[k]) & np.isfinite(Z)
+            if on.any():
+                i = np.flatnonzero(on)[int(np.argmax(Z[on]))]
+                if Z[i] > pz[k]:
+                    rise = max(rise, float(Z[i] - pz[k]))
+                    pz[k], px[k] = Z[i], X[i]
+        rises.append(rise)
+        if rise <= tol:
+            break
+    return pz, px, rises
+
+
 def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_values: int = 5, n_iter: int = 2,
-                 pop: int = 6, ladder: str = "refit") -> dict:
+                 pop: int = 6, ladder: str = "refit", sweeps: int = 0) -> dict:
     """Profile of one candidate along its switch (module doc) on the evaluator's grid (``factor`` 1) or
     on cells ``factor`` times smaller. ``ev_c``: the candidate's evaluator (prior: baseline parameters
     + switch last); ``parameters``: its refit's {name: {mean, hdr90}}. ``ladder``: "refit" (the switch
     values follow the refit's 90 % interval) or "prior" (``n_values`` evenly over the switch's whole
     prior range, its ends and so switch 0 included: the profile then also gives the term's rise over
-    its nested baseline, wherever the refit sat). Returns {switch (K,), z (K,), best (switch at the
-    maximum), z_max, x (p,) the parameters there, runs, wall_s}."""
+    its nested baseline, wherever the refit sat). ``sweeps`` > 0: that many continuation sweeps after the
+    profile (neighbour_sweeps, 2 search iterations each; the first pass's profile is kept as z_first, each
+    sweep's largest rise as sweep_rises). Returns {switch (K,), z (K,), best (switch at the maximum), z_max, x (p,) the
+    parameters there, runs, wall_s}."""
     if ladder not in LADDERS:
         raise ValueError(f"ladder must be one of {LADDERS}, got {ladder!r}")
     names = list(ev_c.prior.names)
@@ -111,6 +153,13 @@ def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_value
     t0 = time.perf_counter()
     r = switch_profile(e, profile_starts(parameters, names, b, seed=seed), interval, b,
                        n_values=n_values, n_iter=n_iter, pop=pop, min_half=MIN_HALF, seed=seed)
+    extra = {}
+    if sweeps > 0:
+        extra["z_first"] = np.asarray(r["z"], float).tolist()
+        # 2 iterations per sweep search: a sweep starts on the ridge, next to the value's optimum
+        pz, px, extra["sweep_rises"] = neighbour_sweeps(e, np.asarray(r["switch"], float), r["z"], r["x"], b, sweeps,
+                                                        n_iter=2, pop=pop, seed=seed)
+        r = dict(r, z=pz, x=px)
     z = np.where(np.isfinite(r["z"]), r["z"], -np.inf)
     if not np.isfinite(z).any():
         raise RuntimeError(f"profile of {names[-1]}: every run failed")
@@ -118,7 +167,7 @@ def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_value
     return {"switch": np.asarray(r["switch"], float).tolist(), "z": np.asarray(r["z"], float).tolist(),
             "best": float(r["switch"][k]), "z_max": float(z[k]), "x": np.asarray(r["x"][k], float).tolist(),
             "runs": len(e.records),
-            "wall_s": time.perf_counter() - t0}
+            "wall_s": time.perf_counter() - t0, **extra}
 
 
 def _parse(spec: str) -> tuple[str, str, str | None]:
@@ -153,7 +202,7 @@ GRIDS = {"inversion": ("inversion_grid", 1), "finer": ("finer_grid", 2)}
 
 def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
                  finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None,
-                 cellsize: float | None = None, ladder: str = "refit", n_iter: int = 2) -> dict:
+                 cellsize: float | None = None, ladder: str = "refit", n_iter: int = 2, sweeps: int = 0) -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
     read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
     inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
@@ -164,8 +213,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     which of "inversion" and "finer" to profile; ``row``: a row of the same case to complete (its
     profiles are kept; those of ``grids`` it lacks are added). ``cellsize``: the inversion grid's cell
     size in m if not the case's own (the recording re-made on cells half as large; module doc); the row
-    then has ``saved_cellsize``, the case's own. ``ladder``, ``n_iter``: grid_profile's (the row keeps
-    them where they are not the defaults "refit" and 2)."""
+    then has ``saved_cellsize``, the case's own. ``ladder``, ``n_iter``, ``sweeps``: grid_profile's (the
+    row keeps them where they are not the defaults "refit", 2 and 0)."""
     if cellsize is not None and not (np.isfinite(cellsize) and cellsize > 0):
         raise ValueError(f"cellsize must be a positive number of m, got {cellsize!r}")
     bad = [g for g in grids if g not in GRIDS]
@@ -191,11 +240,14 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
         new["ladder"] = ladder
     if n_iter != 2:
         new["n_iter"] = int(n_iter)
+    if sweeps:
+        new["sweeps"] = int(sweeps)
     row = {**new, "profiles": dict((row or {}).get("profiles", {}))}
     for label, f in (GRIDS[g] for g in GRIDS if g in grids):
         if label in row["profiles"]:
             continue
-        row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed, n_iter=n_iter, ladder=ladder)
+        row["profiles"][label] = grid_profile(ev_c, P, factor=f, seed=seed, n_iter=n_iter, ladder=ladder,
+                                              sweeps=sweeps)
         print(terrain, cellsize, case, cand, label, "best", round(row["profiles"][label]["best"], 4), flush=True)
     return row
 
@@ -219,7 +271,12 @@ def main(argv=None) -> int:
                         "switch's whole prior range, 0 included (the term's rise over its nested baseline)")
     a.add_argument("--search-iters", type=int, default=2,
                    help="local-search iterations (6 moves each) over the baseline parameters per switch value")
+    a.add_argument("--sweeps", type=int, default=0,
+                   help="continuation sweeps after the profile: each switch value searched again from its "
+                        "neighbours' optima (neighbour_sweeps), while a value still rises by more than 0.5")
     args = a.parse_args(argv)
+    if args.sweeps < 0:
+        raise SystemExit(f"--sweeps: {args.sweeps!r} is not a number of sweeps >= 0")
     if args.search_iters < 1:
         raise SystemExit(f"--search-iters: {args.search_iters!r} is not a positive number of iterations")
     if args.cellsize is not None and not (np.isfinite(args.cellsize) and args.cellsize > 0):
@@ -237,17 +294,19 @@ def main(argv=None) -> int:
     for run, case, cand in specs:
         cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
         key = (cs.get("terrain", run), args.cellsize or float(cs.get("cellsize", 40.0)), case,
-               cand or SCENARIOS[cs["scenario"]][0], args.finer_inputs, args.ladder, args.search_iters)
+               cand or SCENARIOS[cs["scenario"]][0], args.finer_inputs, args.ladder, args.search_iters,
+               args.sweeps)
         k = next((i for i, r in enumerate(rows) if (r["terrain"], float(r.get("cellsize", 40.0)), r["case"],
                                                      r["candidate"], r.get("finer_inputs", "dem"),
-                                                     r.get("ladder", "refit"), r.get("n_iter", 2)) == key), None)
+                                                     r.get("ladder", "refit"), r.get("n_iter", 2),
+                                                     r.get("sweeps", 0)) == key), None)
         have = set(rows[k].get("profiles", {"inversion_grid": 0, "finer_grid": 0})) if k is not None else set()
         if all(GRIDS[g][0] in have for g in grids):
             print("already in", out, *key)
             continue
         r = profile_case(run, case, cand, finer_inputs=args.finer_inputs, grids=grids,
                          row=rows[k] if k is not None else None, cellsize=args.cellsize, ladder=args.ladder,
-                         n_iter=args.search_iters)
+                         n_iter=args.search_iters, sweeps=args.sweeps)
         if k is None:
             rows.append(r)
         else:

@@ -676,7 +676,8 @@ def _finer_grid_profile_section(files=None) -> list[str]:
          "recording made again (same scenario, seed and release error) on cells half as large (`--cellsize`): what "
          "an inversion on those cells would see. 'Ladder over the whole prior': the switch values evenly from 0 to the "
          "prior's end (`--ladder prior`) instead of around the refit's interval, so the profile at 0 is the "
-         "term's nested baseline.", "",
+         "term's nested baseline; 'continuation sweeps' (`--sweeps`): after the profile, each value searched again "
+         "from its neighbours' optima.", "",
          "| terrain | cells, m | case | candidate | truth | refit's hdr90 | cells halved on | best switch, inversion "
          "grid | best switch, cells halved | max, inversion grid | max, cells halved | profile, inversion grid | "
          "profile, cells halved |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -704,7 +705,8 @@ PAIR = ("yield_stress", "mu_i")
 
 def _case_label(r) -> str:
     """A finer_grid_profile row's case, marked where its recording was re-made for other cells (--cellsize),
-    where its ladder spans the switch's whole prior (--ladder prior) and where its search was longer."""
+    where its ladder spans the switch's whole prior (--ladder prior), where its search was longer and where
+    continuation sweeps followed (--sweeps)."""
     notes = []
     if "saved_cellsize" in r:
         notes.append(f"recording re-made on {r['cellsize'] / 2:g} m; saved case {r['saved_cellsize']:g} m")
@@ -712,6 +714,8 @@ def _case_label(r) -> str:
         notes.append("ladder over the whole prior")
     if r.get("n_iter", 2) != 2:
         notes.append(f"{r['n_iter']} search iterations")
+    if r.get("sweeps", 0):
+        notes.append(f"up to {r['sweeps']} continuation sweeps")
     return r["case"] + (f" ({'; '.join(notes)})" if notes else "")
 
 
@@ -725,7 +729,7 @@ def _profile_pair_rows(rows) -> list[str]:
     for r in rows:
         if r["candidate"] in PAIR:
             by.setdefault((r["terrain"], r.get("cellsize", 40.0), r["case"], r.get("finer_inputs", "dem"),
-                           r.get("saved_cellsize"), r.get("ladder", "refit"), r.get("n_iter", 2)),
+                           r.get("saved_cellsize"), r.get("ladder", "refit"), r.get("n_iter", 2), r.get("sweeps", 0)),
                           {})[r["candidate"]] = r
     keys = [k for k, v in by.items() if len(v) == 2 and k[2].rsplit("_s", 1)[0] in PAIR]
     if not keys:
