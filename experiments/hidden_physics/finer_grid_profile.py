@@ -106,6 +106,7 @@ def neighbour_sweeps(ev_c, S, pz, px, bounds, sweeps: int, n_iter: int = 2, pop:
     Returns (pz, px) updated and the largest rise of each sweep."""
     b = np.asarray(bounds, float)
     pz, px = np.array(pz, float), np.array(px, float)
+    pz = np.where(np.isfinite(pz), pz, -np.inf)     # a value whose runs all failed is lifted by any finite one
     hold = np.zeros(b.shape[1], bool)
     hold[-1] = True
     rises = []
@@ -124,7 +125,8 @@ def neighbour_sweeps(ev_c, S, pz, px, bounds, sweeps: int, n_iter: int = 2, pop:
             if on.any():
                 i = np.flatnonzero(on)[int(np.argmax(Z[on]))]
                 if Z[i] > pz[k]:
-                    rise = max(rise, float(Z[i] - pz[k]))
+                    # a value that had no finite run counts as risen (another sweep), not as an infinite rise
+                    rise = max(rise, float(Z[i] - pz[k]) if np.isfinite(pz[k]) else tol + 1.0)
                     pz[k], px[k] = Z[i], X[i]
         rises.append(rise)
         if rise <= tol:
@@ -140,9 +142,9 @@ def grid_profile(ev_c, parameters: dict, factor: int = 1, seed: int = 0, n_value
     values follow the refit's 90 % interval) or "prior" (``n_values`` evenly over the switch's whole
     prior range, its ends and so switch 0 included: the profile then also gives the term's rise over
     its nested baseline, wherever the refit sat). ``sweeps`` > 0: that many continuation sweeps after the
-    profile (neighbour_sweeps, 2 search iterations each; the first pass's profile is kept as z_first, each
-    sweep's largest rise as sweep_rises). Returns {switch (K,), z (K,), best (switch at the maximum), z_max, x (p,) the
-    parameters there, runs, wall_s}."""
+    profile (neighbour_sweeps, 2 search iterations each; the first pass's profile is kept as z_first,
+    each sweep's largest rise as sweep_rises). Returns {switch (K,), z (K,), best (switch at the
+    maximum), z_max, x (p,) the parameters there, runs, wall_s}."""
     if ladder not in LADDERS:
         raise ValueError(f"ladder must be one of {LADDERS}, got {ladder!r}")
     names = list(ev_c.prior.names)
