@@ -91,6 +91,34 @@ def test_grid_profile_on_the_finer_grid():
     assert pp["switch"][0] == 0.0 and np.isfinite(pp["z"]).all()
     with pytest.raises(ValueError, match="ladder must be one of"):
         grid_profile(ev_c, par, ladder="whole")
+    # continuation sweeps after the profile: the first pass kept, no value lower after them
+    ps = grid_profile(ev_c, par, factor=1, seed=0, n_values=3, n_iter=1, pop=2, ladder="prior", sweeps=1)
+    assert ps["z_first"] == pytest.approx(pp["z"]) and len(ps["sweep_rises"]) == 1
+    assert (np.asarray(ps["z"]) >= np.asarray(ps["z_first"])).all() and ps["runs"] > pp["runs"]
+    assert ps["z_max"] == max(ps["z"])
+
+
+def test_grid_profile_takes_its_values_from_the_sweeps(monkeypatch):
+    """grid_profile(sweeps=N) reports the swept profile (its values, maximum and best switch), not the first
+    pass, and passes the sweeps their number."""
+    import experiments.hidden_physics.finer_grid_profile as fgp
+
+    ev_c = candidate_evaluator(_evaluator(), "yield_stress")
+    par = {"mu": {"mean": 0.3, "hdr90": [0.28, 0.32]}, "xi": {"mean": 600.0, "hdr90": [500.0, 700.0]},
+           "tau_y": {"mean": 1.0, "hdr90": [0.5, 1.5]}}
+    seen = []
+
+    def fake(e, S, pz, px, b, sweeps, **kw):
+        seen.append(sweeps)
+        z = np.array(pz, float)
+        z[0] += 1000.0                     # the lowest switch value becomes the best
+        return z, np.array(px, float), [1000.0]
+
+    monkeypatch.setattr(fgp, "neighbour_sweeps", fake)
+    ps = fgp.grid_profile(ev_c, par, factor=1, seed=0, n_values=3, n_iter=1, pop=2, ladder="prior", sweeps=2)
+    assert seen == [2] and ps["sweep_rises"] == [1000.0]
+    assert ps["z"] == pytest.approx(np.asarray(ps["z_first"]) + np.array([1000.0, 0.0, 0.0]))
+    assert ps["best"] == ps["switch"][0] == 0.0 and ps["z_max"] == pytest.approx(ps["z"][0])
 
 
 def _saved_case(tmp_path, scenario, seed, cands, covered=True):
@@ -294,3 +322,6 @@ def test_neighbour_sweeps_lift_a_profile_value_its_search_left_off_the_ridge():
     assert z[0] > -0.05 and z[1] == pytest.approx(0.0) and z[2] == pytest.approx(0.0)
     assert np.array_equal(x[:, -1], S) and rises[0] > 3.9 and len(rises) <= 3
     assert (z >= pz).all()
+    # a value whose runs all failed (-inf) is lifted by its neighbour's start; its rise is not recorded as infinite
+    z2, _, rises2 = neighbour_sweeps(ev_c, S, np.array([-np.inf, 0.0, 0.0]), px, b, sweeps=1, n_iter=1, pop=4)
+    assert np.isfinite(z2).all() and np.isfinite(rises2).all()
