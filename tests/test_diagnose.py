@@ -2705,9 +2705,12 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
                                 "candidate": "yield_stress"}]))
     calls = []
 
+    devices = []
+
     def fake(run, case, cand=None, finer_inputs="dem", grids=("inversion", "finer"), row=None, cellsize=None,
-             ladder="refit", n_iter=2, sweeps=0):
+             ladder="refit", n_iter=2, sweeps=0, device="cpu", compile_solver=False):
         calls.append((run, case, cand, finer_inputs))
+        devices.append((device, compile_solver))
         prof = dict((row or {}).get("profiles", {}), **{g + "_grid": {"by": grids} for g in grids})
         r = {"terrain": "resolved", "cellsize": cellsize or 20.0, "case": case, "candidate": cand or "yield_stress",
              "finer_inputs": finer_inputs, "profiles": prof}
@@ -2758,6 +2761,11 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     fgp.main(["--cases", "resolved_20m:yield_stress_s1", "--out", str(out2), "--grids", "inversion", "--cellsize", "10",
               "--ladder", "prior", "--search-iters", "4", "--sweeps", "2"])
     assert len(calls) == 8 and json.loads(out2.read_text())[-1]["sweeps"] == 2
+    # where the runs go is passed through (not a row key: the same profile, other arithmetic)
+    assert set(devices) == {("cpu", False)}
+    fgp.main(["--cases", "resolved_20m:yield_stress_s2", "--out", str(out2), "--grids", "finer", "--device", "cuda",
+              "--compile"])
+    assert devices[-1] == ("cuda", True) and len(calls) == 9
 
 
 def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
@@ -2775,7 +2783,9 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
         truth = {"term": "yield_stress", "tau_y": 3.0}
 
     seen = []
-    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem": seen.append(D["cellsize"]) or (Rec(), None))
+    devices = []
+    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem", device="cpu", compile_solver=False:
+                        seen.append(D["cellsize"]) or devices.append((device, compile_solver)) or (Rec(), None))
     kept = {"switch": [2.0], "z": [-5.0], "best": 2.0, "factor": 1}
     r = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion", "finer"),
                          row={"profiles": {"inversion_grid": kept}})
@@ -2792,6 +2802,10 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
     assert "ladder" not in r10 and "n_iter" not in r10
     rp = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion",), ladder="prior", n_iter=4, sweeps=2)
     assert (rp["ladder"], rp["n_iter"], rp["sweeps"]) == ("prior", 4, 2)
+    # the runs' device reaches the evaluator; a row made off the CPU says where
+    assert "device" not in rp and set(devices) == {("cpu", False)}
+    rc = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("finer",), device="cuda", compile_solver=True)
+    assert devices[-1] == ("cuda", True) and rc["device"] == "cuda"
 
 
 def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):

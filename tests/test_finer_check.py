@@ -325,3 +325,92 @@ def test_neighbour_sweeps_lift_a_profile_value_its_search_left_off_the_ridge():
     # a value whose runs all failed (-inf) is lifted by its neighbour's start; its rise is not recorded as infinite
     z2, _, rises2 = neighbour_sweeps(ev_c, S, np.array([-np.inf, 0.0, 0.0]), px, b, sweeps=1, n_iter=1, pop=4)
     assert np.isfinite(z2).all() and np.isfinite(rises2).all()
+
+
+def test_terrain_screen_measures_the_raw_and_the_unmimicked_effect():
+    """terrain_screen.screen on a stub of a noise-free recording made at (mu, s) = (0.30, 1):
+    z = -(mu - 0.30 + 0.05 (1 - s))^2 / 2e-4 - 8 (1 - s)^2 (0 at the truth). Without the term (s = 0) the true mu
+    loses 12.5 + 8, so raw = 41 in 2 ln L; re-tuning mu to 0.25 absorbs the 12.5 and leaves 8: unmimicked 16.
+    The switch stays at 0 in every baseline run."""
+    from types import SimpleNamespace
+
+    from experiments.hidden_physics.terrain_screen import screen
+
+    seen = []
+
+    def evc(x):
+        x = torch.as_tensor(x, dtype=torch.float64)
+        seen.append(x[:, -1].clone())
+        z = -((x[:, 0] - 0.30 + 0.05 * (1 - x[:, 1])) ** 2) / 2e-4 - 8.0 * (1 - x[:, 1]) ** 2
+        return SimpleNamespace(z=z, failed=torch.zeros(len(x), dtype=torch.bool))
+
+    b = np.array([[0.12, 0.0], [0.4, 1.0]])
+    r = screen(evc, [0.30, 1.0], b, n_iter=12)
+    assert r["raw"] == pytest.approx(41.0)
+    assert r["unmimicked"] == pytest.approx(16.0, abs=0.5)
+    assert r["best_baseline"][0] == pytest.approx(0.25, abs=0.005) and r["best_baseline"][1] == 0.0
+    assert seen[0].tolist() == [1.0, 0.0] and all((s == 0).all() for s in seen[1:])
+    assert r["runs"] == 2 + sum(len(s) for s in seen[1:])
+
+
+def test_terrain_screen_rejects_bad_variants_and_scenarios_before_any_run(tmp_path):
+    from experiments.hidden_physics import terrain_screen as ts
+
+    assert ts.parse_variants("a=resolved;theta_deg:35;amplitude:150,b=narrow") == {
+        "a": ("resolved", {"theta_deg": 35.0, "amplitude": 150.0}), "b": ("narrow", {})}
+    for spec, msg in (("a=flat", "is not NAME=TERRAIN"), ("a=resolved;slope:3", "unknown terrain key 'slope'"),
+                      ("a=resolved;theta_deg:steep", "theta_deg = 'steep' is not a number"),
+                      ("a=resolved;theta_deg:nan", "is not finite"), ("", "no variant")):
+        with pytest.raises(ValueError, match=msg):
+            ts.parse_variants(spec)
+    out = tmp_path / "s.json"
+    with pytest.raises(SystemExit, match="--variants: variant 'a=flat'"):
+        ts.main(["--variants", "a=flat", "--out", str(out)])
+    with pytest.raises(SystemExit, match="--scenario: 'null' is not a scenario with a library term"):
+        ts.main(["--scenario", "null", "--out", str(out)])
+    with pytest.raises(SystemExit, match="--search-iters: 0"):
+        ts.main(["--search-iters", "0", "--out", str(out)])
+    assert not out.exists()
+
+
+def test_page_section_of_the_oracle_profiles(tmp_path):
+    """make_page._oracle_section: per terrain, scenario and candidate, each seed's 2 ln L gain over switch 0 on the
+    recording's own grid, the best switch, the last sweep's rise and how many seeds gain >= 10; no file or no
+    finer-grid profile: nothing."""
+    import json
+
+    from experiments.hidden_physics.make_page import _oracle_section
+
+    def row(case, cand, z, truth=None, rises=(1.0, 0.2)):
+        return {"terrain": "resolved", "cellsize": 40.0, "case": case, "candidate": cand, "truth": truth,
+                "finer_inputs": "terrain", "ladder": "prior", "profiles": {"finer_grid": {
+                    "switch": [0.0, 0.2, 0.4], "z": z, "best": [0.0, 0.2, 0.4][int(np.argmax(z))],
+                    "sweep_rises": list(rises)}}}
+
+    f = tmp_path / "oracle.json"
+    f.write_text(json.dumps([row("mu_i_s1", "mu_i", [-10.0, -2.0, -4.0], 0.2), row("mu_i_s0", "mu_i", [-5.0, -1.0, -6.0], 0.2),
+                             row("null_s0", "mu_i", [-1.0, -1.2, -3.0], rises=[0.1])]))
+    text = "\n".join(_oracle_section(f))
+    assert "| resolved | mu_i | mu_i | 0.2 | s0 8.0, s1 16.0 | 0.2, 0.2 | 0.2, 0.2 | 1 of 2 |" in text
+    assert "| resolved | null | mu_i | - | s0 0.0 | 0 | 0.1 | 0 of 1 |" in text
+    assert _oracle_section(tmp_path / "absent.json") == []
+    f.write_text(json.dumps([{**row("mu_i_s0", "mu_i", [0.0]), "profiles": {"inversion_grid": {}}}]))
+    assert _oracle_section(f) == []
+
+
+def test_page_section_of_the_terrain_screen(tmp_path):
+    import json
+
+    from experiments.hidden_physics.make_page import _terrain_screen_section
+
+    f = tmp_path / "screen.json"
+    f.write_text(json.dumps([
+        {"variant": "resolved", "terrain": "resolved", "geom": {}, "scenario": "curvature", "raw": 23.34, "unmimicked": 3.0},
+        {"variant": "steep", "terrain": "resolved", "geom": {"theta_deg": 35.0}, "scenario": "curvature", "raw": 10.5,
+         "unmimicked": 1.0},
+        {"variant": "resolved", "terrain": "resolved", "geom": {}, "scenario": "mu_i", "raw": 40.0, "unmimicked": 12.25}]))
+    text = "\n".join(_terrain_screen_section(f))
+    assert "| variant | changed | curvature: raw / unmimicked | mu_i: raw / unmimicked |" in text
+    assert "| resolved (resolved) | - | 23.3 / 3.0 | 40.0 / 12.2 |" in text
+    assert "| steep (resolved) | theta_deg 35 | 10.5 / 1.0 | - |" in text
+    assert _terrain_screen_section(tmp_path / "absent.json") == []

@@ -1,7 +1,7 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
 [--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer] [--cellsize M]
-[--ladder refit|prior] [--search-iters N] [--sweeps N]``
+[--ladder refit|prior] [--search-iters N] [--sweeps N] [--device cuda] [--compile]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
@@ -28,7 +28,14 @@ cells would see, without its cost (rows keyed by M). ``--ladder prior``: the swi
 the switch's whole prior range instead of around the refit's interval, so that the profile holds switch
 0 and so the term's rise over its nested baseline; ``--search-iters N``: N iterations of the search per
 value instead of 2; ``--sweeps N``: up to N continuation sweeps after the profile, each value searched
-again from its neighbours' optima (rows keyed by all three).
+again from its neighbours' optima (rows keyed by all three). ``--device``, ``--compile``: where the solver runs,
+and compiled (not row keys).
+
+The information ceiling: ``--grids finer --finer-inputs terrain --ladder prior`` profiles a case on the
+recording's own cells and terrain (the nominal release, the measurement errors alone), i.e. the inversion
+without any grid error: the term's gain over its nested baseline is then what the recordings themselves hold
+about it; on coarser cells the grid's error only adds to what must be told apart (results/oracle_profile.json;
+results page, "Could any inversion find it?").
 """
 from __future__ import annotations
 
@@ -54,6 +61,7 @@ HERE = Path(__file__).parent
 RESULTS = {"narrow": HERE / "results" / "harness", "resolved": HERE / "results" / "resolved" / "results",
            "narrow_20m": HERE / "results" / "narrow_20m" / "results",
            "resolved_20m": HERE / "results" / "resolved_20m" / "results",
+           "resolved_outflow": HERE / "results" / "resolved_outflow" / "results",
            "resolved_vol": HERE / "results" / "resolved_vol" / "results"}
 DEFAULT_CASES = ("resolved:earth_pressure_s0,resolved:earth_pressure_s1,resolved:yield_stress_s0,"
                  "resolved:entrainment_s4,narrow:earth_pressure_s0,narrow:entrainment_s0,narrow:yield_stress_s1")
@@ -182,15 +190,17 @@ def _parse(spec: str) -> tuple[str, str, str | None]:
 FINER_INPUTS = ("dem", "terrain", "terrain_volume")
 
 
-def case_evaluator(D: dict, finer_inputs: str = "dem"):
+def case_evaluator(D: dict, finer_inputs: str = "dem", device: str = "cpu", compile_solver: bool = False):
     """(recording, evaluator) of the saved harness case ``D`` (its terrain, cell size and recording
-    grid), the evaluator's finer-grid inputs as ``finer_inputs`` says (profile_case)."""
+    grid), the evaluator's finer-grid inputs as ``finer_inputs`` says (profile_case); its runs on
+    ``device``, compiled when ``compile_solver`` (scenarios.make_evaluator)."""
     if finer_inputs not in FINER_INPUTS:
         raise ValueError(f"finer_inputs must be one of {FINER_INPUTS}, got {finer_inputs!r}")
     cellsize = float(D.get("cellsize", 40.0))
     with scenarios.terrain_variant(D.get("terrain", "narrow")):
         rec = make_recording(D["scenario"], int(D["seed"]), cellsize=cellsize, fine_factor=D.get("fine_factor", 2))
-        ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=finer_inputs != "dem")
+        ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=finer_inputs != "dem", device=device,
+                            compile_solver=compile_solver)
     if finer_inputs == "terrain_volume":
         vf = rec.volume_factor
         ft = ev.fine_terrain
@@ -204,7 +214,8 @@ GRIDS = {"inversion": ("inversion_grid", 1), "finer": ("finer_grid", 2)}
 
 def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
                  finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None,
-                 cellsize: float | None = None, ladder: str = "refit", n_iter: int = 2, sweeps: int = 0) -> dict:
+                 cellsize: float | None = None, ladder: str = "refit", n_iter: int = 2, sweeps: int = 0,
+                 device: str = "cpu", compile_solver: bool = False) -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
     read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
     inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
@@ -216,7 +227,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     profiles are kept; those of ``grids`` it lacks are added). ``cellsize``: the inversion grid's cell
     size in m if not the case's own (the recording re-made on cells half as large; module doc); the row
     then has ``saved_cellsize``, the case's own. ``ladder``, ``n_iter``, ``sweeps``: grid_profile's (the
-    row keeps them where they are not the defaults "refit", 2 and 0)."""
+    row keeps them where they are not the defaults "refit", 2 and 0). ``device``, ``compile_solver``: where
+    and how the runs go (case_evaluator; the row keeps a device other than the CPU)."""
     if cellsize is not None and not (np.isfinite(cellsize) and cellsize > 0):
         raise ValueError(f"cellsize must be a positive number of m, got {cellsize!r}")
     bad = [g for g in grids if g not in GRIDS]
@@ -227,7 +239,7 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     if cellsize is not None:
         D = dict(D, cellsize=float(cellsize))
     terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
-    rec, ev = case_evaluator(D, finer_inputs)
+    rec, ev = case_evaluator(D, finer_inputs, device=device, compile_solver=compile_solver)
     sc = D["scenario"]
     cand = candidate or SCENARIOS[sc][0]
     C = CANDIDATES[cand]
@@ -244,6 +256,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
         new["n_iter"] = int(n_iter)
     if sweeps:
         new["sweeps"] = int(sweeps)
+    if device != "cpu":
+        new["device"] = str(device)
     row = {**new, "profiles": dict((row or {}).get("profiles", {}))}
     for label, f in (GRIDS[g] for g in GRIDS if g in grids):
         if label in row["profiles"]:
@@ -276,6 +290,8 @@ def main(argv=None) -> int:
     a.add_argument("--sweeps", type=int, default=0,
                    help="continuation sweeps after the profile: each switch value searched again from its "
                         "neighbours' optima (neighbour_sweeps), while a value still rises by more than 0.5")
+    a.add_argument("--device", default="cpu", help="where the solver runs (cpu, cuda, ...)")
+    a.add_argument("--compile", action="store_true", help="compile the solver (SolverConfig.compile)")
     args = a.parse_args(argv)
     if args.sweeps < 0:
         raise SystemExit(f"--sweeps: {args.sweeps!r} is not a number of sweeps >= 0")
@@ -308,7 +324,8 @@ def main(argv=None) -> int:
             continue
         r = profile_case(run, case, cand, finer_inputs=args.finer_inputs, grids=grids,
                          row=rows[k] if k is not None else None, cellsize=args.cellsize, ladder=args.ladder,
-                         n_iter=args.search_iters, sweeps=args.sweeps)
+                         n_iter=args.search_iters, sweeps=args.sweeps, device=args.device,
+                         compile_solver=args.compile)
         if k is None:
             rows.append(r)
         else:

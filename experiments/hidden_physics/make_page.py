@@ -700,6 +700,87 @@ def _finer_grid_profile_section(files=None) -> list[str]:
     return L + [""] + _profile_pair_rows(rows)
 
 
+def _oracle_section(file=None) -> list[str]:
+    """The information ceiling (results/oracle_profile.json, finer_grid_profile.py rows with ``--grids finer
+    --finer-inputs terrain --ladder prior``): per terrain, scenario and candidate, each seed's rise of the best
+    ln L + ln prior from switch 0 to the profile's maximum (x 2: 2 ln L, the candidate's gain over its nested
+    baseline) and the switch there, on the recording grid's own model (its cells and terrain, the nominal
+    release, the measurement errors alone): what the recordings themselves hold about the term. A term whose gain
+    stays below the naming margin here is out of any method's reach on these recordings (on coarser cells the
+    grid's error only adds to what must be told apart). Absent file: nothing."""
+    f = Path(file) if file else HERE / "results" / "oracle_profile.json"
+    if not f.exists():
+        return []
+    rows = [r for r in json.loads(f.read_text()) if "finer_grid" in r["profiles"]]
+    if not rows:
+        return []
+    groups = {}
+    for r in rows:
+        sc, seed = r["case"].rsplit("_s", 1)
+        groups.setdefault((r["terrain"], sc, r["candidate"]), []).append((int(seed), r))
+    L = ["## Could any inversion find it? The recordings' own model (oracle profiles)", "",
+         "Each case's recording profiled along one candidate's switch on the grid and terrain the recording was made "
+         "on (cells half the inversion grid's, the analytic surface: `finer_grid_profile --grids finer "
+         "--finer-inputs terrain`), with the nominal release and the measurement errors alone in the likelihood: "
+         "the inversion with no grid error at all: what the recordings themselves hold about the term (on coarser "
+         "cells the grid's error only adds to what must be told apart). Switch values evenly "
+         "over the whole prior, 0 included (`--ladder prior`), 4 search iterations per value and up to 2 "
+         "continuation sweeps (`--search-iters 4 --sweeps 2`). '2 ln L gain': 2 x (the profile's best ln L + ln "
+         "prior minus its value at switch 0), the term's gain over its nested baseline before the switch's Occam "
+         "factor (about -2 to -4 in 2 ln for these priors); naming needs a 2 ln Bayes factor of at least 6 over the "
+         "runner-up. 'Last sweep': the largest rise of a profile value in the last sweep (ln; above 0.5 the profile "
+         "had not settled, so a gain can be off by about that much times 2).", "",
+         "| terrain | scenario | candidate | truth | 2 ln L gain per seed | best switch per seed | last sweep, ln | "
+         "seeds with gain >= 10 (the margin 6 plus up to 4 for the Occam factor) |", "|---|---|---|---|---|---|---|---|"]
+    for (terrain, sc, cand), items in sorted(groups.items()):
+        items.sort(key=lambda t: t[0])
+        gains, best, last = [], [], []
+        for seed, r in items:
+            p = r["profiles"]["finer_grid"]
+            z = np.asarray(p["z"], float)
+            z0 = [v for s_, v in zip(p["switch"], z) if float(s_) == 0.0]
+            gains.append(f"s{seed} {2 * (z.max() - z0[0]):.1f}" if z0 else f"s{seed} -")
+            best.append(f"{p['best']:.3g}")
+            last.append(f"{(p.get('sweep_rises') or [0.0])[-1]:.1f}")
+        n10 = sum(float(g.split()[1]) >= 10 for g in gains if not g.endswith("-"))
+        truth = next((r["truth"] for _, r in items if r["truth"] is not None), None)
+        L.append(f"| {terrain} | {sc} | {cand} | {'-' if truth is None else f'{truth:.3g}'} | {', '.join(gains)} | "
+                 f"{', '.join(best)} | {', '.join(last)} | {n10} of {len(items)} |")
+    return L + [""]
+
+
+def _terrain_screen_section(file=None) -> list[str]:
+    """terrain_screen.py's rows (default results/terrain_screen.json): per terrain variant and scenario, the
+    hidden term's noise-free effect on its recording grid, whole (raw) and after re-tuning mu, xi (unmimicked),
+    in 2 ln L. Absent file: nothing."""
+    f = Path(file) if file else HERE / "results" / "terrain_screen.json"
+    if not f.exists():
+        return []
+    rows = json.loads(f.read_text())
+    if not rows:
+        return []
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    scen = list(dict.fromkeys(r["scenario"] for r in rows))
+    by = {(r["variant"], r["scenario"]): r for r in rows}
+    L = ["## Would another terrain of the same family help? (experiments/hidden_physics/terrain_screen.py)", "",
+         "Each scenario's recording made noise-free (nominal release) on a variant of the harness terrains, compared "
+         "with the baseline on the recording grid itself (20 m cells over the recording's own terrain; the "
+         "measurement errors alone in the likelihood), in 2 ln L: 'raw' at the true mu, xi (the term's whole "
+         "effect), 'unmimicked' after a local search over mu, xi with the switch at 0 (what re-tuning the baseline "
+         "cannot absorb: about the most an oracle gains from such a recording; the naming margin is 6 plus the "
+         "switch's Occam factor). The likelihood's sigmas are the harness' (2.5-4 times the noise drawn); at "
+         "sigma_scale s both figures scale as 1 / s^2. Variants: the keywords of "
+         "torchslide.terrain.synthetic.channel_with_bends changed from the named terrain.", "",
+         "| variant | changed | " + " | ".join(f"{s}: raw / unmimicked" for s in scen) + " |",
+         "|---|---|" + "---|" * len(scen)]
+    for v in variants:
+        r0 = next(r for r in rows if r["variant"] == v)
+        changed = ", ".join(f"{k} {x:g}" for k, x in r0["geom"].items()) or "-"
+        cells = [f"{by[v, s]['raw']:.1f} / {by[v, s]['unmimicked']:.1f}" if (v, s) in by else "-" for s in scen]
+        L.append(f"| {v} ({r0['terrain']}) | {changed} | " + " | ".join(cells) + " |")
+    return L + [""]
+
+
 PAIR = ("yield_stress", "mu_i")
 
 
@@ -2269,6 +2350,8 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
               "| calibration case | largest lower-bound 2 ln BF | largest located score |", "|---|---|---|"]
         L += [f"| {r['case']} | {r['max_two_ln_bf_lower']:.1f} | {r['max_located']:.1f} |" for r in t["null_cases"]]
         L += ["", f"Resulting thresholds: {t['thresholds']}.", ""]
+    L += _oracle_section()
+    L += _terrain_screen_section()
     L += _posthoc_section([c for c in cases if c["strength"] == 1.0])
     L += _resolved_terrain_section()
     L += _resolved_outflow_section()
