@@ -2708,14 +2708,15 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     devices = []
 
     def fake(run, case, cand=None, finer_inputs="dem", grids=("inversion", "finer"), row=None, cellsize=None,
-             ladder="refit", n_iter=2, sweeps=0, device="cpu", compile_solver=False):
+             ladder="refit", n_iter=2, sweeps=0, device="cpu", compile_solver=False, sigmas="harness"):
         calls.append((run, case, cand, finer_inputs))
         devices.append((device, compile_solver))
+        r0 = {"sigmas": sigmas} if sigmas != "harness" else {}
         prof = dict((row or {}).get("profiles", {}), **{g + "_grid": {"by": grids} for g in grids})
         r = {"terrain": "resolved", "cellsize": cellsize or 20.0, "case": case, "candidate": cand or "yield_stress",
              "finer_inputs": finer_inputs, "profiles": prof}
         return dict(r, **({"ladder": ladder} if ladder != "refit" else {}), **({"n_iter": n_iter} if n_iter != 2 else {}),
-                    **({"sweeps": sweeps} if sweeps else {}))
+                    **({"sweeps": sweeps} if sweeps else {}), **r0)
 
     real = fgp.profile_case
     monkeypatch.setattr(fgp, "profile_case", fake)
@@ -2766,6 +2767,12 @@ def test_finer_grid_profile_cli_rejects_bad_cases_and_resumes(tmp_path, monkeypa
     fgp.main(["--cases", "resolved_20m:yield_stress_s2", "--out", str(out2), "--grids", "finer", "--device", "cuda",
               "--compile"])
     assert devices[-1] == ("cuda", True) and len(calls) == 9
+    # the likelihood's sigmas are a row key: the noise drawn stated as the sigmas is another row
+    with pytest.raises(SystemExit):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s2", "--out", str(out2), "--sigmas", "tight"])
+    for _ in range(2):
+        fgp.main(["--cases", "resolved_20m:yield_stress_s2", "--out", str(out2), "--grids", "finer", "--sigmas", "noise"])
+    assert len(calls) == 10 and json.loads(out2.read_text())[-1]["sigmas"] == "noise"
 
 
 def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
@@ -2784,8 +2791,10 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
 
     seen = []
     devices = []
-    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem", device="cpu", compile_solver=False:
-                        seen.append(D["cellsize"]) or devices.append((device, compile_solver)) or (Rec(), None))
+    real_case_evaluator = fgp.case_evaluator
+    monkeypatch.setattr(fgp, "case_evaluator", lambda D, finer_inputs="dem", device="cpu", compile_solver=False,
+                        sigmas="harness": seen.append(D["cellsize"]) or devices.append((device, compile_solver, sigmas))
+                        or (Rec(), None))
     kept = {"switch": [2.0], "z": [-5.0], "best": 2.0, "factor": 1}
     r = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion", "finer"),
                          row={"profiles": {"inversion_grid": kept}})
@@ -2803,9 +2812,12 @@ def test_finer_grid_profile_completes_a_row_with_the_missing_grid(monkeypatch):
     rp = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("inversion",), ladder="prior", n_iter=4, sweeps=2)
     assert (rp["ladder"], rp["n_iter"], rp["sweeps"]) == ("prior", 4, 2)
     # the runs' device reaches the evaluator; a row made off the CPU says where
-    assert "device" not in rp and set(devices) == {("cpu", False)}
-    rc = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("finer",), device="cuda", compile_solver=True)
-    assert devices[-1] == ("cuda", True) and rc["device"] == "cuda"
+    assert "device" not in rp and "sigmas" not in rp and set(devices) == {("cpu", False, "harness")}
+    rc = fgp.profile_case("resolved_20m", "yield_stress_s0", grids=("finer",), device="cuda", compile_solver=True,
+                          sigmas="noise")
+    assert devices[-1] == ("cuda", True, "noise") and rc["device"] == "cuda" and rc["sigmas"] == "noise"
+    with pytest.raises(ValueError, match="sigmas must be one of"):
+        real_case_evaluator({"scenario": "null", "seed": 0}, sigmas="tight")
 
 
 def test_finer_grid_points_rejects_bad_input_before_any_run(monkeypatch):

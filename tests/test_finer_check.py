@@ -370,7 +370,31 @@ def test_terrain_screen_rejects_bad_variants_and_scenarios_before_any_run(tmp_pa
         ts.main(["--scenario", "null", "--out", str(out)])
     with pytest.raises(SystemExit, match="--search-iters: 0"):
         ts.main(["--search-iters", "0", "--out", str(out)])
+    with pytest.raises(SystemExit):
+        ts.main(["--sigmas", "tight", "--out", str(out)])
     assert not out.exists()
+    with pytest.raises(ValueError, match="sigmas must be one of"):
+        ts.screen_variant("x", "resolved", {}, "curvature", sigmas="tight")
+
+
+def test_noise_sigmas_state_the_noise_drawn():
+    """noise_sigmas: gauge series get the sd of the noise the harness draws for their quantity, the deposit map its
+    noise sd; the final volume keeps its sigma; values are untouched."""
+    from experiments.hidden_physics import scenarios
+    from experiments.hidden_physics.scenarios import noise_sigmas
+    from torchslide.observe import Observation
+    from torchslide.observe_series import SeriesObservation
+
+    t = np.arange(2.0, 10.0, 2.0)
+    obs = [SeriesObservation("gauge_series", np.ones(4), 0.5, name="g1:h", gauge="g1", quantity="h", times=t),
+           SeriesObservation("gauge_series", np.ones(4), 2.0, name="g1:speed", gauge="g1", quantity="speed", times=t),
+           SeriesObservation("deposit_map", np.ones(3), 0.5, name="deposit", cell_index=np.arange(3), grid_shape=(1, 3)),
+           Observation("final_volume", 1.0, 0.1, name="final_volume")]
+    new = noise_sigmas(obs)
+    assert [o.sigma for o in new] == [scenarios.GAUGE_ERRORS["h"][1], scenarios.GAUGE_ERRORS["speed"][1],
+                                      scenarios.DEPOSIT_NOISE, 0.1] == [0.2, 0.5, 0.3, 0.1]
+    assert [o.sigma for o in obs] == [0.5, 2.0, 0.5, 0.1] and all(np.array_equal(a.values, b.values) for a, b in
+                                                                 zip(obs[:3], new[:3]))
 
 
 def test_page_section_of_the_oracle_profiles(tmp_path):
@@ -389,10 +413,12 @@ def test_page_section_of_the_oracle_profiles(tmp_path):
 
     f = tmp_path / "oracle.json"
     f.write_text(json.dumps([row("mu_i_s1", "mu_i", [-10.0, -2.0, -4.0], 0.2), row("mu_i_s0", "mu_i", [-5.0, -1.0, -6.0], 0.2),
-                             row("null_s0", "mu_i", [-1.0, -1.2, -3.0], rises=[0.1])]))
+                             row("null_s0", "mu_i", [-1.0, -1.2, -3.0], rises=[0.1]),
+                             {**row("mu_i_s0", "mu_i", [-50.0, -1.0, -6.0], 0.2), "sigmas": "noise"}]))
     text = "\n".join(_oracle_section(f))
-    assert "| resolved | mu_i | mu_i | 0.2 | s0 8.0, s1 16.0 | 0.2, 0.2 | 0.2, 0.2 | 1 of 2 |" in text
-    assert "| resolved | null | mu_i | - | s0 0.0 | 0 | 0.1 | 0 of 1 |" in text
+    assert "| resolved | mu_i | mu_i | harness | 0.2 | s0 8.0, s1 16.0 | 0.2, 0.2 | 0.2, 0.2 | 1 of 2 |" in text
+    assert "| resolved | null | mu_i | harness | - | s0 0.0 | 0 | 0.1 | 0 of 1 |" in text
+    assert "| resolved | mu_i | mu_i | noise | 0.2 | s0 98.0 | 0.2 | 0.2 | 1 of 1 |" in text
     assert _oracle_section(tmp_path / "absent.json") == []
     f.write_text(json.dumps([{**row("mu_i_s0", "mu_i", [0.0]), "profiles": {"inversion_grid": {}}}]))
     assert _oracle_section(f) == []
@@ -408,9 +434,20 @@ def test_page_section_of_the_terrain_screen(tmp_path):
         {"variant": "resolved", "terrain": "resolved", "geom": {}, "scenario": "curvature", "raw": 23.34, "unmimicked": 3.0},
         {"variant": "steep", "terrain": "resolved", "geom": {"theta_deg": 35.0}, "scenario": "curvature", "raw": 10.5,
          "unmimicked": 1.0},
-        {"variant": "resolved", "terrain": "resolved", "geom": {}, "scenario": "mu_i", "raw": 40.0, "unmimicked": 12.25}]))
+        {"variant": "resolved", "terrain": "resolved", "geom": {}, "scenario": "mu_i", "raw": 40.0, "unmimicked": 12.25},
+        {"variant": "resolved", "terrain": "resolved", "geom": {}, "scenario": "curvature", "sigmas": "noise",
+         "raw": 150.0, "unmimicked": 20.0}]))
     text = "\n".join(_terrain_screen_section(f))
-    assert "| variant | changed | curvature: raw / unmimicked | mu_i: raw / unmimicked |" in text
-    assert "| resolved (resolved) | - | 23.3 / 3.0 | 40.0 / 12.2 |" in text
-    assert "| steep (resolved) | theta_deg 35 | 10.5 / 1.0 | - |" in text
+    assert ("| variant | changed | curvature: raw / unmimicked | mu_i: raw / unmimicked | curvature (noise sigmas): raw / "
+            "unmimicked |") in text
+    assert "| resolved (resolved) | - | 23.3 / 3.0 | 40.0 / 12.2 | 150.0 / 20.0 |" in text
+    assert "| steep (resolved) | theta_deg 35 | 10.5 / 1.0 | - | - |" in text
     assert _terrain_screen_section(tmp_path / "absent.json") == []
+
+
+def test_case_label_marks_sigmas_stated_as_the_noise():
+    from experiments.hidden_physics.make_page import _case_label
+
+    assert _case_label({"case": "mu_i_s0"}) == "mu_i_s0"
+    assert _case_label({"case": "mu_i_s0", "sigmas": "noise", "ladder": "prior"}) == (
+        "mu_i_s0 (ladder over the whole prior; sigmas stated as the noise drawn)")

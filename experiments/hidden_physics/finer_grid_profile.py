@@ -1,7 +1,7 @@
 """Would refitting on a finer grid over the same DEM correct a biased switch? ``python -m
 experiments.hidden_physics.finer_grid_profile [--cases resolved:earth_pressure_s0,narrow:yield_stress_s1:mu_i,...]
 [--out FILE] [--finer-inputs dem|terrain|terrain_volume] [--grids inversion,finer] [--cellsize M]
-[--ladder refit|prior] [--search-iters N] [--sweeps N] [--device cuda] [--compile]``
+[--ladder refit|prior] [--search-iters N] [--sweeps N] [--sigmas harness|noise] [--device cuda] [--compile]``
 
 On the resolved terrain the earth-pressure switch comes out near 0.5 (truth 1) and tau_y near 4-5
 (truth 3), even in a noise-free scan (grid_convergence.py --switch-scan). If the 40 m solver were the
@@ -29,7 +29,9 @@ the switch's whole prior range instead of around the refit's interval, so that t
 0 and so the term's rise over its nested baseline; ``--search-iters N``: N iterations of the search per
 value instead of 2; ``--sweeps N``: up to N continuation sweeps after the profile, each value searched
 again from its neighbours' optima (rows keyed by all three). ``--device``, ``--compile``: where the solver runs,
-and compiled (not row keys).
+and compiled (not row keys). ``--sigmas noise``: the likelihood states each gauge series' and the deposit map's
+sigma as the sd of the noise drawn for it (scenarios.noise_sigmas) instead of the harness' larger ones (a row
+key).
 
 The information ceiling: ``--grids finer --finer-inputs terrain --ladder prior`` profiles a case on the
 recording's own cells and terrain (the nominal release, the measurement errors alone), i.e. the inversion
@@ -55,7 +57,7 @@ from torchslide.diagnose.refit import candidate_evaluator
 from torchslide.physics import CANDIDATES
 
 from . import scenarios
-from .scenarios import SCENARIOS, make_evaluator, make_recording
+from .scenarios import SCENARIOS, SIGMAS, make_evaluator, make_recording, noise_sigmas
 
 HERE = Path(__file__).parent
 RESULTS = {"narrow": HERE / "results" / "harness", "resolved": HERE / "results" / "resolved" / "results",
@@ -190,15 +192,21 @@ def _parse(spec: str) -> tuple[str, str, str | None]:
 FINER_INPUTS = ("dem", "terrain", "terrain_volume")
 
 
-def case_evaluator(D: dict, finer_inputs: str = "dem", device: str = "cpu", compile_solver: bool = False):
+def case_evaluator(D: dict, finer_inputs: str = "dem", device: str = "cpu", compile_solver: bool = False,
+                   sigmas: str = "harness"):
     """(recording, evaluator) of the saved harness case ``D`` (its terrain, cell size and recording
     grid), the evaluator's finer-grid inputs as ``finer_inputs`` says (profile_case); its runs on
-    ``device``, compiled when ``compile_solver`` (scenarios.make_evaluator)."""
+    ``device``, compiled when ``compile_solver`` (scenarios.make_evaluator); ``sigmas`` "noise": the
+    recording's sigmas those of scenarios.noise_sigmas."""
     if finer_inputs not in FINER_INPUTS:
         raise ValueError(f"finer_inputs must be one of {FINER_INPUTS}, got {finer_inputs!r}")
+    if sigmas not in SIGMAS:
+        raise ValueError(f"sigmas must be one of {SIGMAS}, got {sigmas!r}")
     cellsize = float(D.get("cellsize", 40.0))
     with scenarios.terrain_variant(D.get("terrain", "narrow")):
         rec = make_recording(D["scenario"], int(D["seed"]), cellsize=cellsize, fine_factor=D.get("fine_factor", 2))
+        if sigmas == "noise":
+            rec = dataclasses.replace(rec, observations=noise_sigmas(rec.observations))
         ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=finer_inputs != "dem", device=device,
                             compile_solver=compile_solver)
     if finer_inputs == "terrain_volume":
@@ -215,7 +223,7 @@ GRIDS = {"inversion": ("inversion_grid", 1), "finer": ("finer_grid", 2)}
 def profile_case(run: str, case: str, candidate: str | None = None, results=None, seed: int = 0,
                  finer_inputs: str = "dem", grids=("inversion", "finer"), row: dict | None = None,
                  cellsize: float | None = None, ladder: str = "refit", n_iter: int = 2, sweeps: int = 0,
-                 device: str = "cpu", compile_solver: bool = False) -> dict:
+                 device: str = "cpu", compile_solver: bool = False, sigmas: str = "harness") -> dict:
     """The two profiles of one saved case (module doc); ``run``: a key of RESULTS (where the case is
     read unless ``results`` is given). ``finer_inputs``: what the finer grid runs on, "dem" (the
     inversion's DEM interpolated bilinearly, as the diagnosis' model error does), "terrain" (the
@@ -228,7 +236,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     size in m if not the case's own (the recording re-made on cells half as large; module doc); the row
     then has ``saved_cellsize``, the case's own. ``ladder``, ``n_iter``, ``sweeps``: grid_profile's (the
     row keeps them where they are not the defaults "refit", 2 and 0). ``device``, ``compile_solver``: where
-    and how the runs go (case_evaluator; the row keeps a device other than the CPU)."""
+    and how the runs go (case_evaluator; the row keeps a device other than the CPU); ``sigmas``: the likelihood's
+    (case_evaluator; the row keeps "noise")."""
     if cellsize is not None and not (np.isfinite(cellsize) and cellsize > 0):
         raise ValueError(f"cellsize must be a positive number of m, got {cellsize!r}")
     bad = [g for g in grids if g not in GRIDS]
@@ -239,7 +248,7 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
     if cellsize is not None:
         D = dict(D, cellsize=float(cellsize))
     terrain, cellsize = D.get("terrain", run), float(D.get("cellsize", 40.0))
-    rec, ev = case_evaluator(D, finer_inputs, device=device, compile_solver=compile_solver)
+    rec, ev = case_evaluator(D, finer_inputs, device=device, compile_solver=compile_solver, sigmas=sigmas)
     sc = D["scenario"]
     cand = candidate or SCENARIOS[sc][0]
     C = CANDIDATES[cand]
@@ -258,6 +267,8 @@ def profile_case(run: str, case: str, candidate: str | None = None, results=None
         new["sweeps"] = int(sweeps)
     if device != "cpu":
         new["device"] = str(device)
+    if sigmas != "harness":
+        new["sigmas"] = sigmas
     row = {**new, "profiles": dict((row or {}).get("profiles", {}))}
     for label, f in (GRIDS[g] for g in GRIDS if g in grids):
         if label in row["profiles"]:
@@ -290,6 +301,8 @@ def main(argv=None) -> int:
     a.add_argument("--sweeps", type=int, default=0,
                    help="continuation sweeps after the profile: each switch value searched again from its "
                         "neighbours' optima (neighbour_sweeps), while a value still rises by more than 0.5")
+    a.add_argument("--sigmas", default="harness", choices=SIGMAS,
+                   help="the likelihood's sigmas: the harness' (default) or the sd of the noise it draws")
     a.add_argument("--device", default="cpu", help="where the solver runs (cpu, cuda, ...)")
     a.add_argument("--compile", action="store_true", help="compile the solver (SolverConfig.compile)")
     args = a.parse_args(argv)
@@ -313,11 +326,11 @@ def main(argv=None) -> int:
         cs = json.loads((RESULTS[run] / f"{case}.json").read_text())
         key = (cs.get("terrain", run), args.cellsize or float(cs.get("cellsize", 40.0)), case,
                cand or SCENARIOS[cs["scenario"]][0], args.finer_inputs, args.ladder, args.search_iters,
-               args.sweeps)
+               args.sweeps, args.sigmas)
         k = next((i for i, r in enumerate(rows) if (r["terrain"], float(r.get("cellsize", 40.0)), r["case"],
                                                      r["candidate"], r.get("finer_inputs", "dem"),
                                                      r.get("ladder", "refit"), r.get("n_iter", 2),
-                                                     r.get("sweeps", 0)) == key), None)
+                                                     r.get("sweeps", 0), r.get("sigmas", "harness")) == key), None)
         have = set(rows[k].get("profiles", {"inversion_grid": 0, "finer_grid": 0})) if k is not None else set()
         if all(GRIDS[g][0] in have for g in grids):
             print("already in", out, *key)
@@ -325,7 +338,7 @@ def main(argv=None) -> int:
         r = profile_case(run, case, cand, finer_inputs=args.finer_inputs, grids=grids,
                          row=rows[k] if k is not None else None, cellsize=args.cellsize, ladder=args.ladder,
                          n_iter=args.search_iters, sweeps=args.sweeps, device=args.device,
-                         compile_solver=args.compile)
+                         compile_solver=args.compile, sigmas=args.sigmas)
         if k is None:
             rows.append(r)
         else:

@@ -717,7 +717,7 @@ def _oracle_section(file=None) -> list[str]:
     groups = {}
     for r in rows:
         sc, seed = r["case"].rsplit("_s", 1)
-        groups.setdefault((r["terrain"], sc, r["candidate"]), []).append((int(seed), r))
+        groups.setdefault((r["terrain"], sc, r["candidate"], r.get("sigmas", "harness")), []).append((int(seed), r))
     L = ["## Could any inversion find it? The recordings' own model (oracle profiles)", "",
          "Each case's recording profiled along one candidate's switch on the grid and terrain the recording was made "
          "on (cells half the inversion grid's, the analytic surface: `finer_grid_profile --grids finer "
@@ -729,10 +729,12 @@ def _oracle_section(file=None) -> list[str]:
          "prior minus its value at switch 0), the term's gain over its nested baseline before the switch's Occam "
          "factor (about -2 to -4 in 2 ln for these priors); naming needs a 2 ln Bayes factor of at least 6 over the "
          "runner-up. 'Last sweep': the largest rise of a profile value in the last sweep (ln; above 0.5 the profile "
-         "had not settled, so a gain can be off by about that much times 2).", "",
-         "| terrain | scenario | candidate | truth | 2 ln L gain per seed | best switch per seed | last sweep, ln | "
-         "seeds with gain >= 10 (the margin 6 plus up to 4 for the Occam factor) |", "|---|---|---|---|---|---|---|---|"]
-    for (terrain, sc, cand), items in sorted(groups.items()):
+         "had not settled, so a gain can be off by about that much times 2). 'Sigmas': the harness' (h 0.5 m, speed "
+         "2 m/s, deposit 0.5 m: 2.5, 4 and 1.7 times the noise drawn) or the noise drawn (h 0.2 m, speed 0.5 m/s, "
+         "deposit 0.3 m; `--sigmas noise`).", "",
+         "| terrain | scenario | candidate | sigmas | truth | 2 ln L gain per seed | best switch per seed | last sweep, ln | "
+         "seeds with gain >= 10 (the margin 6 plus up to 4 for the Occam factor) |", "|---|---|---|---|---|---|---|---|---|"]
+    for (terrain, sc, cand, sig), items in sorted(groups.items()):
         items.sort(key=lambda t: t[0])
         gains, best, last = [], [], []
         for seed, r in items:
@@ -744,7 +746,7 @@ def _oracle_section(file=None) -> list[str]:
             last.append(f"{(p.get('sweep_rises') or [0.0])[-1]:.1f}")
         n10 = sum(float(g.split()[1]) >= 10 for g in gains if not g.endswith("-"))
         truth = next((r["truth"] for _, r in items if r["truth"] is not None), None)
-        L.append(f"| {terrain} | {sc} | {cand} | {'-' if truth is None else f'{truth:.3g}'} | {', '.join(gains)} | "
+        L.append(f"| {terrain} | {sc} | {cand} | {sig} | {'-' if truth is None else f'{truth:.3g}'} | {', '.join(gains)} | "
                  f"{', '.join(best)} | {', '.join(last)} | {n10} of {len(items)} |")
     return L + [""]
 
@@ -760,23 +762,27 @@ def _terrain_screen_section(file=None) -> list[str]:
     if not rows:
         return []
     variants = list(dict.fromkeys(r["variant"] for r in rows))
-    scen = list(dict.fromkeys(r["scenario"] for r in rows))
-    by = {(r["variant"], r["scenario"]): r for r in rows}
+    key = lambda r: (r["scenario"], r.get("sigmas", "harness"))  # noqa: E731
+    scen = list(dict.fromkeys(map(key, rows)))
+    by = {(r["variant"],) + key(r): r for r in rows}
     L = ["## Would another terrain of the same family help? (experiments/hidden_physics/terrain_screen.py)", "",
          "Each scenario's recording made noise-free (nominal release) on a variant of the harness terrains, compared "
          "with the baseline on the recording grid itself (20 m cells over the recording's own terrain; the "
          "measurement errors alone in the likelihood), in 2 ln L: 'raw' at the true mu, xi (the term's whole "
          "effect), 'unmimicked' after a local search over mu, xi with the switch at 0 (what re-tuning the baseline "
          "cannot absorb: about the most an oracle gains from such a recording; the naming margin is 6 plus the "
-         "switch's Occam factor). The likelihood's sigmas are the harness' (2.5-4 times the noise drawn); at "
-         "sigma_scale s both figures scale as 1 / s^2. Variants: the keywords of "
+         "switch's Occam factor). The likelihood's sigmas are the harness' (2.5-4 times the noise drawn), or, "
+         "marked 'noise sigmas' (`--sigmas noise`), the sd of the noise drawn for each gauge series and the deposit "
+         "map: what recordings with honestly stated errors would hold. Variants: the keywords of "
          "torchslide.terrain.synthetic.channel_with_bends changed from the named terrain.", "",
-         "| variant | changed | " + " | ".join(f"{s}: raw / unmimicked" for s in scen) + " |",
+         "| variant | changed | " + " | ".join(f"{s}{' (noise sigmas)' if g == 'noise' else ''}: raw / unmimicked"
+                                             for s, g in scen) + " |",
          "|---|---|" + "---|" * len(scen)]
     for v in variants:
         r0 = next(r for r in rows if r["variant"] == v)
         changed = ", ".join(f"{k} {x:g}" for k, x in r0["geom"].items()) or "-"
-        cells = [f"{by[v, s]['raw']:.1f} / {by[v, s]['unmimicked']:.1f}" if (v, s) in by else "-" for s in scen]
+        cells = [f"{by[(v,) + k]['raw']:.1f} / {by[(v,) + k]['unmimicked']:.1f}" if (v,) + k in by else "-"
+                 for k in scen]
         L.append(f"| {v} ({r0['terrain']}) | {changed} | " + " | ".join(cells) + " |")
     return L + [""]
 
@@ -797,6 +803,8 @@ def _case_label(r) -> str:
         notes.append(f"{r['n_iter']} search iterations")
     if r.get("sweeps", 0):
         notes.append(f"up to {r['sweeps']} continuation sweeps")
+    if r.get("sigmas", "harness") == "noise":
+        notes.append("sigmas stated as the noise drawn")
     return r["case"] + (f" ({'; '.join(notes)})" if notes else "")
 
 
@@ -810,7 +818,8 @@ def _profile_pair_rows(rows) -> list[str]:
     for r in rows:
         if r["candidate"] in PAIR:
             by.setdefault((r["terrain"], r.get("cellsize", 40.0), r["case"], r.get("finer_inputs", "dem"),
-                           r.get("saved_cellsize"), r.get("ladder", "refit"), r.get("n_iter", 2), r.get("sweeps", 0)),
+                           r.get("saved_cellsize"), r.get("ladder", "refit"), r.get("n_iter", 2), r.get("sweeps", 0),
+                           r.get("sigmas", "harness")),
                           {})[r["candidate"]] = r
     keys = [k for k, v in by.items() if len(v) == 2 and k[2].rsplit("_s", 1)[0] in PAIR]
     if not keys:

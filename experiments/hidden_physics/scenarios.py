@@ -21,7 +21,7 @@ inversion; its final_volume sigma is 10 % of the nominal volume).
 from __future__ import annotations
 
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -46,6 +46,10 @@ V_NOMINAL = 2.0e5
 T_END = 90.0
 DT_OBS = 2.0
 SOLVER = dict(stop_ke_fraction=2e-3, output_interval=1.0)
+# gauge quantity -> (the likelihood's sigma, the sd of the noise drawn), and the deposit map's noise sd (its
+# likelihood sigma is make_recording's map_sigma, 0.5 m): the harness states errors larger than it draws
+GAUGE_ERRORS = {"h": (0.5, 0.2), "speed": (2.0, 0.5)}
+DEPOSIT_NOISE = 0.3
 
 # scenario -> (true library term or None / "outside", hidden parameters at strength 1)
 SCENARIOS = {
@@ -144,7 +148,8 @@ class Recording:
 
 
 def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: float = 1.0,
-                   map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = 0.3, gauge_corr: float = 4.0, fine_factor: int = 2,
+                   map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = DEPOSIT_NOISE, gauge_corr: float = 4.0,
+                   fine_factor: int = 2,
                    noise_scale: float = 1.0, base: dict | None = None, volume_factor: float | None = None,
                    sigma_scale: float = 1.0) -> Recording:
     """``noise_scale`` multiplies every noise draw (0: noise-free recording; the draws, and so the
@@ -181,7 +186,7 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     for g in res.gauges.values():
         from torchslide.observe_series import interp_series
         import torch
-        for q, s, e in (("h", 0.5, 0.2), ("speed", 2.0, 0.5)):
+        for q, (s, e) in GAUGE_ERRORS.items():
             y = (g.h if q == "h" else g.speed)
             yv = interp_series(g.t, y, torch.as_tensor(t))[0].numpy()
             yv = yv + noise_scale * e * rng.standard_normal(yv.shape)
@@ -192,6 +197,23 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
                            name="final_volume"))
     truth = {"term": term, **vals}
     return Recording(scenario, seed, strength, truth, vf, obs, hf)
+
+
+SIGMAS = ("harness", "noise")   # the likelihood's sigmas: the harness' (make_recording) or noise_sigmas'
+
+
+def noise_sigmas(observations) -> list:
+    """The observations with each gauge series' and deposit map's sigma set to the sd of the noise the harness
+    draws for it (GAUGE_ERRORS, DEPOSIT_NOISE: recordings whose errors are stated as they are, not 1.7-4 times
+    larger); the others (the final volume, whose sigma is the release error's) unchanged."""
+    out = []
+    for o in observations:
+        if getattr(o, "kind", None) == "gauge_series":
+            o = replace(o, sigma=GAUGE_ERRORS[o.quantity][1])
+        elif getattr(o, "kind", None) == "deposit_map":
+            o = replace(o, sigma=DEPOSIT_NOISE)
+        out.append(o)
+    return out
 
 
 def fine_terrain_grids(cellsize: float = 40.0) -> tuple:

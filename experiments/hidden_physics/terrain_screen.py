@@ -1,6 +1,6 @@
 """Would another terrain of the same family put a hidden term within reach? ``python -m
 experiments.hidden_physics.terrain_screen [--scenario curvature] [--variants NAME=key:value;...,...]
-[--search-iters N] [--out FILE]``
+[--search-iters N] [--sigmas harness|noise] [--out FILE]``
 
 For each terrain variant (a harness terrain, ``narrow`` or ``resolved``, with some of its
 channel_with_bends keywords changed, e.g. ``resolved_theta35=resolved;theta_deg:35``) the scenario's
@@ -16,14 +16,20 @@ alone in the likelihood:
   the baseline cannot absorb: the most an oracle could gain from a noise-free recording (a noisy one
   gives about this plus or minus its noise).
 
+``--sigmas noise``: the likelihood states each gauge series' and the deposit map's sigma as the sd of the
+noise the harness draws for it (scenarios.noise_sigmas: h 0.2 m, speed 0.5 m/s, deposit
+0.3 m) instead of the harness' larger ones (0.5 m, 2 m/s, 0.5 m; the final volume's sigma, the release
+error's, is kept): what recordings with honestly stated errors would hold.
+
 A scenario whose ``unmimicked`` stays near the naming margin (2 ln 6, plus the switch's Occam factor)
 on every variant is out of reach of any inversion on such recordings, whatever its grid. Diagnostic
 only: the harness' terrains are not changed by it. Rows go to ``--out`` (default
-results/terrain_screen.json, one row per (variant, scenario); an existing row is kept: resume).
+results/terrain_screen.json, one row per (variant, scenario, sigmas); an existing row is kept: resume).
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -91,9 +97,13 @@ def screen(evc, true_x, bounds, n_iter: int = 4, seed: int = 0) -> dict:
             "runs": 2 + len(ls["z"])}
 
 
-def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: int = 4, seed: int = 0) -> dict:
+def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: int = 4, seed: int = 0,
+                   sigmas: str = "harness") -> dict:
     """One row: the noise-free recording of ``scenario`` on ``terrain`` with ``geom`` changed (registered
-    as scenarios.TERRAINS[name] for the call, removed after), screened on its recording grid."""
+    as scenarios.TERRAINS[name] for the call, removed after), screened on its recording grid with the
+    likelihood's ``sigmas`` ("harness" or "noise": scenarios.noise_sigmas)."""
+    if sigmas not in scenarios.SIGMAS:
+        raise ValueError(f"sigmas must be one of {scenarios.SIGMAS}, got {sigmas!r}")
     term, hidden = scenarios.SCENARIOS[scenario]
     if term not in scenarios.SWITCH:
         raise ValueError(f"scenario {scenario!r} has no library term to screen (one of "
@@ -105,6 +115,8 @@ def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: i
     try:
         with scenarios.terrain_variant(name):
             rec = scenarios.make_recording(scenario, seed, noise_scale=0.0, volume_factor=1.0)
+            if sigmas == "noise":
+                rec = dataclasses.replace(rec, observations=scenarios.noise_sigmas(rec.observations))
             ev = scenarios.make_evaluator(rec, fine_terrain=True)
     finally:
         if added:
@@ -113,7 +125,7 @@ def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: i
     sw = scenarios.SWITCH[term]
     true_x = [rec.truth[k] for k in evc.prior.names]
     row = screen(evc, true_x, evc.prior.bounds.numpy(), n_iter=n_iter, seed=seed)
-    return {"variant": name, "terrain": terrain, "geom": geom, "scenario": scenario, "param": sw,
+    return {"variant": name, "terrain": terrain, "geom": geom, "scenario": scenario, "sigmas": sigmas, "param": sw,
             "truth": rec.truth[sw], **row, "wall_s": time.perf_counter() - t0}
 
 
@@ -122,6 +134,8 @@ def main(argv=None) -> int:
     a.add_argument("--scenario", default="curvature", help="a scenario with a library term")
     a.add_argument("--variants", default=DEFAULT_VARIANTS, help="NAME=TERRAIN[;key:value...],...")
     a.add_argument("--search-iters", type=int, default=4, help="local-search iterations over mu, xi")
+    a.add_argument("--sigmas", default="harness", choices=scenarios.SIGMAS,
+                   help="the likelihood's sigmas: the harness' (default) or the sd of the noise it draws")
     a.add_argument("--out", default=str(HERE / "results" / "terrain_screen.json"))
     args = a.parse_args(argv)
     try:
@@ -138,11 +152,12 @@ def main(argv=None) -> int:
     rows = json.loads(out.read_text()) if out.exists() else []
     out.parent.mkdir(parents=True, exist_ok=True)
     for name, (terrain, geom) in variants.items():
-        if any(r["variant"] == name and r["scenario"] == args.scenario for r in rows):
+        if any(r["variant"] == name and r["scenario"] == args.scenario and r.get("sigmas", "harness") == args.sigmas
+               for r in rows):
             print("already in", out, name, args.scenario)
             continue
-        row = screen_variant(name, terrain, geom, args.scenario, n_iter=args.search_iters)
-        print(name, args.scenario, f"raw {row['raw']:.1f}", f"unmimicked {row['unmimicked']:.1f}", flush=True)
+        row = screen_variant(name, terrain, geom, args.scenario, n_iter=args.search_iters, sigmas=args.sigmas)
+        print(name, args.scenario, args.sigmas, f"raw {row['raw']:.1f}", f"unmimicked {row['unmimicked']:.1f}", flush=True)
         rows.append(row)
         out.write_text(json.dumps(rows, indent=1))      # after every variant: an interrupted run loses one
     print("wrote", out)
