@@ -2894,3 +2894,46 @@ def test_finer_check_takes_finer_grid_maxima_of_the_case_itself():
             dict(base, candidate="entrainment", case="null_s0", profiles={"finer_grid": prof([-2.0, 0.0])})]
     assert profile_maxima(rows, "narrow", 20.0, "yield_stress_s0") == {"yield_stress": -3.0}
     assert profile_maxima(rows, "narrow", 10.0, "yield_stress_s0") == {}
+
+
+def test_harness_sigmas_stated_as_the_noise(tmp_path, monkeypatch):
+    """``harness --sigmas noise``: passed to run_case (default "harness"); it cannot be combined with a sigma scale;
+    run_case states the noise drawn as the recording's sigmas (scenarios.noise_sigmas) before the diagnosis and
+    records the choice; an unknown choice fails before any run."""
+    import experiments.hidden_physics.harness as H
+
+    calls = []
+
+    def fake(sc, seed, out, cellsize=40.0, **kw):
+        calls.append(kw["sigmas"])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / f"{sc}_s{seed}.json").write_text("{}")
+        return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
+
+    real = H.run_case
+    monkeypatch.setattr(H, "run_case", fake)
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"), "--sigmas", "noise"]) == 0
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert calls == ["noise", "harness"]
+    with pytest.raises(SystemExit):
+        H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "c"), "--sigmas", "noise",
+                "--sigma-scale", "0.5"])
+    with pytest.raises(SystemExit):
+        H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "c"), "--sigmas", "tight"])
+    assert calls == ["noise", "harness"]
+    with pytest.raises(ValueError, match="sigmas must be one of"):
+        real("null", 3, tmp_path / "d", sigmas="tight")
+    with pytest.raises(ValueError, match="sigma_scale must be 1"):
+        real("null", 3, tmp_path / "d", sigmas="noise", sigma_scale=0.5)
+    # what run_case hands the diagnosis
+    seen = {}
+
+    def fake_diagnose(ev, cands, bud, th, log=None):
+        seen["sigmas"] = {o.name: o.sigma for o in ev.observations}
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(H, "diagnose", fake_diagnose)
+    with pytest.raises(RuntimeError, match="stop here"):
+        real("null", 3, tmp_path / "d", sigmas="noise")
+    assert seen["sigmas"]["g1:h"] == 0.2 and seen["sigmas"]["g2:speed"] == 0.5 and seen["sigmas"]["deposit"] == 0.3
+    assert seen["sigmas"]["final_volume"] == pytest.approx(0.1 * 2.0e5)

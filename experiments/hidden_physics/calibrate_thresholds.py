@@ -99,6 +99,7 @@ def _probe_design(case: dict) -> bool:
     the strength is part of the row's key)."""
     return (case.get("cellsize", 40.0) == 40.0
             and case.get("fine_factor", 2) == 2 and (case.get("sigma_scale") or 1.0) == 1.0
+            and case.get("sigmas", "harness") == "harness"
             and not case.get("extra_gauges"))
 
 

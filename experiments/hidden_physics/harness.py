@@ -14,6 +14,7 @@ calibrate_thresholds.py from *separate* null seeds 100-104), else torchslide.dia
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -24,7 +25,7 @@ from torchslide.diagnose import Budgets, Thresholds, diagnose
 from torchslide.physics import CANDIDATES
 
 from . import scenarios
-from .scenarios import SCENARIOS, SWITCH, TERRAINS, make_evaluator, make_recording, terrain_variant
+from .scenarios import SCENARIOS, SIGMAS, SWITCH, TERRAINS, make_evaluator, make_recording, noise_sigmas, terrain_variant
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
@@ -81,11 +82,19 @@ def coverage(diag: dict, truth: dict) -> tuple:
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None,
              fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16, fine_factor: int = 2,
-             sigma_scale: float = 1.0, compile_solver: bool = False) -> dict:
+             sigma_scale: float = 1.0, compile_solver: bool = False, sigmas: str = "harness") -> dict:
+    """One blind case: the recording, the diagnosis, the case JSON (and its maps) in ``out``. ``sigmas``
+    "noise": the likelihood's sigmas are the noise drawn (scenarios.noise_sigmas; ``sigma_scale`` must be 1)."""
+    if sigmas not in SIGMAS:
+        raise ValueError(f"sigmas must be one of {SIGMAS}, got {sigmas!r}")
+    if sigmas == "noise" and sigma_scale != 1.0:
+        raise ValueError(f"sigmas 'noise' states the noise drawn: sigma_scale must be 1, got {sigma_scale!r}")
     t0 = time.perf_counter()
     out = Path(out)
     rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor,
                          sigma_scale=sigma_scale)
+    if sigmas == "noise":
+        rec = dataclasses.replace(rec, observations=noise_sigmas(rec.observations))
     ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch,
                         compile_solver=compile_solver)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
@@ -94,7 +103,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
             "fine_terrain": fine_terrain, "fine_factor": fine_factor, "extra_gauges": list(scenarios.EXTRA_GAUGES),
-            "sigma_scale": sigma_scale, "device": str(device), "compile_solver": compile_solver, "truth": rec.truth,
+            "sigma_scale": sigma_scale, "sigmas": sigmas, "device": str(device), "compile_solver": compile_solver, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq,
             "wall_s": time.perf_counter() - t0, "diagnosis": j}
@@ -156,6 +165,9 @@ def main(argv=None) -> int:
     p.add_argument("--sigma-scale", type=float, default=1.0,
                    help="multiplies the likelihood sigmas of the gauge series and the deposit map (not the noise "
                         "drawn; scenarios.make_recording); another value needs its own null seeds and --out")
+    p.add_argument("--sigmas", default="harness", choices=SIGMAS,
+                   help="the likelihood's sigmas: the harness' (default; 1.7-4 times the noise drawn) or the sd of the "
+                        "noise drawn (scenarios.noise_sigmas); noise needs its own null seeds and --out")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     p.add_argument("--compile", action="store_true",
@@ -168,6 +180,8 @@ def main(argv=None) -> int:
         p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
     if not 0 < a.sigma_scale <= 10:
         p.error(f"--sigma-scale must be in (0, 10], got {a.sigma_scale}")
+    if a.sigmas == "noise" and a.sigma_scale != 1.0:
+        p.error(f"--sigmas noise states the noise drawn: --sigma-scale must be 1, got {a.sigma_scale}")
     if a.mode_search_iters is not None and a.mode_search_iters < 0:
         p.error(f"--mode-search-iters must be >= 0, got {a.mode_search_iters}")
     if a.mode_search_max_iters is not None and a.mode_search_max_iters < 0:
@@ -224,6 +238,7 @@ def _run_all(a) -> int:
                     c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
                                  fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
                                  fine_factor=a.fine_factor, sigma_scale=a.sigma_scale, compile_solver=a.compile,
+                                 sigmas=a.sigmas,
                                  log=lambda s: print(s, flush=True))
                 finally:
                     claim.unlink(missing_ok=True)
