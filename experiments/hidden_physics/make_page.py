@@ -770,8 +770,8 @@ def _terrain_screen_section(file=None) -> list[str]:
          "with the baseline on the recording grid itself (20 m cells over the recording's own terrain; the "
          "measurement errors alone in the likelihood), in 2 ln L: 'raw' at the true mu, xi (the term's whole "
          "effect), 'unmimicked' after a local search over mu, xi with the switch at 0 (what re-tuning the baseline "
-         "cannot absorb: about the most an oracle gains from such a recording; the naming margin is 6 plus the "
-         "switch's Occam factor). The likelihood's sigmas are the harness' (2.5-4 times the noise drawn), or, "
+         "cannot absorb: about the most an oracle gains from such a recording, and an upper bound, as the search is "
+         "short; the naming margin is 6 plus the switch's Occam factor). The likelihood's sigmas are the harness' (2.5-4 times the noise drawn), or, "
          "marked 'noise sigmas' (`--sigmas noise`), the sd of the noise drawn for each gauge series and the deposit "
          "map: what recordings with honestly stated errors would hold. Variants: the keywords of "
          "torchslide.terrain.synthetic.channel_with_bends changed from the named terrain.", "",

@@ -14,7 +14,8 @@ alone in the likelihood:
 * ``unmimicked``: 2 x (ln L of the true model - the best ln L of the baseline after a local search
   over mu, xi (polish.local_search, the switch held at 0, started at the true mu, xi)), what re-tuning
   the baseline cannot absorb: the most an oracle could gain from a noise-free recording (a noisy one
-  gives about this plus or minus its noise).
+  gives about this plus or minus its noise). An upper bound: the search is short (4 iterations of 6 runs from
+  one start), and a longer one can only absorb more.
 
 ``--sigmas noise``: the likelihood states each gauge series' and the deposit map's sigma as the sd of the
 noise the harness draws for it (scenarios.noise_sigmas: h 0.2 m, speed 0.5 m/s, deposit
