@@ -1094,6 +1094,13 @@ def test_page_section_of_the_release_volume_run(tmp_path):
     assert sg.startswith("## Probe: the resolved terrain with the likelihood's sigmas halved")
     assert "multiplied by 0.5" in sg and "bf_min 10.5" in sg and "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in sg
     assert _sigma_scale_section(tmp_path / "absent", before) == []
+    # the probe with the noise stated as drawn: the same layout
+    from experiments.hidden_physics.make_page import _noise_sigmas_section
+    (now / "entrainment_s4.json").write_text(json.dumps(dict(case, sigmas="noise")))
+    ns = "\n".join(_noise_sigmas_section(now, before))
+    assert ns.startswith("## Probe: the resolved terrain with the noise stated as drawn (`--sigmas noise`)")
+    assert "(0.2 m, 0.5 m/s, 0.3 m" in ns and "bf_min 10.5" in ns and "| entrainment | 1 | 0 -> 1 | 1 -> 1 | 0 -> 1 |" in ns
+    assert _noise_sigmas_section(tmp_path / "absent", before) == []
 
 
 def test_block_fit_section_and_the_sigma_scale_rule(tmp_path):

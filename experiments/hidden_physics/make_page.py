@@ -1544,6 +1544,7 @@ OVERVIEW_RUNS = (
     ("resolved, 40 m, outflow edge (solver of session 33)", "resolved_outflow/results"),
     ("resolved, 40 m, release-volume error in the likelihood", "resolved_vol/results"),
     ("resolved, 40 m, likelihood sigmas halved", "resolved_sig05/results"),
+    ("resolved, 40 m, sigmas stated as the noise drawn (session 40)", "resolved_noise/results"),
     ("resolved, 40 m, two more gauges", "resolved_gauges/results"),
     ("resolved, 20 m", "resolved_20m/results"),
 )
@@ -2039,6 +2040,30 @@ def _sigma_scale_section(d=None, prev=None) -> list[str]:
         "null seeds.")
 
 
+def _noise_sigmas_section(d=None, prev=None) -> list[str]:
+    """The resolved terrain with the noise drawn stated as the likelihood's sigmas (``harness --terrain resolved
+    --sigmas noise``, session 40): cases in ``d`` (default results/resolved_noise/results; null seeds and
+    thresholds in d/null_calib) against the same cases at the harness' sigmas (``prev``, default
+    results/resolved_outflow/results, the same solver)."""
+    def describe(cases, th):
+        return ("The harness states sigmas of 0.5 m (gauge h), 2 m/s (gauge speed) and 0.5 m (deposit), 2.5, 4 and 1.7 "
+                "times the noise it draws; at those sigmas the recordings hold no curvature and mu(I) only at the "
+                "margin (section 'Could any inversion find it?'). Here each gauge series and the deposit map state the "
+                "noise drawn (0.2 m, 0.5 m/s, 0.3 m: `--sigmas noise`, scenarios.noise_sigmas); the noise itself, the "
+                "release error and everything else are as in the resolved run with the outflow edge. No fit flags "
+                "(their levels need 25 null seeds of this design). Median wall time per case "
+                f"{np.median([c['wall_s'] for c in cases]):.0f} s. "
+                + (_thresholds_sentence(th, "run with these sigmas") if th else
+                   "Its null seeds have not all finished: verdicts use the default thresholds."))
+    return _variant_section(
+        Path(d) if d is not None else HERE / "results" / "resolved_noise" / "results",
+        Path(prev) if prev is not None else HERE / "results" / "resolved_outflow" / "results",
+        "## Probe: the resolved terrain with the noise stated as drawn (`--sigmas noise`)", describe,
+        "Against the same cases at the harness' sigmas",
+        "'Before': the resolved run with the outflow edge (the harness' sigmas); 'now': the noise drawn as the sigmas. "
+        "Each with thresholds from its own null seeds.")
+
+
 def _release_volume_narrow_section(d=None, prev=None) -> list[str]:
     """The narrow terrain's probe with the release volume's error (``harness --release-volume-sd 0.0577
     --scenarios entrainment,earth_pressure``, null seeds 100-104): cases in ``d`` (default
@@ -2376,6 +2401,7 @@ def build_page(results, out=None, thresholds_file=None, note: str = "", changes:
     L += _fit_flag_section()
     L += _null_runs_section()
     L += _sigma_scale_section()
+    L += _noise_sigmas_section()
     L += _coverage_section()
     L += _effect_vs_detection_section(out=figdir)
     L += _changes_section() if changes else []
