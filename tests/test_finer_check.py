@@ -451,3 +451,25 @@ def test_case_label_marks_sigmas_stated_as_the_noise():
     assert _case_label({"case": "mu_i_s0"}) == "mu_i_s0"
     assert _case_label({"case": "mu_i_s0", "sigmas": "noise", "ladder": "prior"}) == (
         "mu_i_s0 (ladder over the whole prior; sigmas stated as the noise drawn)")
+
+
+def test_terrain_screen_leaves_the_harness_terrains_as_they_were(monkeypatch):
+    """screen_variant registers its variant for the call only: a new name is removed after, and a variant named
+    like a harness terrain (here "resolved" with a steeper slope) does not change that terrain for later runs,
+    also when the run fails; the terrain in force is the variant's during the call."""
+    from experiments.hidden_physics import scenarios, terrain_screen
+
+    before = {k: (dict(v[0]), v[1], v[2]) for k, v in scenarios.TERRAINS.items()}
+    seen = []
+
+    def boom(*a, **k):
+        seen.append((scenarios.TERRAIN, scenarios.GEOM.get("theta_deg")))
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(scenarios, "make_recording", boom)
+    for name in ("resolved", "steep"):
+        with pytest.raises(RuntimeError, match="stop"):
+            terrain_screen.screen_variant(name, "resolved", {"theta_deg": 35.0}, "curvature")
+    assert seen == [("resolved", 35.0), ("steep", 35.0)]
+    assert {k: (dict(v[0]), v[1], v[2]) for k, v in scenarios.TERRAINS.items()} == before
+    assert scenarios.TERRAIN == "narrow" and "theta_deg" not in scenarios.GEOM

@@ -727,13 +727,13 @@ def _oracle_section(file=None) -> list[str]:
          "over the whole prior, 0 included (`--ladder prior`), 4 search iterations per value and up to 2 "
          "continuation sweeps (`--search-iters 4 --sweeps 2`). '2 ln L gain': 2 x (the profile's best ln L + ln "
          "prior minus its value at switch 0), the term's gain over its nested baseline before the switch's Occam "
-         "factor (about -2 to -4 in 2 ln for these priors); naming needs a 2 ln Bayes factor of at least 6 over the "
+         "factor (a few units of 2 ln: about -2 for mu(I) on resolved s1, from its profile's width, more for a narrower peak); naming needs a 2 ln Bayes factor of at least 6 over the "
          "runner-up. 'Last sweep': the largest rise of a profile value in the last sweep (ln; above 0.5 the profile "
          "had not settled, so a gain can be off by about that much times 2). 'Sigmas': the harness' (h 0.5 m, speed "
          "2 m/s, deposit 0.5 m: 2.5, 4 and 1.7 times the noise drawn) or the noise drawn (h 0.2 m, speed 0.5 m/s, "
          "deposit 0.3 m; `--sigmas noise`).", "",
          "| terrain | scenario | candidate | sigmas | truth | 2 ln L gain per seed | best switch per seed | last sweep, ln | "
-         "seeds with gain >= 10 (the margin 6 plus up to 4 for the Occam factor) |", "|---|---|---|---|---|---|---|---|---|"]
+         "seeds with gain >= 10 (the margin 6 plus a few for the Occam factor: a rule of thumb) |", "|---|---|---|---|---|---|---|---|---|"]
     for (terrain, sc, cand, sig), items in sorted(groups.items()):
         items.sort(key=lambda t: t[0])
         gains, best, last = [], [], []

@@ -101,7 +101,7 @@ def screen(evc, true_x, bounds, n_iter: int = 4, seed: int = 0) -> dict:
 def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: int = 4, seed: int = 0,
                    sigmas: str = "harness") -> dict:
     """One row: the noise-free recording of ``scenario`` on ``terrain`` with ``geom`` changed (registered
-    as scenarios.TERRAINS[name] for the call, removed after), screened on its recording grid with the
+    as scenarios.TERRAINS[name] for the call, removed or restored after), screened on its recording grid with the
     likelihood's ``sigmas`` ("harness" or "noise": scenarios.noise_sigmas)."""
     if sigmas not in scenarios.SIGMAS:
         raise ValueError(f"sigmas must be one of {scenarios.SIGMAS}, got {sigmas!r}")
@@ -110,7 +110,7 @@ def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: i
         raise ValueError(f"scenario {scenario!r} has no library term to screen (one of "
                          f"{sorted(s for s, (t, _) in scenarios.SCENARIOS.items() if t in scenarios.SWITCH)})")
     geom0, radius, g2 = scenarios.TERRAINS[terrain]
-    added = name not in scenarios.TERRAINS
+    previous = scenarios.TERRAINS.get(name)        # a variant named like a harness terrain replaces it for the call
     scenarios.TERRAINS[name] = (dict(geom0, **geom), radius, g2)
     t0 = time.perf_counter()
     try:
@@ -120,8 +120,10 @@ def screen_variant(name: str, terrain: str, geom: dict, scenario: str, n_iter: i
                 rec = dataclasses.replace(rec, observations=scenarios.noise_sigmas(rec.observations))
             ev = scenarios.make_evaluator(rec, fine_terrain=True)
     finally:
-        if added:
+        if previous is None:
             del scenarios.TERRAINS[name]
+        else:
+            scenarios.TERRAINS[name] = previous
     evc = finer_grid_evaluator(candidate_evaluator(ev, term))
     sw = scenarios.SWITCH[term]
     true_x = [rec.truth[k] for k in evc.prior.names]
