@@ -20,8 +20,6 @@ from botorch.models.model import Model
 from botorch.optim import optimize_acqf
 from botorch.utils.transforms import t_batch_mode_transform
 
-from torchslide.emulator import single_threaded
-
 _LOG_2PIE = math.log(2.0 * math.pi * math.e)
 
 
@@ -66,23 +64,21 @@ def make_acquisition(name: str, model: Model) -> AnalyticAcquisitionFunction:
 
 
 def select_batch(model: Model, q: int = 1, acquisition: str = "entropy", num_restarts: int = 8,
-                 raw_samples: int = 256, seed: int | None = None, dim: int | None = None,
-                 min_distance: float = 1e-6) -> tuple[torch.Tensor, torch.Tensor]:
+                 raw_samples: int = 256, seed: int | None = None,
+                 dim: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Pick q points in the unit cube maximising the acquisition, with a kriging believer for q > 1.
 
     After each pick x_j the model is conditioned on its own mean prediction
     (``model.condition_on_observations(x_j, m(x_j))``): the variance collapses at x_j and near it,
     so the next maximiser is a different point, and the whole batch can be run in one solver call.
 
+    Reproducible for a given ``seed`` when torch runs on one intra-op thread (multi-threaded
+    reductions change the last bits, which sends L-BFGS to other local optima): the caller sets it.
+
     Returns:
         (X, values): X (q, d) in the unit cube; values (q,) the acquisition maximum of each pick
         (under the model conditioned on the earlier picks).
     """
-    with single_threaded():  # reproducible picks for a given seed, whatever the thread count
-        return _select_batch(model, q, acquisition, num_restarts, raw_samples, seed, dim)
-
-
-def _select_batch(model, q, acquisition, num_restarts, raw_samples, seed, dim):
     d = dim if dim is not None else model.train_inputs[0].shape[-1]
     dtype = model.train_inputs[0].dtype
     bounds = torch.stack([torch.zeros(d, dtype=dtype), torch.ones(d, dtype=dtype)])

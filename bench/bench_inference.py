@@ -1,4 +1,4 @@
-"""Benchmark of the emulator-based inference on the analytic targets of INFERENCE_BENCHMARKS.md.
+"""Benchmark of the emulator-based inference on the analytic targets of docs/inference-benchmarks.md.
 
     python -m bench.bench_inference --out bench/results/inference.json [--seeds 5] [--quick]
 

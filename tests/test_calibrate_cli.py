@@ -3,66 +3,13 @@ from __future__ import annotations
 
 import csv
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from torchslide.cli import main
 
-BASE = """
-[terrain]
-synthetic = "inclined_plane"
-cellsize = 50.0
-options = { theta_deg = 30.0, slope_length = 500.0, runout_length = 700.0, width = 300.0 }
-release = { centre = [250.0, 150.0], radii = [120.0, 100.0], volume = 1.0e5 }
-
-[model]
-rheology = "voellmy"
-mu = 0.2
-xi = 1000.0
-
-[run]
-t_end = 60.0
-"""
-
-PRIOR = """
-[prior]
-mu = [0.05, 0.5]
-xi = [200.0, 2000.0]
-"""
-
-OBS = """
-[[observations]]
-kind = "max_velocity"
-name = "v_plane"
-x = 475.0
-y = 150.0
-value = {value}
-sigma = {sigma}
-"""
-
-CAL = """
-[calibration]
-n_initial = 6
-n_total = 10
-batch_size = 2
-seed = 3
-grid_size = 30
-truth = { mu = 0.2, xi = 1000.0 }
-"""
-
-
-def write(tmp_path: Path, text: str) -> Path:
-    p = tmp_path / "cal.toml"
-    p.write_text(text)
-    return p
-
-
-def truth_velocity(tmp_path: Path) -> float:
-    cfg = write(tmp_path, BASE + '[[gauges]]\nname = "G"\nx = 475.0\ny = 150.0\n')
-    assert main(["simulate", str(cfg), "--out", str(tmp_path / "truth"), "--quiet"]) == 0
-    return json.loads((tmp_path / "truth" / "summary.json").read_text())["gauges"]["G"]["v_max"]
+from .conftest import CALIBRATE_BASE as BASE, CALIBRATE_CAL as CAL, CALIBRATE_OBS as OBS, CALIBRATE_PRIOR as PRIOR, truth_velocity, write_config as write
 
 
 def test_calibrate_round_trip_and_resume(tmp_path, capsys):
@@ -162,7 +109,7 @@ def test_every_documented_prior_distribution_parses_to_its_density(tmp_path):
     from scipy import stats
 
     from torchslide.bayes import Gamma, LogNormal, TruncatedNormal, Uniform
-    from torchslide.commands.calibrate import load_calibration_config
+    from torchslide.calibration_config import load_calibration_config
 
     prior = """
 [prior]

@@ -9,7 +9,7 @@ import pytest
 from torchslide.cli import main
 from torchslide.terrain import read_asc
 
-from .test_config import cfg_text, write_case
+from .conftest import cfg_text, write_case
 
 
 def run_cli(argv, capsys):

@@ -7,48 +7,9 @@ import numpy as np
 import pytest
 
 from torchslide.config import ConfigError, load_config
-from torchslide.terrain import DEM, inclined_plane, release_from_shape, write_asc
+from torchslide.terrain import DEM
 
-
-def write_case(d, *, cellsize=20.0, release_dem=None, nan_dem=False, neg_release=False):
-    """Small inclined plane DEM + release in folder d; returns (dem, release)."""
-    dem = inclined_plane(30.0, cellsize=cellsize, slope_length=400, runout_length=300, width=200)
-    rel = release_from_shape(dem, (150.0, 100.0), (60.0, 40.0), volume=2.0e4)
-    z = dem.z.copy()
-    if nan_dem:
-        z[4, 5] = np.nan
-    write_asc(d / "dem.asc", z, dem, fmt="%.17g")
-    r = rel.copy()
-    if neg_release:
-        r[0, 0] = -1.0
-    write_asc(d / "release.asc", r, release_dem or dem, fmt="%.17g")
-    return dem, rel
-
-
-BASE = """
-[terrain]
-dem = "dem.asc"
-release = "release.asc"
-
-[model]
-rheology = "voellmy"
-mu = {mu}
-xi = {xi}
-
-[run]
-t_end = 20.0
-dtype = "float64"
-device = "cpu"
-
-[[gauges]]
-name = "G1"
-x = {gx}
-y = 100.0
-"""
-
-
-def cfg_text(mu="0.2", xi="1000.0", gx="300.0", extra=""):
-    return BASE.format(mu=mu, xi=xi, gx=gx) + extra
+from .conftest import cfg_text, write_case
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from torchslide.observe_series import read_map  # noqa: E402
 from torchslide.terrain import DEM, read_raster, read_raster_like, write_raster  # noqa: E402
 from torchslide.terrain.io import TerrainError  # noqa: E402
 
-from .test_config import cfg_text, write_case  # noqa: E402
+from .conftest import cfg_text, write_case  # noqa: E402
 
 CRS = "EPSG:2056"  # Swiss LV95, as for the Bondo case
 

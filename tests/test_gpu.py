@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from torchslide.physics import CANDIDATES, Params
+from torchslide.diagnose.candidates import CANDIDATES
+from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 
-from .test_solver_cases import chute_case
-from .test_solver_terms import BASE, ON, T_END
+from .conftest import TERMS_BASE as BASE, TERMS_ON as ON, TERMS_T_END as T_END, chute_case
 
 DEVICE = os.environ.get("TORCHSLIDE_TEST_DEVICE", "cuda")
 ON_CUDA = DEVICE.startswith("cuda")
@@ -109,7 +109,7 @@ def test_compiled_solver_on_cuda_matches_eager(cpu_run):
 
 # ------------------------------------------------------------------ calibration and diagnosis on the GPU
 def _calibration_config(tmp_path, device: str):
-    from .test_calibrate_cli import BASE as CBASE, CAL, OBS, PRIOR, write
+    from .conftest import CALIBRATE_BASE as CBASE, CALIBRATE_CAL as CAL, CALIBRATE_OBS as OBS, CALIBRATE_PRIOR as PRIOR, write_config as write
 
     tmp_path.mkdir(parents=True)
     text = CBASE.replace("[run]\n", f'[run]\ndevice = "{device}"\n') + PRIOR + OBS.format(value=8.0, sigma=0.8) + CAL
@@ -146,7 +146,7 @@ def test_diagnose_on_cuda_end_to_end(tmp_path):
 
     from torchslide.terrain.synthetic import inclined_plane
 
-    from .test_diagnose import _setup, tiny_budgets
+    from .conftest import setup_diagnose_case as _setup, tiny_budgets
 
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets())
@@ -166,7 +166,7 @@ def test_harness_case_on_cuda(tmp_path):
     """One blind-harness case with the inversion's runs on the GPU (the recording is made on the CPU)."""
     from experiments.hidden_physics.harness import run_case
 
-    from .test_diagnose import TINY_HARNESS_BUDGETS
+    from .conftest import TINY_HARNESS_BUDGETS
 
     bud = {**TINY_HARNESS_BUDGETS, "mode_search_iters": 1}
     _reset_memory()

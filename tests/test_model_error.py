@@ -169,7 +169,7 @@ def test_grid_model_error_from_a_pilot_calibration(tmp_path):
 
 def test_model_error_seed_holds_the_grid_error_estimate_fixed(tmp_path):
     """Budgets.model_error_seed seeds the pilot and its draws (None: Budgets.seed), so the likelihood can be
-    held fixed while the rest of the inference's seed changes (experiments/hidden_physics/refit_spread.py)."""
+    held fixed while the rest of the inference's seed changes."""
     from torchslide.diagnose import Budgets
     from torchslide.diagnose.pipeline import grid_model_error
 
@@ -220,20 +220,3 @@ def test_release_volume_sd_needs_the_model_error_runs(tmp_path):
         diagnose(ev, ["mu_i"], Budgets(model_error_runs=0, release_volume_sd=0.05), workdir=tmp_path)
     with pytest.raises(ValueError, match=r"release_volume_sd must be in \[0, 0.5\)"):
         diagnose(ev, ["mu_i"], Budgets(release_volume_sd=-0.1), workdir=tmp_path)
-
-
-def test_finer_grid_evaluator_predicts_what_the_model_errors_finer_runs_do():
-    """experiments.hidden_physics.finer_grid_profile.finer_grid_evaluator: an evaluator whose runs are
-    model_error.fine_run's (cells half as large over the same inputs), so its predictions are
-    fine_predictions' and differ from the inversion grid's; its z uses the same likelihood."""
-    from experiments.hidden_physics.finer_grid_profile import finer_grid_evaluator
-
-    ev = _evaluator()
-    fe = finer_grid_evaluator(ev)
-    x = torch.tensor([[0.3, 600.0], [0.35, 900.0]], dtype=torch.float64)
-    r, preds = fe.evaluate(x)
-    fine, failed = fine_predictions(ev, x.numpy())
-    assert not failed.any() and np.allclose(preds.numpy(), fine, rtol=0, atol=1e-12)
-    coarse = ev.evaluate(x)[1].numpy()
-    assert not np.allclose(fine, coarse)
-    assert torch.allclose(r.z, ev.likelihood.log_likelihood(torch.as_tensor(fine)) + ev.prior.log_prob(x))

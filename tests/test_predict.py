@@ -11,7 +11,7 @@ from torchslide.cli import main
 from torchslide.predict import observation_check, posterior_samples
 from torchslide.terrain import read_asc
 
-from .test_calibrate_cli import BASE, CAL, OBS, PRIOR, truth_velocity, write
+from .conftest import CALIBRATE_BASE as BASE, CALIBRATE_CAL as CAL, CALIBRATE_OBS as OBS, CALIBRATE_PRIOR as PRIOR, truth_velocity, write_config as write
 
 IMPACT = """
 [[observations]]

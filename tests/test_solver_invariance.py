@@ -1,4 +1,4 @@
-"""VERIFICATION 8: rotation, mirror symmetry, batch == single, float32 vs float64, mass balance."""
+"""Verification case 8 (docs/verification.md): rotation, mirror symmetry, batch == single, float32 vs float64, mass balance."""
 from __future__ import annotations
 
 import numpy as np
@@ -9,7 +9,7 @@ from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 from torchslide.terrain import DEM
 
-from .test_solver_cases import cap_release, chute_case, chute_dem
+from .conftest import cap_release, chute_case, chute_dem
 
 CFG = SolverConfig(output_interval=5.0)
 

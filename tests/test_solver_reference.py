@@ -1,4 +1,4 @@
-"""VERIFICATION 4-7: Mangeney dam break, Savage-Hutter similarity, Thacker paraboloid, energy line."""
+"""Verification case 4-7 (docs/verification.md): Mangeney dam break, Savage-Hutter similarity, Thacker paraboloid, energy line."""
 from __future__ import annotations
 
 import math
@@ -38,7 +38,7 @@ def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.
 
 
 def test_mangeney_dam_break():
-    """VERIFICATION 4 (theta 22, delta 21, h0 1 m): L1 error small and decreasing under refinement,
+    """Case 4 (theta 22, delta 21, h0 1 m): L1 error small and decreasing under refinement,
     front (h > 5 % h0) within a few cells."""
     e1, fn1, fr1, r1 = _mangeney(1.0)
     e2, fn2, fr2, _ = _mangeney(0.5)
@@ -57,7 +57,7 @@ def test_mangeney_refinement_slow():
 
 
 def _sh_reference(t_s: float, Lx=80.0, Ly=80.0, H=4.0, delta_deg=25.0, zeta_deg=35.0, K=1.0):
-    """Hutter et al. (1993) similarity solution: integrate the g, f ODEs (VERIFICATION 5)."""
+    """Hutter et al. (1993) similarity solution: integrate the g, f ODEs (Case 5)."""
     zeta, delta = math.radians(zeta_deg), math.radians(delta_deg)
     A = math.sin(zeta)
     C = math.cos(zeta) * math.tan(delta)
@@ -82,7 +82,7 @@ def _sh_reference(t_s: float, Lx=80.0, Ly=80.0, H=4.0, delta_deg=25.0, zeta_deg=
 
 
 def test_savage_hutter_similarity():
-    """VERIFICATION 5 (Lx = Ly = 80 m, H = 4 m, delta 25, zeta 35, k = 1) at t = 20 s.
+    """Case 5 (Lx = Ly = 80 m, H = 4 m, delta 25, zeta 35, k = 1) at t = 20 s.
 
     The reference approximates the lateral friction (v/|u| ~ v/u_centre), so the check is on the
     centre of mass (within 1.5 cells), the peak thickness (10 %) and the L1 shape error (< 30 %)."""
@@ -107,7 +107,7 @@ def test_savage_hutter_similarity():
 
 
 def test_thacker_paraboloid():
-    """VERIFICATION 6 (radially symmetric Thacker oscillation, h0 0.1, a 1, r0 0.8, L 4), frictionless."""
+    """Case 6 (radially symmetric Thacker oscillation, h0 0.1, a 1, r0 0.8, L 4), frictionless."""
     h0, a, r0, L = 0.1, 1.0, 0.8, 4.0
     omega = math.sqrt(8 * G * h0) / a
     A = (a**2 - r0**2) / (a**2 + r0**2)
@@ -144,7 +144,7 @@ def test_thacker_paraboloid():
 
 
 def test_energy_line_parabola():
-    """VERIFICATION 7 (bound): on z = C (1 - x/L)^2, L = C / tan 34 deg, a Coulomb mass released at x0
+    """Case 7 (bound): on z = C (1 - x/L)^2, L = C / tan 34 deg, a Coulomb mass released at x0
     stops before x0 + z(x0) / mu (the point-mass energy line). In the DEM-grid formulation a point mass
     obeys d(u^2/2)/dx = g cos(theta) (tan(theta) - mu) (horizontal u), which stops it where
     int_x0^x cos(theta) (tan(theta) - mu) dx = 0, earlier than the energy line on steep slopes; the

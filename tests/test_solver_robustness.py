@@ -12,7 +12,7 @@ import torch
 from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 
-from .test_solver_cases import cap_release, chute_dem
+from .conftest import cap_release, chute_dem
 
 # six members: low / mid / high mu against a short and a long xi, each with other candidate terms on
 MEMBERS = dict(mu=[0.05, 0.05, 0.25, 0.25, 0.6, 0.6], xi=[100.0, 2000.0] * 3, kappa=[0.0, 0.005] * 3,

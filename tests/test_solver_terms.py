@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 import torch
 
-from torchslide.physics import CANDIDATES, Params
+from torchslide.diagnose.candidates import CANDIDATES
+from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 
-from .test_solver_cases import chute_case
+from .conftest import chute_case
+
+from .conftest import TERMS_BASE as BASE, TERMS_ON as ON, TERMS_T_END as T_END
 
 CFG = SolverConfig(output_interval=5.0)
-T_END = 80.0
-BASE = dict(mu=0.25, xi=600.0)
-ON = {"kappa": 0.004, "curvature": 1.0, "earth_pressure": 1.0, "tau_y": 60.0, "mu_i": 0.3, "deposition": 0.3}
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""VERIFICATION 1-3: lake at rest, static pile (no creep), uniform slope, Voellmy terminal velocity."""
+"""Verification case 1-3 (docs/verification.md): lake at rest, static pile (no creep), uniform slope, Voellmy terminal velocity."""
 from __future__ import annotations
 
 import math
@@ -11,14 +11,14 @@ from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 from torchslide.terrain import DEM
 
-from .test_solver_cases import cap_release, plane_dem
+from .conftest import cap_release, plane_dem
 
 G = 9.81
 
 
 @pytest.mark.parametrize("slope_correction", [False, True])
 def test_lake_at_rest_rough_bed(slope_correction):
-    """VERIFICATION 1: a frictionless lake over a rough DEM stays at rest to round-off (1000 steps)."""
+    """Case 1: a frictionless lake over a rough DEM stays at rest to round-off (1000 steps)."""
     rng = np.random.default_rng(0)
     n, dx = 16, 1.0
     x = (np.arange(n) + 0.5) * dx
@@ -44,7 +44,7 @@ def _com_x(h: torch.Tensor, dem: DEM) -> float:
 
 
 def test_static_pile_no_creep():
-    """VERIFICATION 1: a pile on a slope with tan(theta) < mu does not creep (< half a cell in 100 s),
+    """Case 1: a pile on a slope with tan(theta) < mu does not creep (< half a cell in 100 s),
     and the result does not depend on the end time."""
     dx = 5.0
     dem = plane_dem(40, 30, dx, tan_theta=0.2)
@@ -63,7 +63,7 @@ def test_static_pile_no_creep():
 
 @pytest.mark.parametrize("h0,dx", [(0.1, 1.0), (2.0, 10.0), (20.0, 50.0)])
 def test_uniform_slope_acceleration(h0, dx):
-    """VERIFICATION 2: a uniform layer accelerates at a = g cos(theta) (tan(theta) - mu) to 1e-6."""
+    """Case 2: a uniform layer accelerates at a = g cos(theta) (tan(theta) - mu) to 1e-6."""
     tan_t, mu = 0.5, 0.2
     dem = plane_dem(12, 5, dx, tan_theta=tan_t)
     t_end = 3.0
@@ -81,7 +81,7 @@ def test_uniform_slope_acceleration(h0, dx):
 
 
 def test_voellmy_terminal_velocity():
-    """VERIFICATION 3: u(t) = U tanh(g t (sin - mu cos) / U), U^2 = xi h (sin - mu cos)."""
+    """Case 3: u(t) = U tanh(g t (sin - mu cos) / U), U^2 = xi h (sin - mu cos)."""
     tan_t, mu, xi, h0, dx = 0.5, 0.2, 500.0, 1.0, 5.0
     th = math.atan(tan_t)
     dem = plane_dem(10, 5, dx, tan_theta=tan_t)

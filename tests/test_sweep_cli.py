@@ -10,7 +10,7 @@ from torchslide.cli import main
 from torchslide.commands.sweep import interpolate_density
 from torchslide.posterior import cell_volume, grid_axes
 
-from .test_calibrate_cli import BASE, CAL, OBS, PRIOR, truth_velocity, write
+from .conftest import CALIBRATE_BASE as BASE, CALIBRATE_CAL as CAL, CALIBRATE_OBS as OBS, CALIBRATE_PRIOR as PRIOR, truth_velocity, write_config as write
 
 SMALL = CAL.replace("batch_size = 2", "batch_size = 2\nmax_batch = 4")
 

@@ -36,7 +36,7 @@ from scipy.stats import qmc
 from acquisition import select_batch
 
 from .bayes import EvaluationResult, FunctionEvaluator, check_bounds
-from .emulator import LogPosteriorEmulator, cap_low_values
+from .emulator import LogPosteriorEmulator, cap_low_values, single_threaded
 from .posterior import GridPosterior, grid_posterior, tv_distance
 
 CHECKPOINT_VERSION = 1
@@ -228,8 +228,9 @@ class ActiveLearner:
         t0 = time.perf_counter()
         seed = iteration_seed(c.seed, it)
         torch.manual_seed(seed)
-        u, vals = select_batch(model, q=q, acquisition=c.acquisition, num_restarts=c.num_restarts,
-                               raw_samples=c.raw_samples, seed=seed % (2**31), dim=self.dim)
+        with single_threaded():  # reproducible picks for a given seed, whatever the thread count
+            u, vals = select_batch(model, q=q, acquisition=c.acquisition, num_restarts=c.num_restarts,
+                                   raw_samples=c.raw_samples, seed=seed % (2**31), dim=self.dim)
         s.acq_seconds.append(time.perf_counter() - t0)
         return self.emulator.from_unit(u), vals
 

@@ -217,39 +217,3 @@ def earth_pressure_sh(phi_int_deg: torch.Tensor, mu: torch.Tensor) -> tuple[torc
     c2 = torch.cos(torch.deg2rad(phi_int_deg)) ** 2
     r = torch.sqrt(torch.clamp(1 - c2 * (1 + mu * mu), min=0.0))
     return 2 * (1 - r) / c2 - 1, 2 * (1 + r) / c2 - 1
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """A candidate missing-physics term: its switch parameter and calibration prior box."""
-
-    name: str
-    param: str
-    baseline: float
-    prior: tuple[float, float]
-    signature: str
-    fixed: tuple[tuple[str, float], ...] = ()
-
-
-CANDIDATES: dict[str, Candidate] = {
-    "entrainment": Candidate(
-        "entrainment", "kappa", 0.0, (0.0, 0.02),
-        "volume grows along the path; deposits larger and further out than released volume allows"),
-    "curvature": Candidate(
-        "curvature", "curvature", 0.0, (0.0, 1.0),
-        "extra friction in hollows / bends (centrifugal normal stress): slower in curved channels, faster on convex crests"),
-    "earth_pressure": Candidate(
-        "earth_pressure", "earth_pressure", 0.0, (0.0, 1.0),
-        "Savage-Hutter active/passive k (phi_int 35 deg): faster spreading of the front, steeper piling at the stop",
-        fixed=(("phi_int", 35.0),)),
-    "yield_stress": Candidate(
-        "yield_stress", "tau_y", 0.0, (0.0, 20.0),  # m^2/s^2 (stress / density): up to ~40 kPa at 2000 kg/m^3
-        "thin flows stop early: thick lobate deposits with steep margins, shorter run-out of the tail"),
-    "mu_i": Candidate(
-        "mu_i", "mu_i", 0.0, (0.0, 0.4),
-        "rate-dependent friction: fast thin fronts brake more, slow parts less (velocity-depth dependent)"),
-    "deposition": Candidate(
-        "deposition", "deposition", 0.0, (0.0, 0.5),
-        "mass left behind along the path where the flow slows: trail deposit, reduced front volume"),
-}
-"""Candidate terms of the diagnosis: each ``param`` at ``baseline`` (0) gives plain Voellmy."""

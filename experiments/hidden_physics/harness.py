@@ -1,15 +1,17 @@
-"""Run the blind harness: ``python -m experiments.hidden_physics.harness [--out DIR] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--model-error N] [--mode-search-iters N] [--mode-search-max-iters N] [--profile-top N] [--release-volume-sd S] [--thresholds FILE] [--cellsize M] [--fine-terrain] [--terrain narrow|resolved] [--device cuda]
-[--max-batch N] [--extra-gauges 300,1200] [--sigma-scale A]``.
+"""The blind test of the diagnosis: ``python -m experiments.hidden_physics.harness --out DIR
+[--terrain narrow|resolved] [--cellsize M] [--seeds N | --seed-list 100,101] [--scenarios a,b]
+[--strengths 0.5,1,2] [--sigmas harness|noise] [--budget NAME=VALUE ...] [--thresholds FILE]
+[--device cuda] [--max-batch N] [--compile]``.
 
-Each case: make a recording (hidden term, finer grid, noise, release error), run torchslide.diagnose
-without telling it the scenario, save DIR/<scenario>_s<seed>.json (+ .npz with before/after maps and
-gauge series). Cases already saved are skipped, so the run can be resumed, and a case being run is marked
-DIR/<case>.running, so several processes can share one DIR; make_page.py builds the results page
-from whatever finished.
+Each case: make a recording (scenarios.make_recording: a hidden term, a finer grid, noise, a release
+error), run torchslide.diagnose on it without telling it the scenario, save DIR/<case>.json (+ .npz
+with the before/after maps and gauge series), and refresh DIR/summary.json (summary.py). Cases already
+saved are skipped, so an interrupted run resumes; a case being run is marked DIR/<case>.running, so
+several processes can share one DIR.
 
-Decision thresholds: read from ``thresholds.json`` next to this file when it exists (written by
-calibrate_thresholds.py from *separate* null seeds 100-104), else torchslide.diagnose.Thresholds().
+Decision thresholds: ``--thresholds`` (default thresholds.json next to this file, written by
+calibrate_thresholds.py from null seeds that are not reported). Any other design (terrain, cell size,
+sigmas, budgets) needs thresholds from its own null seeds.
 """
 from __future__ import annotations
 
@@ -22,10 +24,12 @@ from pathlib import Path
 import numpy as np
 
 from torchslide.diagnose import Budgets, Thresholds, diagnose
-from torchslide.physics import CANDIDATES
+from torchslide.diagnose.candidates import CANDIDATES
 
 from . import scenarios
-from .scenarios import SCENARIOS, SIGMAS, SWITCH, TERRAINS, make_evaluator, make_recording, noise_sigmas, terrain_variant
+from .scenarios import (SCENARIOS, SIGMAS, SWITCH, TERRAINS, make_evaluator, make_recording, noise_sigmas,
+                        terrain_variant)
+from .summary import summarise, write_json
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
@@ -34,11 +38,12 @@ HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_i
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
 
 
-def harness_thresholds() -> Thresholds:
-    if THRESHOLDS_FILE.exists():
-        d = json.loads(THRESHOLDS_FILE.read_text())
-        return Thresholds(**d["thresholds"])
-    return Thresholds()
+def load_thresholds(path=THRESHOLDS_FILE) -> Thresholds:
+    """The decision thresholds of a calibrate_thresholds.py file; the defaults when it does not exist."""
+    path = Path(path)
+    if not path.exists():
+        return Thresholds()
+    return Thresholds(**json.loads(path.read_text())["thresholds"])
 
 
 def out_of_range(scenario: str, strength: float) -> str | None:
@@ -55,15 +60,10 @@ def out_of_range(scenario: str, strength: float) -> str | None:
 
 
 def coverage(diag: dict, truth: dict) -> tuple:
-    """(true switch in the 90 % HDI, in the refit's 'hdr90') of the true term's refit in a
-    report.json-style ``diag``; (None, None) when the scenario has no library term or it was not
-    refitted. "Covers": the highest-density interval on the prior range (it may include a prior bound,
-    e.g. earth pressure = 1), with a tolerance of 1e-9 of the prior width for the floating-point end
-    of a grid's last cell (0.9999999999999999 for a bound at 1). Saved cases keep the keys of older
-    runs: 'true_term_covered_hdr90' holds the first value (the HDI), 'true_term_covered_equal_tailed90'
-    the second ('hdr90': the equal-tailed interval of MCMC samples but, on the grid posterior a
-    refinement leaves, the extent along the axis of the joint 90 % region, usually wider than a marginal
-    interval; shown, never used for the targets)."""
+    """(true switch in the 90 % HDI, true switch in the 'hdr90' interval) of the true term's refit in a
+    report.json-style ``diag``; (None, None) when the scenario has no library term or it was not refitted.
+    The HDI is taken on the prior range (it may include a prior bound, e.g. earth pressure = 1), with a
+    tolerance of 1e-9 of the prior width for a grid's last cell edge."""
     term = truth["term"]
     if term not in SWITCH:
         return None, None
@@ -79,123 +79,71 @@ def coverage(diag: dict, truth: dict) -> tuple:
     return bool(lo - tol <= v <= hi + tol), bool(lo_e - tol <= v <= hi_e + tol)
 
 
+def case_tag(scenario: str, seed: int, strength: float = 1.0) -> str:
+    return f"{scenario}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}")
+
+
 def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: float = 1.0,
              budgets: dict | None = None, candidates=None, log=print, thresholds: Thresholds | None = None,
              fine_terrain: bool = False, device: str = "cpu", max_batch: int = 16, fine_factor: int = 2,
-             sigma_scale: float = 1.0, compile_solver: bool = False, sigmas: str = "harness") -> dict:
+             compile_solver: bool = False, sigmas: str = "harness") -> dict:
     """One blind case: the recording, the diagnosis, the case JSON (and its maps) in ``out``. ``sigmas``
-    "noise": the likelihood's sigmas are the noise drawn (scenarios.noise_sigmas; ``sigma_scale`` must be 1)."""
+    "noise": the likelihood's sigmas are the noise drawn (scenarios.noise_sigmas)."""
     if sigmas not in SIGMAS:
         raise ValueError(f"sigmas must be one of {SIGMAS}, got {sigmas!r}")
-    if sigmas == "noise" and sigma_scale != 1.0:
-        raise ValueError(f"sigmas 'noise' states the noise drawn: sigma_scale must be 1, got {sigma_scale!r}")
     t0 = time.perf_counter()
     out = Path(out)
-    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor,
-                         sigma_scale=sigma_scale)
+    rec = make_recording(scenario, seed, cellsize=cellsize, strength=strength, fine_factor=fine_factor)
     if sigmas == "noise":
         rec = dataclasses.replace(rec, observations=noise_sigmas(rec.observations))
     ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch,
                         compile_solver=compile_solver)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
-    d = diagnose(ev, candidates or LIBRARY, bud, thresholds or harness_thresholds(), log=log)
+    d = diagnose(ev, candidates or LIBRARY, bud, thresholds or load_thresholds(), log=log)
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
-            "fine_terrain": fine_terrain, "fine_factor": fine_factor, "extra_gauges": list(scenarios.EXTRA_GAUGES),
-            "sigma_scale": sigma_scale, "sigmas": sigmas, "device": str(device), "compile_solver": compile_solver, "truth": rec.truth,
+            "fine_terrain": fine_terrain, "fine_factor": fine_factor, "sigmas": sigmas, "device": str(device),
+            "compile_solver": compile_solver, "budgets": budgets or {}, "truth": rec.truth,
             "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
-            "true_term_covered_equal_tailed90": cover_eq,
-            "wall_s": time.perf_counter() - t0, "diagnosis": j}
-    tag = f"{scenario}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}")
+            "true_term_covered_equal_tailed90": cover_eq, "wall_s": time.perf_counter() - t0, "diagnosis": j}
+    tag = case_tag(scenario, seed, strength)
     out.mkdir(parents=True, exist_ok=True)
-    (out / f"{tag}.json").write_text(json.dumps(case, indent=1))
+    write_json(out / f"{tag}.json", case)
     arrays = {}
-    for name, m in d.localisation.maps.items():
-        for k, v in m.items():
-            arrays[f"before/{name}/{k}"] = np.asarray(v)
-    if d.after_localisation is not None:
-        for name, m in d.after_localisation.maps.items():
+    for stage, loc in (("before", d.localisation), ("after", d.after_localisation)):
+        for name, m in (loc.maps.items() if loc is not None else ()):
             for k, v in m.items():
-                arrays[f"after/{name}/{k}"] = np.asarray(v)
+                arrays[f"{stage}/{name}/{k}"] = np.asarray(v)
     np.savez_compressed(out / f"{tag}.npz", **arrays)
     return case
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser()
-    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "harness"))
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--seed-list", default=None, help="comma-separated seeds (overrides --seeds)")
-    p.add_argument("--scenarios", default=",".join(SCENARIOS))
-    p.add_argument("--strengths", default="1")
-    p.add_argument("--model-error", type=int, default=None,
-                   help="Budgets.model_error_runs: the grid's approximation error from this many run pairs "
-                        "(0: off; default: Budgets' default, 12)")
-    p.add_argument("--mode-search-iters", type=int, default=None,
-                   help="Budgets.mode_search_iters: iterations of each refit's local search on the solver (default: "
-                        "Budgets' default); another value needs its own null seeds and --out")
-    p.add_argument("--mode-search-max-iters", type=int, default=None,
-                   help="Budgets.mode_search_max_iters: every mode search goes on while it climbs (by more than "
-                        "Budgets.mode_search_tol in z over 4 iterations), up to this many iterations (default: "
-                        "Budgets' default, 0: off); another value needs its own null seeds and --out")
-    p.add_argument("--profile-top", type=int, default=None,
-                   help="Budgets.profile_top: refits profiled along their switch (default: Budgets' default); "
-                        "another value needs its own null seeds and --out")
-    p.add_argument("--release-volume-sd", type=float, default=None,
-                   help="Budgets.release_volume_sd: the release volume's relative sd given to the diagnosis (the "
-                        "recordings' release error U(0.9, 1.1) has sd 0.1/sqrt(3) = 0.0577; default: Budgets' "
-                        "default, 0); another value needs its own null seeds and --out")
-    p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
-    p.add_argument("--cellsize", type=float, default=40.0,
-                   help="inversion cell size, m (the recordings use half of it); thresholds.json was set at 40 m, "
-                        "so another cell size needs its own null seeds (calibrate_thresholds --results) and --out")
-    p.add_argument("--fine-terrain", action="store_true",
-                   help="give the diagnosis the terrain on the recording grid for the model error's finer runs "
-                        "(scenarios.make_evaluator(fine_terrain=True)); needs its own null seeds and --out")
-    p.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS),
-                   help="terrain variant (scenarios.TERRAINS); another than narrow needs its own null seeds and --out")
-    p.add_argument("--fine-factor", type=int, default=2,
-                   help="recording grid = inversion cells / this (the issue's harness: 2). 1 is the control without "
-                        "discretisation error (the 'inverse crime': use it with --model-error 0, its own null seeds "
-                        "and --out)")
-    p.add_argument("--extra-gauges", default="",
-                   help="comma-separated x (m) of extra gauges g3, ... on the thalweg (scenarios.extra_gauges; "
-                        "design_check.py); another design needs its own null seeds and --out")
-    p.add_argument("--sigma-scale", type=float, default=1.0,
-                   help="multiplies the likelihood sigmas of the gauge series and the deposit map (not the noise "
-                        "drawn; scenarios.make_recording); another value needs its own null seeds and --out")
-    p.add_argument("--sigmas", default="harness", choices=SIGMAS,
-                   help="the likelihood's sigmas: the harness' (default; 1.7-4 times the noise drawn) or the sd of the "
-                        "noise drawn (scenarios.noise_sigmas); noise needs its own null seeds and --out")
-    p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
-    p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
-    p.add_argument("--compile", action="store_true",
-                   help="torch.compile the diagnosis' solver steps (pays off on a GPU with a large --max-batch: "
-                        "README, 'On a GPU'; the recordings are made eager on the CPU either way)")
-    a = p.parse_args(argv)
-    if a.max_batch < 1:
-        p.error(f"--max-batch must be >= 1, got {a.max_batch}")
-    if a.fine_factor < 1:
-        p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
-    if not 0 < a.sigma_scale <= 10:
-        p.error(f"--sigma-scale must be in (0, 10], got {a.sigma_scale}")
-    if a.sigmas == "noise" and a.sigma_scale != 1.0:
-        p.error(f"--sigmas noise states the noise drawn: --sigma-scale must be 1, got {a.sigma_scale}")
-    if a.mode_search_iters is not None and a.mode_search_iters < 0:
-        p.error(f"--mode-search-iters must be >= 0, got {a.mode_search_iters}")
-    if a.mode_search_max_iters is not None and a.mode_search_max_iters < 0:
-        p.error(f"--mode-search-max-iters must be >= 0, got {a.mode_search_max_iters}")
-    if a.release_volume_sd is not None and not 0 <= a.release_volume_sd < 0.5:
-        p.error(f"--release-volume-sd must be in [0, 0.5), got {a.release_volume_sd}")
-    if a.profile_top is not None and a.profile_top < 0:
-        p.error(f"--profile-top must be >= 0, got {a.profile_top}")
+def parse_budgets(items) -> dict:
+    """``["mode_search_max_iters=24", ...]`` -> {field: value} of torchslide.diagnose.Budgets, each value
+    converted to the field's type; ValueError naming the item otherwise."""
+    fields = {f.name: f for f in dataclasses.fields(Budgets)}
+    out = {}
+    for item in items or []:
+        name, sep, value = item.partition("=")
+        if not sep or name not in fields:
+            raise ValueError(f"--budget {item!r}: expected NAME=VALUE with NAME a Budgets field "
+                             f"({', '.join(sorted(fields))})")
+        default = getattr(Budgets(), name)
+        kind = int if default is None else type(default)
+        try:
+            out[name] = (value.lower() in ("1", "true", "yes")) if kind is bool else kind(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"--budget {item!r}: {name} needs a {kind.__name__}") from None
+    return out
+
+
+def _write_summary(out: Path) -> None:
+    """Refresh ``out``/summary.json from the cases saved there (none yet: nothing written)."""
     try:
-        xs = [float(x) for x in a.extra_gauges.split(",") if x.strip()]
+        write_json(out / "summary.json", summarise(out))
     except ValueError:
-        p.error(f"--extra-gauges must be comma-separated numbers (x in m), got {a.extra_gauges!r}")
-    with terrain_variant(a.terrain), scenarios.extra_gauges(xs):
-        return _run_all(a)
+        pass
 
 
 def _claim(out: Path, tag: str) -> Path | None:
@@ -210,18 +158,53 @@ def _claim(out: Path, tag: str) -> Path | None:
     return f
 
 
-def _run_all(a) -> int:
-    th_file = Path(a.thresholds)
-    th = Thresholds(**json.loads(th_file.read_text())["thresholds"]) if th_file.exists() else Thresholds()
-    bud = {k: v for k, v in (("model_error_runs", a.model_error), ("mode_search_iters", a.mode_search_iters),
-                             ("mode_search_max_iters", a.mode_search_max_iters), ("profile_top", a.profile_top), ("release_volume_sd", a.release_volume_sd))
-           if v is not None} or None
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="blind test of torchslide diagnose on synthetic recordings")
+    p.add_argument("--out", required=True, help="folder of the case files and summary.json")
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--seed-list", default=None, help="comma-separated seeds (overrides --seeds)")
+    p.add_argument("--scenarios", default=",".join(SCENARIOS))
+    p.add_argument("--strengths", default="1", help="comma-separated multiples of each hidden term's nominal value")
+    p.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
+    p.add_argument("--cellsize", type=float, default=40.0, help="inversion cell size, m (recordings on half of it)")
+    p.add_argument("--fine-factor", type=int, default=2,
+                   help="recording grid = inversion cells / this; 1 records on the inversion grid itself (the "
+                        "control without discretisation error, with --budget model_error_runs=0)")
+    p.add_argument("--fine-terrain", action="store_true",
+                   help="give the diagnosis the terrain on the recording grid for its model-error runs")
+    p.add_argument("--sigmas", default="harness", choices=SIGMAS,
+                   help="the likelihood's sigmas: the harness' (1.7-4 times the noise drawn) or the noise drawn")
+    p.add_argument("--budget", action="append", default=[], metavar="NAME=VALUE",
+                   help="override a torchslide.diagnose.Budgets field (repeatable)")
+    p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
+    p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
+    p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
+    p.add_argument("--compile", action="store_true", help="torch.compile the diagnosis' solver steps")
+    a = p.parse_args(argv)
+    if a.max_batch < 1:
+        p.error(f"--max-batch must be >= 1, got {a.max_batch}")
+    if a.fine_factor < 1:
+        p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
+    try:
+        budgets = parse_budgets(a.budget)
+        seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
+        strengths = [float(s) for s in a.strengths.split(",")]
+    except ValueError as e:
+        p.error(str(e))
+    unknown = [s for s in a.scenarios.split(",") if s not in SCENARIOS]
+    if unknown:
+        p.error(f"--scenarios: unknown {unknown} (known: {', '.join(SCENARIOS)})")
+    with terrain_variant(a.terrain):
+        return _run_all(a, budgets, seeds, strengths)
+
+
+def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
+    th = load_thresholds(a.thresholds)
     out = Path(a.out)
-    seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
     for seed in seeds:
-        for strength in [float(s) for s in a.strengths.split(",")]:
+        for strength in strengths:
             for sc in a.scenarios.split(","):
-                tag = f"{sc}_s{seed}" + ("" if strength == 1.0 else f"_x{strength:g}")
+                tag = case_tag(sc, seed, strength)
                 if (out / f"{tag}.json").exists():
                     continue
                 beyond = out_of_range(sc, strength)
@@ -235,13 +218,13 @@ def _run_all(a) -> int:
                     continue
                 print(f"=== {tag}", flush=True)
                 try:
-                    c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=bud, thresholds=th,
-                                 fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
-                                 fine_factor=a.fine_factor, sigma_scale=a.sigma_scale, compile_solver=a.compile,
-                                 sigmas=a.sigmas,
+                    c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=budgets or None,
+                                 thresholds=th, fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
+                                 fine_factor=a.fine_factor, compile_solver=a.compile, sigmas=a.sigmas,
                                  log=lambda s: print(s, flush=True))
                 finally:
                     claim.unlink(missing_ok=True)
+                _write_summary(out)
                 print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
                       f"({c['wall_s']:.0f} s)", flush=True)
     return 0

@@ -1,20 +1,18 @@
 """Blind hidden-physics scenarios: recordings from a finer grid with a hidden term, noise and a release error.
 
 Terrain: a short S-bend channel (torchslide.terrain.synthetic.channel_with_bends, 1200 m slope + 500 m
-run-out, 600 m wide), in one of two variants (``TERRAINS``; select with :func:`use_terrain`, the
+run-out, 600 m wide), in one of two variants (``TERRAINS``; select with :func:`terrain_variant`, the
 harness' ``--terrain``):
 
 * ``"narrow"`` (the default): a channel of half-width 40 m with a sharp slope-to-run-out kink and a
-  release of radius 60 m, i.e. two 40 m cells across the channel. experiments/hidden_physics/
-  grid_convergence.py shows that the solver's runs on it agree only from 10 m cells on (10 against 5 m).
+  release of radius 60 m, i.e. two 40 m cells across the channel; the solver's runs on it agree
+  between grids only from 10 m cells on.
 * ``"resolved"``: half-width 100 m, the kink replaced by a 300 m parabolic transition, a release of
   radius 120 m, and gauge g2 at x = 1150 m (in the transition) instead of 1300 m (at the deposit's
-  front, where the front's position on the grid decides what it records): what a 40 m grid resolves
-  (null, noise-free peak heights on 40 / 20 / 10 m cells: g1 2.37 / 2.29 / 2.40 m against 3.32 /
-  6.23 / 7.49 m on "narrow"; g2 6.24 / 5.71 / 5.74 m against 2.28 / 1.06 / 5.80 m).
+  front): a terrain that a 40 m grid resolves.
 
-The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of ``cellsize / 2``
-(same analytic surface), their deposit map block-averaged onto the inversion grid.
+The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of ``cellsize /
+fine_factor`` (same analytic surface), their deposit map block-averaged onto the inversion grid.
 The true release volume differs from the nominal one by a factor U(0.9, 1.1) (unknown to the
 inversion; its final_volume sigma is 10 % of the nominal volume).
 """
@@ -24,9 +22,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
 import numpy as np
+import torch
 
 from torchslide.observe import Observation
-from torchslide.observe_series import SeriesObservation
+from torchslide.observe_series import SeriesObservation, interp_series
 from torchslide.physics import Params
 from torchslide.terrain.grid import DEM
 from torchslide.solver import SolverConfig, simulate
@@ -94,24 +93,8 @@ def yc(x):
     return 0.5 * GEOM["width"] + float(_bends(x, 0.15 * L, 0.85 * L, GEOM["amplitude"]))
 
 
-EXTRA_GAUGES: list[float] = []   # x (m) of gauges g3, g4, ... on the thalweg (design_check.py; none in the harness)
-
-
 def gauges():
-    return [("g1", 700.0, yc(700.0)), ("g2", G2_X, yc(G2_X))] + [
-        (f"g{3 + i}", float(x), yc(x)) for i, x in enumerate(EXTRA_GAUGES)]
-
-
-@contextmanager
-def extra_gauges(xs):
-    """``with extra_gauges([1200.0]): ...`` -- recordings and evaluators with gauges g3, ... at these x
-    on the thalweg (each recording h and speed like g1, g2), restored after."""
-    previous = list(EXTRA_GAUGES)
-    EXTRA_GAUGES[:] = [float(x) for x in xs]
-    try:
-        yield
-    finally:
-        EXTRA_GAUGES[:] = previous
+    return [("g1", 700.0, yc(700.0)), ("g2", G2_X, yc(G2_X))]
 
 
 def terrain(cellsize: float):
@@ -148,26 +131,19 @@ class Recording:
 
 
 def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: float = 1.0,
-                   map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = DEPOSIT_NOISE, gauge_corr: float = 4.0,
-                   fine_factor: int = 2,
-                   noise_scale: float = 1.0, base: dict | None = None, volume_factor: float | None = None,
-                   sigma_scale: float = 1.0) -> Recording:
-    """``noise_scale`` multiplies every noise draw (0: noise-free recording; the draws, and so the
-    recordings at 1, are unchanged); ``base`` overrides TRUE_BASE values; ``volume_factor`` overrides
-    the drawn release error (both for experiments/hidden_physics/effect_size.py only).
-    ``sigma_scale`` multiplies the likelihood sigmas given with the gauge series (h 0.5 m, speed 2 m/s)
-    and the deposit map (``map_sigma``), not the noise drawn (h 0.2 m, speed 0.5 m/s, deposit ``noise``)
-    nor the final volume's sigma (the release error's 10 %)."""
-    if not 0 < sigma_scale <= 10:
-        raise ValueError(f"sigma_scale must be in (0, 10], got {sigma_scale!r}")
+                   map_sigma: float = 0.5, map_corr: float | None = 60.0, noise: float = DEPOSIT_NOISE,
+                   gauge_corr: float = 4.0, fine_factor: int = 2) -> Recording:
+    """The recordings of one case: ``scenario``'s hidden term at ``strength`` x its nominal value, run on
+    cells ``cellsize / fine_factor`` m (seed 1000 + ``seed`` draws the release error and the noise).
+    The likelihood sigmas stated with them (gauge series: GAUGE_ERRORS' first values; deposit map:
+    ``map_sigma`` m) are larger than the noise drawn (GAUGE_ERRORS' second values, ``noise`` m);
+    :func:`noise_sigmas` states the noise as drawn."""
     term, hidden = SCENARIOS[scenario]
     rng = np.random.default_rng(1000 + seed)
     dem_c, erod_c = terrain(cellsize)
     dem_f, erod_f = terrain(cellsize / fine_factor)
     vf = float(rng.uniform(0.9, 1.1))
-    if volume_factor is not None:
-        vf = float(volume_factor)
-    vals = dict(TRUE_BASE, **(base or {}))
+    vals = dict(TRUE_BASE)
     for k, v in hidden.items():
         vals[k] = v * strength if k != "phi_int" else v
     mu_scale = mu_scale_patch(dem_f) if term == "outside" else None
@@ -179,21 +155,19 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     dep = block_average(hf, fine_factor)
     assert dep.shape == dem_c.shape, (dep.shape, dem_c.shape)
     obs = []
-    dep_obs = dep + noise_scale * noise * rng.standard_normal(dep.shape)
-    obs.append(SeriesObservation.from_array("deposit_map", dep_obs, dem_c, map_sigma * sigma_scale, name="deposit",
+    dep_obs = dep + noise * rng.standard_normal(dep.shape)
+    obs.append(SeriesObservation.from_array("deposit_map", dep_obs, dem_c, map_sigma, name="deposit",
                                             corr_length=map_corr))
     t = np.arange(DT_OBS, T_END + 1e-9, DT_OBS)
     for g in res.gauges.values():
-        from torchslide.observe_series import interp_series
-        import torch
         for q, (s, e) in GAUGE_ERRORS.items():
             y = (g.h if q == "h" else g.speed)
             yv = interp_series(g.t, y, torch.as_tensor(t))[0].numpy()
-            yv = yv + noise_scale * e * rng.standard_normal(yv.shape)
-            obs.append(SeriesObservation("gauge_series", yv, s * sigma_scale, name=f"{g.name}:{q}", gauge=g.name, quantity=q,
+            yv = yv + e * rng.standard_normal(yv.shape)
+            obs.append(SeriesObservation("gauge_series", yv, s, name=f"{g.name}:{q}", gauge=g.name, quantity=q,
                                          times=t.copy(), corr_length=gauge_corr))
     fv = float(res.final_volume[0])
-    obs.append(Observation("final_volume", fv + noise_scale * 0.02 * V_NOMINAL * rng.standard_normal(), 0.1 * V_NOMINAL,
+    obs.append(Observation("final_volume", fv + 0.02 * V_NOMINAL * rng.standard_normal(), 0.1 * V_NOMINAL,
                            name="final_volume"))
     truth = {"term": term, **vals}
     return Recording(scenario, seed, strength, truth, vf, obs, hf)

@@ -83,7 +83,7 @@ from typing import Any
 
 from ..config import Config, ConfigError, check_keys, load_config
 from ..observe import Observation
-from .calibrate import check_unique_names, parse_calibration, parse_prior
+from ..calibration_config import check_unique_names, parse_calibration, parse_prior
 
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
@@ -97,7 +97,7 @@ _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_ma
 def diagnose_defaults() -> dict:
     """[diagnose] defaults, taken from Budgets() and Thresholds() (one source of truth)."""
     from ..diagnose import Budgets, Thresholds
-    from ..physics import CANDIDATES
+    from ..diagnose.candidates import CANDIDATES
 
     b, t = Budgets(), Thresholds()
     return {"candidates": list(CANDIDATES), "seed": b.seed, "release_volume_sd": b.release_volume_sd,
@@ -163,7 +163,7 @@ def parse_observations(table: Any, cfg: Config) -> list:
 
 
 def parse_diagnose(table: Any, cfg: Config) -> dict:
-    from ..physics import CANDIDATES
+    from ..diagnose.candidates import CANDIDATES
 
     path = cfg.path
     check_keys(table, _DIAG_KEYS, "[diagnose]", path)

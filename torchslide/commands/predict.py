@@ -55,23 +55,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
 
-def load_calibration(directory, prior):
-    """The CalibrationResult in ``directory``, checked against the config's prior: ConfigError otherwise."""
-    from ..calibration import CalibrationResult
-
-    try:
-        cal = CalibrationResult.load(directory)
-    except (FileNotFoundError, ValueError, KeyError) as e:
-        raise ConfigError(f"--calibration: {e}") from None
-    if list(cal.names) != list(prior.names):
-        raise ConfigError(f"--calibration {directory} calibrated {list(cal.names)}, but the config's [prior] "
-                          f"names {list(prior.names)}: pass the config the calibration ran with")
-    if not np.allclose(np.asarray(cal.bounds, dtype=float), np.asarray(prior.bounds, dtype=float), rtol=1e-9):
-        raise ConfigError(f"--calibration {directory} ran on the prior box {np.asarray(cal.bounds).tolist()}, the "
-                          f"config's [prior] is {np.asarray(prior.bounds).tolist()}: pass the config it ran with")
-    return cal
-
-
 def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndarray) -> None:
     with open(path, "w") as f:
         f.write(",".join(list(names) + list(obs_names)) + "\n")
@@ -84,8 +67,8 @@ def run(args: argparse.Namespace) -> int:
     from ..mapplots import plot_field_map
     from ..predict import observation_check, posterior_samples, run_predictive
     from ..terrain.io import write_named_raster
-    from .calibrate import load_calibration_config, make_evaluator
-    from .simulate import check_output, staged_output
+    from ..calibration_config import load_calibration, load_calibration_config, make_evaluator
+    from ..output_folder import check_output, staged_output
 
     if args.n < 1:
         raise ConfigError(f"--n must be >= 1 posterior draws, got {args.n}")

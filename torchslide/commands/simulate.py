@@ -30,17 +30,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import shutil
 import sys
-import tempfile
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from ..config import Config, ConfigError, load_config
+from ..output_folder import check_output, staged_output
 
 HELP = "run the solver for a TOML config; write h_max/v_max/h_final rasters and summary.json"
 
@@ -52,42 +49,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, default=0.5, metavar="M",
                    help="thickness threshold for areas and deposit volume, m (default 0.5)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar, no summary lines")
-
-
-def _nearest_existing(p: Path) -> Path:
-    p = p.absolute()
-    while not p.exists():
-        p = p.parent
-    return p
-
-
-def check_output(out: Path, overwrite: bool) -> Path:
-    """Validate the output folder before running; return the existing ancestor for the temp folder."""
-    if out.exists():
-        if not out.is_dir():
-            raise ConfigError(f"output path {out} exists and is not a folder")
-        if any(out.iterdir()) and not overwrite:
-            raise ConfigError(f"output folder {out} exists and is not empty (use --overwrite to replace it)")
-    anc = _nearest_existing(out.parent)
-    if not anc.is_dir() or not os.access(anc, os.W_OK):
-        raise ConfigError(f"cannot write the output folder {out}: {anc} is not a writable folder")
-    return anc
-
-
-@contextmanager
-def staged_output(out: Path, anc: Path, command: str):
-    """Write into a temporary folder next to ``out`` (in ``anc``, from :func:`check_output`) and move it into
-    place when the block ends; on any error (or Ctrl-C) remove it, so nothing is half-written."""
-    tmp = Path(tempfile.mkdtemp(prefix=f".torchslide-{command}-", dir=anc))
-    try:
-        yield tmp
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
 
 
 def _f(x) -> Any:

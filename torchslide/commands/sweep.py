@@ -71,8 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ..figures import plot_posterior_any
     from ..posterior import cell_volume, grid_axes, grid_points, normalise_log_grid, summarise_grid, tv_distance
-    from .calibrate import load_calibration_config, make_evaluator
-    from .predict import load_calibration
+    from ..calibration_config import load_calibration, load_calibration_config, make_evaluator
 
     if args.n < 2:
         raise ConfigError(f"--n must be >= 2 nodes per parameter, got {args.n}")

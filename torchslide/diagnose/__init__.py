@@ -1,4 +1,6 @@
-"""Missing-physics diagnosis (see /work/shared/DIAGNOSIS.md): one idea per module.
+"""Missing-physics diagnosis: one idea per module.
+
+* candidates: the library of candidate terms (each nested: its switch at 0 gives the baseline)
 
 * evaluator: DiagnosisEvaluator (scalar + vector observations, flattened likelihood)
 * model_error: the grid's approximation error (runs on finer cells) as a model-error term of the

@@ -1,4 +1,4 @@
-"""Subset consistency: do the observations agree on the baseline's parameters? (DIAGNOSIS.md, step 2)
+"""Subset consistency: do the observations agree on the baseline's parameters? (docs/diagnosis.md)
 
 A structural error often shows as observation groups that want different parameters: one (mu, xi)
 cannot match the gauges' peak speed and the deposit's run-out together (rate-dependent friction), or

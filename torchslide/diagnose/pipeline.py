@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from ..physics import CANDIDATES
+from .candidates import CANDIDATES
 from .consistency import subset_consistency
 from .decide import Thresholds, decide
 from .localise import Localisation, localise
@@ -621,222 +621,295 @@ def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: 
             tmp.cleanup()
 
 
-def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnosis:
-    T = {}
-    t0 = time.perf_counter()
-    M = bud.n_posterior_samples
-    model_error = None
+@dataclass
+class _Baseline:
+    """The baseline the verdict rests on: its calibration, posterior-predictive runs, verified evidence
+    (and where they came from), localisation, WAIC and misfit; the refinement's runs (x, z) when the
+    2-D refinement ran, and the refined posterior when the mode check replaced the calibration's."""
+
+    calibration: object
+    pred: Predictive
+    ver: dict
+    runs: tuple | None
+    loc: Localisation | None = None
+    elpd: dict | None = None
+    misfit: float = float("nan")
+    source: str = "baseline calibration"
+    refined: object = None
+
+    def adopt(self, ver: dict, pred: Predictive, source: str) -> None:
+        self.ver, self.pred, self.source = ver, pred, source
+
+    @property
+    def changed(self) -> bool:
+        return self.source != "baseline calibration"
+
+
+@dataclass
+class _Refit:
+    """One candidate's refit: its evaluator, calibration, posterior-predictive runs, verified evidence
+    and evidence history, and the re-check / profile records of later stages."""
+
+    evaluator: object
+    calibration: object
+    pred: Predictive
+    ver: dict
+    history: list
+    recheck: dict | None = None
+    profile: list | None = None
+
+
+def _check_budgets(bud: Budgets, baseline) -> None:
     if not 0 <= bud.release_volume_sd < 0.5:
         raise ValueError(f"release_volume_sd must be in [0, 0.5) (a relative sd), got {bud.release_volume_sd!r}")
     if bud.release_volume_sd > 0 and bud.model_error_runs < 2:
         raise ValueError(f"release_volume_sd = {bud.release_volume_sd:g} needs model_error_runs >= 2 (its Jacobian is "
                          f"taken at the pilot's posterior draws), got model_error_runs = {bud.model_error_runs}")
-    if bud.model_error_runs > 0:
-        if baseline is not None:
-            raise ValueError("model_error_runs > 0 changes the likelihood: the baseline must be calibrated here, "
-                             "not given")
-        evaluator, me = grid_model_error(evaluator, bud, workdir, log)
-        model_error = me.summary(evaluator.blocks)
-        T["model_error_s"] = time.perf_counter() - t0
-        t0 = time.perf_counter()
+    if bud.model_error_runs > 0 and baseline is not None:
+        raise ValueError("model_error_runs > 0 changes the likelihood: the baseline must be calibrated here, not given")
+
+
+def _baseline_stage(evaluator, bud: Budgets, baseline, workdir: Path, log) -> _Baseline:
+    """Calibrate the baseline (unless given), then its verified evidence: for a 2-D posterior a zoomed grid
+    proposal refitted with the verification runs until the evidence is trustworthy and stable
+    (verify.refine_baseline), else importance weights of posterior draws."""
+    M = bud.n_posterior_samples
     if baseline is None:
         log(f"[diagnose] baseline calibration ({bud.baseline_n_total} runs)")
         baseline = calibrate_evaluator(evaluator, bud.baseline_n_initial, bud.baseline_n_total,
                                        batch_size=bud.batch_size, seed=bud.seed, mcmc_steps=bud.mcmc_steps,
                                        checkpoint=workdir / "baseline.pt", grid_size=bud.baseline_grid_size)
-    base_runs = None
     if baseline.emulator is not None and len(baseline.names) <= 2:
-        # narrow 2-D posterior: zoomed grid proposal, emulator refitted with the verification runs
-        # until the verified evidence is trustworthy and stable (verify.refine_baseline)
-        prop_b, pred, base_ver, _ = refine_baseline(evaluator, baseline, M, seed=bud.seed,
-                                                    max_rounds=bud.baseline_refine_rounds, tv_tol=bud.baseline_tv_tol,
-                                                    ess_fraction=bud.verify_ess_fraction, se_max=bud.verify_se, log=log)
-        base_runs = prop_b.runs
-    else:
-        samples = posterior_samples(baseline, M, seed=bud.seed)
-        pred = posterior_predictive(evaluator, samples)
-        base_ver = verified_evidence(evaluator, baseline, pred.x, pred.draws, seed=bud.seed)
-    elpd_b = waic(evaluator, pred.draws)
-    T["baseline_s"] = time.perf_counter() - t0
-    log(f"[diagnose] baseline log Z {base_ver['log_evidence']:.2f} (emulator {baseline.log_evidence:.2f}, "
-        f"ESS {base_ver['ess']:.1f}/{base_ver['n_draws']}, se {base_ver['se']:.2f})")
-    t0 = time.perf_counter()
-    loc = localise(evaluator, pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
-    # the fit flags use the calibrated baseline's fit, before any refit can change the baseline (the
-    # statistic their levels are set on: experiments/hidden_physics/block_fit_probe.py runs this far)
-    fit_z_first = {b: i["Z_fit"] for b, i in loc.blocks.items() if i.get("Z_fit") is not None}
-    T["predictive_s"] = time.perf_counter() - t0
-    log(f"[diagnose] located {loc.n_located} mismatch(es); max |score| {loc.max_abs():.2f}")
-    t0 = time.perf_counter()
-    x0 = posterior_mode(baseline)
-    scr = screen(evaluator, x0, candidates)
+        prop, pred, ver, _ = refine_baseline(evaluator, baseline, M, seed=bud.seed,
+                                             max_rounds=bud.baseline_refine_rounds, tv_tol=bud.baseline_tv_tol,
+                                             ess_fraction=bud.verify_ess_fraction, se_max=bud.verify_se, log=log)
+        return _Baseline(baseline, pred, ver, prop.runs)
+    pred = posterior_predictive(evaluator, posterior_samples(baseline, M, seed=bud.seed))
+    return _Baseline(baseline, pred, verified_evidence(evaluator, baseline, pred.x, pred.draws, seed=bud.seed), None)
+
+
+def _assess(evaluator, base: _Baseline, th: Thresholds, bud: Budgets) -> None:
+    """Localise the baseline's mismatches, its WAIC and misfit (again whenever the baseline changes)."""
+    base.loc = localise(evaluator, base.pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
+    base.elpd = waic(evaluator, base.pred.draws)
+    base.misfit = evaluator.misfit(base.pred.mean)
+
+
+def _screen_stage(evaluator, base: _Baseline, candidates, th: Thresholds, log) -> ScreenResult:
+    """One-batch screening at the baseline's posterior mode, with each candidate's detectable switch."""
+    scr = screen(evaluator, posterior_mode(base.calibration), candidates)
     scr.detectable = detectable_switch(scr, evaluator, th.bf_min)
-    T["screen_s"] = time.perf_counter() - t0
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
     unseen = [f"{c} (from {d['switch']:.3g}; prior up to {CANDIDATES[c].prior[1]:g})"
               for c, d in scr.detectable.items() if d and not d["within_prior"]]
     if unseen:
         log("[diagnose] beyond what these data can detect on this grid (linearised): " + ", ".join(unseen))
-    top = [c for c in scr.ranking][: bud.top_k]
-    # the two best baseline runs (the refits' local searches also start from them, switch at 0)
-    base_best = _best_draws(evaluator, pred, 2) if len(pred.x) else None
-    refits, cand_out, preds_after = {}, [], {}
-    misfit_before = evaluator.misfit(pred.mean)
-    t0 = time.perf_counter()
-    raw = {}
+    return scr
+
+
+def _refit_stage(evaluator, top: list, base: _Baseline, scr: ScreenResult, bud: Budgets, workdir: Path,
+                 log) -> dict:
+    """{candidate: _Refit} of the ``top`` candidates; each refit's local search also starts from the two
+    best baseline runs (switch at 0) and the screening's linearised optimum."""
+    base_best = _best_draws(evaluator, base.pred, 2) if len(base.pred.x) else None
+    out = {}
     for c in top:
+        names = list(evaluator.prior.names) + [CANDIDATES[c].param]
         ev_c, cal_c, p_c, ver, history = refit_candidate(evaluator, c, bud, workdir / f"refit_{c}.pt", log,
-                                                         base_best=base_best,
-                                                         starts=_linear_starts(scr, c, list(evaluator.prior.names) + [CANDIDATES[c].param]))
-        refits[c] = (ev_c, cal_c)
-        preds_after[c] = p_c
-        raw[c] = (ver, history)
-    # baseline evidence, second proposal: the beta = 0 slice of every refit's emulator (nested models:
-    # a refit that finds a better (mu, xi) must not be credited to its switch)
-    base_source = "baseline calibration"
-    baseline_refined = None
-    if bud.slice_check and refits:
-        # the slices of the slice_top refits with the largest verified evidence (they explored the
-        # (mu, xi) peak near beta = 0 best; the others' slices cost M runs each for little)
-        order = sorted(refits, key=lambda c: -raw[c][0]["log_evidence"])[: max(1, bud.slice_top)]
-        for c in order:
-            ev_c, cal_c = refits[c]
-            sl = slice_proposal(cal_c, evaluator.prior.bounds.numpy())
-            p_s = posterior_predictive(evaluator, posterior_samples(sl, M, seed=bud.seed + 3))
-            v_s = verified_evidence(evaluator, sl, p_s.x, p_s.draws, seed=bud.seed)
-            log(f"[diagnose] baseline via the beta = 0 slice of the {c} refit: log Z {v_s['log_evidence']:.2f} "
-                f"(ESS {v_s['ess']:.1f})")
-            # taken only when it is itself trustworthy and larger beyond its noise (the larger of two
-            # noisy estimates is biased up; an ESS ~ 1 estimate must not replace a reliable one)
-            gap = v_s["log_evidence"] - base_ver["log_evidence"]
-            if (_trusted(v_s, bud) and len(p_s.draws) > 1 and
-                    (not _trusted(base_ver, bud) or gap > 2 * math.hypot(v_s["se"], base_ver["se"]))):
-                base_ver, pred, base_source = v_s, p_s, f"beta = 0 slice of the {c} refit"
-    base_check = None
-    if bud.baseline_mode_check and refits and base_runs is not None:
-        zp = solver_z(evaluator, pred)
-        good = np.isfinite(zp)
-        runs = (np.vstack([base_runs[0], pred.x[good]]), np.concatenate([base_runs[1], zp[good]]))
-        base_check = baseline_mode_check(evaluator, runs, refits, bud, log)
-        if base_check.get("verification") is not None:
-            v_m = base_check.pop("verification")
-            p_m = base_check.pop("predictive")
-            prop_m = base_check.pop("proposal")
-            base_check["adopted"] = adopt_refined_baseline(v_m, base_ver, len(p_m.draws), th.ess_min)
-            base_check["log_evidence_gain"] = float(v_m["log_evidence"] - base_ver["log_evidence"])
-            if base_check["adopted"]:
-                base_ver, pred, base_source = v_m, p_m, "baseline refined from the refits' nested points"
-                baseline_refined = grid_result(prop_m, evaluator.prior.names, evaluator.prior.bounds.numpy())
-    if base_source != "baseline calibration":
-        log(f"[diagnose] baseline evidence and predictive taken from the {base_source}; re-localising")
-        loc = localise(evaluator, pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
-        elpd_b = waic(evaluator, pred.draws)
-        misfit_before = evaluator.misfit(pred.mean)
-    rechecks = {}
-    if bud.refit_recheck and base_source != "baseline calibration" and len(pred.x):
-        # the refits' searches started from the first baseline's best runs: re-check them at the new one's
-        pts = _best_draws(evaluator, pred, 2)
-        if base_check and base_check.get("best_x") is not None:
-            pts = np.vstack([pts, np.asarray(base_check["best_x"], float)[None]])
-        for c in top:
-            ev_c, cal_c = refits[c]
-            ver, history = raw[c]
-            cal_c, p_c, ver, history, rechecks[c] = refit_recheck(ev_c, cal_c, preds_after[c], ver, history, pts,
-                                                                  bud, log, name=c)
-            refits[c], preds_after[c], raw[c] = (ev_c, cal_c), p_c, (ver, history)
-    profiles = {}
-    if bud.profile_top > 0:
-        # the refits that may be named or be the runner-up, profiled along their switch (ridges)
-        above = [c for c in top if raw[c][0]["log_evidence"] > base_ver["log_evidence"]]
-        for c in sorted(above, key=lambda c: -raw[c][0]["log_evidence"])[: bud.profile_top]:
-            ev_c, cal_c = refits[c]
-            ver, history = raw[c]
-            p_c, profiles[c] = preds_after[c], []
-            for _ in range(bud.profile_rounds):
-                cal_c, p_c, ver, history, pr = profile_refit(ev_c, cal_c, p_c, ver, history, bud, log, name=c)
-                profiles[c].append(pr)
-                if not (pr["refined"] and pr.get("adopted")):
-                    break
-            refits[c], preds_after[c], raw[c] = (ev_c, cal_c), p_c, (ver, history)
-    for c in top:
-        ev_c, cal_c = refits[c]
-        p_c = preds_after[c]
-        ver, history = raw[c]
-        ok = ~cal_c.failed
-        best_i = int(np.nanargmax(np.where(ok, cal_c.z, -np.inf)))
-        recs = [r for r in ev_c.records if not r.failed]
-        rb = max(recs, key=lambda r: r.z) if recs else None
-        best_misfit = ev_c.misfit(rb.predictions) if rb is not None else float("inf")
-        cd = CANDIDATES[c]
-        lbf = ver["log_evidence"] - base_ver["log_evidence"]
-        se_tot = math.sqrt(ver["se"] ** 2 + base_ver["se"] ** 2)
-        sd = savage_dickey(cal_c, cd.param, cd.prior)
-        el = waic(ev_c, p_c.draws) if len(p_c.draws) > 1 else {"elpd": float("nan")}
-        rs = rescore(evaluator, loc.located, pred.draws, p_c.draws) if len(p_c.draws) > 1 else {}
-        misfit_c = ev_c.misfit(p_c.mean) if len(p_c.draws) else float("inf")
-        out = {"name": c, "param": cd.param, "log_evidence": ver["log_evidence"],
-               "log_evidence_emulator": cal_c.log_evidence, "log_bayes_factor": lbf, "two_ln_bf": 2 * lbf,
-               "two_ln_bf_emulator": 2 * (cal_c.log_evidence - baseline.log_evidence),
-               "two_ln_bf_lower": 2 * lbf - 4 * se_tot, "evidence_se": ver["se"], "ess": ver["ess"],
-               "ess_fraction": ver["ess_fraction"], "evidence_history": history,
-               "evidence_converged": bool(ver.get("converged", _trusted(ver, bud))),
-               "mode_search": history[0].get("mode_search"), "refit_recheck": rechecks.get(c),
-               "profile": profiles.get(c),
-               "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
-               "delta_waic": 2 * (el["elpd"] - elpd_b["elpd"]), "located_rescored": rs,
-               "misfit_after": misfit_c, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
-               "parameters": _params(cal_c), "best_misfit": best_misfit, "n_runs": cal_c.n_runs,
-               "best_x": cal_c.x[best_i].tolist()}
-        log(f"[diagnose] refit {c}: 2 ln BF {2 * lbf:.1f} (lower {out['two_ln_bf_lower']:.1f}; emulator "
-            f"{out['two_ln_bf_emulator']:.1f}; ESS {ver['ess']:.1f}), SD {sd['two_ln_bf']:.1f}, "
-            f"dWAIC {out['delta_waic']:.1f}, explained {rs.get('explained')}, misfit {misfit_c:.1f}")
-        cand_out.append(out)
-    for c in candidates:
-        if c not in refits:
-            cand_out.append({"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
-                             "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
-                             "parameters": {}, "not_refit": "screening score below the top_k"})
-    T["refit_s"] = time.perf_counter() - t0
-    # subset consistency at the final baseline: the screening's linearisation when the baseline stayed
-    # the calibration's, else p + 1 runs at the refined baseline's best run
-    t0 = time.perf_counter()
-    scr_c = scr
-    if base_source != "baseline calibration" and len(pred.x):
-        scr_c = screen(evaluator, _best_draws(evaluator, pred, 1)[0], [])
-    consistency = None
-    if scr_c.jacobian is not None:
-        names_b = list(evaluator.prior.names)
-        consistency = subset_consistency(evaluator.blocks, scr_c.jacobian, scr_c.residual, names_b,
-                                         [scr_c.x0[n] for n in names_b])
-        flagged = [e["block"] for e in consistency if e["conflict"]]
-        log("[diagnose] subset consistency: " + (f"{', '.join(flagged)} disagree(s) with the rest about "
-                                                 f"{', '.join(names_b)}" if flagged else "no observation disagrees"))
-    T["consistency_s"] = time.perf_counter() - t0
-    fit_before = _fit(evaluator, pred, loc, base_ver["log_evidence"])
-    fit_before["log_evidence_emulator"] = baseline.log_evidence
-    dec = decide(cand_out, loc.located, base_ver, misfit_before, th, fit_z=fit_z_first)
-    dec.update(fit_z=fit_z_first, fit_z_source="calibrated baseline")
-    dec["baseline_verification"] = dict(base_ver, source=base_source)
-    dec["baseline_mode_check"] = base_check
-    dec["elpd_waic_baseline"] = elpd_b["elpd"]
-    log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
-    # fit after: the named candidate, else the best by verified evidence
+                                                         base_best=base_best, starts=_linear_starts(scr, c, names))
+        out[c] = _Refit(ev_c, cal_c, p_c, ver, history)
+    return out
+
+
+def _slice_check(evaluator, base: _Baseline, refits: dict, bud: Budgets, log) -> None:
+    """The baseline's evidence from a second proposal: the beta = 0 slice of the ``slice_top`` refits with
+    the largest verified evidence (nested models: a refit that finds a better (mu, xi) must not be credited
+    to its switch). Adopted only when trustworthy and larger beyond the noise of both estimates."""
+    order = sorted(refits, key=lambda c: -refits[c].ver["log_evidence"])[: max(1, bud.slice_top)]
+    for c in order:
+        sl = slice_proposal(refits[c].calibration, evaluator.prior.bounds.numpy())
+        p_s = posterior_predictive(evaluator, posterior_samples(sl, bud.n_posterior_samples, seed=bud.seed + 3))
+        v_s = verified_evidence(evaluator, sl, p_s.x, p_s.draws, seed=bud.seed)
+        log(f"[diagnose] baseline via the beta = 0 slice of the {c} refit: log Z {v_s['log_evidence']:.2f} "
+            f"(ESS {v_s['ess']:.1f})")
+        gap = v_s["log_evidence"] - base.ver["log_evidence"]
+        if (_trusted(v_s, bud) and len(p_s.draws) > 1 and
+                (not _trusted(base.ver, bud) or gap > 2 * math.hypot(v_s["se"], base.ver["se"]))):
+            base.adopt(v_s, p_s, f"beta = 0 slice of the {c} refit")
+
+
+def _mode_check_stage(evaluator, base: _Baseline, refits: dict, bud: Budgets, th: Thresholds, log) -> dict:
+    """baseline_mode_check from the baseline's runs and the refits' nested points; its refined baseline
+    is adopted when larger beyond noise and reliable (adopt_refined_baseline)."""
+    zp = solver_z(evaluator, base.pred)
+    good = np.isfinite(zp)
+    runs = (np.vstack([base.runs[0], base.pred.x[good]]), np.concatenate([base.runs[1], zp[good]]))
+    check = baseline_mode_check(evaluator, runs, {c: (r.evaluator, r.calibration) for c, r in refits.items()},
+                                bud, log)
+    if check.get("verification") is not None:
+        v_m, p_m, prop_m = check.pop("verification"), check.pop("predictive"), check.pop("proposal")
+        check["adopted"] = adopt_refined_baseline(v_m, base.ver, len(p_m.draws), th.ess_min)
+        check["log_evidence_gain"] = float(v_m["log_evidence"] - base.ver["log_evidence"])
+        if check["adopted"]:
+            base.adopt(v_m, p_m, "baseline refined from the refits' nested points")
+            base.refined = grid_result(prop_m, evaluator.prior.names, evaluator.prior.bounds.numpy())
+    return check
+
+
+def _recheck_stage(evaluator, base: _Baseline, refits: dict, check: dict | None, bud: Budgets, log) -> None:
+    """After the baseline changed: every refit run at the new baseline's best points (switch at 0) and
+    refined from them when they beat its posterior draws (refit_recheck)."""
+    pts = _best_draws(evaluator, base.pred, 2)
+    if check and check.get("best_x") is not None:
+        pts = np.vstack([pts, np.asarray(check["best_x"], float)[None]])
+    for c, r in refits.items():
+        r.calibration, r.pred, r.ver, r.history, r.recheck = refit_recheck(
+            r.evaluator, r.calibration, r.pred, r.ver, r.history, pts, bud, log, name=c)
+
+
+def _profile_stage(base: _Baseline, refits: dict, bud: Budgets, log) -> None:
+    """The ``profile_top`` refits above the baseline's evidence profiled along their switch (ridges),
+    re-refined while the profile finds mass their posterior missed (profile_refit)."""
+    above = [c for c, r in refits.items() if r.ver["log_evidence"] > base.ver["log_evidence"]]
+    for c in sorted(above, key=lambda c: -refits[c].ver["log_evidence"])[: bud.profile_top]:
+        r = refits[c]
+        r.profile = []
+        for _ in range(bud.profile_rounds):
+            r.calibration, r.pred, r.ver, r.history, pr = profile_refit(r.evaluator, r.calibration, r.pred, r.ver,
+                                                                        r.history, bud, log, name=c)
+            r.profile.append(pr)
+            if not (pr["refined"] and pr.get("adopted")):
+                break
+
+
+def _candidate_report(evaluator, c: str, r: _Refit, base: _Baseline, scr: ScreenResult, bud: Budgets, log) -> dict:
+    """A refitted candidate's row: verified and emulator Bayes factors, Savage-Dickey, WAIC, the located
+    mismatches re-scored, misfit, parameters."""
+    cal_c, ver = r.calibration, r.ver
+    ok = ~cal_c.failed
+    best_i = int(np.nanargmax(np.where(ok, cal_c.z, -np.inf)))
+    recs = [x for x in r.evaluator.records if not x.failed]
+    rb = max(recs, key=lambda x: x.z) if recs else None
+    cd = CANDIDATES[c]
+    lbf = ver["log_evidence"] - base.ver["log_evidence"]
+    se_tot = math.sqrt(ver["se"] ** 2 + base.ver["se"] ** 2)
+    sd = savage_dickey(cal_c, cd.param, cd.prior)
+    el = waic(r.evaluator, r.pred.draws) if len(r.pred.draws) > 1 else {"elpd": float("nan")}
+    rs = rescore(evaluator, base.loc.located, base.pred.draws, r.pred.draws) if len(r.pred.draws) > 1 else {}
+    misfit = r.evaluator.misfit(r.pred.mean) if len(r.pred.draws) else float("inf")
+    out = {"name": c, "param": cd.param, "log_evidence": ver["log_evidence"],
+           "log_evidence_emulator": cal_c.log_evidence, "log_bayes_factor": lbf, "two_ln_bf": 2 * lbf,
+           "two_ln_bf_emulator": 2 * (cal_c.log_evidence - base.calibration.log_evidence),
+           "two_ln_bf_lower": 2 * lbf - 4 * se_tot, "evidence_se": ver["se"], "ess": ver["ess"],
+           "ess_fraction": ver["ess_fraction"], "evidence_history": r.history,
+           "evidence_converged": bool(ver.get("converged", _trusted(ver, bud))),
+           "mode_search": r.history[0].get("mode_search"), "refit_recheck": r.recheck, "profile": r.profile,
+           "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
+           "delta_waic": 2 * (el["elpd"] - base.elpd["elpd"]), "located_rescored": rs,
+           "misfit_after": misfit, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
+           "parameters": _params(cal_c),
+           "best_misfit": r.evaluator.misfit(rb.predictions) if rb is not None else float("inf"),
+           "n_runs": cal_c.n_runs, "best_x": cal_c.x[best_i].tolist()}
+    log(f"[diagnose] refit {c}: 2 ln BF {2 * lbf:.1f} (lower {out['two_ln_bf_lower']:.1f}; emulator "
+        f"{out['two_ln_bf_emulator']:.1f}; ESS {ver['ess']:.1f}), SD {sd['two_ln_bf']:.1f}, "
+        f"dWAIC {out['delta_waic']:.1f}, explained {rs.get('explained')}, misfit {misfit:.1f}")
+    return out
+
+
+def _consistency_stage(evaluator, base: _Baseline, scr: ScreenResult, log) -> list | None:
+    """Subset consistency at the final baseline: the screening's linearisation when the baseline stayed
+    the calibration's, else p + 1 runs at the refined baseline's best run."""
+    if base.changed and len(base.pred.x):
+        scr = screen(evaluator, _best_draws(evaluator, base.pred, 1)[0], [])
+    if scr.jacobian is None:
+        return None
+    names = list(evaluator.prior.names)
+    out = subset_consistency(evaluator.blocks, scr.jacobian, scr.residual, names, [scr.x0[n] for n in names])
+    flagged = [e["block"] for e in out if e["conflict"]]
+    log("[diagnose] subset consistency: " + (f"{', '.join(flagged)} disagree(s) with the rest about "
+                                             f"{', '.join(names)}" if flagged else "no observation disagrees"))
+    return out
+
+
+def _after_stage(cand_out: list, dec: dict, refits: dict, th: Thresholds, bud: Budgets) -> tuple:
+    """(predictive, localisation, fit) after the named candidate, else after the best by verified evidence."""
     fitted = [c for c in cand_out if c.get("log_bayes_factor") is not None]
-    after_pred = after_loc = None
-    fit_after = {}
+    if not fitted:
+        return None, None, {}
+    name = dec["missing_physics"] or max(fitted, key=lambda c: c["log_bayes_factor"])["name"]
+    r = refits[name]
+    if len(r.pred.draws) <= 1:
+        return r.pred, None, {}
+    loc = localise(r.evaluator, r.pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
+    fit = _fit(r.evaluator, r.pred, loc, next(c["log_evidence"] for c in fitted if c["name"] == name))
+    fit["model"] = name
+    return r.pred, loc, fit
+
+
+def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnosis:
+    """The stages of the module doc, timed per stage (Diagnosis.timings)."""
+    T = {}
     t0 = time.perf_counter()
-    if fitted:
-        name = dec["missing_physics"] or max(fitted, key=lambda c: c["log_bayes_factor"])["name"]
-        ev_b, cal_b = refits[name]
-        after_pred = preds_after[name]
-        if len(after_pred.draws) > 1:
-            after_loc = localise(ev_b, after_pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
-            fit_after = _fit(ev_b, after_pred, after_loc, next(c["log_evidence"] for c in fitted if c["name"] == name))
-            fit_after["model"] = name
-    T["after_s"] = time.perf_counter() - t0
+
+    def lap(key: str) -> None:
+        nonlocal t0
+        T[key] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+
+    _check_budgets(bud, baseline)
+    model_error = None
+    if bud.model_error_runs > 0:
+        evaluator, me = grid_model_error(evaluator, bud, workdir, log)
+        model_error = me.summary(evaluator.blocks)
+        lap("model_error_s")
+    base = _baseline_stage(evaluator, bud, baseline, workdir, log)
+    lap("baseline_s")
+    log(f"[diagnose] baseline log Z {base.ver['log_evidence']:.2f} (emulator {base.calibration.log_evidence:.2f}, "
+        f"ESS {base.ver['ess']:.1f}/{base.ver['n_draws']}, se {base.ver['se']:.2f})")
+    _assess(evaluator, base, th, bud)
+    loc_first = base.loc
+    # the fit flags use the calibrated baseline's fit, before any refit can change the baseline (the
+    # statistic their null levels are set on)
+    fit_z_first = {b: i["Z_fit"] for b, i in loc_first.blocks.items() if i.get("Z_fit") is not None}
+    lap("predictive_s")
+    log(f"[diagnose] located {loc_first.n_located} mismatch(es); max |score| {loc_first.max_abs():.2f}")
+    scr = _screen_stage(evaluator, base, candidates, th, log)
+    lap("screen_s")
+    top = scr.ranking[: bud.top_k]
+    refits = _refit_stage(evaluator, top, base, scr, bud, workdir, log)
+    if bud.slice_check and refits:
+        _slice_check(evaluator, base, refits, bud, log)
+    check = None
+    if bud.baseline_mode_check and refits and base.runs is not None:
+        check = _mode_check_stage(evaluator, base, refits, bud, th, log)
+    if base.changed:
+        log(f"[diagnose] baseline evidence and predictive taken from the {base.source}; re-localising")
+        _assess(evaluator, base, th, bud)
+        if bud.refit_recheck and len(base.pred.x):
+            _recheck_stage(evaluator, base, refits, check, bud, log)
+    if bud.profile_top > 0:
+        _profile_stage(base, refits, bud, log)
+    cand_out = [_candidate_report(evaluator, c, refits[c], base, scr, bud, log) for c in top]
+    cand_out += [{"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
+                  "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
+                  "parameters": {}, "not_refit": "screening score below the top_k"}
+                 for c in candidates if c not in refits]
+    lap("refit_s")
+    consistency = _consistency_stage(evaluator, base, scr, log)
+    lap("consistency_s")
+    fit_before = _fit(evaluator, base.pred, base.loc, base.ver["log_evidence"])
+    fit_before["log_evidence_emulator"] = base.calibration.log_evidence
+    dec = decide(cand_out, base.loc.located, base.ver, base.misfit, th, fit_z=fit_z_first)
+    dec.update(fit_z=fit_z_first, fit_z_source="calibrated baseline",
+               baseline_verification=dict(base.ver, source=base.source), baseline_mode_check=check,
+               elpd_waic_baseline=base.elpd["elpd"])
+    log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
+    after_pred, after_loc, fit_after = _after_stage(cand_out, dec, refits, th, bud)
+    lap("after_s")
     cand_out.sort(key=lambda c: -(c["log_bayes_factor"] if c["log_bayes_factor"] is not None else -1e300))
-    return Diagnosis(verdict=dec["verdict"], decision=dec, baseline=baseline, predictive=pred, localisation=loc,
-                     screening=scr, refits=refits, candidates=cand_out, fit_before=fit_before, fit_after=fit_after,
-                     after_predictive=after_pred, after_localisation=after_loc, thresholds=th, timings=T,
-                     evaluator=evaluator, model_error=model_error, baseline_refined=baseline_refined,
-                     consistency=consistency)
+    return Diagnosis(verdict=dec["verdict"], decision=dec, baseline=base.calibration, predictive=base.pred,
+                     localisation=base.loc, screening=scr,
+                     refits={c: (r.evaluator, r.calibration) for c, r in refits.items()}, candidates=cand_out,
+                     fit_before=fit_before, fit_after=fit_after, after_predictive=after_pred,
+                     after_localisation=after_loc, thresholds=th, timings=T, evaluator=evaluator,
+                     model_error=model_error, baseline_refined=base.refined, consistency=consistency)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from ..bayes import Prior, Uniform
 from ..calibration import calibrate
-from ..physics import CANDIDATES
+from .candidates import CANDIDATES
 
 
 def candidate_prior(base_prior: Prior, candidate: str) -> Prior:

@@ -154,7 +154,7 @@ def write_markdown(j: dict, figures: list[str]) -> str:
                      f"{'yes' if e['conflict'] else 'no'} | {fmtw(e['wants'])} | {fmtw(e['rest_wants'])} |")
     scr = (j.get("screening") or {}).get("candidates") or {}
     if any("detectable_switch" in v for v in scr.values()):
-        from ..physics import CANDIDATES
+        from .candidates import CANDIDATES
         L += ["", "## Screening", "",
               "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
               "smallest switch whose own effect (what re-tuning mu, xi cannot mimic, whitened by the likelihood's "

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..physics import CANDIDATES
+from .candidates import CANDIDATES
 
 
 @dataclass

@@ -15,9 +15,10 @@ on the DEM grid):
 
 On a plane z = -x tan(theta) a uniform layer feels g_n tan(theta) - mu g_n, i.e. exactly
 a = g cos(theta) (tan(theta) - mu), so the uniform-slope, Voellmy terminal-velocity
-(u^2 = xi h (sin - mu cos)) and Mangeney dam-break solutions of VERIFICATION.md hold in the x
-coordinate (x horizontal; the reference solutions' along-slope coordinate maps to it through this
-same a and c = sqrt(g_n h)).
+(u^2 = xi h (sin - mu cos)) and Mangeney dam-break solutions of docs/verification.md hold with the
+grid's x as the along-slope coordinate. On a DEM of a tilted plane in map coordinates the horizontal
+acceleration should be g cos(theta) (sin(theta) - mu cos(theta)): this formulation, which has no
+metric factors of the surface, moves 1/cos(theta) too fast in map view there.
 
 Scheme
 ------
@@ -30,7 +31,7 @@ written per cell,
 
 with Phi the central-upwind average of h^2/2 at a face and hbar the mean face thickness of the cell.
 This balances a lake at rest exactly (even where g_n varies from cell to cell) and drives a uniform
-layer on a plane exactly (VERIFICATION 1-2). Positivity for any dt: draining-flux limiter (Bollermann
+layer on a plane exactly (docs/verification.md, cases 1-2). Positivity for any dt: draining-flux limiter (Bollermann
 et al. 2013), so the mass update is conservative to round-off (outflow through the boundaries is
 counted). The DEM edge is an outflow boundary by default (zero-gradient ghost cells; a face whose flux
 points into the domain carries nothing in, so a flow touching the upslope edge is not fed from outside);

@@ -9,7 +9,7 @@ applied to the whole momentum vector q = h u as a fractional step that can stop 
 
 the second line solves q + dt g |q| q / (xi h^2) = q_c exactly, so a steady state of the step is
 exactly g |u|^2 / xi = g_n h (tan(theta) - mu), i.e. the Voellmy terminal velocity
-u^2 = xi h (sin(theta) - mu cos(theta)) on a plane (VERIFICATION 3), independent of dt.
+u^2 = xi h (sin(theta) - mu cos(theta)) on a plane (docs/verification.md, case 3), independent of dt.
 """
 from __future__ import annotations
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -139,6 +140,20 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     t0_wall = time.perf_counter()
     cfg = config or SolverConfig()
     cfg.validate()
+    _check_call(dem, params, dtype, t_end)
+    device = torch.device(device)
+    params.validate()
+    P0 = params.to(device=device, dtype=dtype)
+    inp = _inputs(dem, release, P0, erodible_depth, mu_scale, gauges, dtype, device)
+    F = _step_flags(cfg, P0, inp, float(dem.cellsize))
+    out_times = _output_times(t_end, cfg.output_interval, dtype, device)
+    S = _initial_state(inp, P0.B, dem, out_times, cfg, dtype, device)
+    release_volume = S["mass"].clone()
+    S, exceeded = _run(S, P0, inp, F, cfg, out_times, t_end, progress)
+    return _result(S, exceeded, P0, inp, dem, out_times, release_volume, cfg, time.perf_counter() - t0_wall)
+
+
+def _check_call(dem: DEM, params: Params, dtype: torch.dtype, t_end: float) -> None:
     if not isinstance(dem, DEM):
         raise ValueError(f"dem must be a torchslide.terrain.DEM, got {type(dem).__name__}")
     if not isinstance(params, Params):
@@ -147,94 +162,108 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
         raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype}")
     if not (isinstance(t_end, (int, float)) and math.isfinite(t_end) and t_end > 0):
         raise ValueError(f"t_end must be a finite number of seconds > 0, got {t_end!r}")
-    device = torch.device(device)
-    params.validate()
-    P0 = params.to(device=device, dtype=dtype)
+
+
+@dataclass
+class _Inputs:
+    """The checked rasters and gauges of a call: h0 (B, ny, nx) m; erod0, mu_scale (ny, nx) or None;
+    gauges [(name, x, y)] and their flat cell indices; use_ent / use_dep: some member entrains /
+    deposits (the bed then evolves)."""
+
+    h0: Tensor
+    erod0: Tensor | None
+    mu_scale: Tensor | None
+    gauges: list
+    gidx: list
+    use_ent: bool
+    use_dep: bool
+
+    @property
+    def evolve(self) -> bool:
+        return self.use_ent or self.use_dep
+
+
+def _inputs(dem: DEM, release, P0: Params, erodible_depth, mu_scale, gauges, dtype, device) -> _Inputs:
+    """Convert and check the rasters and gauges (ValueError naming the input and the value)."""
     B = P0.B
     ny, nx = dem.shape
-    dx = float(dem.cellsize)
-
     rel = _as_tensor(release, "release", dtype, device)
     _check_raster(rel, "release", (ny, nx), allow_batch=True)
     if rel.ndim == 3 and rel.shape[0] != B:
         raise ValueError(f"release has {rel.shape[0]} members (shape {tuple(rel.shape)}) but params has B = {B}")
     h0 = rel.expand(B, ny, nx).clone() if rel.ndim == 2 else rel.clone()
-
     use_ent = bool((P0.kappa > 0).any())
+    erod0 = None
     if erodible_depth is not None:
         erod0 = _as_tensor(erodible_depth, "erodible_depth", dtype, device)
         _check_raster(erod0, "erodible_depth", (ny, nx), allow_batch=False)
     elif use_ent:
         b = int(torch.nonzero(P0.kappa > 0)[0])
         raise ValueError(f"parameter kappa[{b}] = {float(P0.kappa[b])} > 0 needs an erodible_depth raster")
-    else:
-        erod0 = None
+    ms = None
     if mu_scale is not None:
         ms = _as_tensor(mu_scale, "mu_scale", dtype, device)
         _check_raster(ms, "mu_scale", (ny, nx), allow_batch=False, positive=True)
-    else:
-        ms = None
     gauge_list = list(gauges or [])
-    gidx_l, gnames = [], []
+    gidx, names = [], []
     for gg in gauge_list:
         if len(gg) != 3:
             raise ValueError(f"gauge entries must be (name, x, y), got {gg!r}")
         name, gx, gy = gg
         i, j = dem.index(float(gx), float(gy), what=f"gauge {name!r}")
-        gidx_l.append(i * nx + j)
-        gnames.append(str(name))
-    if len(set(gnames)) != len(gnames):
-        raise ValueError(f"gauge names must be unique, got {gnames}")
-    gidx = torch.tensor(gidx_l, dtype=torch.long, device=device)
+        gidx.append(i * nx + j)
+        names.append(str(name))
+    if len(set(names)) != len(names):
+        raise ValueError(f"gauge names must be unique, got {names}")
+    return _Inputs(h0, erod0, ms, gauge_list, gidx, use_ent, bool((P0.deposition > 0).any()))
 
-    use_dep = bool((P0.deposition > 0).any())
-    evolve = use_ent or use_dep
-    F = StepFlags(
+
+def _step_flags(cfg: SolverConfig, P0: Params, inp: _Inputs, dx: float) -> StepFlags:
+    """The step's static settings: the numerical ones and which terms any member switches on."""
+    return StepFlags(
         dx=dx, g=G, cfl=cfg.cfl, theta=cfg.limiter_theta, h_eps=cfg.h_eps, h_wet=cfg.h_wet, wb_ratio=cfg.wb_depth_ratio,
         dt_max=cfg.dt_max, stop_ke_fraction=cfg.stop_ke_fraction,
         arrival_threshold=cfg.arrival_threshold, entrain_h_min=cfg.entrain_h_min,
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,
         use_ep=bool((P0.earth_pressure > 0).any()), use_curv=bool((P0.curvature > 0).any()),
-        use_ent=use_ent, use_dep=use_dep, use_mu_i=bool((P0.mu_i > 0).any()), use_mu_scale=ms is not None,
-        inflow=cfg.boundary == "open")
-    step = _get_step(F, cfg.compile)
+        use_ent=inp.use_ent, use_dep=inp.use_dep, use_mu_i=bool((P0.mu_i > 0).any()),
+        use_mu_scale=inp.mu_scale is not None, inflow=cfg.boundary == "open")
 
-    # member parameters as (B, 1, 1)
-    Pm = {n: t.view(B, 1, 1) for n, t in P0.as_dict().items()}
-    phi = torch.where(torch.isnan(P0.phi_int), torch.full_like(P0.phi_int, 45.0), P0.phi_int)
-    k_act, k_pass = earth_pressure_sh(phi, P0.mu)
-    Pm["k_act"], Pm["k_pass"] = k_act.view(B, 1, 1), k_pass.view(B, 1, 1)
-    # shared (non-member) inputs; t_end is a tensor so a compiled step is reused for any end time
-    shared = {"mu_scale": ms.unsqueeze(0) if ms is not None else None,
-              "t_end": torch.tensor(float(t_end), dtype=dtype, device=device)}
 
-    out_times_l = list(np.arange(0.0, t_end, cfg.output_interval))
-    if not out_times_l or t_end - out_times_l[-1] > 1e-9 * max(1.0, t_end):
-        out_times_l.append(float(t_end))
+def _output_times(t_end: float, interval: float, dtype, device) -> Tensor:
+    """(K,) output times 0, interval, ..., t_end (the last one exactly t_end), s."""
+    times = list(np.arange(0.0, t_end, interval))
+    if not times or t_end - times[-1] > 1e-9 * max(1.0, t_end):
+        times.append(float(t_end))
     else:
-        out_times_l[-1] = float(t_end)
-    out_times = torch.tensor(out_times_l, dtype=dtype, device=device)
-    K = len(out_times_l)
-    G_ = len(gidx_l)
+        times[-1] = float(t_end)
+    return torch.tensor(times, dtype=dtype, device=device)
 
+
+def _initial_state(inp: _Inputs, B: int, dem: DEM, out_times: Tensor, cfg: SolverConfig, dtype, device) -> dict:
+    """The state dict at t = 0 (per-member entries first-dimension B), output slot 0 recorded."""
+    h0 = inp.h0
+    ny, nx = dem.shape
+    evolve = inp.evolve
+    K, G_ = out_times.shape[0], len(inp.gidx)
     z0 = torch.as_tensor(dem.z, dtype=dtype, device=device).unsqueeze(0)
     zeros_b = torch.zeros(B, dtype=dtype, device=device)
-    cell_area = dx * dx
+    cell_area = float(dem.cellsize) ** 2
     S = {
         "h": h0, "hu": torch.zeros_like(h0), "hv": torch.zeros_like(h0),
         "z": z0.expand(B, ny, nx).clone() if evolve else z0,
-        "erod": erod0.expand(B, ny, nx).clone() if use_ent else None,
-        "dep": torch.zeros_like(h0) if use_dep else None,
+        "erod": inp.erod0.expand(B, ny, nx).clone() if inp.use_ent else None,
+        "dep": torch.zeros_like(h0) if inp.use_dep else None,
         "outflow": zeros_b.clone(), "t": zeros_b.clone(),
         "t_next": out_times[min(1, K - 1)].expand(B).clone(),
-        "k_out": torch.ones(B, dtype=torch.long, device=device),
+        "k_out": torch.zeros(B, dtype=torch.long, device=device),
         "active": torch.ones(B, dtype=torch.bool, device=device),
         "ke_peak": zeros_b.clone(),
         "h_max": h0.clone(), "v_max": torch.zeros_like(h0),
         "arrival": torch.where(h0 > cfg.arrival_threshold, torch.zeros_like(h0), torch.full_like(h0, math.inf)),
         "steps": torch.zeros(B, dtype=torch.long, device=device),
         "ke": zeros_b.clone(), "mass": h0.sum(dim=(1, 2)) * cell_area,
-        "hit": torch.zeros(B, dtype=torch.bool, device=device), "dt": zeros_b.clone(),
+        "hit": torch.ones(B, dtype=torch.bool, device=device), "dt": zeros_b.clone(),
         "failed": torch.zeros(B, dtype=torch.bool, device=device),
         "stopped": torch.zeros(B, dtype=torch.bool, device=device),
         "g_h": torch.zeros(B, G_, K, dtype=dtype, device=device),
@@ -244,45 +273,62 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
         "ke_hist": torch.zeros(B, K, dtype=dtype, device=device),
     }
     # slot 0 = the initial state
-    S["hit"] = torch.ones(B, dtype=torch.bool, device=device)
-    S["k_out"] = torch.zeros(B, dtype=torch.long, device=device)
-    S = _record(S, out_times, gidx, cfg.h_eps, K)
+    S = _record(S, out_times, torch.tensor(inp.gidx, dtype=torch.long, device=device), cfg.h_eps, K)
     S["hit"] = torch.zeros(B, dtype=torch.bool, device=device)
-    release_volume = S["mass"].clone()
+    return S
 
-    member_keys = [k for k in _MEMBER_KEYS] + (["z"] if evolve else []) + (["erod"] if use_ent else []) \
-        + (["dep"] if use_dep else [])
+
+def _member_params(P0: Params, inp: _Inputs, t_end: float) -> tuple[dict, dict]:
+    """(per-member parameters as (B, 1, 1) tensors with the Savage-Hutter k_act, k_pass; the shared
+    inputs: mu_scale (1, ny, nx) or None and t_end as a tensor, so a compiled step serves any end time)."""
+    B = P0.B
+    Pm = {n: t.view(B, 1, 1) for n, t in P0.as_dict().items()}
+    phi = torch.where(torch.isnan(P0.phi_int), torch.full_like(P0.phi_int, 45.0), P0.phi_int)
+    k_act, k_pass = earth_pressure_sh(phi, P0.mu)
+    Pm["k_act"], Pm["k_pass"] = k_act.view(B, 1, 1), k_pass.view(B, 1, 1)
+    shared = {"mu_scale": inp.mu_scale.unsqueeze(0) if inp.mu_scale is not None else None,
+              "t_end": torch.tensor(float(t_end), dtype=P0.mu.dtype, device=P0.mu.device)}
+    return Pm, shared
+
+
+def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out_times: Tensor, t_end: float,
+         progress: bool) -> tuple[dict, Tensor]:
+    """Step every member until it ends: the steps run on the bounding box of the cells the flow has
+    touched (torchslide.solver.crop), members that ended leave the batch (``cfg.compact``), the host
+    checks every ``cfg.check_every`` steps. Returns (the final state, (B,) bool: max_steps exceeded)."""
+    B = P0.B
+    ny, nx = S["h"].shape[1:]
+    device = S["h"].device
+    step = _get_step(F, cfg.compile)
+    Pm, shared = _member_params(P0, inp, t_end)
+    gidx = torch.tensor(inp.gidx, dtype=torch.long, device=device)
+    member_keys = list(_MEMBER_KEYS) + (["z"] if inp.evolve else []) + (["erod"] if inp.use_ent else []) \
+        + (["dep"] if inp.use_dep else [])
     full = S
     idx = torch.arange(B, device=device)
     work = dict(S)
-    Pw = dict(Pm)
-    Pw.update(shared)
+    Pw = dict(Pm, **shared)
     exceeded = torch.zeros(B, dtype=torch.bool, device=device)
+    g_rows = torch.div(gidx, nx, rounding_mode="floor")
+    g_cols = gidx - g_rows * nx
+    margin = 2 * cfg.crop_every + 3
+
+    def enter(state: dict, b: _crop.Box):
+        sub_ = _crop.extract(state, b, ny, nx)
+        P_ = dict(Pw)
+        if P_.get("mu_scale") is not None and not b.covers(ny, nx):
+            P_["mu_scale"] = P_["mu_scale"][:, b.r0:b.r1, b.c0:b.c1].contiguous()
+        if not inp.evolve:  # the bed terms of this box, once (not once per step)
+            P_["geo"] = static_geometry(sub_["z"], F)
+        gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
+        return sub_, P_, gi_, gin_
 
     bar = None
     if progress:
         from tqdm.auto import tqdm
         bar = tqdm(total=float(t_end), unit="s", desc="simulate")
-    n_iter = 0
-    # active-region cropping (torchslide.solver.crop): the steps run on `sub`, the state cut to `box`
-    g_rows = torch.div(gidx, nx, rounding_mode="floor")
-    g_cols = gidx - g_rows * nx
-    margin = 2 * cfg.crop_every + 3
-    box = _crop.full_box(ny, nx) if not cfg.crop else None
-
-    def _enter(state: dict, b: _crop.Box):
-        sub_ = _crop.extract(state, b, ny, nx)
-        P_ = dict(Pw)
-        if P_.get("mu_scale") is not None and not b.covers(ny, nx):
-            P_["mu_scale"] = P_["mu_scale"][:, b.r0:b.r1, b.c0:b.c1].contiguous()
-        if not evolve:  # the bed terms of this box, once (not once per step)
-            P_["geo"] = static_geometry(sub_["z"], F)
-        gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
-        return sub_, P_, gi_, gin_
-
-    if box is None:
-        box = _crop.grow(work["h"], None, ny, nx, margin)
-    sub, Psub, gsub, gin = _enter(work, box)
+    box = _crop.grow(work["h"], None, ny, nx, margin) if cfg.crop else _crop.full_box(ny, nx)
+    sub, Psub, gsub, gin = enter(work, box)
     while True:
         for s_ in range(cfg.check_every):
             if cfg.crop and s_ % cfg.crop_every == 0 and not box.covers(ny, nx):
@@ -290,11 +336,10 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
                 if nbox != box:
                     _crop.write_back(work, sub, box, ny, nx, member_keys)
                     box = nbox
-                    sub, Psub, gsub, gin = _enter(work, box)
+                    sub, Psub, gsub, gin = enter(work, box)
             sub = step(sub, Psub, out_times, gsub, gin)
         # the checks below need only the per-member scalars; rasters go back at compaction / the end
         work.update({k: v for k, v in sub.items() if k not in _crop.SPATIAL})
-        n_iter += cfg.check_every
         act = work["active"]
         over = act & (work["steps"] >= cfg.max_steps)
         if bool(over.any()):
@@ -304,8 +349,7 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             act = work["active"]
         n_act = int(act.sum())
         if bar is not None:
-            tmin = float(work["t"][act].min()) if n_act else float(t_end)
-            bar.n = round(tmin, 3)
+            bar.n = round(float(work["t"][act].min()) if n_act else float(t_end), 3)
             bar.set_postfix(active=n_act)
             bar.refresh()
         if n_act == 0:
@@ -313,54 +357,63 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             break
         if cfg.compact and n_act < idx.numel():
             _crop.write_back(work, sub, box, ny, nx, member_keys)
-            for k in member_keys:
-                if work[k] is not full[k] and full[k].numel():  # empty (no gauges): nothing to copy
-                    full[k][idx] = work[k]
+            _scatter(full, work, idx, member_keys)
             idx = idx[act]
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
-            Pw = {k: (v[idx] if k in Pm else v) for k, v in Pm.items()}
-            Pw.update(shared)
-            sub, Psub, gsub, gin = _enter(work, box)
-    for k in member_keys:
-        if work[k] is not full[k] and full[k].numel():
-            full[k][idx] = work[k]
+            Pw = dict({k: v[idx] for k, v in Pm.items()}, **shared)
+            sub, Psub, gsub, gin = enter(work, box)
+    _scatter(full, work, idx, member_keys)
     if bar is not None:
         bar.n = float(t_end)
         bar.close()
-    S = full
+    return full, exceeded
 
-    # samples after a member ended repeat its final state
-    slot = torch.arange(K, device=device)
-    after = slot.view(1, K) >= S["k_out"].view(B, 1)
-    hfinal_flow = S["h"]
-    uF = desingularised_velocity(hfinal_flow, S["hu"], cfg.h_eps)
-    vF = desingularised_velocity(hfinal_flow, S["hv"], cfg.h_eps)
+
+def _scatter(full: dict, work: dict, idx: Tensor, member_keys: list) -> None:
+    """Write the members ``idx`` of the compacted state ``work`` back into ``full``."""
+    for k in member_keys:
+        if work[k] is not full[k] and full[k].numel():  # empty (no gauges): nothing to copy
+            full[k][idx] = work[k]
+
+
+def _result(S: dict, exceeded: Tensor, P0: Params, inp: _Inputs, dem: DEM, out_times: Tensor,
+            release_volume: Tensor, cfg: SolverConfig, runtime_s: float) -> SimulationResult:
+    """The SimulationResult of the final state: samples after a member ended repeat its final state."""
+    B, ny, nx = S["h"].shape
+    K = out_times.shape[0]
+    cell_area = float(dem.cellsize) ** 2
+    after = torch.arange(K, device=out_times.device).view(1, K) >= S["k_out"].view(B, 1)
+    uF = desingularised_velocity(S["h"], S["hu"], cfg.h_eps)
+    vF = desingularised_velocity(S["h"], S["hv"], cfg.h_eps)
     S["mass_hist"] = torch.where(after, S["mass"].view(B, 1), S["mass_hist"])
     S["ke_hist"] = torch.where(after, S["ke"].view(B, 1), S["ke_hist"])
     gauges_out: dict[str, GaugeSeries] = {}
-    for gi, (name, gx, gy) in enumerate(gauge_list):
-        fi = gidx_l[gi]
-        a3 = after
-        gh = torch.where(a3, hfinal_flow.flatten(1)[:, fi].view(B, 1), S["g_h"][:, gi])
-        gu = torch.where(a3, uF.flatten(1)[:, fi].view(B, 1), S["g_u"][:, gi])
-        gv = torch.where(a3, vF.flatten(1)[:, fi].view(B, 1), S["g_v"][:, gi])
+    for gi, (name, gx, gy) in enumerate(inp.gauges):
+        fi = inp.gidx[gi]
+        gh = torch.where(after, S["h"].flatten(1)[:, fi].view(B, 1), S["g_h"][:, gi])
+        gu = torch.where(after, uF.flatten(1)[:, fi].view(B, 1), S["g_u"][:, gi])
+        gv = torch.where(after, vF.flatten(1)[:, fi].view(B, 1), S["g_v"][:, gi])
         gauges_out[str(name)] = GaugeSeries(str(name), float(gx), float(gy), out_times, gh, gu, gv)
+    h_final = S["h"] + S["dep"] if inp.use_dep else S["h"]
+    if inp.use_ent:
+        entrained = (inp.erod0.unsqueeze(0) - S["erod"]).sum(dim=(1, 2)) * cell_area
+    else:
+        entrained = torch.zeros_like(release_volume)
+    z0 = torch.as_tensor(dem.z, dtype=S["h"].dtype, device=S["h"].device).unsqueeze(0)
+    bed_change = S["z"] - z0 if inp.evolve else (torch.zeros_like(inp.h0) if inp.erod0 is not None else None)
+    return SimulationResult(
+        dem=dem, h_max=S["h_max"], v_max=S["v_max"], h_final=h_final, arrival_time=S["arrival"],
+        cell_area=torch.full((ny, nx), cell_area, dtype=S["h"].dtype, device=S["h"].device),
+        release_volume=release_volume, final_volume=h_final.sum(dim=(1, 2)) * cell_area, outflow_volume=S["outflow"],
+        entrained_volume=entrained, steps=S["steps"], t_final=S["t"], stopped=S["stopped"],
+        history_t=out_times, mass_history=S["mass_hist"], ke_history=S["ke_hist"], gauges=gauges_out,
+        bed_change=bed_change, runtime_s=runtime_s, params=P0.as_dict(),
+        failed=S["failed"] | exceeded, failure_reason=_failure_reasons(S, exceeded, P0, cfg))
 
-    h_final = S["h"] + S["dep"] if use_dep else S["h"]
-    final_volume = h_final.sum(dim=(1, 2)) * cell_area
-    if use_ent:
-        entrained = (erod0.unsqueeze(0) - S["erod"]).sum(dim=(1, 2)) * cell_area
-    else:
-        entrained = torch.zeros(B, dtype=dtype, device=device)
-    if evolve:
-        bed_change = S["z"] - z0
-    elif erod0 is not None:
-        bed_change = torch.zeros_like(h0)
-    else:
-        bed_change = None
-    failed = S["failed"] | exceeded
+
+def _failure_reasons(S: dict, exceeded: Tensor, P0: Params, cfg: SolverConfig) -> list:
     reasons: list[str | None] = []
-    for b in range(B):
+    for b in range(P0.B):
         if bool(S["failed"][b]):
             reasons.append(f"non-finite state (NaN/inf) at t={float(S['t'][b]):.4g} s after "
                            f"{int(S['steps'][b])} steps (mu={float(P0.mu[b]):.4g}, xi={float(P0.xi[b]):.4g})")
@@ -368,12 +421,4 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
             reasons.append(f"exceeded max_steps={cfg.max_steps} at t={float(S['t'][b]):.4g} s")
         else:
             reasons.append(None)
-    return SimulationResult(
-        dem=dem, h_max=S["h_max"], v_max=S["v_max"], h_final=h_final, arrival_time=S["arrival"],
-        cell_area=torch.full((ny, nx), cell_area, dtype=dtype, device=device),
-        release_volume=release_volume, final_volume=final_volume, outflow_volume=S["outflow"],
-        entrained_volume=entrained, steps=S["steps"], t_final=S["t"], stopped=S["stopped"],
-        history_t=out_times, mass_history=S["mass_hist"], ke_history=S["ke_hist"], gauges=gauges_out,
-        bed_change=bed_change, runtime_s=time.perf_counter() - t0_wall,
-        params={n: t for n, t in P0.as_dict().items()}, failed=failed, failure_reason=reasons,
-    )
+    return reasons

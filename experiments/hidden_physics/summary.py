@@ -1,0 +1,125 @@
+"""The compact summary of a harness run: one row per case, the targets it is scored against.
+
+``python -m experiments.hidden_physics.summary DIR [--out FILE]`` writes DIR/summary.json (or FILE)
+from the case files ``<scenario>_s<seed>[_x<strength>].json`` the harness saved in DIR. The harness
+writes it after every case, so a partial run has one too. The results page
+(:mod:`experiments.hidden_physics.make_page`) is built from such summaries alone.
+
+A case is a *strict success* (the target of the blind test, >= 4 of 5 seeds per scenario):
+
+* null scenario: the verdict "nothing missing";
+* out-of-library term (a low-friction patch): no library term named;
+* a library term: that term named, with 2 ln BF >= 6 over the runner-up, its switch's 90 % interval
+  covering the truth, and the misfit reduced by the refit.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import tempfile
+from pathlib import Path
+
+MARGIN_MIN = 6.0
+"""2 ln BF over the runner-up that a strict success needs."""
+
+_SETTINGS = {"terrain": "narrow", "cellsize": 40.0, "sigmas": "harness", "fine_factor": 2, "fine_terrain": False,
+             "budgets": {}, "device": "cpu"}
+"""The settings of a run (harness options) and their defaults."""
+
+
+def true_label(case: dict) -> str:
+    """The hidden term of a case: "none", a library term, or "unexplained" (out of the library)."""
+    t = case["truth"]["term"]
+    return "none" if t is None else ("unexplained" if t == "outside" else t)
+
+
+def found_label(case: dict) -> str:
+    """What the diagnosis said: "none", the named term, or "unexplained"."""
+    j = case["diagnosis"]
+    if j["verdict"] == "missing_physics":
+        return j["missing_physics"]
+    return "unexplained" if j["verdict"] == "unexplained" else "none"
+
+
+def strict_success(case: dict) -> bool:
+    """Whether a saved case meets the blind test's target (module doc)."""
+    j = case["diagnosis"]
+    tl = true_label(case)
+    if tl == "none":
+        return j["verdict"] == "no_missing_physics"
+    if tl == "unexplained":
+        return j["missing_physics"] is None
+    margin = j["decision"].get("two_ln_bf_over_runner_up")
+    after = (j.get("fit_after") or {}).get("misfit")
+    return (found_label(case) == tl and margin is not None and margin >= MARGIN_MIN
+            and bool(case.get("true_term_covered_hdr90")) and after is not None
+            and after < j["fit_before"]["misfit"])
+
+
+def case_row(case: dict) -> dict:
+    """The compact row of one saved case."""
+    j = case["diagnosis"]
+    d = j.get("decision") or {}
+    after = (j.get("fit_after") or {}).get("misfit")
+    return {"scenario": case["scenario"], "seed": int(case["seed"]), "strength": float(case.get("strength", 1.0)),
+            "true": true_label(case), "found": found_label(case), "verdict": j["verdict"],
+            "strict_success": strict_success(case), "two_ln_bf": d.get("two_ln_bf"),
+            "two_ln_bf_over_runner_up": d.get("two_ln_bf_over_runner_up"),
+            "true_term_covered_hdr90": case.get("true_term_covered_hdr90"),
+            "misfit_before": j["fit_before"]["misfit"], "misfit_after": after,
+            "wall_s": case.get("wall_s")}
+
+
+def summarise(folder) -> dict:
+    """The summary of the cases in ``folder``: settings, the thresholds they were decided with, rows."""
+    cases = []
+    for p in sorted(Path(folder).glob("*_s*.json")):
+        c = json.loads(p.read_text())
+        if "diagnosis" in c:
+            cases.append(c)
+    if not cases:
+        raise ValueError(f"{folder}: no harness case files (<scenario>_s<seed>.json)")
+    first = cases[0]
+    settings = {k: default if first.get(k) is None else first[k] for k, default in _SETTINGS.items()}
+    return {"settings": settings,
+            "thresholds": first["diagnosis"]["thresholds"],
+            "cases": [case_row(c) for c in cases]}
+
+
+def write_json(path, obj) -> None:
+    """Write ``obj`` as JSON to ``path`` atomically (a temporary file in the same folder, then a rename)."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=1)
+            f.write("\n")
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="compact summary of a harness run folder")
+    p.add_argument("folder", help="the harness --out folder")
+    p.add_argument("--out", default=None, help="summary file (default FOLDER/summary.json)")
+    a = p.parse_args(argv)
+    try:
+        s = summarise(a.folder)
+    except (OSError, ValueError) as e:
+        p.error(str(e))
+    out = Path(a.out) if a.out else Path(a.folder) / "summary.json"
+    write_json(out, s)
+    print(f"{len(s['cases'])} cases -> {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,351 @@
+"""The blind test harness (experiments/hidden_physics): cases end to end, its CLI, thresholds, summaries, page."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from torchslide.diagnose.decide import Thresholds, decide
+
+
+from .conftest import TINY_HARNESS_BUDGETS, cand as _cand
+
+
+def test_harness_case_end_to_end(tmp_path):
+    """One blind case through the harness CLI with tiny budgets: the case file, its maps, the run's
+    summary and the results page; the screening ranks the hidden term (entrainment) first, and every
+    refit was followed by its local search on the solver."""
+    import json
+    from experiments.hidden_physics.harness import main as harness_main
+    from experiments.hidden_physics.make_page import build_page
+
+    out = tmp_path / "run"
+    tiny = dict(TINY_HARNESS_BUDGETS, profile_top=0, baseline_refine_rounds=1, refit_refine_rounds=1)
+    budgets = [f"--budget={k}={v}" for k, v in tiny.items()]
+    assert harness_main(["--seed-list", "0", "--scenarios", "entrainment", "--out", str(out)] + budgets) == 0
+    case = json.loads((out / "entrainment_s0.json").read_text())
+    j = case["diagnosis"]
+    assert j["verdict"] in ("missing_physics", "no_missing_physics", "unexplained")
+    assert case["fine_factor"] == 2 and case["budgets"]["top_k"] == 1    # recordings on cells half the inversion's
+    assert j["screening"]["ranking"][0] == "entrainment"
+    assert j["screening"]["linear_opt"]["entrainment"]["kappa"] > 0
+    refitted = [c for c in j["candidates"] if c.get("log_evidence") is not None]
+    assert [c["name"] for c in refitted] == ["entrainment"]
+    ms = refitted[0]["mode_search"]
+    assert ms["missed_mode"] == (ms["improvement"] > 3.0 or ms.get("gap_to_draws", -1.0) > 3.0)
+    assert (out / "entrainment_s0.npz").exists() and not list(out.glob("*.running"))
+    summary = json.loads((out / "summary.json").read_text())
+    (row,) = summary["cases"]
+    assert (row["scenario"], row["true"], row["verdict"]) == ("entrainment", "entrainment", j["verdict"])
+    assert summary["settings"]["terrain"] == "narrow" and summary["settings"]["cellsize"] == 40.0
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (runs / "tiny.json").write_text(json.dumps(summary))
+    page = build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
+    assert "| `tiny`: narrow terrain, 40 m cells, budgets n_posterior_samples=8," in page
+    assert (tmp_path / "page" / "figures" / "confusion_tiny.png").exists()
+
+
+@pytest.mark.slow
+def test_small_harness(tmp_path):
+    """Null + entrainment on the coarse channel with tiny budgets and three candidates: a refit whose
+    first verified evidence is not trustworthy is refined, and the null case names no yield stress."""
+    from experiments.hidden_physics.harness import run_case
+
+    cands = ["entrainment", "yield_stress", "mu_i"]
+    out = tmp_path / "res"
+    cases = {sc: run_case(sc, 0, out, budgets=TINY_HARNESS_BUDGETS, candidates=cands, log=lambda s: None)
+             for sc in ("null", "entrainment")}
+    for sc, c in cases.items():
+        for cand in c["diagnosis"]["candidates"]:
+            assert {"name", "log_evidence", "log_bayes_factor", "screening_score", "parameters"} <= set(cand)
+    assert cases["entrainment"]["diagnosis"]["screening"]["ranking"][0] == "entrainment"
+    assert cases["null"]["diagnosis"]["missing_physics"] != "yield_stress"
+    # a refit whose first verified evidence is not trustworthy is refined (rounds with 'trusted' keys,
+    # pipeline._refine), not left as it is
+    refined = 0
+    for c in cases.values():
+        for cand in c["diagnosis"]["candidates"]:
+            h = cand.get("evidence_history") or []
+            if h and "trusted" not in h[0] and (h[0]["ess"] < 0.3 * 4 or h[0]["se"] > 1.0):
+                assert len(h) > 1 and "trusted" in h[1] and sum(bool(r.get("kept")) for r in h) == 1
+                refined += 1
+    assert refined >= 1      # 4 verification draws of an 8-run 3-D refit: the path is exercised
+    # every refit was followed by the local search on the solver (the 2 best baseline runs with the
+    # switch at 0, 3 points towards the screening's linearised optimum when it has one, then 2
+    # iterations x 2 starts x 6 moves)
+    for c in cases.values():
+        lin = c["diagnosis"]["screening"]["linear_opt"]
+        for cand in c["diagnosis"]["candidates"]:
+            if cand.get("log_evidence") is not None:
+                assert cand["mode_search"]["runs"] == 2 + (3 if lin[cand["name"]] else 0) + 24
+
+
+def test_harness_cli_refuses_bad_options(tmp_path):
+    from experiments.hidden_physics.harness import main as harness_main
+
+    for bad in (["--fine-factor", "0"], ["--max-batch", "0"], ["--budget", "mode_search_iters"],
+                ["--budget", "no_such_field=1"], ["--budget", "top_k=two"], ["--scenarios", "null,landslide"],
+                ["--strengths", "x"], ["--terrain", "wide"]):
+        with pytest.raises(SystemExit):
+            harness_main(bad + ["--out", str(tmp_path / "never")])
+    assert not (tmp_path / "never").exists()
+
+
+def test_harness_refits_every_library_candidate():
+    from experiments.hidden_physics.harness import HARNESS_BUDGETS, LIBRARY
+    assert HARNESS_BUDGETS["top_k"] >= len(LIBRARY)
+
+
+def test_apply_thresholds_redecides_saved_cases(tmp_path):
+    """Saved harness cases re-decided with thresholds set later on null seeds: same verdict as deciding
+    with them directly, the decision as run kept; a second application changes nothing."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.calibrate_thresholds import apply_thresholds
+
+    loc = [{"standardised_residual": 9.0}]
+    cands = [_cand("entrainment", 40.0), _cand("curvature", 10.0)]
+    old, new = Thresholds(bf_min=20.0, located_min=8.0), Thresholds(bf_min=50.0, located_min=8.0)
+    d0 = decide(cands, loc, {"ess": 5.0}, 100.0, old)
+    assert d0["missing_physics"] == "entrainment"
+    case = {"diagnosis": {"verdict": d0["verdict"], "missing_physics": d0["missing_physics"], "candidates": cands,
+                          "located": loc, "decision": dict(d0, baseline_verification={"ess": 5.0}),
+                          "fit_before": {"misfit": 100.0}, "thresholds": asdict(old)}}
+    (tmp_path / "entrainment_s0.json").write_text(json.dumps(case))
+    assert apply_thresholds(tmp_path, asdict(new)) == 1
+    j = json.loads((tmp_path / "entrainment_s0.json").read_text())["diagnosis"]
+    direct = decide(cands, loc, {"ess": 5.0}, 100.0, new)
+    assert (j["verdict"], j["missing_physics"]) == (direct["verdict"], direct["missing_physics"]) == ("unexplained", None)
+    assert j["decision_as_run"]["missing_physics"] == "entrainment" and j["thresholds"] == asdict(new)
+    assert apply_thresholds(tmp_path, asdict(new)) == 0
+    # --force: a case decided with these thresholds under the old rule (a close runner-up failing only its
+    # Savage-Dickey sign did not block the name) is re-decided with the current rule; a thresholds file
+    # next to the cases is skipped
+    close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
+    d1 = decide(close, loc, {"ess": 5.0}, 100.0, old, close_needs_all_checks=True)
+    assert d1["missing_physics"] == "curvature"
+    case = {"diagnosis": {"verdict": d1["verdict"], "missing_physics": d1["missing_physics"], "candidates": close,
+                          "located": loc, "decision": dict(d1, baseline_verification={"ess": 5.0}),
+                          "fit_before": {"misfit": 100.0}, "thresholds": asdict(old)}}
+    rule = tmp_path / "rule"
+    rule.mkdir()
+    (rule / "low_friction_patch_s1.json").write_text(json.dumps(case))
+    (rule / "thresholds.json").write_text(json.dumps({"thresholds": asdict(old)}))
+    assert apply_thresholds(rule, asdict(old)) == 0
+    assert apply_thresholds(rule, asdict(old), force=True) == 1
+    j = json.loads((rule / "low_friction_patch_s1.json").read_text())["diagnosis"]
+    assert (j["verdict"], j["missing_physics"]) == ("unexplained", None)
+
+
+def test_harness_skips_strengths_beyond_a_switch_range():
+    from experiments.hidden_physics.harness import out_of_range
+    assert out_of_range("earth_pressure", 2.0) and "earth_pressure = 2" in out_of_range("earth_pressure", 2.0)
+    assert out_of_range("earth_pressure", 0.5) is None and out_of_range("entrainment", 2.0) is None
+    assert out_of_range("null", 3.0) is None and out_of_range("low_friction_patch", 2.0) is None
+
+
+def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
+    """``harness --cellsize 20`` runs its cases on a 20 m inversion grid (recordings at 10 m), with
+    --device / --max-batch / --fine-terrain / --fine-factor / --compile passed on; the defaults stay 40 m,
+    cpu, 16, off, 2, eager; saved cases are skipped on a rerun."""
+    import experiments.hidden_physics.harness as H
+
+    calls = []
+
+    def fake(sc, seed, out, cellsize=40.0, **kw):
+        calls.append((sc, seed, cellsize, kw["device"], kw["max_batch"], kw["fine_terrain"], kw["fine_factor"],
+                      kw["budgets"], kw["compile_solver"]))
+        out.mkdir(parents=True, exist_ok=True)
+        (out / f"{sc}_s{seed}.json").write_text("{}")
+        return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
+
+    monkeypatch.setattr(H, "run_case", fake)
+    assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
+                   "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1",
+                   "--budget", "model_error_runs=0", "--budget", "mode_search_iters=12",
+                   "--budget", "mode_search_max_iters=30", "--budget", "profile_top=5", "--compile"]) == 0
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert calls == [("null", 3, 20.0, "cuda", 64, True, 1,
+                      {"model_error_runs": 0, "mode_search_iters": 12, "mode_search_max_iters": 30, "profile_top": 5},
+                      True),
+                     ("null", 3, 40.0, "cpu", 16, False, 2, None, False)]
+    # a case another process holds (its .running claim) is skipped; the claim goes when a case ends
+    (tmp_path / "b" / "null_s4.running").write_text("")
+    assert H.main(["--seed-list", "4,5", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert [c[:2] for c in calls[2:]] == [("null", 5)]
+    assert sorted(p.name for p in (tmp_path / "b").glob("*.running")) == ["null_s4.running"]
+
+
+def test_make_evaluator_compiles_the_solver_on_request():
+    """scenarios.make_evaluator(compile_solver=True): the diagnosis' solver steps compiled, on the device
+    given; eager by default (the harness' --compile)."""
+    from experiments.hidden_physics.scenarios import SOLVER, make_evaluator, make_recording
+
+    rec = make_recording("null", 0)
+    eager, comp = make_evaluator(rec), make_evaluator(rec, compile_solver=True, max_batch=64)
+    assert not eager.solver_config.compile and comp.solver_config.compile and comp.max_batch == 64
+    for k, v in SOLVER.items():
+        assert getattr(comp.solver_config, k) == v
+
+
+def test_harness_terrain_variants(tmp_path, monkeypatch):
+    """scenarios.TERRAINS: ``harness --terrain resolved`` runs its cases on the wider channel with the
+    smooth transition and the larger release, and restores the default (narrow) afterwards; an unknown
+    variant is refused naming it."""
+    import experiments.hidden_physics.harness as H
+    from experiments.hidden_physics import scenarios as S
+
+    seen = []
+
+    def fake(sc, seed, out, cellsize=40.0, **kw):
+        dem, _ = S.terrain(cellsize)
+        rel = S.release(dem, S.V_NOMINAL)
+        seen.append((S.TERRAIN, S.GEOM["channel_halfwidth"], S.GEOM.get("transition", 0.0), int((rel > 0).sum())))
+        return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
+
+    monkeypatch.setattr(H, "run_case", fake)
+    assert H.main(["--terrain", "resolved", "--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path)]) == 0
+    assert H.main(["--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path)]) == 0
+    (r, hw_r, tr_r, n_r), (n, hw_n, tr_n, n_n) = seen
+    assert (r, hw_r, tr_r, n) == ("resolved", 100.0, 300.0, "narrow") and (hw_n, tr_n) == (40.0, 0.0)
+    assert n_r > 3 * n_n  # release radius 120 m against 60 m
+    assert S.TERRAIN == "narrow" and S.RELEASE_RADIUS == 60.0
+    with pytest.raises(ValueError, match="unknown variant 'wide'"):
+        S.use_terrain("wide")
+    with pytest.raises(SystemExit):
+        H.main(["--terrain", "wide", "--out", str(tmp_path)])
+
+
+def test_coverage_counts_a_truth_at_the_prior_bound(tmp_path):
+    """A grid posterior's HDI whose last cell edge is 0.9999999999999999 covers a truth at the switch's
+    bound 1 (earth pressure = 1); apply_thresholds recomputes a saved case's coverage that way."""
+    import json
+    from dataclasses import asdict
+    from experiments.hidden_physics.calibrate_thresholds import apply_thresholds
+    from experiments.hidden_physics.harness import coverage
+
+    par = {"mean": 0.91, "hdr90": [0.70, 0.9999999999999999], "hdi90": [0.79, 0.9999999999999999]}
+    diag = {"candidates": [{"name": "earth_pressure", "parameters": {"earth_pressure": par}}],
+            "located": [], "thresholds": asdict(Thresholds()), "verdict": "no_missing_physics",
+            "missing_physics": None, "decision": {}, "fit_before": {"misfit": 1.0}}
+    truth = {"term": "earth_pressure", "earth_pressure": 1.0}
+    assert coverage(diag, truth) == (True, True)
+    assert coverage(diag, {"term": "earth_pressure", "earth_pressure": 0.75}) == (False, True)
+    assert coverage(diag, {"term": "entrainment", "kappa": 0.0015}) == (None, None)
+    assert coverage(diag, {"term": None}) == (None, None)
+    case = {"truth": truth, "true_term_covered_hdr90": False, "true_term_covered_equal_tailed90": False,
+            "diagnosis": diag}
+    (tmp_path / "earth_pressure_s0.json").write_text(json.dumps(case))
+    apply_thresholds(tmp_path, asdict(Thresholds()))
+    c = json.loads((tmp_path / "earth_pressure_s0.json").read_text())
+    assert c["true_term_covered_hdr90"] and c["true_term_covered_equal_tailed90"]
+
+
+def test_harness_evaluator_with_the_fine_terrain():
+    """scenarios.make_evaluator(fine_terrain=True): the recording grid's terrain cropped to the inversion
+    grid's extent (the 20 m grid has one more column), the nominal release volume on it."""
+    from types import SimpleNamespace
+    from experiments.hidden_physics.scenarios import V_NOMINAL, make_evaluator, terrain
+    from torchslide.observe import Observation
+
+    rec = SimpleNamespace(observations=[Observation("final_volume", V_NOMINAL, 0.1 * V_NOMINAL, name="final_volume")])
+    ev = make_evaluator(rec, fine_terrain=True)
+    ft = ev.fine_terrain
+    assert ft.factor_for(ev.dem) == 2 and ft.dem.shape == (2 * ev.dem.ny, 2 * ev.dem.nx)
+    assert terrain(20.0)[0].shape[1] == ft.dem.shape[1] + 1
+    assert np.array_equal(ft.dem.z, terrain(20.0)[0].z[:, :-1])
+    assert math.isclose(float(ft.release.sum()) * 20.0**2, V_NOMINAL, rel_tol=1e-6)
+    assert make_evaluator(rec).fine_terrain is None
+
+
+def test_export_case_gives_the_cli_the_harness_case(tmp_path):
+    """experiments.hidden_physics.export_case: the files and diagnose.toml it writes give the CLI the
+    harness' case exactly: the same data, sigmas, terrain, release, erodible depth, gauges, prior,
+    solver settings, the same z at a parameter point, and the harness' budgets and thresholds (so
+    `torchslide diagnose` on them is the harness case); the truth is kept apart."""
+    import json
+    import torch
+    from experiments.hidden_physics import export_case, scenarios
+    from experiments.hidden_physics.harness import HARNESS_BUDGETS, load_thresholds
+    from torchslide.commands.diagnose import budgets_and_thresholds, load_diagnose_config
+    from torchslide.commands.diagnose import make_evaluator as cli_evaluator
+    from torchslide.diagnose import Budgets
+
+    with scenarios.terrain_variant("resolved"):
+        assert export_case.main(["yield_stress", "2", "--out", str(tmp_path), "--terrain", "resolved"]) == 0
+        harness_ev = scenarios.make_evaluator(scenarios.make_recording("yield_stress", 2))
+    cfg = load_diagnose_config(tmp_path / "diagnose.toml")
+    ev = cli_evaluator(cfg)
+    assert [b.name for b in ev.blocks] == [b.name for b in harness_ev.blocks]
+    for attr in ("data", "sigma", "release", "erodible_depth"):
+        assert np.array_equal(getattr(ev, attr), getattr(harness_ev, attr)), attr
+    assert np.array_equal(ev.dem.z, harness_ev.dem.z) and ev.dem.cellsize == harness_ev.dem.cellsize
+    assert ev.gauges == harness_ev.gauges and ev.prior.names == harness_ev.prior.names
+    assert ev.solver_config == harness_ev.solver_config and ev.t_end == harness_ev.t_end
+    x = torch.tensor([[0.27, 600.0]], dtype=torch.float64)
+    assert float(ev(x).z[0]) == float(harness_ev(x).z[0])
+    bud, th = budgets_and_thresholds(cfg)
+    assert bud == Budgets(**HARNESS_BUDGETS, seed=2) and th == load_thresholds()
+    truth = json.loads((tmp_path / "truth.json").read_text())
+    assert truth["truth"]["tau_y"] == 3.0 and truth["terrain"] == "resolved"
+    with pytest.raises(SystemExit, match="earth_pressure's switch earth_pressure = 2 beyond its range"):
+        export_case.main(["earth_pressure", "0", "--strength", "2", "--out", str(tmp_path / "x")])
+    text = (tmp_path / "diagnose.toml").read_text()
+    assert "tau_y" not in text and not any("yield" in l for l in text.splitlines() if l.startswith("#"))
+    assert cfg.extra["diagnose"]["fine_terrain"] is None and bud.release_volume_sd == 0.0
+    # --fine-terrain / --release-volume-sd: the harness' options of the same names
+    out = tmp_path / "fine"
+    assert export_case.main(["null", "0", "--out", str(out), "--fine-terrain", "--release-volume-sd", "0.0577"]) == 0
+    harness_ev = scenarios.make_evaluator(scenarios.make_recording("null", 0), fine_terrain=True)
+    cfg = load_diagnose_config(out / "diagnose.toml")
+    ft, hft = cli_evaluator(cfg).fine_terrain, harness_ev.fine_terrain
+    assert ft is not None and hft is not None
+    assert np.array_equal(ft.dem.z, hft.dem.z) and ft.dem.cellsize == hft.dem.cellsize == 20.0
+    assert (ft.dem.xll, ft.dem.yll) == (hft.dem.xll, hft.dem.yll)
+    assert np.array_equal(ft.release, hft.release) and np.array_equal(ft.erodible_depth, hft.erodible_depth)
+    bud, _ = budgets_and_thresholds(cfg)
+    assert bud == Budgets(**HARNESS_BUDGETS, seed=0, release_volume_sd=0.0577)
+    for bad in ("-0.1", "0.5"):
+        with pytest.raises(SystemExit, match=f"--release-volume-sd {bad}: must be a relative sd in"):
+            export_case.main(["null", "0", "--out", str(out), "--release-volume-sd", bad])
+
+
+def test_harness_sigmas_stated_as_the_noise(tmp_path, monkeypatch):
+    """``harness --sigmas noise``: passed to run_case (default "harness");
+    run_case states the noise drawn as the recording's sigmas (scenarios.noise_sigmas) before the diagnosis and
+    records the choice; an unknown choice fails before any run."""
+    import experiments.hidden_physics.harness as H
+
+    calls = []
+
+    def fake(sc, seed, out, cellsize=40.0, **kw):
+        calls.append(kw["sigmas"])
+        out.mkdir(parents=True, exist_ok=True)
+        (out / f"{sc}_s{seed}.json").write_text("{}")
+        return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
+
+    real = H.run_case
+    monkeypatch.setattr(H, "run_case", fake)
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"), "--sigmas", "noise"]) == 0
+    assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
+    assert calls == ["noise", "harness"]
+    with pytest.raises(SystemExit):
+        H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "c"), "--sigmas", "tight"])
+    assert calls == ["noise", "harness"]
+    with pytest.raises(ValueError, match="sigmas must be one of"):
+        real("null", 3, tmp_path / "d", sigmas="tight")
+    # what run_case hands the diagnosis
+    seen = {}
+
+    def fake_diagnose(ev, cands, bud, th, log=None):
+        seen["sigmas"] = {o.name: o.sigma for o in ev.observations}
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(H, "diagnose", fake_diagnose)
+    with pytest.raises(RuntimeError, match="stop here"):
+        real("null", 3, tmp_path / "d", sigmas="noise")
+    assert seen["sigmas"]["g1:h"] == 0.2 and seen["sigmas"]["g2:speed"] == 0.5 and seen["sigmas"]["deposit"] == 0.3
+    assert seen["sigmas"]["final_volume"] == pytest.approx(0.1 * 2.0e5)
