@@ -62,7 +62,7 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     assert post2["n_runs"] == 10
     assert [r["x"] for r in post2["runs"]] == [r["x"] for r in post["runs"]]
     assert post2["map"] == pytest.approx(post["map"])
-    # the resumed session ran nothing: the best-run fit of the first session's runs is kept
+    # the resumed invocation ran nothing: the best-run fit of the first invocation's runs is kept
     assert post2["best_run_fit"] == post["best_run_fit"]
 
 
@@ -153,8 +153,8 @@ def test_a_datum_no_run_reproduces_is_reported(tmp_path, capsys):
     assert "does the flow reach it by t_end?" in err
 
 
-def test_best_run_fits_of_two_sessions_merge():
-    """A resumed calibration's best run is the better of the two sessions' bests, out of all their runs."""
+def test_best_run_fits_before_and_after_a_resume_merge():
+    """A resumed calibration's best run is the better of the bests before and after the resume, out of all their runs."""
     from torchslide.commands.calibrate import merge_best_fits
 
     a = {"x": {"mu": 0.1}, "z": -5.0, "n_runs": 6, "observations": []}

@@ -74,12 +74,10 @@ def test_decide_ambiguous_and_null_like():
     d = decide([_cand("earth_pressure", 60.0), _cand("curvature", 57.0)], loc, base, 100.0, th)
     assert d["verdict"] == "unexplained" and d["ambiguous"]
     # a runner-up within margin_min that passes the evidence check but fails another one (here its
-    # Savage-Dickey sign) still blocks the name (the evidence does not separate them); the pre-session-8
-    # rule (close_needs_all_checks) named the leader
+    # Savage-Dickey sign) still blocks the name (the evidence does not separate them)
     close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
     d = decide(close, loc, base, 100.0, th)
     assert d["verdict"] == "unexplained" and d["ambiguous"] and d["competitors"] == ["earth_pressure"]
-    assert decide(close, loc, base, 100.0, th, close_needs_all_checks=True)["missing_physics"] == "curvature"
     # ... but one below the evidence threshold does not
     weak = [_cand("curvature", 24.0), _cand("earth_pressure", 19.0, two_ln_bf_lower=17.0)]
     assert decide(weak, loc, base, 100.0, th)["missing_physics"] == "curvature"
@@ -87,24 +85,6 @@ def test_decide_ambiguous_and_null_like():
     keep = {"items": [{"before": 7.0, "after": 6.9}], "max_after": 6.9, "explained": 0.03}
     d = decide([_cand("curvature", 25.0, located_rescored=keep)], [{"standardised_residual": 7.0}], base, 100.0, th)
     assert d["verdict"] == "no_missing_physics"
-
-
-def test_decide_competitor_needs_evidence_variant():
-    """Default rule: a competitor explaining more of the located mismatch blocks the name even without
-    evidence; the (post-hoc) variant requires the competitor to pass the evidence check too."""
-    th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)
-    base = {"ess": 5.0}
-    loc = [{"standardised_residual": 6.0}]
-    a = {"items": [{"before": 6.0, "after": 3.7}], "max_after": 3.7, "explained": 0.61}
-    b = {"items": [{"before": 6.0, "after": 3.6}], "max_after": 3.6, "explained": 0.63}
-    cands = [_cand("earth_pressure", 64.0, located_rescored=a), _cand("mu_i", 8.0, located_rescored=b)]
-    d = decide(cands, loc, base, 100.0, th)
-    assert d["verdict"] == "unexplained" and d["ambiguous"] and d["competitors"] == ["mu_i"]
-    d = decide(cands, loc, base, 100.0, th, competitor_needs_evidence=True)
-    assert d["verdict"] == "missing_physics" and d["missing_physics"] == "earth_pressure"
-    # a supported competitor that explains more still blocks
-    cands[1] = _cand("mu_i", 40.0, located_rescored=b)
-    assert decide(cands, loc, base, 100.0, th, competitor_needs_evidence=True)["ambiguous"]
 
 
 def test_fit_flags_turn_nothing_missing_into_unexplained():

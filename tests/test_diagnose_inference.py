@@ -411,8 +411,8 @@ def test_refit_candidate_checks_the_search_against_the_posterior_draws(monkeypat
     assert abs(ver["log_evidence"]) < 1.0
     lo, hi = pipeline._params(res)["k"]["hdi90"]
     assert lo <= 0.7 <= hi
-    # the same refit with the old rule alone (runs only) would have kept the wrong posterior: the first
-    # verification is trusted (flat weights) and far from log Z = 0
+    # a check against the refit's runs alone would have kept the wrong posterior: the first verification
+    # is trusted (flat weights) and far from log Z = 0
     assert pipeline._trusted({"verified": True, "ess_fraction": hist[0]["ess"] / 16, "se": hist[0]["se"]}, bud)
     assert hist[0]["log_evidence"] < -20
 
@@ -533,8 +533,7 @@ def test_refined_baseline_is_adopted_only_when_larger_beyond_noise_and_reliable(
 
 
 def test_fit_flags_use_the_calibrated_baselines_fit_not_the_refined_one(tmp_path, monkeypatch):
-    """The fit flags' levels are set on the calibrated baseline's Z_fit (block_fit_probe runs that far), so
-    the decision must use the first localisation's Z_fit even when the mode check refines the baseline
+    """The fit flags' levels are set on the calibrated baseline's Z_fit, so the decision must use the first localisation's Z_fit even when the mode check refines the baseline
     afterwards (then fit_before, re-localised, carries the refined baseline's Z_fit, which differs)."""
     from torchslide.diagnose import Budgets, DiagnosisEvaluator, diagnose, pipeline
     from torchslide.observe import Observation

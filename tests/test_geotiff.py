@@ -59,8 +59,8 @@ def test_south_up_file_reads_like_north_up(tmp_path):
         back = read_raster(tmp_path / name)
         assert back.same_grid(dem), name
         np.testing.assert_array_equal(back.z, dem.z)
-        # the same file as a release / map on the DEM's grid: same orientation (this path used to flip a
-        # south-up file and misplace its origin)
+        # the same file as a release / map on the DEM's grid: same orientation (a south-up file is
+        # neither flipped nor shifted)
         np.testing.assert_array_equal(read_raster_like(tmp_path / name, dem, what="release"), dem.z)
         np.testing.assert_array_equal(read_map(tmp_path / name, dem), dem.z)
 

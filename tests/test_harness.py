@@ -120,12 +120,11 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert (j["verdict"], j["missing_physics"]) == (direct["verdict"], direct["missing_physics"]) == ("unexplained", None)
     assert j["decision_as_run"]["missing_physics"] == "entrainment" and j["thresholds"] == asdict(new)
     assert apply_thresholds(tmp_path, asdict(new)) == 0
-    # --force: a case decided with these thresholds under the old rule (a close runner-up failing only its
-    # Savage-Dickey sign did not block the name) is re-decided with the current rule; a thresholds file
-    # next to the cases is skipped
+    # --force: a case whose saved verdict differs from what the decision rule gives at its own thresholds
+    # (a close runner-up failing only its Savage-Dickey sign blocks the name) is re-decided; a thresholds
+    # file next to the cases is skipped
     close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
-    d1 = decide(close, loc, {"ess": 5.0}, 100.0, old, close_needs_all_checks=True)
-    assert d1["missing_physics"] == "curvature"
+    d1 = dict(decide(close, loc, {"ess": 5.0}, 100.0, old), verdict="missing_physics", missing_physics="curvature")
     case = {"diagnosis": {"verdict": d1["verdict"], "missing_physics": d1["missing_physics"], "candidates": close,
                           "located": loc, "decision": dict(d1, baseline_verification={"ess": 5.0}),
                           "fit_before": {"misfit": 100.0}, "thresholds": asdict(old)}}
@@ -296,7 +295,7 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
     text = (tmp_path / "diagnose.toml").read_text()
     assert "tau_y" not in text and not any("yield" in l for l in text.splitlines() if l.startswith("#"))
     assert cfg.extra["diagnose"]["fine_terrain"] is None and bud.release_volume_sd == 0.0
-    # --fine-terrain / --release-volume-sd: the harness' options of the same names
+    # --fine-terrain / --release-volume-sd: the harness' --fine-terrain and --budget release_volume_sd
     out = tmp_path / "fine"
     assert export_case.main(["null", "0", "--out", str(out), "--fine-terrain", "--release-volume-sd", "0.0577"]) == 0
     harness_ev = scenarios.make_evaluator(scenarios.make_recording("null", 0), fine_terrain=True)

@@ -137,7 +137,7 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     import json
     f1 = tmp_path / "null" / "null_1.json"
     old = json.loads(f1.read_text())
-    f1.write_text(json.dumps({k: v for k, v in old.items() if k != "noise_model"}))    # a case of the old noise
+    f1.write_text(json.dumps({k: v for k, v in old.items() if k != "noise_model"}))    # a case made with another noise model
 
     def rerun(*a, **k):
         raise RuntimeError("re-run")
@@ -191,13 +191,13 @@ def test_report_says_which_release_error_the_null_runs_carry():
     # which terrain the finer runs used
     assert "over the finer DEM given as fine_terrain," in "\n".join(_null_section(dict(nc, terrain="fine_terrain")))
     assert "interpolated bilinearly (no fine_terrain given" in "\n".join(_null_section(dict(nc, terrain="interpolated")))
-    assert "finer grid, the release volume as given" in exact      # a report without the field (before session 20)
+    assert "finer grid, the release volume as given" in exact      # a null calibration without the field
 
 
 def test_report_says_how_often_each_candidate_is_best_on_null_runs():
     """report._null_section: each null case's best candidate, how often each candidate came out best on the
     null runs (with its largest value there), and whether the data's best candidate is one of them; null
-    cases saved without the per-candidate values (before session 26) give no such lines."""
+    cases without the per-candidate values give no such lines."""
     from torchslide.diagnose.report import _null_section
 
     def case(by):

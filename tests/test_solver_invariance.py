@@ -187,9 +187,9 @@ def test_compiled_step_runs_under_a_raised_recompile_limit():
 
 @pytest.mark.parametrize("d", [1, 2])
 def test_a_face_with_subnormal_wave_speeds_carries_no_nan(d, monkeypatch):
-    """A dry cell beside a near-empty one (h ~ 1e-82 m, u ~ 1e-317 m/s: a subnormal) once made
-    1 / (a+ - a-) overflow and a+ a- / (a+ - a-) = 0 * inf turn the state NaN (a 10 m run with
-    limiter_theta = 2 on the resolved harness terrain failed so). Such faces now carry no flux."""
+    """A dry cell beside a near-empty one (h ~ 1e-82 m, u ~ 1e-317 m/s: a subnormal) makes
+    1 / (a+ - a-) overflow, and a+ a- / (a+ - a-) = 0 * inf would turn the state NaN: such faces carry
+    no flux."""
     from torchslide.solver import scheme
 
     g = 9.81

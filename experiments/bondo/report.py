@@ -134,9 +134,9 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
              f"interpolated bilinearly to the {cfg['grid_size']} x {cfg['grid_size']} grid")
     L.append(f"- LHS-only comparison: GP fitted to {cfg['n_initial'] + cfg['n_adaptive']} maximin-LHS runs "
              f"(seed {cfg['lhs_only_seed']})")
-    sess = t.get("sessions", [])
+    invs = t.get("invocations", [])
     L.append(f"- wall time of the study (all invocations of `python -m experiments.bondo` on this run directory, "
-             f"{len(sess)} session(s)): **{_fmt(t.get('total_s_all_sessions', t.get('total_s')))} s**; "
+             f"{len(invs)} invocation(s)): **{_fmt(t.get('total_s_all_invocations', t.get('total_s')))} s**; "
              f"the brute-force sweep ({cfg['sweep_n']}^2 runs, `python -m experiments.sweep`, run concurrently "
              f"in a second process) used {_fmt(t.get('sweep_solver_s'))} s of solver time; "
              f"{t.get('n_simulations_cached')} distinct simulations in the study cache. "
@@ -152,11 +152,11 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     if sweeps:
         L.append("- solver time of the sweeps on disk (each run concurrently with the study in its own process): "
                  + "; ".join(sweeps))
-    if sess:
-        L.append("- sessions: " + "; ".join(f"{_fmt(x.get('total_s'))} s ({x.get('solver_calls')} solver calls)"
-                                           for x in sess))
-    if t.get("solver_s_all_sessions") and t.get("n_simulations_cached"):
-        L.append(f"- solver cost in this run: {_fmt(t['solver_s_all_sessions'] / t['n_simulations_cached'], 3)} s "
+    if invs:
+        L.append("- invocations: " + "; ".join(f"{_fmt(x.get('total_s'))} s ({x.get('solver_calls')} solver calls)"
+                                           for x in invs))
+    if t.get("solver_s_all_invocations") and t.get("n_simulations_cached"):
+        L.append(f"- solver cost in this run: {_fmt(t['solver_s_all_invocations'] / t['n_simulations_cached'], 3)} s "
                  f"per simulation (batched, {cfg['cellsize']:g} m cells, t_end {cfg['t_end']:g} s)")
     L.append("")
     L.append("### How this run differs from the paper\n")

@@ -231,19 +231,19 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
              f"{entry.get('tv_ref')}, LHS-only {entry.get('tv_ref_lhs_only')}")
     results["timing"]["total_s"] = time.perf_counter() - t_start
     results["timing"]["n_simulations_cached"] = len(sim)
-    results["timing"]["solver_s_all_sessions"] = sim.solver_seconds
+    results["timing"]["solver_s_all_invocations"] = sim.solver_seconds
     prev = rd / "results.json"
-    sp = rd / "sessions.json"  # wall time of every invocation (an interrupted study is resumed in several)
-    sessions = json.loads(sp.read_text()) if sp.exists() else []
-    if not sessions and prev.exists():
+    sp = rd / "invocations.json"  # wall time of every invocation (an interrupted study is resumed in several)
+    invocations = json.loads(sp.read_text()) if sp.exists() else []
+    if not invocations and prev.exists():
         old = json.loads(prev.read_text()).get("timing", {})
-        sessions.append({"total_s": old.get("total_s"), "solver_calls": old.get("solver_calls"),
+        invocations.append({"total_s": old.get("total_s"), "solver_calls": old.get("solver_calls"),
                          "source": "earlier results.json"})
-    sessions.append({"total_s": results["timing"]["total_s"], "solver_calls": sim.n_solver_calls,
+    invocations.append({"total_s": results["timing"]["total_s"], "solver_calls": sim.n_solver_calls,
                      "new_simulations": sim.n_simulated, "ended": time.strftime("%Y-%m-%d %H:%M:%S")})
-    sp.write_text(json.dumps(sessions, indent=2))
-    results["timing"]["sessions"] = sessions
-    results["timing"]["total_s_all_sessions"] = float(sum(x.get("total_s") or 0.0 for x in sessions))
+    sp.write_text(json.dumps(invocations, indent=2))
+    results["timing"]["invocations"] = invocations
+    results["timing"]["total_s_all_invocations"] = float(sum(x.get("total_s") or 0.0 for x in invocations))
     if sweep is not None:
         results["timing"]["sweep_solver_s"] = _sweep_solver_seconds(sweep.path)
     prev.write_text(json.dumps(results, indent=2))

@@ -18,7 +18,7 @@ The harness calls torchslide.diagnose from Python. This writes the same case as 
   diagnosis does not read it.
 
 The CLI run on these files is the harness case: the same evaluator (data, sigmas, terrain, gauges,
-prior), budgets and thresholds (tests/test_diagnose.py checks it), so its report can be compared with
+prior), budgets and thresholds (tests/test_harness.py checks it), so its report can be compared with
 the harness' saved result of the case.
 """
 from __future__ import annotations
@@ -66,7 +66,7 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
     it (default harness.THRESHOLDS_FILE). ``fine_terrain``: also write the terrain on the recording
     grid (``*_fine.asc``, scenarios.fine_terrain_grids) as ``[diagnose] fine_terrain``, as the harness'
     ``--fine-terrain``; ``release_volume_sd`` > 0: write it under [diagnose], as the harness'
-    ``--release-volume-sd``."""
+    ``--budget release_volume_sd=...``."""
     from torchslide.observe import Observation
     from torchslide.observe_series import SeriesObservation
 
@@ -150,7 +150,7 @@ def main(argv=None) -> int:
                         "as [diagnose] fine_terrain, as the harness' --fine-terrain")
     a.add_argument("--release-volume-sd", type=float, default=0.0,
                    help="write [diagnose] release_volume_sd (the harness' recordings: 0.0577), as the harness' "
-                        "--release-volume-sd; default 0 (the release taken as exact)")
+                        "--budget release_volume_sd=...; default 0 (the release taken as exact)")
     args = a.parse_args(argv)
     if not (0.0 <= args.release_volume_sd < 0.5):   # as [diagnose] release_volume_sd
         raise SystemExit(f"--release-volume-sd {args.release_volume_sd:g}: must be a relative sd in [0, 0.5)")

@@ -33,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def write_runs_csv(path: Path, res, obs_names, records) -> None:
     """One line per run of the result (in run order): parameters, predicted observables (blank for runs
-    made before a resume, whose outputs this session did not see), z, failed, reason, initial."""
+    made before a resume, whose outputs this invocation did not see), z, failed, reason, initial."""
     preds = {tuple(np.round(r.x, 12)): r.predictions for r in records}
     with open(path, "w") as f:
         f.write(",".join(list(res.names) + list(obs_names) + ["z", "failed", "reason", "initial"]) + "\n")
@@ -48,7 +48,7 @@ FIT_WARN_Z = 3.0  # |standardised residual| of the best run above which calibrat
 
 
 def merge_best_fits(earlier: dict | None, now: dict | None) -> dict | None:
-    """The best-run fit over two sessions of one calibration (a resume): the one with the larger z, its
+    """The best-run fit over two invocations of one calibration (a resume): the one with the larger z, its
     ``n_runs`` the runs of both."""
     if earlier is None or now is None:
         return now if earlier is None else earlier
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
                     acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
                     tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
                     clip_range=cal["clip_range"])
-    # the best-run fit of the runs an earlier (interrupted) session made: this session's records lack them
+    # the best-run fit of the runs an interrupted invocation made: this invocation's records lack them
     prev_fit = None
     if args.resume and (out / "posterior.json").exists():
         try:
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     info = json.loads((out / "posterior.json").read_text())
     info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
                              "x": o.x, "y": o.y} for o in ev.observations]
-    info["solver_seconds_this_session"] = ev.solver_seconds
+    info["solver_seconds_this_invocation"] = ev.solver_seconds
     fit = merge_best_fits(prev_fit, ev.best_fit())
     if fit is not None:
         info["best_run_fit"] = fit

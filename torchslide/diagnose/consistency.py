@@ -19,7 +19,7 @@ It is a diagnostic of *where*, not part of the verdict: its null distribution is
 linearisation and the error model (the whitening is by the effective sigmas: with the grid's
 approximation error in the evaluator, its variance is in them, its correlations between values are
 not), and it was not calibrated on null data as the decision's thresholds were. On the 40 m harness
-the grid's own error made an observation disagree in 9 of 10 null cases (experiments/hidden_physics).
+the grid's own error made an observation disagree in 9 of 10 null cases.
 """
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ Rules:
 1. The candidate with the largest verified 2 ln BF is named ("missing_physics") when it passes all
    checks and nothing else competes with it:
    * no other candidate that also passes ``evidence`` is within ``margin_min`` of its 2 ln BF (the
-     issue's "2 ln BF >= 6 over the runner-up"; a close runner-up that fails another check, e.g. its
+     blind test's "2 ln BF >= 6 over the runner-up"; a close runner-up that fails another check, e.g. its
      Savage-Dickey sign, still means the evidence does not separate the two), and
    * no other candidate that passes ``explains`` explains a larger fraction of the located mismatch
      (the evidence and the located structure must point at the same term).
@@ -39,13 +39,13 @@ torchslide.diagnose.localise.block_fit; taken before the refits can refine the b
 the statistic the levels are set on) exceeds ``fit_max`` (one level for every observable, or a dict
 {observable: level}) is a mismatch at the level of the whole observable. It counts like a significant located mismatch in
 rules 2 and 3: it turns "no_missing_physics" into "unexplained", and never names a term. The levels
-must be set on null data of the same design (experiments/hidden_physics/calibrate_thresholds.py sets
-them per observable from null seeds: each observable's Z_fit differs on null data, e.g. -36 for a
+must be set on null data of the same design (torchslide.diagnose.null sets them per observable from
+null runs: each observable's Z_fit differs on null data, e.g. -36 for a
 deposit map whose sigma is wide and +3 for a gauge series the grid misses).
 
 ``bf_min``, ``waic_min`` and ``located_min`` are set on null data (no hidden term; see
-experiments/hidden_physics/calibrate_thresholds.py and the results page); ``margin_min`` = 6 is the
-issue's "strong" level; ``explain_min`` and ``ess_min`` are fixed a priori.
+torchslide.diagnose.null, ``torchslide diagnose --null-runs N``); ``margin_min`` = 6 is
+Kass & Raftery's "strong" level; ``explain_min`` and ``ess_min`` are fixed a priori.
 """
 from __future__ import annotations
 
@@ -117,16 +117,10 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
 
 
 def decide(candidates: list, located_before: list, baseline: dict, misfit_before: float, th: Thresholds,
-           competitor_needs_evidence: bool = False, close_needs_all_checks: bool = False,
            fit_z: dict | None = None) -> dict:
     """candidates: refitted candidates with the verify statistics (see pipeline); baseline: the baseline's
     verified-evidence dict; fit_z: {observable: the baseline's Z_fit} for the fit flags (``th.fit_max``).
-    Returns {verdict, missing_physics, ambiguous, reason, checks, fit_flags, ...}.
-    ``competitor_needs_evidence`` (default False = the rule in the module doc): a candidate that explains
-    more of the located mismatch blocks the name only when it also passes ``evidence`` (a post-hoc
-    variant, see experiments/hidden_physics/make_page.py). ``close_needs_all_checks`` (default False): the
-    rule before session 8, where a runner-up within margin_min blocked the name only when it passed every
-    check (it let a 20 m out-of-library case be named curvature, 4.3 ahead of earth pressure)."""
+    Returns {verdict, missing_physics, ambiguous, reason, checks, fit_flags, ...}."""
     scored = sorted([c for c in candidates if c.get("log_bayes_factor") is not None
                      and np.isfinite(c["log_bayes_factor"])], key=lambda c: -c["log_bayes_factor"])
     sig_before = significant(located_before, th)
@@ -150,12 +144,10 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         if not failed:
             ex_best = _explained(best)
             close = [c["name"] for c in scored[1:]
-                     if (all(out["checks"][c["name"]].values()) if close_needs_all_checks
-                         else out["checks"][c["name"]]["evidence"])
+                     if out["checks"][c["name"]]["evidence"]
                      and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
-                      and _explained(c) > ex_best
-                      and (out["checks"][c["name"]]["evidence"] or not competitor_needs_evidence)]
+                      and _explained(c) > ex_best]
             if close or better:
                 why = []
                 if close:

@@ -22,7 +22,7 @@ on each:
 3. the diagnosis (pipeline.diagnose, same candidates and budgets, seed + 101 + i) on each d_i, recording
    the largest lower-bound 2 ln BF of any refitted candidate, the largest located |score| and every
    observable's Z_fit of the calibrated baseline;
-4. thresholds by the rule of experiments/hidden_physics/calibrate_thresholds.py (:func:`thresholds_from_null`):
+4. thresholds by the rule :data:`RULE` (:func:`thresholds_from_null`; the blind test's calibrate_thresholds uses it too):
 
        bf_min = max(6, 1.25 max_i 2 ln BF_lower,i),  located_min = max(8, 1.25 max_i |score|_i),
        fit_max_b = mean_b + t_{n-1}(1 - alpha / B) sd_b sqrt(1 + 1/n)   (n >= 3 null cases; B observables)

@@ -1,29 +1,25 @@
 """``diagnose(evaluator, candidates, ...)``: the whole missing-physics diagnosis in one call.
 
-[Budgets.model_error_runs > 0 (default 12): the grid's approximation error from a pilot calibration's
-posterior draws run on the inversion grid and on finer cells (grid_model_error, model_error), with
-Budgets.release_volume_sd > 0 also the release volume's error, put in every model's likelihood]
--> baseline calibration (or a given CalibrationResult) -> baseline refinement (verify.refine_baseline:
-zoomed grid posterior, local emulator refits with the verification runs until the verified evidence is
-trustworthy and stable) -> posterior-predictive runs -> localisation -> one-batch screening -> refits
-of the top_k candidates, each followed by a local search on the solver from its best runs
-(polish.local_search, also from the nested baseline and the screening's linearised optimum: a
-refit whose posterior draws missed its mode is refined with the search's runs) -> for every refit: posterior-predictive runs, verified evidence
-(torchslide.diagnose.verify), Savage-Dickey (boundary-corrected KDE at switch 0), WAIC, the located
-mismatches re-scored, 90 % HDIs; a refit whose posterior leans against an unsampled upper bound of its
-switch is probed at the bound and refined (verify.needs_bound_probe / refine_refit); a refit whose
-verified evidence is not yet trustworthy is refined the same way, its verification runs reused
-(refine_refit(extra=...): local GP, zoomed grid posterior, rounds until trustworthy and stable), or,
-with ``refit_refine_rounds`` = 0, continued to ``n_total_max`` runs of the global active learning -> baseline
-evidence cross-checked on the beta = 0 slices of the ``slice_top`` best refits -> baseline mode check
-(baseline_mode_check: the refits' best points with the switch dropped, run in the baseline model, and a
-local search from them; a run that beats every baseline run by more than ``mode_margin`` means the
-baseline's posterior sat on a secondary peak of the mu-xi ridge, and it is refined from all runs; in the
-40 m harness it fired in 18 of 40 cases and raised the baseline's verified log Z by 3 to 46, by which
-every Bayes factor had been too high) -> when the baseline changed, every refit re-checked at its best
-points (refit_recheck: run with the switch at 0; a refit whose posterior draws they beat by more than
-``mode_margin`` is refined from them) -> subset consistency at the final baseline (consistency.py: which
-observation wants other parameters than the rest; reported, not part of the verdict) -> verdict (torchslide.diagnose.decide).
+The stages (``_diagnose``; their wall times in Diagnosis.timings):
+
+1. model error (Budgets.model_error_runs > 0): the grid's approximation error from a pilot
+   calibration's posterior draws run on the inversion grid and on finer cells, with
+   Budgets.release_volume_sd > 0 also the release volume's error, in every model's likelihood
+   (grid_model_error, model_error.py);
+2. baseline: calibration (or a given CalibrationResult), then its verified evidence (for a 2-D
+   posterior verify.refine_baseline: a zoomed grid proposal refitted with the verification runs until
+   the evidence is trustworthy and stable) and posterior-predictive runs;
+3. localisation of the mismatches (per observable, residual-map clusters, gauge windows);
+4. screening: one batched call of finite differences ranks the candidates (screen.py);
+5. refits of the ``top_k`` candidates (refit_candidate: active learning in the enlarged space, a local
+   search on the solver from its best runs, the nested baseline's and the screening's linearised
+   optimum, refinement of a refit that missed its mode or leans on an unsampled switch bound), then
+   checks that the baseline itself sat on its mode (the beta = 0 slice of the best refits,
+   baseline_mode_check), a re-check of the refits when the baseline changed (refit_recheck), and a
+   profile along the leading switches (profile_refit);
+6. per candidate: verified evidence and Bayes factor, Savage-Dickey, WAIC, the located mismatches
+   re-scored, 90 % intervals; subset consistency at the final baseline (reported, not decided on);
+7. the verdict (decide.py) and the fit after the named (or best) candidate.
 """
 from __future__ import annotations
 
@@ -65,7 +61,6 @@ class Budgets:
     refit_grid: tuple = (48, 40)       # ... its zoomed grid posterior, points per axis (coarse, fine)
     baseline_n_initial: int = 12
     baseline_n_total: int = 24
-    baseline_n_total_max: int = 32     # (not used since the baseline refinement; kept for old configs)
     baseline_grid_size: int = 160      # p = 2 baseline: active-learning estimation grid
     baseline_refine_rounds: int = 3    # rounds of verify.refine_baseline (M solver runs each)
     baseline_tv_tol: float = 0.15      # ... stop when the zoomed posterior moves by less (or log Z is stable)
@@ -94,8 +89,7 @@ class Budgets:
     mode_search_max_iters: int = 0     # > mode_search_iters: every mode search (refits', baseline mode check, refit
                                        # recheck) goes on while it still climbs, by more than mode_search_tol in z
                                        # over its last 4 iterations, up to this many iterations (polish.local_search
-                                       # max_iter); 0: exactly mode_search_iters (session 36: 4 iterations left an
-                                       # entrainment refit 19 below its mode in z, its 2 ln BF 40 too low)
+                                       # max_iter); 0: exactly mode_search_iters
     mode_search_tol: float = 1.0
     mode_margin: float = 3.0
     profile_top: int = 2               # refits profiled along their switch (profile.switch_profile): this many with
@@ -447,8 +441,7 @@ def refit_recheck(ev_c, cal_c, p_c, ver: dict, history: list, points, bud: Budge
     """Re-check a refit against a baseline that changed after it was made. The refit's mode search
     started from the first baseline's best runs; when the baseline was then refined to a peak elsewhere
     on the mu-xi ridge (baseline_mode_check), the candidate, which nests the baseline, can sit far below
-    its own nested baseline there (20 m probe, curvature s1: every candidate 7-18 ln below the refined
-    baseline). ``points`` (n, p) of the new baseline (its best runs) are run in the candidate's model
+    its own nested baseline there. ``points`` (n, p) of the new baseline (its best runs) are run in the candidate's model
     with the switch at its lower bound (= the nested baseline); when the best of them beats the best of
     the refit's posterior draws' runs (``p_c``: where its mass is) by more than ``mode_margin``, the
     refit missed that peak: polish.local_search continues from all of its runs and these, and the refit

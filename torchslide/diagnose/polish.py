@@ -43,8 +43,7 @@ def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, po
     each start's value (a search in the others: a profile, see profile.py). ``max_iter`` > ``n_iter``: the
     search goes on after ``n_iter`` iterations while it still climbs, i.e. while the best z of all starts rose by
     more than ``tol`` over the last ``window`` iterations, up to ``max_iter`` iterations in all (a narrow
-    curved ridge is followed to its top instead of being left halfway: session 36, an entrainment refit's
-    4 iterations stopped 19 below the mode in z). The window spans stalls: on a ridge the search often
+    curved ridge is followed to its top instead of being left halfway). The window spans stalls: on a ridge the search often
     fails 2-3 iterations in a row (its steps halve) before it climbs on.
     Returns {x (m, p), z (m,), best_x, best_z, start_z, improvement, iters, trace}, with improvement =
     best_z - max(Z) (> 0: the search found a better point than every earlier run), iters the iterations

@@ -226,8 +226,8 @@ def _best(lower: dict | None):
 def _null_best_lines(cases: list, data_candidates: list | None) -> list[str]:
     """How often each candidate came out best (largest lower-bound 2 ln BF) on the null runs, and whether the
     data's best candidate is among them: a term the grid's error favours when nothing is missing is the best
-    candidate there too, so on its own its coming out best is no sign of it. [] for null cases saved
-    without the per-candidate values (before session 26)."""
+    candidate there too, so on its own its coming out best is no sign of it. [] for null cases without
+    the per-candidate values."""
     known = [c["lower_by_candidate"] for c in cases if c.get("lower_by_candidate")]
     if not known:
         return []
