@@ -29,7 +29,7 @@ diagnose-demo: $(STAMP)
 
 # Tests run on every core (pytest-xdist), one torch thread per worker.
 test: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto --maxfail=1 --timeout=900 --durations=15
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto --timeout=900 --durations=15
 
 test-all: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto -m "" --timeout=3600 --durations=15

@@ -66,8 +66,7 @@ def copy_figures(out: Path, dest: Path) -> None:
             shutil.copyfile(out / src, dest / name)
 
 
-def main(argv=None) -> int:
-    t_start = time.perf_counter()
+def parse_args(argv=None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="demo_out")
     # Defaults sized for a laptop CPU (about 4 s per run at 60 m cells on 2 shared cores): the paper's
@@ -82,40 +81,32 @@ def main(argv=None) -> int:
     ap.add_argument("--figures", default=None, metavar="DIR", help="also copy the demo's figures into DIR")
     ap.add_argument("--n-predictive", type=int, default=32,
                     help="posterior draws of `torchslide predict` after the calibration (0: skip it)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
 
+
+def simulate_truth(out: Path, base: str, case) -> tuple[dict, np.ndarray]:
+    """Step 1: ``torchslide simulate`` at the truth (skipped when done); (summary.json, h_max (ny, nx) m)."""
     from torchslide.cli import main as cli
     from torchslide.mapplots import plot_hmax_map
-    from torchslide.posterior import hdr_mask
     from torchslide.terrain.io import read_raster
-    from torchslide.terrain.synthetic import bondo_like
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    case = bondo_like(cellsize=args.cellsize)
-    base = base_config(args.cellsize, args.t_end, case.points)
-
-    # 1. the truth, through the CLI
     sim_cfg = write_toml(out / "simulate.toml", base)
     truth_dir = out / "truth"
     if not (truth_dir / "summary.json").exists():
         rc = cli(["simulate", str(sim_cfg), "--out", str(truth_dir), "--overwrite"])
         if rc:
-            return rc
+            raise SystemExit(rc)
     summary = json.loads((truth_dir / "summary.json").read_text())
     h_max = read_raster(truth_dir / "h_max.asc", fill_nodata=True).z
     plot_hmax_map(case.dem, h_max, out / "h_max.png", points=case.points,
                   title=f"Bondo-like case, mu = {TRUTH['mu']}, xi = {TRUTH['xi']:g} m/s$^2$: h_max (m)")
+    return summary, h_max
 
-    # 2. the synthetic recording: max velocity at L1 with 10 % noise
-    v_true = float(summary["gauges"]["L1"]["v_max"])
-    rng = np.random.default_rng(args.noise_seed)
-    v_obs = v_true * (1.0 + 0.1 * rng.standard_normal())
-    sigma = 0.1 * v_obs
-    x1, y1 = case.points["L1"]
 
-    # 3. calibrate through the CLI
-    cal_cfg = write_toml(out / "calibrate.toml", base + f"""
+def calibration_config(base: str, point: tuple, v_obs: float, sigma: float, args) -> str:
+    """Step 3's config: the prior box of the paper, the recorded velocity at ``point``, the budget."""
+    x1, y1 = point
+    return base + f"""
 [prior]
 mu = {BOUNDS['mu']}
 xi = {BOUNDS['xi']}
@@ -135,7 +126,61 @@ batch_size = {args.batch_size}
 seed = 0
 grid_size = 100
 truth = {{ mu = {TRUTH['mu']}, xi = {TRUTH['xi']} }}
-""")
+"""
+
+
+def truth_in_hdr(cal_dir: Path) -> tuple[bool, float]:
+    """Step 4: (the truth inside the 90 % highest-density region, the region's share of the prior box)."""
+    from torchslide.posterior import hdr_mask
+
+    npz = np.load(cal_dir / "posterior.npz")
+    dens, ax_mu, ax_xi = npz["posterior_grid"], npz["axis_0"], npz["axis_1"]
+    mask = hdr_mask(dens, 0.9)
+    i = int(np.argmin(np.abs(ax_mu - TRUTH["mu"])))
+    j = int(np.argmin(np.abs(ax_xi - TRUTH["xi"])))
+    return bool(mask[i, j]), float(mask.mean())
+
+
+def predictive_check(cal_cfg: Path, cal_dir: Path, out: Path, n: int, h_max: np.ndarray) -> dict:
+    """Step 5: ``torchslide predict`` with ``n`` draws; its impact probability against the truth's footprint."""
+    from torchslide.cli import main as cli
+    from torchslide.terrain.io import read_raster
+
+    pred_dir = out / "predictive"
+    rc = cli(["predict", str(cal_cfg), "--calibration", str(cal_dir), "--out", str(pred_dir), "--n", str(n),
+              "--overwrite"])
+    if rc:
+        raise SystemExit(rc)
+    p_hit = read_raster(pred_dir / "impact_probability.asc").z
+    reached = h_max > 0.5
+    pred = json.loads((pred_dir / "predictive.json").read_text())
+    report = {"n_draws": pred["n_ok"], "v_max_L1_interval90": pred["observations"][0]["interval90"],
+              "truth_footprint_cells": int(reached.sum()),
+              "share_of_truth_footprint_with_p_ge_0.5": float((p_hit[reached] >= 0.5).mean()),
+              "share_of_p_ge_0.5_cells_outside_truth_footprint": float((~reached[p_hit >= 0.5]).mean())}
+    print(f"impact probability over {pred['n_ok']} posterior draws: {pred_dir / 'impact_probability.png'}; "
+          f"{100 * report['share_of_truth_footprint_with_p_ge_0.5']:.0f} % of the truth's footprint has P >= 0.5")
+    return report
+
+
+def main(argv=None) -> int:
+    t_start = time.perf_counter()
+    args = parse_args(argv)
+    from torchslide.cli import main as cli
+    from torchslide.terrain.synthetic import bondo_like
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    case = bondo_like(cellsize=args.cellsize)
+    base = base_config(args.cellsize, args.t_end, case.points)
+    summary, h_max = simulate_truth(out, base, case)
+    # 2. the synthetic recording: max velocity at L1 with 10 % noise
+    v_true = float(summary["gauges"]["L1"]["v_max"])
+    rng = np.random.default_rng(args.noise_seed)
+    v_obs = v_true * (1.0 + 0.1 * rng.standard_normal())
+    sigma = 0.1 * v_obs
+    # 3. calibrate through the CLI
+    cal_cfg = write_toml(out / "calibrate.toml", calibration_config(base, case.points["L1"], v_obs, sigma, args))
     cal_dir = out / "calibration"
     cal_args = ["calibrate", str(cal_cfg), "--out", str(cal_dir)]
     if args.resume or (cal_dir / "checkpoint.pt").exists():
@@ -143,45 +188,21 @@ truth = {{ mu = {TRUTH['mu']}, xi = {TRUTH['xi']} }}
     rc = cli(cal_args)
     if rc:
         return rc
-
-    # 4. is the truth inside the 90 % highest-density region?
-    npz = np.load(cal_dir / "posterior.npz")
-    dens, ax_mu, ax_xi = npz["posterior_grid"], npz["axis_0"], npz["axis_1"]
-    mask = hdr_mask(dens, 0.9)
-    i = int(np.argmin(np.abs(ax_mu - TRUTH["mu"])))
-    j = int(np.argmin(np.abs(ax_xi - TRUTH["xi"])))
-    inside = bool(mask[i, j])
+    inside, share = truth_in_hdr(cal_dir)
     post = json.loads((cal_dir / "posterior.json").read_text())
     report = {"truth": TRUTH, "v_max_L1_true": v_true, "v_max_L1_observed": v_obs, "sigma": sigma,
-              "truth_in_hdr90": inside, "hdr90_fraction_of_prior_box": float(mask.mean()),
+              "truth_in_hdr90": inside, "hdr90_fraction_of_prior_box": share,
               "posterior_mean": post["mean"], "posterior_map": post["map"], "log_evidence": post["log_evidence"],
               "n_runs": post["n_runs"], "n_failed": post["n_failed"]}
-    # 5. what the calibrated model predicts: posterior-predictive runs, against the truth's own footprint
     if args.n_predictive > 0:
-        pred_dir = out / "predictive"
-        rc = cli(["predict", str(cal_cfg), "--calibration", str(cal_dir), "--out", str(pred_dir),
-                  "--n", str(args.n_predictive), "--overwrite"])
-        if rc:
-            return rc
-        p_hit = read_raster(pred_dir / "impact_probability.asc").z
-        reached = h_max > 0.5
-        pred = json.loads((pred_dir / "predictive.json").read_text())
-        report["predictive"] = {
-            "n_draws": pred["n_ok"], "v_max_L1_interval90": pred["observations"][0]["interval90"],
-            "truth_footprint_cells": int(reached.sum()),
-            "share_of_truth_footprint_with_p_ge_0.5": float((p_hit[reached] >= 0.5).mean()),
-            "share_of_p_ge_0.5_cells_outside_truth_footprint": float((~reached[p_hit >= 0.5]).mean()),
-        }
-        print(f"impact probability over {pred['n_ok']} posterior draws: {pred_dir / 'impact_probability.png'}; "
-              f"{100 * report['predictive']['share_of_truth_footprint_with_p_ge_0.5']:.0f} % of the truth's "
-              f"footprint has P >= 0.5")
+        report["predictive"] = predictive_check(cal_cfg, cal_dir, out, args.n_predictive, h_max)
     report["wall_s"] = time.perf_counter() - t_start
     (out / "demo_summary.json").write_text(json.dumps(report, indent=2))
     if args.figures:
         copy_figures(out, Path(args.figures))
     print(f"v_max at L1: true {v_true:.2f} m/s, observed {v_obs:.2f} +- {sigma:.2f} m/s")
     print(f"truth (mu={TRUTH['mu']}, xi={TRUTH['xi']:g}) inside the 90 % HDR: {inside} "
-          f"(HDR covers {100 * mask.mean():.1f} % of the prior box)")
+          f"(HDR covers {100 * share:.1f} % of the prior box)")
     print(f"figures: {out / 'h_max.png'}, {cal_dir / 'posterior.png'}; TensorBoard: tensorboard --logdir {cal_dir / 'tensorboard'}")
     return 0 if inside else 1
 

@@ -348,3 +348,70 @@ def test_harness_sigmas_stated_as_the_noise(tmp_path, monkeypatch):
         real("null", 3, tmp_path / "d", sigmas="noise")
     assert seen["sigmas"]["g1:h"] == 0.2 and seen["sigmas"]["g2:speed"] == 0.5 and seen["sigmas"]["deposit"] == 0.3
     assert seen["sigmas"]["final_volume"] == pytest.approx(0.1 * 2.0e5)
+
+
+def _case(scenario, found, covered=True, margin=10.0, after=50.0, seed=0, strength=1.0):
+    """A saved harness case reduced to what the summary reads."""
+    from experiments.hidden_physics.scenarios import SCENARIOS
+
+    term = SCENARIOS[scenario][0]
+    verdict = {"none": "no_missing_physics", "unexplained": "unexplained"}.get(found, "missing_physics")
+    return {"scenario": scenario, "seed": seed, "strength": strength, "truth": {"term": term},
+            "true_term_covered_hdr90": covered, "wall_s": 100.0 + seed,
+            "diagnosis": {"verdict": verdict, "missing_physics": found if verdict == "missing_physics" else None,
+                          "decision": {"two_ln_bf_over_runner_up": margin, "two_ln_bf": 40.0},
+                          "fit_before": {"misfit": 100.0}, "fit_after": {"misfit": after},
+                          "thresholds": {"bf_min": 40.0}}}
+
+
+def test_strict_success_is_the_blind_tests_target():
+    """summary.strict_success: "nothing missing" for the null, no library name for the patch, and for a
+    library term its name with 2 ln BF >= 6 over the runner-up, its interval covering the truth and the
+    misfit reduced."""
+    from experiments.hidden_physics.summary import strict_success
+
+    assert strict_success(_case("null", "none")) and not strict_success(_case("null", "unexplained"))
+    assert strict_success(_case("low_friction_patch", "unexplained"))
+    assert strict_success(_case("low_friction_patch", "none"))
+    assert not strict_success(_case("low_friction_patch", "curvature"))
+    assert strict_success(_case("entrainment", "entrainment"))
+    assert not strict_success(_case("entrainment", "mu_i"))
+    assert not strict_success(_case("entrainment", "entrainment", covered=False))
+    assert not strict_success(_case("entrainment", "entrainment", margin=5.9))
+    assert not strict_success(_case("entrainment", "entrainment", after=100.0))
+
+
+def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
+    """make_page from summaries written by summary.py: a scenario meets its target with 4 of 5 strict
+    successes; a run with every scenario at 5 seeds says how many of 7 targets it meets, a partial one
+    says which seeds it has; the confusion matrix counts verdicts per hidden term."""
+    import json
+    from experiments.hidden_physics import make_page
+    from experiments.hidden_physics.scenarios import SCENARIOS
+    from experiments.hidden_physics.summary import summarise
+
+    full = tmp_path / "full"
+    full.mkdir()
+    for sc in SCENARIOS:
+        for seed in range(5):
+            right = {"null": "none", "low_friction_patch": "unexplained"}.get(sc, sc)
+            wrong = {"null": "unexplained", "low_friction_patch": "curvature"}.get(sc, "none")
+            found = right if (sc != "curvature" and seed < 4) or sc == "entrainment" else wrong
+            (full / f"{sc}_s{seed}.json").write_text(json.dumps(_case(sc, found, seed=seed)))
+    (full / "entrainment_s0_x0.5.json").write_text(json.dumps(_case("entrainment", "none", strength=0.5)))
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    (runs / "full.json").write_text(json.dumps(summarise(full)))
+    part = summarise(full)
+    part["cases"] = [r for r in part["cases"] if r["scenario"] == "mu_i" and r["seed"] < 3]
+    (runs / "part.json").write_text(json.dumps(part))
+    s = make_page.load_runs(runs)
+    counts = make_page.scenario_counts(make_page.evaluation_rows(s["full"]))
+    assert counts["entrainment"] == (5, 5) and counts["curvature"] == (0, 5) and counts["null"] == (4, 5)
+    assert make_page.targets_met(counts) == (6, 7)
+    true, found, M = make_page.confusion(make_page.evaluation_rows(s["full"]))
+    assert M[true.index("curvature"), found.index("none")] == 5 and M.sum() == 35
+    page = make_page.build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
+    assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 6 of 7 |" in page
+    assert "| 3/3 | - | partial run: 1 scenario, seeds 0-2 |" in page
+    assert "--strengths 0.5,1" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()

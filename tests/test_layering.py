@@ -71,3 +71,15 @@ def test_candidate_library_lives_with_the_diagnosis():
 
     assert not hasattr(physics, "CANDIDATES")
     assert all(c.param in physics.Params.names() for c in CANDIDATES.values())
+
+
+def test_the_distribution_ships_torchslide_and_acquisition_only():
+    """pyproject's package list: the wheel holds torchslide and acquisition; experiments run from the repo."""
+    import sys
+    from setuptools import find_packages
+
+    tomllib = __import__("tomllib" if sys.version_info >= (3, 11) else "tomli")
+    cfg = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    include = cfg["tool"]["setuptools"]["packages"]["find"]["include"]
+    tops = {p.split(".")[0] for p in find_packages(where=str(ROOT), include=include)}
+    assert tops == {"torchslide", "acquisition"}

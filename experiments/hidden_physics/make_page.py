@@ -21,6 +21,9 @@ from .summary import MARGIN_MIN
 
 HERE = Path(__file__).parent
 LABELS = ["none", "entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i", "deposition", "unexplained"]
+TRUE_NAMES = {"none": "none (null)", "unexplained": "low-friction patch"}
+FOUND_NAMES = {"none": "nothing missing"}
+"""How the confusion matrix labels the hidden terms and the verdicts."""
 N_SEEDS = 5
 TARGET = 4
 """A scenario's target: strict successes in at least TARGET of its N_SEEDS seeds at strength 1."""
@@ -106,13 +109,13 @@ def _plot_confusion(rows: list[dict], path: Path, title: str) -> None:
     for i in range(len(true)):
         for j in range(len(found)):
             ax.text(j, i, str(M[i, j]), ha="center", va="center", color="white" if M[i, j] > M.max() / 2 else "black")
-    ax.set_xticks(range(len(found)), found, rotation=40, ha="right")
-    ax.set_yticks(range(len(true)), true)
+    ax.set_xticks(range(len(found)), [FOUND_NAMES.get(f, f) for f in found], rotation=40, ha="right")
+    ax.set_yticks(range(len(true)), [TRUE_NAMES.get(t, t) for t in true])
     ax.set_xlabel("verdict of the diagnosis")
     ax.set_ylabel("hidden term")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -141,7 +144,7 @@ def _plot_strength(summary: dict, path: Path, title: str) -> None:
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=6, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
     plt.close(fig)
 
 
@@ -161,7 +164,7 @@ def _overview(runs: dict) -> list[str]:
         met, full = targets_met(counts)
         seeds = sorted({r["seed"] for r in evaluation_rows(s)})
         total = (f"{met} of {len(SCENARIOS)}" if full == len(SCENARIOS) else
-                 f"partial run: {len(counts)} scenarios, seeds {seeds[0]}-{seeds[-1]}")
+                 f"partial run: {len(counts)} scenario{'s' if len(counts) > 1 else ''}, seeds {seeds[0]}-{seeds[-1]}")
         L.append(f"| `{name}`: {describe(s['settings'])} | " + " | ".join(cells) + f" | {total} |")
     return L
 

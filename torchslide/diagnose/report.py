@@ -109,7 +109,23 @@ def _refit_check(c: dict) -> str:
 
 
 def write_markdown(j: dict, figures: list[str]) -> str:
-    L = [f"# Missing-physics diagnosis", "", f"**Verdict: {j['verdict']}**" +
+    """report.md from a report.json-style ``j``: the verdict, where the baseline disagrees, the subset
+    consistency, the screening, the candidates, the fit before and after, the figures."""
+    L = _verdict_section(j) + _null_section(j.get("null_calibration"), j.get("candidates"))
+    me = j.get("model_error")
+    if me:
+        L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
+              f"times smaller (rms of the mean / sd per observable: " +
+              ", ".join(f"{k} {v['rms_mean']:.3g} / {v['rms_sd']:.3g}" for k, v in me["blocks"].items()) + ").", ""]
+    L += _located_section(j) + _consistency_section(j.get("subset_consistency"))
+    L += _screening_section((j.get("screening") or {}).get("candidates") or {})
+    L += _candidates_section(j["candidates"]) + _fit_section(j)
+    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
+    return "\n".join(L) + "\n"
+
+
+def _verdict_section(j: dict) -> list[str]:
+    L = ["# Missing-physics diagnosis", "", f"**Verdict: {j['verdict']}**" +
          (f" — missing physics: **{j['missing_physics']}**" if j["missing_physics"] else ""), "",
          f"Reason: {j['decision']['reason']}", ""]
     unseen = [c for c, v in ((j.get("screening") or {}).get("candidates") or {}).items()
@@ -125,65 +141,79 @@ def write_markdown(j: dict, figures: list[str]) -> str:
     if db:
         L += [f"Thresholds {j['decision'].get('thresholds_source')}; with the thresholds given before, the verdict "
               f"was {db['verdict']}" + (f" ({db['missing_physics']})" if db.get("missing_physics") else "") + ".", ""]
-    L += _null_section(j.get("null_calibration"), j.get("candidates"))
-    me = j.get("model_error")
-    if me:
-        L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
-              f"times smaller (rms of the mean / sd per observable: " +
-              ", ".join(f"{k} {v['rms_mean']:.3g} / {v['rms_sd']:.3g}" for k, v in me["blocks"].items()) + ").", ""]
-    L += ["## Where the baseline disagrees with the data", "", "| what | where | standardised residual |", "|---|---|---|"]
+    return L
+
+
+def _located_section(j: dict) -> list[str]:
+    L = ["## Where the baseline disagrees with the data", "", "| what | where | standardised residual |", "|---|---|---|"]
     for l in j["located"]:
         L.append(f"| {l['what']} | {l['where']} | {l['standardised_residual']:.2f} |")
     for f in j["decision"].get("fit_flags") or []:
         L.append(f"| whole-observable fit of the calibrated baseline (Z_fit > fit_max {f['fit_max']:.2f}) | {f['observable']} | Z_fit {f['Z_fit']:.2f} |")
     if not j["located"] and not j["decision"].get("fit_flags"):
         L.append("| (nothing located) | | |")
-    sc = j.get("subset_consistency")
-    if sc:
-        fmtw = lambda w: ", ".join(f"{k} {v:.4g}" for k, v in w.items()) if w else "-"
-        L += ["", "## Do the observations agree on the baseline's parameters? (subset consistency)", "",
-              "Each observation against all the others, linearised at the baseline (torchslide/diagnose/"
-              "consistency.py): T is the chi-square a common parameter shift costs over separate ones, ~ chi2(df) "
-              "when the model is right; 'disagrees' at p < 0.01 / number of observations. A diagnostic of where, "
-              "not part of the verdict; its p-values are not calibrated on null data, and a coarse grid's own error "
-              "can make an observation disagree where nothing is missing.", "",
-              "| observation | values | T | df | p | disagrees | it alone wants | the rest wants |",
-              "|---|---|---|---|---|---|---|---|"]
-        for e in sc:
-            L.append(f"| {e['block']} | {e['k']} | {e['statistic']:.1f} | {e['df']} | {e['p_value']:.2g} | "
-                     f"{'yes' if e['conflict'] else 'no'} | {fmtw(e['wants'])} | {fmtw(e['rest_wants'])} |")
-    scr = (j.get("screening") or {}).get("candidates") or {}
-    if any("detectable_switch" in v for v in scr.values()):
-        from .candidates import CANDIDATES
-        L += ["", "## Screening", "",
-              "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
-              "smallest switch whose own effect (what re-tuning mu, xi cannot mimic, whitened by the likelihood's "
-              "covariance, the grid's error included) would reach the evidence threshold bf_min, linearised over the "
-              "screening's step (screen.detectable_switch). Beyond the prior range: these data cannot name the term on "
-              "this grid at any strength, so 'nothing missing' does not rule it out. Within it: a weaker term, or one "
-              "the grid biases or another term mimics, can still be missed.", "",
-              "| candidate | screening score | mimic by mu, xi | detectable from | prior range |", "|---|---|---|---|---|"]
-        for c, v in scr.items():
-            d = v.get("detectable_switch") or {}
-            lo, hi = CANDIDATES[c].prior if c in CANDIDATES else (None, None)
-            sw = d.get("switch")
-            det = "-" if not d else ("never (no own effect)" if sw is None else
-                                     f"{sw:.3g}" + ("" if d.get("within_prior") else " (beyond the prior)"))
-            L.append(f"| {c} | {_fmt(v.get('score'), '{:.1f}')} | {_fmt(v.get('mimic'), '{:.2f}')} | {det} | "
-                     f"{'-' if lo is None else f'[{lo:g}, {hi:g}]'} |")
-    L += ["", "## Candidates", "",
-          "'refit check': the local search on the solver after the refit (a gain of more than the margin over every "
-          "refit run: the refit's runs had not sampled the peak, so it was refined with the search's runs) and whether the "
-          "verified evidence ended trustworthy and stable.", "",
-          "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDI | refit check |",
-          "|---|---|---|---|---|---|---|---|"]
-    for c in j["candidates"]:
+    return L
+
+
+def _consistency_section(sc: list | None) -> list[str]:
+    if not sc:
+        return []
+    fmtw = lambda w: ", ".join(f"{k} {v:.4g}" for k, v in w.items()) if w else "-"
+    L = ["", "## Do the observations agree on the baseline's parameters? (subset consistency)", "",
+         "Each observation against all the others, linearised at the baseline (torchslide/diagnose/"
+         "consistency.py): T is the chi-square a common parameter shift costs over separate ones, ~ chi2(df) "
+         "when the model is right; 'disagrees' at p < 0.01 / number of observations. A diagnostic of where, "
+         "not part of the verdict; its p-values are not calibrated on null data, and a coarse grid's own error "
+         "can make an observation disagree where nothing is missing.", "",
+         "| observation | values | T | df | p | disagrees | it alone wants | the rest wants |",
+         "|---|---|---|---|---|---|---|---|"]
+    for e in sc:
+        L.append(f"| {e['block']} | {e['k']} | {e['statistic']:.1f} | {e['df']} | {e['p_value']:.2g} | "
+                 f"{'yes' if e['conflict'] else 'no'} | {fmtw(e['wants'])} | {fmtw(e['rest_wants'])} |")
+    return L
+
+
+def _screening_section(scr: dict) -> list[str]:
+    if not any("detectable_switch" in v for v in scr.values()):
+        return []
+    from .candidates import CANDIDATES
+    L = ["", "## Screening", "",
+         "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
+         "smallest switch whose own effect (what re-tuning mu, xi cannot mimic, whitened by the likelihood's "
+         "covariance, the grid's error included) would reach the evidence threshold bf_min, linearised over the "
+         "screening's step (screen.detectable_switch). Beyond the prior range: these data cannot name the term on "
+         "this grid at any strength, so 'nothing missing' does not rule it out. Within it: a weaker term, or one "
+         "the grid biases or another term mimics, can still be missed.", "",
+         "| candidate | screening score | mimic by mu, xi | detectable from | prior range |", "|---|---|---|---|---|"]
+    for c, v in scr.items():
+        d = v.get("detectable_switch") or {}
+        lo, hi = CANDIDATES[c].prior if c in CANDIDATES else (None, None)
+        sw = d.get("switch")
+        det = "-" if not d else ("never (no own effect)" if sw is None else
+                                 f"{sw:.3g}" + ("" if d.get("within_prior") else " (beyond the prior)"))
+        L.append(f"| {c} | {_fmt(v.get('score'), '{:.1f}')} | {_fmt(v.get('mimic'), '{:.2f}')} | {det} | "
+                 f"{'-' if lo is None else f'[{lo:g}, {hi:g}]'} |")
+    return L
+
+
+def _candidates_section(candidates: list) -> list[str]:
+    L = ["", "## Candidates", "",
+         "'refit check': the local search on the solver after the refit (a gain of more than the margin over every "
+         "refit run: the refit's runs had not sampled the peak, so it was refined with the search's runs) and whether the "
+         "verified evidence ended trustworthy and stable.", "",
+         "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDI | refit check |",
+         "|---|---|---|---|---|---|---|---|"]
+    for c in candidates:
         p = c["parameters"].get(c["param"], {}) if c["parameters"] else {}
         L.append(f"| {c['name']} | {_fmt(c['screening_score'], '{:.1f}')} | {_fmt(c.get('mimic'), '{:.2f}')} | "
                  f"{_fmt(c['log_evidence'], '{:.2f}')} | {_fmt(c['two_ln_bf'], '{:.1f}')} | {_fmt(p.get('mean'))} | "
                  f"{[round(v, 5) for v in p.get('hdi90', p['hdr90'])] if p else '-'} | {_refit_check(c)} |")
+    return L
+
+
+def _fit_section(j: dict) -> list[str]:
     fb, fa = j["fit_before"], j["fit_after"]
-    L += ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
+    L = ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
     src = (j["decision"].get("baseline_verification") or {}).get("source")
     mc = j["decision"].get("baseline_mode_check") or {}
     if src:
@@ -210,9 +240,7 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} "
                  f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |"
                  + (f" {_fmt(fz.get(name), '{:.1f}')} |" if first else ""))
-    L += _fit_notes(fb["residuals"])
-    L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
-    return "\n".join(L) + "\n"
+    return L + _fit_notes(fb["residuals"])
 
 
 def _best(lower: dict | None):
