@@ -98,7 +98,7 @@ def simulate_truth(out: Path, base: str, case) -> tuple[dict, np.ndarray]:
             raise SystemExit(rc)
     summary = json.loads((truth_dir / "summary.json").read_text())
     h_max = read_raster(truth_dir / "h_max.asc", fill_nodata=True).z
-    plot_hmax_map(case.dem, h_max, out / "h_max.png", points=case.points,
+    plot_hmax_map(case.dem, h_max, out / "h_max.png", points=case.points, release=case.release,
                   title=f"Bondo-like case, mu = {TRUTH['mu']}, xi = {TRUTH['xi']:g} m/s$^2$: h_max (m)")
     return summary, h_max
 

@@ -162,3 +162,12 @@ def test_best_run_fits_before_and_after_a_resume_merge():
     assert merge_best_fits(a, b) == dict(b, n_runs=10)
     assert merge_best_fits(b, a) == dict(b, n_runs=10)
     assert merge_best_fits(None, b) == b and merge_best_fits(a, None) == a and merge_best_fits(None, None) is None
+
+
+def test_calibrate_shows_the_solver_calls_progress(tmp_path, capsys):
+    """Without --quiet, calibrate's bar of runs is accompanied by each solver call's simulated time, so a
+    long initial call does not look like a hang."""
+    cfg = write(tmp_path, BASE + PRIOR + OBS.format(value=20.0, sigma=2.0) + CAL)
+    assert main(["calibrate", str(cfg), "--out", str(tmp_path / "cal")]) == 0
+    err = capsys.readouterr().err
+    assert "calibrate:" in err and "s simulated" in err and "/60 s simulated" in err

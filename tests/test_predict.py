@@ -56,7 +56,7 @@ def test_predict_writes_maps_and_checks_the_data(calibrated, capsys):
     assert set(by) == {"v_plane", "area"}
     for c in by.values():
         assert c["inside"], c
-        assert c["interval90"][0] < c["value"] < c["interval90"][1]
+        assert 0.0 <= c["interval90"][0] < c["value"] < c["interval90"][1]     # a speed and an area: >= 0
     # the mean impact area of the maps is the draws' own impact-area prediction (same threshold, 0.5 m)
     rows = np.genfromtxt(out / "draws.csv", delimiter=",", names=True)
     assert rows.shape == (info["n_ok"],)
@@ -150,3 +150,14 @@ def test_posterior_samples_follow_the_grid_density():
     near_b = (np.abs(s[:, 0] - ax[0][8]) <= 0.05) & (np.abs(s[:, 1] - ax[1][1]) <= 0.05)
     assert near_a.sum() + near_b.sum() == 4000
     assert near_a.mean() == pytest.approx(0.75, abs=0.03)
+
+
+def test_new_recording_interval_respects_the_observables_bound():
+    """A speed or thickness cannot be recorded below 0: with lower = 0 the interval of a new recording is
+    that of max(0, f + e); without a bound it is the Gaussian one, negative here."""
+    f = np.full((50, 1), 0.5)
+    free = observation_check(f, np.array([0.2]), np.array([4.0]), ["v"], seed=1)[0]
+    bounded = observation_check(f, np.array([0.2]), np.array([4.0]), ["v"], seed=1, lower=np.array([0.0]))[0]
+    assert free["interval90"][0] < -5.0
+    assert bounded["interval90"][0] == 0.0 and bounded["interval90"][1] == pytest.approx(free["interval90"][1])
+    assert bounded["inside"]

@@ -24,6 +24,7 @@ SUBCOMMANDS: dict[str, str] = {
     "predict": "torchslide.commands.predict",
     "diagnose": "torchslide.commands.diagnose",
     "sweep": "torchslide.commands.sweep",
+    "example": "torchslide.commands.example",
 }
 
 

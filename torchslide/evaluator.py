@@ -55,6 +55,7 @@ class LandslideEvaluator:
         dtype, device: solver precision and device.
         max_batch: most members per solver call.
         covariance: optional (k, k) full residual covariance (else diagonal sigma, Eq. 7).
+        solver_progress: show each solver call's simulated time as a progress bar.
     """
 
     dem: DEM
@@ -73,6 +74,7 @@ class LandslideEvaluator:
     covariance: object = None
     records: list = field(default_factory=list, repr=False)
     solver_seconds: float = 0.0
+    solver_progress: bool = False
 
     def __post_init__(self) -> None:
         if not self.observations:
@@ -125,7 +127,7 @@ class LandslideEvaluator:
         t0 = time.perf_counter()
         res = simulate(self.dem, self.release, self.params(x), t_end=self.t_end, gauges=list(self.gauges) or None,
                        config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
-                       dtype=self.dtype, device=self.device)
+                       dtype=self.dtype, device=self.device, progress=self.solver_progress)
         self.solver_seconds += time.perf_counter() - t0
         return res
 

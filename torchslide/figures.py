@@ -10,6 +10,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+
+from .physics import label  # noqa: E402
 from .posterior import hdr_mask  # noqa: E402
 
 
@@ -26,21 +29,23 @@ def plot_posterior(result, path, truth=None, names=None, level: float = 0.9, tit
     fig.colorbar(pc, ax=ax, label="posterior density")
     mask = hdr_mask(dens, level)
     ax.contour(a0, a1, mask.T.astype(float), levels=[0.5], colors="white", linewidths=1.0)
-    x = np.asarray(result.x)
+    x = np.asarray(result.x).reshape(-1, 2)
     ok = ~np.asarray(result.failed, dtype=bool)
     init = np.arange(len(x)) < result.n_initial
-    ax.plot(x[init & ok, 0], x[init & ok, 1], "o", mfc="none", mec="black", ms=5, label="initial")
-    ax.plot(x[~init & ok, 0], x[~init & ok, 1], "D", color="red", ms=4, label="adaptive")
-    if (~ok).any():
-        ax.plot(x[~ok, 0], x[~ok, 1], "x", color="orange", ms=6, label="failed")
+    for sel, style, lab in ((init & ok, dict(marker="o", mfc="none", mec="black", ms=5), "initial"),
+                            (~init & ok, dict(marker="D", color="red", ms=4), "adaptive"),
+                            (~ok, dict(marker="x", color="orange", ms=6), "failed")):
+        if sel.any():      # a legend entry only for what is drawn
+            ax.plot(x[sel, 0], x[sel, 1], ls="none", label=lab, **style)
     if truth is not None:
         ax.plot([truth[0]], [truth[1]], "+", color="black", ms=14, mew=2.5, label="truth")
-    ax.set_xlabel(names[0])
-    ax.set_ylabel(names[1])
+    ax.set_xlabel(label(names[0]))
+    ax.set_ylabel(label(names[1]))
     ax.set_xlim(result.bounds[0, 0], result.bounds[1, 0])
     ax.set_ylim(result.bounds[0, 1], result.bounds[1, 1])
-    ax.set_title(title or f"posterior after {len(x)} runs ({int(level * 100)} % HDR in white)")
-    ax.legend(loc="upper right", fontsize=7)
+    ax.set_title(title or f"posterior after {len(x)} runs ({int(level * 100)} % HDR in white)", fontsize=10)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -72,7 +77,7 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9,
         if truth is not None:
             ax.axvline(truth[0], color="k", ls="--", label="truth")
         ax.set_xlim(b[0, 0], b[1, 0])
-        ax.set_xlabel(names[0])
+        ax.set_xlabel(label(names[0]))
         ax.set_ylabel("posterior density")
         ax.legend(fontsize=7)
         ax.set_title(title or f"posterior after {len(x)} runs", fontsize=10)
@@ -103,11 +108,11 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9,
                         ax.plot([truth[j]], [truth[i]], "+", color="red", ms=10, mew=2)
                 ax.set_xlim(b[0, j], b[1, j])
                 if i == p - 1:
-                    ax.set_xlabel(names[j])
+                    ax.set_xlabel(label(names[j]))
                 else:
                     ax.set_xticklabels([])
                 if j == 0 and i > 0:
-                    ax.set_ylabel(names[i])
+                    ax.set_ylabel(label(names[i]))
                 elif j > 0:
                     ax.set_yticklabels([])
         fig.suptitle(title or f"posterior after {len(x)} runs: MCMC samples, {int(level * 100)} % intervals "
@@ -119,17 +124,19 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9,
     return Path(path)
 
 
-def plot_tv(tv_histories: dict, path, n_initial: int | None = None, threshold: float | None = None):
-    """Fig. 4: TV(p_i, p_{i-10}) against the number of runs; tv_histories maps label -> [(n, tv), ...]."""
+def plot_tv(tv_histories: dict, path, n_initial: int | None = None, threshold: float | None = None,
+            lag: int = 10):
+    """Fig. 4: TV(p_i, p_{i-lag}) (Eq. 17) against the number of runs; tv_histories maps label -> [(n, tv), ...]."""
     fig, ax = plt.subplots(figsize=(5.5, 3.8))
-    for label, hist in tv_histories.items():
+    for name, hist in tv_histories.items():
         h = np.asarray(hist, dtype=float).reshape(-1, 2)
         n = h[:, 0] - (n_initial or 0)
-        ax.semilogy(n, h[:, 1], "-o", ms=3, label=label)
+        ax.semilogy(n, h[:, 1], "-o", ms=3, label=name)
     if threshold is not None:
         ax.axhline(threshold, color="gray", ls="--", lw=1)
     ax.set_xlabel("number of adaptive runs" if n_initial else "number of runs")
-    ax.set_ylabel("TV(p_i, p_{i-10})")
+    ax.set_ylabel(rf"TV$(p_i, p_{{i-{lag}}})$")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()

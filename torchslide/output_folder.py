@@ -35,6 +35,9 @@ def staged_output(out: Path, anc: Path, command: str):
     """Write into a temporary folder next to ``out`` (in ``anc``, from :func:`check_output`) and move it into
     place when the block ends; on any error (or Ctrl-C) remove it, so nothing is half-written."""
     tmp = Path(tempfile.mkdtemp(prefix=f".torchslide-{command}-", dir=anc))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)   # the permissions of an ordinary folder, not mkdtemp's private 0700
     try:
         yield tmp
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -217,3 +217,24 @@ def earth_pressure_sh(phi_int_deg: torch.Tensor, mu: torch.Tensor) -> tuple[torc
     c2 = torch.cos(torch.deg2rad(phi_int_deg)) ** 2
     r = torch.sqrt(torch.clamp(1 - c2 * (1 + mu * mu), min=0.0))
     return 2 * (1 - r) / c2 - 1, 2 * (1 + r) / c2 - 1
+
+
+LABELS: dict[str, str] = {
+    "mu": r"$\mu$ (-)",
+    "xi": r"$\xi$ (m/s$^2$)",
+    "k_ap": r"$k_{a/p}$ (-)",
+    "phi_int": r"$\phi_{int}$ (deg)",
+    "earth_pressure": "earth-pressure switch (-)",
+    "curvature": "curvature switch (-)",
+    "kappa": r"$\kappa$ (1/m)",
+    "tau_y": r"$\tau_y$ (m$^2$/s$^2$)",
+    "mu_i": r"$\mu_I$ (-)",
+    "deposition": "deposition rate (1/s)",
+}
+"""Axis labels of the parameters, with their units (matplotlib mathtext)."""
+
+
+def label(name: str) -> str:
+    """The axis label of parameter ``name`` (the name itself when it is not a Params field)."""
+    return LABELS.get(name, name)
+

@@ -95,21 +95,23 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
 
 
 def observation_check(predictions: np.ndarray, values: np.ndarray, sigma: np.ndarray, names, seed: int = 0,
-                      level: float = 0.9) -> list[dict]:
+                      level: float = 0.9, lower: np.ndarray | None = None) -> list[dict]:
     """Each observation's predictive distribution against its recorded value.
 
     predictions: (M, k) f(x) of the draws; values: (k,) recorded; sigma: (k,) the likelihood's marginal
-    sd. Per observation: the model's mean, sd and quantiles over the draws; the ``level`` interval of a
-    new recording f(x) + e, e ~ N(0, sigma^2) (one e per draw and 200 per draw for the quantiles); the
+    sd; lower: (k,) the least value a recording can take (0 for speeds, thicknesses, areas, volumes;
+    -inf or None: unbounded). Per observation: the model's mean, sd and quantiles over the draws; the
+    ``level`` interval of a new recording max(lower, f(x) + e), e ~ N(0, sigma^2) (200 e per draw); the
     recorded value's percentile in that distribution, and whether it lies inside the interval.
     """
     rng = np.random.default_rng(seed)
     P = np.asarray(predictions, dtype=np.float64)
     lo_q, hi_q = (1 - level) / 2, 1 - (1 - level) / 2
     out = []
+    low = np.full(P.shape[1], -np.inf) if lower is None else np.asarray(lower, dtype=np.float64)
     for j, name in enumerate(names):
         f = P[:, j]
-        rep = (f[:, None] + sigma[j] * rng.standard_normal((f.size, 200))).ravel()
+        rep = np.maximum(low[j], (f[:, None] + sigma[j] * rng.standard_normal((f.size, 200))).ravel())
         lo, hi = np.quantile(rep, [lo_q, hi_q])
         v = float(values[j])
         out.append({"name": str(name), "value": v, "sigma": float(sigma[j]),

@@ -23,7 +23,7 @@ import argparse
 import json
 from pathlib import Path
 
-from torchslide.diagnose.null import RULE, fit_max_from_null, thresholds_from_null
+from torchslide.diagnose.null import RULE, thresholds_from_null
 
 from .summary import write_json
 

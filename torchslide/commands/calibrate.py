@@ -45,6 +45,23 @@ def write_runs_csv(path: Path, res, obs_names, records) -> None:
 
 
 FIT_WARN_Z = 3.0  # |standardised residual| of the best run above which calibrate warns
+REACH_MIN = 0.01  # a point value (m/s or m) at or below this in every run: the flow never reached the point
+
+
+def unreached_warnings(ev, tol: float = REACH_MIN) -> list[str]:
+    """One line per point observation (a speed or thickness at (x, y)) that no successful run of this
+    invocation reached: its prediction <= ``tol`` in every run (wrong coordinates, or a point off the path)."""
+    runs = [r.predictions for r in ev.records if not r.failed]
+    if not runs:
+        return []
+    P = np.asarray(runs, dtype=float)
+    out = []
+    for k, o in enumerate(ev.observations):
+        if o.spec.needs_point and np.all(np.abs(P[:, k]) <= tol):
+            out.append(f"no run reaches observation {o.name} at ({o.x:g}, {o.y:g}): its {o.kind} is <= {tol:g} "
+                       f"{o.spec.unit} in all {len(runs)} runs, so it cannot inform the posterior; check that the "
+                       f"point lies on the flow path and that t_end is long enough")
+    return out
 
 
 def merge_best_fits(earlier: dict | None, now: dict | None) -> dict | None:
@@ -87,6 +104,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"torchslide: note: no checkpoint in {out}; starting a new calibration", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     ev = make_evaluator(cfg)
+    ev.solver_progress = not args.quiet
     prior = ev.prior
     res = calibrate(ev, prior.bounds, n_initial=cal["n_initial"], n_total=cal["n_total"],
                     batch_size=cal["batch_size"], seed=cal["seed"], grid_size=cal["grid_size"],
@@ -113,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         info["truth"] = {n: float(truth[n]) for n in prior.names}
     (out / "posterior.json").write_text(json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
-    for w in misfit_warnings(fit) if fit is not None else []:
+    for w in unreached_warnings(ev) + (misfit_warnings(fit) if fit is not None else []):
         print(f"torchslide: warning: {w}", file=sys.stderr)
     plot_posterior_any(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
     if res.tv_history:

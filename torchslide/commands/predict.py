@@ -78,6 +78,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--threshold must be >= 0 m, got {args.threshold}")
     cfg = load_calibration_config(args.config)
     ev = make_evaluator(cfg)
+    ev.solver_progress = not args.quiet
     if args.threshold is None:  # the map then agrees with the impact area the calibration fitted
         args.threshold = next((float(o.threshold) for o in ev.observations if o.kind == "impact_area"),
                               DEFAULT_THRESHOLD)
@@ -107,7 +108,9 @@ def run(args: argparse.Namespace) -> int:
             bar.close()
 
     values = np.array([float(o.value) for o in ev.observations])
-    checks = observation_check(pr.predictions, values, ev.observation_sd(), ev.observation_names, seed=args.seed)
+    lower = np.array([0.0 if o.spec.nonnegative else -np.inf for o in ev.observations])
+    checks = observation_check(pr.predictions, values, ev.observation_sd(), ev.observation_names, seed=args.seed,
+                               lower=lower)
     dem = cfg.terrain.dem
     points = {o.name: (o.x, o.y) for o in ev.observations if o.x is not None and o.y is not None}
     with staged_output(out, anc, "predict") as tmp:
@@ -132,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
         (tmp / "predictive.json").write_text(json.dumps(info, indent=2))
         plot_field_map(dem, pr.impact_probability, tmp / "impact_probability.png", points=points,
                        label=f"P(h_max > {args.threshold:g} m)", cmap="YlOrRd", vmin=0.0, vmax=1.0,
-                       title=f"Impact probability over {len(pr.x)} posterior draws")
+                       title=f"Impact probability over {len(pr.x)} posterior draws", release=ev.release)
         plot_predictive_check(checks, tmp / "observations.png")
     if not args.quiet:
         for c in checks:

@@ -143,6 +143,20 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
     return summaries
 
 
+REACH_MIN = 0.01  # m: a gauge whose h_max stays at or below this in every member was never reached
+
+
+def unreached_gauges(summaries: list[dict], tol: float = REACH_MIN) -> list[str]:
+    """One line per gauge that the flow reaches in no member (h_max <= ``tol`` m throughout)."""
+    out = []
+    for name, g in (summaries[0]["gauges"] if summaries else {}).items():
+        peak = max(float(s["gauges"][name]["h_max"]) for s in summaries)
+        if peak <= tol:
+            out.append(f"gauge {name} at ({g['x']:g}, {g['y']:g}) is never reached (h_max {peak:.3g} m in every "
+                       f"member): check that it lies on the flow path")
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.threshold) and args.threshold >= 0):
         raise ConfigError(f"--threshold must be >= 0 m, got {args.threshold}")
@@ -168,6 +182,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {out}")
     for i in failed:
         print(f"torchslide: warning: member {i} failed: {summaries[i]['failure_reason']}", file=sys.stderr)
+    for w in unreached_gauges(summaries):
+        print(f"torchslide: warning: {w}", file=sys.stderr)
     for i, s in enumerate(summaries):
         share = s["outflow_volume"] / s["release_volume"] if s["release_volume"] > 0 else 0.0
         if share > OUTFLOW_WARN:

@@ -77,6 +77,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--n must be >= 2 nodes per parameter, got {args.n}")
     cfg = load_calibration_config(args.config)
     ev = make_evaluator(cfg)
+    ev.solver_progress = not args.quiet
     names, bounds = list(ev.prior.names), np.asarray(ev.prior.bounds, dtype=np.float64)
     n_runs = args.n ** len(names)
     if n_runs > MAX_RUNS:
@@ -144,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     ref = SimpleNamespace(names=names, bounds=bounds, x=x[failed], failed=np.ones(int(failed.sum()), dtype=bool),
                           n_initial=n_runs, grid_axes=axes, posterior_grid=density, samples=None)
     if len(names) <= 2:
-        plot_posterior_any(ref, out / "posterior.png", title=f"brute-force reference, {args.n}^{len(names)} runs")
+        plot_posterior_any(ref, out / "posterior.png", title=f"brute-force reference, ${args.n}^{len(names)}$ runs")
     if not args.quiet:
         for nm in names:
             print(f"{nm}: mean {summ['mean'][nm]:.4g}  sd {summ['sd'][nm]:.3g}  MAP {summ['map'][nm]:.4g}  "

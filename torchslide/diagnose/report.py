@@ -13,6 +13,9 @@ def write_figures(diag, out: Path) -> list[str]:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+
+    from ..physics import label
 
     files = []
     before = diag.localisation.maps
@@ -26,8 +29,11 @@ def write_figures(diag, out: Path) -> list[str]:
             fig, axs = plt.subplots(1, ncol, figsize=(5.5 * ncol, 3.2), squeeze=False)
             for ax, (lab, mm) in zip(axs[0], [("before", m)] + ([("after", after[name])] if name in after else [])):
                 im = ax.imshow(mm["z"], origin="lower", extent=ext, cmap="RdBu_r", vmin=-4, vmax=4)
-                ax.set_title(f"{name}: standardised residual, {lab}")
-                fig.colorbar(im, ax=ax, shrink=0.8)
+                ax.set_title(f"{name}: standardised residual, {lab}", fontsize=9)
+                ax.set_xlabel("x (m)")
+                ax.set_ylabel("y (m)")
+                cax = make_axes_locatable(ax).append_axes("right", size="3%", pad=0.08)
+                fig.colorbar(im, cax=cax, label="standardised residual (-)")
             for loc in diag.localisation.located:
                 if isinstance(loc["where"], list):
                     x0, y0, x1, y1 = loc["where"]
@@ -46,6 +52,7 @@ def write_figures(diag, out: Path) -> list[str]:
                 a = after[name]
                 ax.plot(a["t"], a["pred"], "C3-", label=f"refit ({diag.fit_after.get('model')})")
             ax.set_xlabel("t (s)")
+            ax.set_ylabel({"h": "flow thickness (m)", "speed": "speed (m/s)"}.get(name.rsplit(":", 1)[-1], name))
             ax.set_title(name)
             ax.legend(fontsize=7)
             fig.tight_layout()
@@ -69,7 +76,8 @@ def write_figures(diag, out: Path) -> list[str]:
                 m = marginals(cal.posterior_grid, cal.grid_axes)[i]
                 ax.fill_between(cal.grid_axes[i], m, color="C2", alpha=0.6, step="mid")
             ax.set_xlim(float(cal.bounds[0][i]), float(cal.bounds[1][i]))
-            ax.set_xlabel(cal.names[i])
+            ax.set_xlabel(label(cal.names[i]))
+            ax.set_ylabel("posterior density")
             ax.set_title(c)
         fig.tight_layout()
         f = out / "posteriors.png"

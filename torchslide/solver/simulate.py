@@ -326,7 +326,8 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
     bar = None
     if progress:
         from tqdm.auto import tqdm
-        bar = tqdm(total=float(t_end), unit="s", desc="simulate")
+        bar = tqdm(total=float(t_end), unit="s", desc=f"simulate {B} member{'s' if B > 1 else ''}", leave=False,
+                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s simulated [{elapsed}{postfix}]")
     box = _crop.grow(work["h"], None, ny, nx, margin) if cfg.crop else _crop.full_box(ny, nx)
     sub, Psub, gsub, gin = enter(work, box)
     while True:
@@ -350,7 +351,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
         n_act = int(act.sum())
         if bar is not None:
             bar.n = round(float(work["t"][act].min()) if n_act else float(t_end), 3)
-            bar.set_postfix(active=n_act)
+            bar.set_postfix(active=n_act, refresh=False)
             bar.refresh()
         if n_act == 0:
             _crop.write_back(work, sub, box, ny, nx, member_keys)
