@@ -21,7 +21,7 @@ demo: $(STAMP)
 
 # The diagnose CLI on files: one blind harness case (entrainment, seed 1) written as DEM / maps / gauge CSVs
 # + diagnose.toml (experiments/hidden_physics/export_case.py), then `torchslide diagnose` on them; one torch
-# thread, as the harness ran (faster on these small grids, and the saved harness result comes out exactly).
+# thread, as the harness runs (faster on these small grids, and the same result as the harness case).
 diagnose-demo: $(STAMP)
 	$(PY) -m experiments.hidden_physics.export_case entrainment 1 --out diagnose_demo
 	OMP_NUM_THREADS=1 $(VENV)/bin/torchslide diagnose diagnose_demo/diagnose.toml \
