@@ -9,6 +9,10 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
+from mpl_toolkits.axes_grid1 import make_axes_locatable  # noqa: E402
+
+from torchslide.physics import label  # noqa: E402
 
 DPI = 64
 
@@ -24,18 +28,18 @@ def map_figure(case, h_max: np.ndarray, h_final: np.ndarray, path: Path, thresho
     ax.imshow(imp, extent=ext, origin="lower", cmap="Oranges", vmin=0, vmax=2.5, alpha=0.6)
     dep = np.ma.masked_where(h_final <= threshold, h_final)
     im = ax.imshow(dep, extent=ext, origin="lower", cmap="viridis", alpha=0.9)
-    rel = np.ma.masked_where(np.asarray(case.release) <= 0, np.asarray(case.release))
     ax.contour(np.asarray(case.release) > 0, levels=[0.5], colors="r", extent=ext, origin="lower", linewidths=1)
     if case.thalweg is not None:
         ax.plot(case.thalweg[:, 0], case.thalweg[:, 1], "k--", lw=0.6)
     for k, (x, y) in case.points.items():
         ax.plot(x, y, "k^", ms=7)
         ax.annotate(k, (x, y), xytext=(5, 6), textcoords="offset points", fontsize=10, weight="bold")
-    fig.colorbar(im, ax=ax, label="deposit height h (m)", shrink=0.8)
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
     ax.set_title("Truth run: release (red), impact area (orange, h_max > 0.5 m), deposit (h > 0.5 m)", fontsize=9)
     ax.set_aspect("equal")
+    cax = make_axes_locatable(ax).append_axes("right", size="2.5%", pad=0.1)
+    fig.colorbar(im, cax=cax, label="deposit height h (m)")
     fig.tight_layout()
     fig.savefig(path, dpi=DPI)
     plt.close(fig)
@@ -54,8 +58,8 @@ def _panel(ax, axes, dens, truth, title, x_init=None, x_adapt=None):
     ax.set_title(title, fontsize=8)
     ax.set_xlim(ext[0], ext[1])
     ax.set_ylim(ext[2], ext[3])
-    ax.set_xlabel("mu")
-    ax.set_ylabel("xi (m/s^2)")
+    ax.set_xlabel(label("mu"))
+    ax.set_ylabel(label("xi"))
 
 
 def posterior_grid_figure(panels: list[dict], truth, path: Path, ncols: int = 2, title: str = "") -> Path:
@@ -78,13 +82,14 @@ def posterior_grid_figure(panels: list[dict], truth, path: Path, ncols: int = 2,
 def tv_figure(histories: dict, n_initial: int, path: Path) -> Path:
     """TV(p_i, p_{i-lag}) against adaptive runs (Fig. 4-like). histories: label -> [(n_runs, tv)]."""
     fig, ax = plt.subplots(figsize=(5, 3.4))
-    for label, h in histories.items():
+    for name, h in histories.items():
         h = np.asarray(h, dtype=float).reshape(-1, 2)
         if len(h):
-            ax.plot(h[:, 0] - n_initial, h[:, 1], "o-", label=label, ms=4)
+            ax.plot(h[:, 0] - n_initial, h[:, 1], "o-", label=name, ms=4)
     ax.set_yscale("log")
-    ax.set_xlabel("adaptive runs i")
-    ax.set_ylabel("TV(p_i, p_{i-10})")
+    ax.set_xlabel("adaptive runs $i$")
+    ax.set_ylabel(r"TV$(p_i, p_{i-10})$")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.legend()
     ax.grid(alpha=0.3)
     fig.tight_layout()
