@@ -137,11 +137,10 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     invs = t.get("invocations", [])
     L.append(f"- wall time of the study (all invocations of `python -m experiments.bondo` on this run directory, "
              f"{len(invs)} invocation(s)): **{_fmt(t.get('total_s_all_invocations', t.get('total_s')))} s**; "
-             f"the brute-force sweep ({cfg['sweep_n']}^2 runs, `python -m experiments.sweep`, run concurrently "
-             f"in a second process) used {_fmt(t.get('sweep_solver_s'))} s of solver time; "
-             f"{t.get('n_simulations_cached')} distinct simulations in the study cache. "
-             "Machine: a 2-core CPU shared with other jobs (the other experiments of this repository ran at the same "
-             "time), one thread per process.")
+             f"the brute-force sweep ({cfg['sweep_n']}^2 runs) used {_fmt(t.get('sweep_solver_s'))} s of solver "
+             f"time; {t.get('n_simulations_cached')} distinct simulations in the study cache."
+             + (" Machine: {cpu_count} CPU cores, {torch_threads} torch threads, load average {load:.1f} at the "
+                "start.".format(load=t["machine"]["load_average_start"], **t["machine"]) if t.get("machine") else ""))
     sweeps = []
     for f in sorted(run_dir.parent.glob(f"sweep_{run_dir.name.split('_', 1)[1]}_*x*.npz")):
         try:
@@ -150,7 +149,7 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
         except Exception:  # noqa: BLE001 - informational only
             pass
     if sweeps:
-        L.append("- solver time of the sweeps on disk (each run concurrently with the study in its own process): "
+        L.append("- solver time of the sweeps on disk: "
                  + "; ".join(sweeps))
     if invs:
         L.append("- invocations: " + "; ".join(f"{_fmt(x.get('total_s'))} s ({x.get('solver_calls')} solver calls)"
@@ -163,12 +162,11 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     if float(cfg["cellsize"]) > 20.0:
         solver_mode = ("torch.compile, active-region cropping" if cfg.get("compile") else "eager PyTorch") + \
             f", {cfg['dtype']}"
-        L.append(f"- **Cell size {cfg['cellsize']:g} m** (the terrain's default is 20 m). The solver ({solver_mode}) "
-                 "on the shared 2-core CPU was not fast enough for the ~1500 runs of the study plus the sweep at 20 m "
-                 "in the available time (per run the cost grows roughly with the cube of 1/cell size: 4x the cells "
-                 "and 2x the time steps per halving; the 20 m cost per run is in bench/results/solver.json). "
-                 "The 20 m study is `python -m experiments.bondo --cellsize 20` "
-                 "(plus `python -m experiments.sweep --cellsize 20`); it was not run here.")
+        L.append(f"- **Cell size {cfg['cellsize']:g} m** (the terrain's default is 20 m). With this solver "
+                 f"({solver_mode}) the ~1500 runs of the study plus the sweep take hours on a 2-core CPU at 20 m (per "
+                 "run the cost grows roughly with the cube of 1/cell size: 4x the cells and 2x the time steps per "
+                 "halving; the 20 m cost per run is in bench/results/solver_full_runs_idle_*.json). The 20 m study is "
+                 "`python -m experiments.bondo --cellsize 20`; it was not run here.")
     L.append("- Terrain: the analytic Bondo-like valley of `torchslide.terrain.synthetic.bondo_like` "
              "(3e6 m^3 release), not the real DEM; solver: torchslide, not r.avaflow. Table 1 values therefore differ "
              "from the paper's.")

@@ -10,6 +10,7 @@ the per-case checkpoints and the simulator cache.
 from __future__ import annotations
 
 import json
+import os
 import time
 from pathlib import Path
 
@@ -142,6 +143,8 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
     from experiments.sweep import reference_posterior, run_sweep
 
     t_start = time.perf_counter()
+    machine = {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+               "load_average_start": os.getloadavg()[0]}
     rd = cfg.run_dir
     rd.mkdir(parents=True, exist_ok=True)
     (rd / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
@@ -230,6 +233,7 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
         _log(f"case {c}: truth in HDR90 {entry['truth_in_hdr90']}, TV to reference "
              f"{entry.get('tv_ref')}, LHS-only {entry.get('tv_ref_lhs_only')}")
     results["timing"]["total_s"] = time.perf_counter() - t_start
+    results["timing"]["machine"] = machine
     results["timing"]["n_simulations_cached"] = len(sim)
     results["timing"]["solver_s_all_invocations"] = sim.solver_seconds
     prev = rd / "results.json"
