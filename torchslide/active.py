@@ -37,6 +37,7 @@ from acquisition import select_batch
 
 from .bayes import EvaluationResult, FunctionEvaluator, check_bounds
 from .emulator import LogPosteriorEmulator, cap_low_values, single_threaded
+from .files import FileStateError, atomic_path
 from .posterior import GridPosterior, grid_posterior, tv_distance
 
 CHECKPOINT_VERSION = 1
@@ -110,9 +111,8 @@ class ActiveState:
 def _atomic_save(obj, path: Path) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + f".tmp{os.getpid()}")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(obj, tmp)
 
 
 class ActiveLearner:
@@ -151,16 +151,23 @@ class ActiveLearner:
     def _load(self) -> bool:
         if self.checkpoint is None or not self.checkpoint.exists():
             return False
-        ck = torch.load(self.checkpoint, weights_only=False)
-        if ck.get("version") != CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint {self.checkpoint} has version {ck.get('version')}")
+        try:
+            ck = torch.load(self.checkpoint, weights_only=False)
+        except Exception as e:  # noqa: BLE001 - torch raises several kinds for a truncated or foreign file
+            raise FileStateError(f"checkpoint {self.checkpoint} is corrupt or truncated ({type(e).__name__}); "
+                                 "delete it to start the calibration again") from None
+        if not isinstance(ck, dict) or ck.get("version") != CHECKPOINT_VERSION:
+            raise FileStateError(f"checkpoint {self.checkpoint} is not a calibration checkpoint of this version; "
+                                 "delete it to start again")
         saved = ck["config"]
         for key in ("n_initial", "batch_size", "seed", "acquisition", "clip_range", "grid_size"):
             if saved[key] != getattr(self.config, key):
-                raise ValueError(f"checkpoint {self.checkpoint} was made with {key}={saved[key]!r}, "
-                                 f"not {getattr(self.config, key)!r}; use a new checkpoint path")
+                raise FileStateError(f"checkpoint {self.checkpoint} was made with {key} = {saved[key]!r}, not "
+                                     f"{getattr(self.config, key)!r}: resume with the settings it was made with, "
+                                     "or choose another output folder")
         if not torch.allclose(ck["bounds"], self.bounds):
-            raise ValueError(f"checkpoint {self.checkpoint} was made with other bounds")
+            raise FileStateError(f"checkpoint {self.checkpoint} was made with another prior box "
+                                 f"{ck['bounds'].tolist()}; resume with the prior it was made with")
         self.state = ActiveState(**ck["state"])
         return True
 

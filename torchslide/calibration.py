@@ -19,6 +19,7 @@ import numpy as np
 
 from .active import ActiveConfig, ActiveLearner
 from .bayes import check_bounds
+from .files import atomic_path, write_text_atomic
 from .posterior import PosteriorSummary, adaptive_metropolis, log_evidence_importance
 
 
@@ -81,7 +82,7 @@ class CalibrationResult:
         """Write posterior.json and posterior.npz (x, z, failed, grid axes, density, samples)."""
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)
-        (d / "posterior.json").write_text(json.dumps(self.to_json(), indent=2))
+        write_text_atomic(d / "posterior.json", json.dumps(self.to_json(), indent=2))
         arrays = {"x": self.x, "z": self.z, "failed": self.failed, "bounds": self.bounds,
                   "tv_history": np.asarray(self.tv_history, dtype=float).reshape(-1, 2)}
         if self.posterior_grid is not None:
@@ -90,7 +91,8 @@ class CalibrationResult:
                 arrays[f"axis_{i}"] = a
         if self.samples is not None:
             arrays["samples"] = self.samples
-        np.savez_compressed(d / "posterior.npz", **arrays)
+        with atomic_path(d / "posterior.npz") as tmp:
+            np.savez_compressed(tmp, **arrays)
         return d
 
 

@@ -30,6 +30,7 @@ Used by the calibrate, predict, sweep and diagnose commands.
 """
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
@@ -217,3 +218,37 @@ def load_calibration(directory, prior):
         raise ConfigError(f"--calibration {directory} ran on the prior box {np.asarray(cal.bounds).tolist()}, the "
                           f"config's [prior] is {np.asarray(prior.bounds).tolist()}: pass the config it ran with")
     return cal
+
+
+def case_fingerprint(ev) -> dict:
+    """What defines z = ln[L(x|d) pi(x)] of an evaluator, JSON-able: the observations, the prior, the
+    fixed parameters, the terrain (digests of the DEM, release and erodible rasters), the run and solver
+    settings. A calibration resumed under another fingerprint would mix two posteriors in one GP."""
+    import dataclasses
+    import hashlib
+
+    def digest(a) -> str | None:
+        return None if a is None else hashlib.sha256(np.ascontiguousarray(a, dtype=np.float64).tobytes()).hexdigest()
+
+    def obs(o) -> dict:
+        d = dataclasses.asdict(o)
+        return json.loads(json.dumps(d, default=lambda v: np.asarray(v).tolist()))
+
+    return {"observations": [obs(o) for o in ev.observations],
+            "prior": {n: repr(c) for n, c in ev.prior.components.items()},
+            "fixed": {k: float(v) for k, v in ev.fixed.items()},
+            "terrain": {"dem": digest(ev.dem.z), "cellsize": float(ev.dem.cellsize),
+                        "origin": [float(ev.dem.xll), float(ev.dem.yll)], "release": digest(ev.release),
+                        "erodible_depth": digest(ev.erodible_depth)},
+            "run": {"t_end": float(ev.t_end), "dtype": str(ev.dtype),
+                    "solver": json.loads(json.dumps(dataclasses.asdict(ev.solver_config), default=str))
+                    if ev.solver_config is not None else None}}
+
+
+def fingerprint_difference(saved: dict, now: dict) -> str | None:
+    """The first part of a case fingerprint that differs ("observations", "prior", ...), else None."""
+    for key in now:
+        if saved.get(key) != now[key]:
+            return key
+    return None
+

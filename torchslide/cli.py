@@ -9,8 +9,9 @@ Each subcommand lives in its own module that defines
 Register a new one by adding ``name: "module.path"`` to :data:`SUBCOMMANDS` (or calling
 :func:`register`). Modules that are not present yet are skipped.
 
-Errors: bad input (:class:`torchslide.config.ConfigError`, :class:`torchslide.terrain.TerrainError`)
-prints one line ``torchslide: error: ...`` on stderr and exits with code 2.
+Errors: bad input (:class:`torchslide.config.ConfigError`, :class:`torchslide.terrain.TerrainError`), a
+file in a state the command cannot use (:class:`torchslide.files.FileStateError`) and a file-system error
+(OSError) print one line ``torchslide: error: ...`` on stderr and exit with code 2.
 """
 from __future__ import annotations
 
@@ -80,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from .config import ConfigError
+    from .files import FileStateError
     from .terrain.grid import TerrainError
 
     parser = build_parser()
@@ -89,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     try:
         return int(args._run(args) or 0)
-    except (ConfigError, TerrainError) as e:
+    except (ConfigError, TerrainError, FileStateError, OSError) as e:
         msg = " ".join(str(e).split())  # one line
         print(f"torchslide: error: {msg}", file=sys.stderr)
         return 2

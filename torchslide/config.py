@@ -225,6 +225,44 @@ def _number(v: Any, key: str, where: str, path) -> float:
     return v
 
 
+MAX_OUTPUT_TIMES = 1_000_000
+"""The most output times (t_end / output_interval) a run records (gauge series and histories)."""
+MAX_CELLS = 50_000_000
+"""The largest grid a config may ask for (about 0.4 GB per float64 raster; a run holds dozens)."""
+
+
+def _check_grid_size(make, kwargs: dict, path) -> None:
+    """Refuse a synthetic terrain whose cell size makes a grid larger than MAX_CELLS, before allocating
+    it: the cell count is estimated from the same terrain on 100 m cells."""
+    cs = kwargs.get("cellsize")
+    if cs is None or cs >= 100.0:
+        return
+    probe = make(**dict(kwargs, cellsize=100.0))
+    dem = probe.dem if hasattr(probe, "dem") else probe
+    n = dem.z.size * (100.0 / cs) ** 2
+    if n > MAX_CELLS:
+        raise ConfigError(f"{path}: [terrain] cellsize = {cs:g} m makes a grid of about {n:.3g} cells "
+                          f"({n * 8 / 2**30:.3g} GiB per float64 raster); the most is {MAX_CELLS:.0e} cells")
+
+
+def _check_release_table(r: dict, centre, radii, path) -> None:
+    """centre = [x, y] (m), radii = r or [rx, ry] (m, > 0), volume (m^3) or thickness (m) > 0."""
+    where = "[terrain] release"
+    if not isinstance(centre, (list, tuple)) or len(centre) != 2:
+        raise ConfigError(f"{path}: {where} centre must be [x, y] in m, got {centre!r}")
+    for v in centre:
+        _number(v, "centre", where, path)
+    rs = [radii] if not isinstance(radii, (list, tuple)) else list(radii)
+    if len(rs) not in (1, 2):
+        raise ConfigError(f"{path}: {where} radii must be r or [rx, ry] in m, got {radii!r}")
+    for v in rs:
+        if not _number(v, "radii", where, path) > 0:
+            raise ConfigError(f"{path}: {where} radii must be > 0 m, got {radii!r}")
+    for key in ("volume", "thickness"):
+        if r.get(key) is not None and not _number(r[key], key, where, path) > 0:
+            raise ConfigError(f"{path}: {where} {key} must be > 0, got {r[key]!r}")
+
+
 def read_toml(path) -> dict[str, Any]:
     """Parse a TOML file; missing file or syntax errors -> ConfigError."""
     path = Path(path)
@@ -280,6 +318,7 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
                     raise ConfigError(f"{path}: [terrain] cellsize must be > 0 m, got {t['cellsize']!r}")
                 kwargs["cellsize"] = cs
             try:
+                _check_grid_size(synthetic.SYNTHETIC_TERRAINS[name], kwargs, path)
                 out = synthetic.SYNTHETIC_TERRAINS[name](**kwargs)
             except TypeError as e:
                 raise ConfigError(f"{path}: [terrain] bad options for synthetic terrain {name!r}: {e}") from None
@@ -300,6 +339,7 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
                 if centre is None or "radii" not in r:
                     raise ConfigError(f"{path}: [terrain] release table needs centre = [x, y] and radii = [rx, ry]")
                 radii = r["radii"]
+                _check_release_table(r, centre, radii, path)
                 release = synthetic.release_from_shape(
                     dem, tuple(centre), radii if np.isscalar(radii) else tuple(radii),
                     volume=r.get("volume"), thickness=r.get("thickness"), shape=r.get("shape", "ellipse"),
@@ -426,6 +466,11 @@ def _parse_run(r: Any, path: Path) -> RunConfig:
                 sc.validate()
         except (TypeError, ValueError) as e:
             raise ConfigError(f"{path}: [run] {e}") from None
+    interval = float(solver.get("output_interval", sf.get("output_interval", 1.0)))
+    if t_end / interval > MAX_OUTPUT_TIMES:
+        raise ConfigError(f"{path}: [run] t_end / output_interval = {t_end:g} / {interval:g} s gives "
+                          f"{t_end / interval:.3g} output times (at most {MAX_OUTPUT_TIMES:.0e}): shorten t_end or "
+                          "lengthen output_interval")
     return RunConfig(t_end=t_end, dtype=dtype, device=device, cfl=cfl, solver=solver)
 
 

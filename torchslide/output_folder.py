@@ -1,4 +1,4 @@
-"""Output folders of the commands: checked before any run, written whole or not at all."""
+"""Output folders of the commands: checked before any run, one writer at a time, written whole or not at all."""
 from __future__ import annotations
 
 import os
@@ -8,6 +8,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from .config import ConfigError
+from .files import folder_lock
 
 
 def _nearest_existing(p: Path) -> Path:
@@ -17,17 +18,37 @@ def _nearest_existing(p: Path) -> Path:
     return p
 
 
-def check_output(out: Path, overwrite: bool) -> Path:
-    """Validate the output folder before running; return the existing ancestor for the temp folder."""
-    if out.exists():
-        if not out.is_dir():
-            raise ConfigError(f"output path {out} exists and is not a folder")
-        if any(out.iterdir()) and not overwrite:
-            raise ConfigError(f"output folder {out} exists and is not empty (use --overwrite to replace it)")
+def check_writable(out: Path) -> Path:
+    """The nearest existing ancestor of ``out``, checked to take a new folder (ConfigError otherwise)."""
+    if str(out) in ("", "."):
+        raise ConfigError("--out must name an output folder, not the current folder")
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output path {out} exists and is not a folder")
     anc = _nearest_existing(out.parent)
-    if not anc.is_dir() or not os.access(anc, os.W_OK):
-        raise ConfigError(f"cannot write the output folder {out}: {anc} is not a writable folder")
+    if not anc.is_dir():
+        raise ConfigError(f"cannot write the output folder {out}: {anc} is a file, not a folder")
+    try:                                 # os.access says yes on read-only or virtual file systems
+        Path(tempfile.mkdtemp(prefix=".torchslide-probe-", dir=anc)).rmdir()
+    except OSError as e:
+        raise ConfigError(f"cannot write the output folder {out}: {e.strerror} in {anc}") from None
     return anc
+
+
+def check_output(out: Path, overwrite: bool) -> Path:
+    """Validate a folder written whole at the end (simulate, predict, example) before running; return the
+    existing ancestor for the temporary folder."""
+    anc = check_writable(out)
+    if out.exists() and any(out.iterdir()) and not overwrite:
+        raise ConfigError(f"output folder {out} exists and is not empty (use --overwrite to replace it)")
+    return anc
+
+
+def prepare_work_folder(out: Path) -> Path:
+    """Validate and create a folder written as the command goes (calibrate, sweep, diagnose: checkpoints,
+    reports) before any run."""
+    check_writable(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
 
 
 @contextmanager
@@ -47,3 +68,13 @@ def staged_output(out: Path, anc: Path, command: str):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def run_locked(out, fn, args) -> int:
+    """``fn(args)`` while this process holds the write lock of ``out`` (after checking it can be written):
+    a second command writing the same folder is refused, not mixed in."""
+    out = Path(out)
+    check_writable(out)
+    with folder_lock(out):
+        return fn(args)
+

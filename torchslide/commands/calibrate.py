@@ -35,7 +35,9 @@ def write_runs_csv(path: Path, res, obs_names, records) -> None:
     """One line per run of the result (in run order): parameters, predicted observables (blank for runs
     made before a resume, whose outputs this invocation did not see), z, failed, reason, initial."""
     preds = {tuple(np.round(r.x, 12)): r.predictions for r in records}
-    with open(path, "w") as f:
+    from ..files import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
         f.write(",".join(list(res.names) + list(obs_names) + ["z", "failed", "reason", "initial"]) + "\n")
         for i, (x, z, fl, why) in enumerate(zip(res.x, res.z, res.failed, res.reasons)):
             p = preds.get(tuple(np.round(x, 12)))
@@ -89,9 +91,44 @@ def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
     return out
 
 
+def _finished(out: Path, n_total: int) -> bool:
+    """Whether ``out`` holds a calibration that ended with at least ``n_total`` runs."""
+    try:
+        return int(json.loads((out / "posterior.json").read_text())["n_runs"]) >= n_total
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def check_case(path: Path, ev, resume: bool) -> None:
+    """Record the case's fingerprint (calibration_config.case_fingerprint) in ``path`` for a new
+    calibration; for a resumed one, refuse a config that changes z, naming what changed."""
+    from ..calibration_config import case_fingerprint, fingerprint_difference
+    from ..files import FileStateError, write_text_atomic
+
+    now = case_fingerprint(ev)
+    if resume and path.exists():
+        try:
+            saved = json.loads(path.read_text())
+        except ValueError:
+            raise FileStateError(f"{path} is corrupt; delete the output folder to start again") from None
+        diff = fingerprint_difference(saved, now)
+        if diff is not None:
+            raise FileStateError(f"{path.parent} was calibrated with other {diff} than the config gives now: "
+                                 "resume with the config it was made with, or choose another --out")
+        return
+    write_text_atomic(path, json.dumps(now, indent=1))
+
+
 def run(args: argparse.Namespace) -> int:
+    from ..output_folder import run_locked
+
+    return run_locked(args.out, _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..calibration import calibrate
     from ..figures import plot_posterior_any, plot_tv
+    from ..files import write_text_atomic
 
     cfg = load_calibration_config(args.config)
     cal = cfg.extra["calibration"]
@@ -102,10 +139,17 @@ def run(args: argparse.Namespace) -> int:
                           f"or choose another --out")
     if args.resume and not ckpt.exists():
         print(f"torchslide: note: no checkpoint in {out}; starting a new calibration", file=sys.stderr)
-    out.mkdir(parents=True, exist_ok=True)
+    from ..output_folder import prepare_work_folder
+
     ev = make_evaluator(cfg)
     ev.solver_progress = not args.quiet
     prior = ev.prior
+    if args.resume and ckpt.exists() and _finished(out, cal["n_total"]):
+        print(f"torchslide: note: the calibration in {out} has finished its {cal['n_total']} runs; nothing to "
+              "resume (raise n_total to continue it)", file=sys.stderr)
+        return 0
+    prepare_work_folder(out)
+    check_case(out / "case.json", ev, resume=ckpt.exists())
     res = calibrate(ev, prior.bounds, n_initial=cal["n_initial"], n_total=cal["n_total"],
                     batch_size=cal["batch_size"], seed=cal["seed"], grid_size=cal["grid_size"],
                     acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
@@ -129,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     truth = cal.get("truth")
     if truth is not None:
         info["truth"] = {n: float(truth[n]) for n in prior.names}
-    (out / "posterior.json").write_text(json.dumps(info, indent=2))
+    write_text_atomic(out / "posterior.json", json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
     for w in unreached_warnings(ev) + (misfit_warnings(fit) if fit is not None else []):
         print(f"torchslide: warning: {w}", file=sys.stderr)

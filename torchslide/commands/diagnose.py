@@ -335,6 +335,12 @@ def budgets_and_thresholds(cfg: Config):
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..output_folder import run_locked
+
+    return run_locked(args.out, _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..diagnose import diagnose
     from ..diagnose.report import write_report
 

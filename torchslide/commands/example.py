@@ -80,6 +80,12 @@ def gauge_tables(points: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..output_folder import run_locked
+
+    return run_locked(args.out, _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..output_folder import check_output, staged_output
     from ..terrain.io import write_asc
     from ..terrain.synthetic import bondo_like

@@ -63,6 +63,12 @@ def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndar
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..output_folder import run_locked
+
+    return run_locked(args.out, _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..figures import plot_predictive_check
     from ..mapplots import plot_field_map
     from ..predict import observation_check, posterior_samples, run_predictive

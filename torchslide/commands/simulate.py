@@ -158,6 +158,12 @@ def unreached_gauges(summaries: list[dict], tol: float = REACH_MIN) -> list[str]
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..output_folder import run_locked
+
+    return run_locked(args.out, _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.threshold) and args.threshold >= 0):
         raise ConfigError(f"--threshold must be >= 0 m, got {args.threshold}")
     cfg = load_config(args.config)

@@ -58,8 +58,26 @@ def interpolate_density(axes_from, density: np.ndarray, axes_to) -> np.ndarray:
     return q / (q.sum() * cell_volume(axes_to))
 
 
+def _open_checkpoint(ckpt: Path):
+    """np.load of the sweep's checkpoint; FileStateError naming it when it is corrupt or truncated."""
+    import zipfile
+
+    from ..files import FileStateError
+
+    try:
+        c = np.load(ckpt)
+        for key in ("x", "z", "failed", "preds", "reasons", "done"):
+            c[key]
+        return c
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as e:
+        raise FileStateError(f"sweep checkpoint {ckpt} is corrupt or truncated ({type(e).__name__}); delete it "
+                             "to start the sweep again") from None
+
+
 def _write_csv(path: Path, names, obs_names, x, preds, z, failed, reasons) -> None:
-    with open(path, "w") as f:
+    from ..files import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
         f.write(",".join(list(names) + list(obs_names) + ["z", "failed", "reason"]) + "\n")
         for xi, pi, zi, fi, ri in zip(x, preds, z, failed, reasons):
             f.write(",".join([f"{v:.10g}" for v in list(xi) + list(pi)] + [f"{zi:.10g}", str(int(fi)),
@@ -67,9 +85,16 @@ def _write_csv(path: Path, names, obs_names, x, preds, z, failed, reasons) -> No
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..output_folder import run_locked
+
+    return run_locked(args.out, _run, args)
+
+
+def _run(args: argparse.Namespace) -> int:
     import torch
 
     from ..figures import plot_posterior_any
+    from ..files import atomic_path, write_text_atomic
     from ..posterior import cell_volume, grid_axes, grid_points, normalise_log_grid, summarise_grid, tv_distance
     from ..calibration_config import load_calibration, load_calibration_config, make_evaluator
 
@@ -99,14 +124,16 @@ def run(args: argparse.Namespace) -> int:
     z, failed = np.full(n_runs, np.nan), np.zeros(n_runs, dtype=bool)
     preds, reasons, done = np.full((n_runs, k), np.nan), [""] * n_runs, 0
     if ckpt.exists():
-        with np.load(ckpt) as c:
+        with _open_checkpoint(ckpt) as c:
             if c["x"].shape != x.shape or not np.allclose(c["x"], x):
                 raise ConfigError(f"{ckpt}: the saved sweep has other nodes (another --n or prior box); "
                                   f"choose another --out")
             done = int(c["done"])
             z[:done], failed[:done], preds[:done] = c["z"][:done], c["failed"][:done], c["preds"][:done]
             reasons[:done] = [str(r) for r in c["reasons"][:done]]
-    out.mkdir(parents=True, exist_ok=True)
+    from ..output_folder import prepare_work_folder
+
+    prepare_work_folder(out)
     bar = None
     if not args.quiet:
         from tqdm.auto import tqdm
@@ -118,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
             res, p = ev.evaluate(torch.as_tensor(x[s:e]))
             z[s:e], failed[s:e], preds[s:e] = res.z.numpy(), res.failed.numpy(), p.numpy()
             reasons[s:e] = res.reasons
-            np.savez(ckpt, x=x, z=z, failed=failed, preds=preds, reasons=np.array(reasons), done=e)
+            with atomic_path(ckpt) as tmp:
+                np.savez(tmp, x=x, z=z, failed=failed, preds=preds, reasons=np.array(reasons), done=e)
             if bar is not None:
                 bar.update(e - s)
     finally:
@@ -139,8 +167,9 @@ def run(args: argparse.Namespace) -> int:
         info["calibration"] = {"path": str(args.calibration), "n_runs": cal.n_runs,
                                "log_evidence": float(cal.log_evidence)}
     _write_csv(out / "sweep.csv", names, ev.observation_names, x, preds, z, failed, reasons)
-    np.savez_compressed(out / "sweep.npz", z=zg, density=density, **{f"axis_{i}": a for i, a in enumerate(axes)})
-    (out / "sweep.json").write_text(json.dumps(info, indent=2))
+    with atomic_path(out / "sweep.npz") as tmp:
+        np.savez_compressed(tmp, z=zg, density=density, **{f"axis_{i}": a for i, a in enumerate(axes)})
+    write_text_atomic(out / "sweep.json", json.dumps(info, indent=2))
     # the figure marks failed nodes only (every node is a run: drawing them all would hide the density)
     ref = SimpleNamespace(names=names, bounds=bounds, x=x[failed], failed=np.ones(int(failed.sum()), dtype=bool),
                           n_initial=n_runs, grid_axes=axes, posterior_grid=density, samples=None)

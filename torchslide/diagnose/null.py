@@ -46,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..files import write_text_atomic
 from .model_error import fine_predictions
 
 RULE = ("bf_min = max(6, 1.25 x the largest lower-bound 2 ln BF of any refitted candidate on the null cases); "
@@ -213,7 +214,7 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
                      workdir=_case_workdir(workdir / f"case_{i}", d_i[0], candidates, bud_i))
         c = dict(null_case_statistics(d), theta=theta[i].tolist(), release_factor=float(vf[0]),
                  noise_model=NOISE_MODEL)
-        f.write_text(json.dumps(c, indent=1))
+        write_text_atomic(f, json.dumps(c, indent=1))
         log(f"[null] case {i + 1}/{n}: largest lower 2 ln BF {c['max_two_ln_bf_lower']:.1f}, largest located "
             f"{c['max_located']:.1f}, verdict {c['verdict']}")
         cases.append(c)

@@ -338,14 +338,16 @@ def _fit_notes(residuals: dict, level: float = 3.0) -> list[str]:
 
 
 def write_report(diag, out) -> Path:
+    from ..files import write_text_atomic
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     j = diag.to_json()
-    (out / "report.json").write_text(json.dumps(j, indent=1))
+    write_text_atomic(out / "report.json", json.dumps(j, indent=1))
     try:
         figs = write_figures(diag, out)
     except Exception as e:  # figures are a convenience; the report must still be written
         figs = []
         j.setdefault("warnings", []).append(f"figures failed: {e}")
-    (out / "report.md").write_text(write_markdown(j, figs))
+    write_text_atomic(out / "report.md", write_markdown(j, figs))
     return out

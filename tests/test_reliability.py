@@ -1,0 +1,97 @@
+"""Output folders: one writer at a time, files replaced whole, checkpoints that say when they cannot be
+used, and a resume that does not mix two cases."""
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from torchslide.cli import main
+from torchslide.files import FileStateError, atomic_path, folder_lock, lock_file, write_text_atomic
+
+BUDGET = {"n_initial": "4", "n_total": "6", "batch_size": "2"}
+
+
+@pytest.fixture
+def case(tmp_path) -> Path:
+    case = tmp_path / "case"
+    assert main(["example", "bondo", "--out", str(case), "--cellsize", "300"]) == 0
+    cal = (case / "calibrate.toml").read_text().replace("t_end = 300.0", "t_end = 120.0")
+    for k, v in BUDGET.items():
+        cal = re.sub(rf"^{k} = .*$", f"{k} = {v}", cal, flags=re.M)
+    (case / "calibrate.toml").write_text(cal)
+    return case
+
+
+def test_a_second_writer_is_refused_and_a_dead_ones_lock_taken_over(tmp_path):
+    out = tmp_path / "run"
+    with folder_lock(out):
+        assert lock_file(out).read_text() == str(os.getpid())
+        child = subprocess.run([sys.executable, "-c", "import sys; from torchslide.files import folder_lock\n"
+                                f"with folder_lock({str(out)!r}): pass"], capture_output=True, text=True)
+        assert child.returncode != 0 and "is being written by another torchslide process" in child.stderr
+    assert not lock_file(out).exists()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    lock_file(out).write_text(dead.stdout.strip())        # a lock whose process is gone
+    with folder_lock(out):
+        assert lock_file(out).read_text() == str(os.getpid())
+
+
+def test_the_cli_refuses_a_folder_another_process_writes(case, capsys):
+    lock_file(case.parent / "cal").write_text(str(os.getppid()))     # a live process: the test's parent
+    assert main(["calibrate", str(case / "calibrate.toml"), "--out", str(case.parent / "cal"), "--quiet"]) == 2
+    assert "is being written by another torchslide process" in capsys.readouterr().err
+    assert not (case.parent / "cal").exists()
+
+
+def test_atomic_write_leaves_the_old_file_when_the_writer_fails(tmp_path):
+    p = tmp_path / "a.json"
+    write_text_atomic(p, "old")
+    with pytest.raises(RuntimeError):
+        with atomic_path(p) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed")
+    assert p.read_text() == "old" and [q.name for q in tmp_path.iterdir()] == ["a.json"]
+
+
+def test_resume_refuses_corrupt_checkpoints_and_other_cases(case, capsys):
+    cfg, out = case / "calibrate.toml", case.parent / "cal"
+    assert main(["calibrate", str(cfg), "--out", str(out), "--quiet"]) == 0
+    before = {n: (out / n).read_bytes() for n in ("posterior.json", "posterior.npz", "runs.csv")}
+    # a finished calibration resumed: nothing is run or rewritten
+    capsys.readouterr()
+    assert main(["calibrate", str(cfg), "--out", str(out), "--quiet", "--resume"]) == 0
+    assert "nothing to resume" in capsys.readouterr().err
+    assert {n: (out / n).read_bytes() for n in before} == before
+    # another recorded value: the resumed calibration would mix two likelihoods
+    other = case / "other.toml"
+    other.write_text(cfg.read_text().replace("value = 62.5", "value = 50.0").replace("n_total = 6", "n_total = 8"))
+    assert main(["calibrate", str(other), "--out", str(out), "--quiet", "--resume"]) == 2
+    assert "was calibrated with other observations" in capsys.readouterr().err
+    # a truncated checkpoint
+    ck = out / "checkpoint.pt"
+    ck.write_bytes(ck.read_bytes()[:200])
+    more = case / "more.toml"
+    more.write_text(cfg.read_text().replace("n_total = 6", "n_total = 8"))
+    assert main(["calibrate", str(more), "--out", str(out), "--quiet", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "checkpoint" in err and "is corrupt or truncated" in err and len(err.strip().splitlines()) == 1
+
+
+def test_sweep_names_a_truncated_checkpoint(case, capsys):
+    out = case.parent / "sweep"
+    assert main(["sweep", str(case / "calibrate.toml"), "--out", str(out), "--n", "3", "--quiet"]) == 0
+    ck = out / "sweep_checkpoint.npz"
+    ck.write_bytes(ck.read_bytes()[:100])
+    capsys.readouterr()
+    assert main(["sweep", str(case / "calibrate.toml"), "--out", str(out), "--n", "3", "--quiet", "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "sweep checkpoint" in err and "is corrupt or truncated" in err
+
+
+def test_file_state_errors_are_value_errors():
+    assert issubclass(FileStateError, ValueError)
