@@ -80,3 +80,16 @@ def test_tv_stopping():
                        raw_samples=32, tv_lag=3, tv_threshold=0.05, tv_patience=2)
     s = ActiveLearner(gauss, B, cfg, progress=False).run()
     assert s.n_runs < 60 and "TV" in s.stopped_reason
+
+
+def test_a_finished_run_resumed_gives_the_same_posterior(tmp_path):
+    """A run killed during its final writes (its checkpoint says finished) is resumed to the same
+    posterior, bit for bit: the final fit is repeated from its own warm start, no TV is recorded twice."""
+    from torchslide.calibration import calibrate
+
+    ck = tmp_path / "ck.pt"
+    kw = dict(n_initial=8, n_total=14, batch_size=3, seed=2, grid_size=25, checkpoint=ck, progress=False)
+    a = calibrate(gauss, B, **kw)
+    b = calibrate(Crashy(crash_on=1), B, **kw)          # evaluates nothing: its first call would raise
+    assert np.array_equal(a.posterior_grid, b.posterior_grid) and a.log_evidence == b.log_evidence
+    assert a.tv_history == b.tv_history and np.array_equal(a.x, b.x)

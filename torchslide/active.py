@@ -97,6 +97,7 @@ class ActiveState:
     tv_history: list = field(default_factory=list)  # (n_runs, TV)
     acq_history: list = field(default_factory=list)  # (n_runs, acquisition max)
     hyper_state: dict | None = None
+    fit_start_state: dict | None = None  # the warm start of the latest fit (a finished run refits from it)
     density_history: dict = field(default_factory=dict)  # n_runs -> density (grid or Sobol weights)
     below_count: int = 0
     stopped_reason: str = ""
@@ -192,11 +193,21 @@ class ActiveLearner:
         if int(ok.sum()) < 2:
             raise RuntimeError(f"only {int(ok.sum())} successful runs; cannot fit the emulator "
                                f"(failures: {[r for r in s.reasons if r][:5]})")
-        self.emulator._hyper_state = s.hyper_state
+        start = s.hyper_state
+        self.emulator._hyper_state = start
         t0 = time.perf_counter()
         self.emulator.fit(s.x[ok], s.z[ok])
         s.fit_seconds.append(time.perf_counter() - t0)
-        s.hyper_state = self.emulator._hyper_state
+        s.fit_start_state, s.hyper_state = start, self.emulator._hyper_state
+
+    def _refit_final(self) -> None:
+        """The emulator and posterior estimate of a finished run, as they ended: the final fit repeated from
+        its own warm start on the same runs (single-threaded, so bitwise the same), nothing recorded."""
+        s = self.state
+        ok = ~s.failed
+        self.emulator._hyper_state = s.fit_start_state
+        self.emulator.fit(s.x[ok], s.z[ok])
+        self._estimate()
 
     def _estimate(self):
         """Posterior estimate of the current emulator: grid density (p <= 2) or Sobol weights (p > 2)."""
@@ -348,6 +359,9 @@ class ActiveLearner:
             s = self.state
             if bar is not None:
                 bar.update(s.n_runs)
+            if resumed and s.stopped_reason and s.n_runs >= c.n_total:
+                self._refit_final()
+                return s
             while True:
                 density, cvol, tv = self.update(estimate=c.track_tv or s.n_runs >= c.n_total)
                 if bar is not None:
