@@ -67,7 +67,9 @@ def _edit_raster(case: Path, name: str, fn) -> None:
 
 
 RASTERS = [
-    ("dem.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a), "nodata"),
+    ("dem.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a), "non-finite"),
+    ("dem.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, -9999.0, a), "nodata"),
+    ("release.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a), "non-finite"),
     ("release.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, -1.0, a), "negative"),
     ("release.asc", lambda a: a[:-1], "release"),
     ("release.asc", lambda a: np.where(a > 0, np.inf, a), "release"),

@@ -172,9 +172,20 @@ def read_asc_array(path) -> tuple[np.ndarray, float, float, float]:
     if len(rows) != nrows:
         raise TerrainError(f"{path}: expected {nrows} data rows (nrows), found {len(rows)}")
     z = np.asarray(rows, dtype=np.float64)[::-1].copy()  # file is north first -> row 0 south
+    _refuse_non_finite(z, path, allow_nan=False)
     if nodata is not None:
         z[z == nodata] = np.nan
     return z, float(cs), float(xll), float(yll)
+
+
+def _refuse_non_finite(z: np.ndarray, path, allow_nan: bool) -> None:
+    """A raster value that is infinite (or NaN, where NaN is not the format's nodata) is an error, not a
+    missing cell: TerrainError naming the first one (row 0 south)."""
+    bad = np.isinf(z) if allow_nan else ~np.isfinite(z)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise TerrainError(f"{path}: {int(bad.sum())} non-finite values, first {z[i, j]} at row {i} from the south, "
+                           f"col {j}; mark cells without data with the NODATA_value instead")
 
 
 def _isfloat(s: str) -> bool:
@@ -257,6 +268,7 @@ def _geotiff(path, band: int = 1):
             yll = t.f
         crs = src.crs.to_wkt() if src.crs else None
     z = z.copy()
+    _refuse_non_finite(z, path, allow_nan=True)     # NaN is a GeoTIFF's usual nodata
     if nodata is not None:
         z[z == nodata] = np.nan
     return z, cs, xll, yll, crs
