@@ -153,17 +153,6 @@ def test_a_datum_no_run_reproduces_is_reported(tmp_path, capsys):
     assert "does the flow reach it by t_end?" in err
 
 
-def test_best_run_fits_before_and_after_a_resume_merge():
-    """A resumed calibration's best run is the better of the bests before and after the resume, out of all their runs."""
-    from torchslide.commands.calibrate import merge_best_fits
-
-    a = {"x": {"mu": 0.1}, "z": -5.0, "n_runs": 6, "observations": []}
-    b = {"x": {"mu": 0.2}, "z": -3.0, "n_runs": 4, "observations": []}
-    assert merge_best_fits(a, b) == dict(b, n_runs=10)
-    assert merge_best_fits(b, a) == dict(b, n_runs=10)
-    assert merge_best_fits(None, b) == b and merge_best_fits(a, None) == a and merge_best_fits(None, None) is None
-
-
 def test_calibrate_shows_the_solver_calls_progress(tmp_path, capsys):
     """Without --quiet, calibrate's bar of runs is accompanied by each solver call's simulated time, so a
     long initial call does not look like a hang."""

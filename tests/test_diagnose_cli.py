@@ -46,7 +46,7 @@ def _last_value(path, token: str) -> None:
     ("gauge_after_t_end", "recorded until t = 90 s, after the simulated time t_end = 60 s"),
     ("gauge_negative_time", "row 2: times are seconds since the release and must be >= 0, got t = -1"),
     ("candidate_twice", "candidates lists ['mu_i'] more than once"),
-    ("map_infinite_cell", "1 infinite cells, first at row 0 from the south, col 23"),
+    ("map_infinite_cell", "1 non-finite values, first inf at row 0 from the south, col 23"),
     ("map_all_nodata", "map has no finite cells"),
     ("impact_map_not_0_1", "an impact map holds 0 (not reached) or 1 (reached)"),
     ("bf_min_negative", "bf_min must be >= 0"),
@@ -77,7 +77,7 @@ def test_cli_refuses_more_bad_input_before_any_run(tmp_path, capsys, case, msg):
     elif case == "map_all_nodata":
         head = tmp_path / "dep.asc"
         lines = head.read_text().splitlines()
-        head.write_text("\n".join(lines[:6] + [" ".join(["nan"] * dem.shape[1])] * dem.shape[0]) + "\n")
+        head.write_text("\n".join(lines[:6] + [" ".join(["-9999"] * dem.shape[1])] * dem.shape[0]) + "\n")
     elif case == "impact_map_not_0_1":
         write_asc(tmp_path / "imp.asc", np.full(dem.shape, 0.5), dem)
         toml += '\n[[observations]]\nkind = "impact_map"\nfile = "imp.asc"\nsigma = 0.3\n'

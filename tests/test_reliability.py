@@ -2,6 +2,7 @@
 used, and a resume that does not mix two cases."""
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -95,3 +96,65 @@ def test_sweep_names_a_truncated_checkpoint(case, capsys):
 
 def test_file_state_errors_are_value_errors():
     assert issubclass(FileStateError, ValueError)
+
+
+def _outputs(folder: Path, files: dict) -> dict:
+    """The comparable content of a command's results: JSON without its timing keys, npz arrays, text."""
+    import numpy as np
+
+    out = {}
+    for name, drop in files.items():
+        p = folder / name
+        if name.endswith(".json"):
+            j = json.loads(p.read_text())
+            out[name] = {k: v for k, v in j.items() if k not in drop}
+        elif name.endswith(".npz"):
+            with np.load(p) as f:
+                out[name] = {k: f[k].tolist() for k in f.files}
+        else:
+            out[name] = p.read_text()
+    return out
+
+
+def _killed_then_resumed(cmd: list, out: Path, kill_after: list, timeout: float = 300.0) -> None:
+    """Run ``cmd`` (torchslide arguments writing ``out``) in a subprocess, SIGKILL it after each delay in
+    ``kill_after`` (s), resuming each time with --resume, then let it finish."""
+    import signal
+    import time
+
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    base = [sys.executable, "-m", "torchslide.cli", *cmd, "--out", str(out), "--quiet"]
+    for i, delay in enumerate(kill_after):
+        p = subprocess.Popen(base + (["--resume"] if i else []), env=env, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+        time.sleep(delay)
+        if p.poll() is None:
+            p.send_signal(signal.SIGKILL)
+        p.wait()
+    assert subprocess.run(base + ["--resume"], env=env, capture_output=True, timeout=timeout).returncode == 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_results(case, seed):
+    """A calibration and a sweep killed (SIGKILL) at random moments, during solver calls, checkpoint writes
+    or the final writes, and resumed: the same results as an uninterrupted run (timings aside)."""
+    import random
+    import time
+
+    rng = random.Random(seed)
+    cfg = case / "calibrate.toml"
+    cfg.write_text(cfg.read_text().replace("n_total = 6", "n_total = 12"))
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    for cmd, files in ((["calibrate", str(cfg)], {"posterior.json": ("timings", "solver_seconds_this_invocation"),
+                                                 "posterior.npz": (), "runs.csv": ()}),
+                       (["sweep", str(cfg), "--n", "5"], {"sweep.json": ("solver_seconds",), "sweep.npz": (),
+                                                          "sweep.csv": ()})):
+        ref = case.parent / f"ref_{cmd[0]}"
+        t0 = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "torchslide.cli", *cmd, "--out", str(ref), "--quiet"], env=env,
+                       check=True, capture_output=True)
+        wall = time.perf_counter() - t0
+        got = case.parent / f"killed_{cmd[0]}"
+        _killed_then_resumed(cmd, got, sorted(rng.uniform(0.3, 1.0) * wall for _ in range(3)))
+        assert _outputs(got, files) == _outputs(ref, files), cmd[0]

@@ -39,6 +39,42 @@ class RunRecord:
     reason: str = ""
 
 
+def save_records(records: list, path) -> None:
+    """Write run records to ``path`` (.npz) atomically, so that a resumed calibration knows every run's
+    predictions, not only those of its own invocation."""
+    from .files import atomic_path
+
+    with atomic_path(path) as tmp:
+        np.savez(tmp, x=np.array([r.x for r in records]), predictions=np.array([r.predictions for r in records]),
+                 z=np.array([r.z for r in records]), failed=np.array([r.failed for r in records]),
+                 reasons=np.array([r.reason for r in records]))
+
+
+def load_records(path) -> list:
+    """The run records :func:`save_records` wrote (FileStateError when the file is unreadable)."""
+    from .files import FileStateError
+
+    try:
+        with np.load(path) as f:
+            return [RunRecord(x.copy(), p.copy(), float(z), bool(b), str(r))
+                    for x, p, z, b, r in zip(f["x"], f["predictions"], f["z"], f["failed"], f["reasons"])]
+    except Exception as e:  # noqa: BLE001 - numpy raises several kinds for a truncated file
+        raise FileStateError(f"run records {path} are corrupt or truncated ({type(e).__name__}); delete the "
+                             "output folder to start again") from None
+
+
+def unique_records(records: list) -> list:
+    """The records with each parameter point once (the first), in run order: a batch evaluated again after
+    an interruption repeats records that were already saved."""
+    seen, out = set(), []
+    for r in records:
+        key = tuple(np.round(np.asarray(r.x, dtype=float), 12))
+        if key not in seen:
+            seen.add(key)
+            out.append(r)
+    return out
+
+
 @dataclass
 class LandslideEvaluator:
     """Evaluate z = ln[L(x|d) pi(x)] for batches of parameter points with the batched solver.
@@ -56,6 +92,7 @@ class LandslideEvaluator:
         max_batch: most members per solver call.
         covariance: optional (k, k) full residual covariance (else diagonal sigma, Eq. 7).
         solver_progress: show each solver call's simulated time as a progress bar.
+        records_file: where every call's run records are saved (save_records), or None.
     """
 
     dem: DEM
@@ -75,6 +112,7 @@ class LandslideEvaluator:
     records: list = field(default_factory=list, repr=False)
     solver_seconds: float = 0.0
     solver_progress: bool = False
+    records_file: object = None
 
     def __post_init__(self) -> None:
         if not self.observations:
@@ -163,6 +201,8 @@ class LandslideEvaluator:
         for i in range(x.shape[0]):
             self.records.append(RunRecord(x[i].numpy().copy(), preds[i].numpy().copy(), float(out.z[i]),
                                           bool(out.failed[i]), out.reasons[i]))
+        if self.records_file is not None:
+            save_records(self.records, self.records_file)
         return out, preds
 
     def __call__(self, x: torch.Tensor) -> EvaluationResult:

@@ -32,8 +32,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def write_runs_csv(path: Path, res, obs_names, records) -> None:
-    """One line per run of the result (in run order): parameters, predicted observables (blank for runs
-    made before a resume, whose outputs this invocation did not see), z, failed, reason, initial."""
+    """One line per run of the result (in run order): parameters, predicted observables (blank where no
+    record has them), z, failed, reason, initial."""
     preds = {tuple(np.round(r.x, 12)): r.predictions for r in records}
     from ..files import atomic_path
 
@@ -51,8 +51,8 @@ REACH_MIN = 0.01  # a point value (m/s or m) at or below this in every run: the 
 
 
 def unreached_warnings(ev, tol: float = REACH_MIN) -> list[str]:
-    """One line per point observation (a speed or thickness at (x, y)) that no successful run of this
-    invocation reached: its prediction <= ``tol`` in every run (wrong coordinates, or a point off the path)."""
+    """One line per point observation (a speed or thickness at (x, y)) that no successful run reached: its
+    prediction <= ``tol`` in every run (wrong coordinates, or a point off the path)."""
     runs = [r.predictions for r in ev.records if not r.failed]
     if not runs:
         return []
@@ -64,16 +64,6 @@ def unreached_warnings(ev, tol: float = REACH_MIN) -> list[str]:
                        f"{o.spec.unit} in all {len(runs)} runs, so it cannot inform the posterior; check that the "
                        f"point lies on the flow path and that t_end is long enough")
     return out
-
-
-def merge_best_fits(earlier: dict | None, now: dict | None) -> dict | None:
-    """The best-run fit over two invocations of one calibration (a resume): the one with the larger z, its
-    ``n_runs`` the runs of both."""
-    if earlier is None or now is None:
-        return now if earlier is None else earlier
-    best = dict(now if now["z"] >= earlier["z"] else earlier)
-    best["n_runs"] = int(earlier["n_runs"]) + int(now["n_runs"])
-    return best
 
 
 def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
@@ -128,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from ..calibration import calibrate
     from ..figures import plot_posterior_any, plot_tv
+    from ..evaluator import load_records, unique_records
     from ..files import write_text_atomic
 
     cfg = load_calibration_config(args.config)
@@ -150,24 +141,21 @@ def _run(args: argparse.Namespace) -> int:
         return 0
     prepare_work_folder(out)
     check_case(out / "case.json", ev, resume=ckpt.exists())
+    ev.records_file = out / "records.npz"      # every run's predictions, kept across a resume
+    if ckpt.exists() and ev.records_file.exists():
+        ev.records = load_records(ev.records_file)
     res = calibrate(ev, prior.bounds, n_initial=cal["n_initial"], n_total=cal["n_total"],
                     batch_size=cal["batch_size"], seed=cal["seed"], grid_size=cal["grid_size"],
                     acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
                     tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
                     clip_range=cal["clip_range"])
-    # the best-run fit of the runs an interrupted invocation made: this invocation's records lack them
-    prev_fit = None
-    if args.resume and (out / "posterior.json").exists():
-        try:
-            prev_fit = json.loads((out / "posterior.json").read_text()).get("best_run_fit")
-        except (OSError, ValueError):
-            prev_fit = None
+    ev.records = unique_records(ev.records)
     res.save(out)
     info = json.loads((out / "posterior.json").read_text())
     info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
                              "x": o.x, "y": o.y} for o in ev.observations]
     info["solver_seconds_this_invocation"] = ev.solver_seconds
-    fit = merge_best_fits(prev_fit, ev.best_fit())
+    fit = ev.best_fit()
     if fit is not None:
         info["best_run_fit"] = fit
     truth = cal.get("truth")
