@@ -198,3 +198,17 @@ def test_local_search_goes_on_while_it_climbs():
     calls = []
     r = local_search(ev_of(calls), top, z_of(top), BOX, n_iter=2, max_iter=40, **kw)
     assert r["iters"] == 2 and calls == [6, 6] and r["improvement"] <= 0.0
+
+
+def test_local_search_with_no_iterations_runs_nothing():
+    """mode_search_iters = 0 (documented as off): no run, the best of the given runs, no improvement."""
+    import numpy as np
+    from torchslide.diagnose.polish import local_search
+
+    def never(x):
+        raise AssertionError("no run expected")
+
+    X = np.array([[0.1, 0.2], [0.3, 0.4]])
+    out = local_search(never, X, np.array([-3.0, -1.0]), np.array([[0.0, 0.0], [1.0, 1.0]]), n_iter=0)
+    assert out["x"].shape == (0, 2) and out["improvement"] == 0.0 and out["best_z"] == -1.0
+    assert np.array_equal(out["best_x"], X[1]) and out["iters"] == 0

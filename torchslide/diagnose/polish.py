@@ -95,6 +95,10 @@ def local_search(ev_c, X: np.ndarray, Z: np.ndarray, bounds, n_iter: int = 4, po
                 moves[k] = np.zeros(p)
                 steps[k] = np.maximum(steps[k] * 0.5, 1e-4)
         trace.append(max(start_z, max(cur_z)))
+    if not xs:         # no iteration asked for (mode_search_iters = 0): no run, the best given one
+        i = int(np.argmax(Z))
+        return {"x": np.zeros((0, p)), "z": np.zeros(0), "best_x": X[i], "best_z": start_z, "start_z": start_z,
+                "improvement": 0.0, "iters": 0, "trace": []}
     xa, za = np.vstack(xs), np.concatenate(zs)
     i = int(np.argmax(za))
     return {"x": xa, "z": za, "best_x": xa[i], "best_z": float(za[i]), "start_z": start_z,
