@@ -1,6 +1,8 @@
 """Verification case 8 (docs/verification.md): rotation, mirror symmetry, batch == single, float32 vs float64, mass balance."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -9,7 +11,7 @@ from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 from torchslide.terrain import DEM
 
-from .conftest import cap_release, chute_case, chute_dem
+from .conftest import cap_release, chute_case, chute_dem, plane_dem
 
 CFG = SolverConfig(output_interval=5.0)
 
@@ -209,3 +211,37 @@ def test_a_face_with_subnormal_wave_speeds_carries_no_nan(d, monkeypatch):
     # the test sees the bug: without the floor on the wave-speed span the fluxes are NaN
     monkeypatch.setattr(scheme, "WAVE_SPEED_MIN", 0.0)
     assert not torch.isfinite(scheme.sweep(*args)[0]).all()
+
+
+def test_peaks_do_not_depend_on_output_sampling_or_cfl():
+    """h_max, v_max, point speeds, impact area and arrival are tracked every step: changing the output
+    interval (which only clips time steps at output times) or the CFL number moves them by the scheme's
+    own error, not by what the samples caught."""
+    from torchslide import observe
+
+    dem, rel = chute_case()
+    runs = {(oi, cfl): simulate(dem, rel, Params.make(mu=0.3, xi=500.0), t_end=120.0,
+                                config=SolverConfig(output_interval=oi, cfl=cfl))
+            for oi, cfl in ((1.0, 0.45), (7.3, 0.45), (1.0, 0.3))}
+    ref = runs[(1.0, 0.45)]
+
+    def peaks(r):
+        pts = [float(observe.max_velocity(r, x, 120.0)[0]) for x in (150.0, 250.0, 350.0)]
+        arrival = float(torch.nan_to_num(r.arrival_time, posinf=0.0).max())
+        return [float(r.v_max.max()), float(r.h_max.max()), *pts, float(observe.impact_area(r, 0.5)[0]), arrival]
+
+    for key, r in runs.items():
+        np.testing.assert_allclose(peaks(r), peaks(ref), rtol=0.03, err_msg=str(key))
+
+
+def test_speeds_of_nearly_empty_cells_do_not_count_in_v_max():
+    """A sheet thinner than v_max_min_depth slides down a steep plane: its speed is not a flow speed, so
+    v_max stays 0 there; with the threshold at 0 it counts."""
+    dem = plane_dem(40, 10, 10.0, math.tan(math.radians(45.0)))
+    sheet = np.where((dem.x_centres()[None, :] > 50.0) & (dem.x_centres()[None, :] < 150.0), 0.02, 0.0)
+    sheet = np.broadcast_to(sheet, dem.shape).copy()
+    p = Params.make(mu=0.2, xi=5000.0)
+    thin = simulate(dem, sheet, p, t_end=5.0, config=SolverConfig(boundary="open"))
+    counted = simulate(dem, sheet, p, t_end=5.0, config=SolverConfig(boundary="open", v_max_min_depth=0.0))
+    assert float(thin.v_max.max()) == 0.0 and float(counted.v_max.max()) > 5.0
+    assert torch.equal(thin.h_final, counted.h_final)      # only the record changes, not the flow

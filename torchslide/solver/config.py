@@ -22,6 +22,9 @@ class SolverConfig:
             which keeps the gravity drive of thin layers on curved terrain right; the lake at rest is
             exact wherever the surface is reconstructed).
         arrival_threshold: thickness, m, that defines arrival_time.
+        v_max_min_depth: thickness, m, from which a cell's speed counts towards v_max (and so towards
+            point maxima): the desingularised speed of a nearly empty cell is not a flow speed, and on steep
+            slopes it spikes (peak-speed maps of the field's tools use such a threshold too).
         output_interval: s, spacing of gauge / mass / kinetic-energy samples (t_end is always a sample).
         stop_ke_fraction: a member ends when its kinetic energy falls below this fraction of its
             peak (after the peak). 1e-4 means speeds about 1 % of the peak mean speed.
@@ -52,6 +55,7 @@ class SolverConfig:
     h_wet: float = 1e-4
     wb_depth_ratio: float = 0.25
     arrival_threshold: float = 0.1
+    v_max_min_depth: float = 0.05
     output_interval: float = 1.0
     stop_ke_fraction: float = 1e-4
     dt_max: float = 1.0
@@ -76,6 +80,7 @@ class SolverConfig:
         need(self.h_wet >= 0, "h_wet", "need h_wet >= 0")
         need(self.wb_depth_ratio >= 0, "wb_depth_ratio", "need >= 0")
         need(self.arrival_threshold > 0, "arrival_threshold", "need > 0")
+        need(self.v_max_min_depth >= 0, "v_max_min_depth", "need >= 0")
         need(self.output_interval > 0, "output_interval", "need > 0")
         need(0 <= self.stop_ke_fraction < 1, "stop_ke_fraction", "need 0 <= f < 1")
         need(self.dt_max > 0, "dt_max", "need > 0")

@@ -223,7 +223,7 @@ def _step_flags(cfg: SolverConfig, P0: Params, inp: _Inputs, dx: float) -> StepF
     return StepFlags(
         dx=dx, g=G, cfl=cfg.cfl, theta=cfg.limiter_theta, h_eps=cfg.h_eps, h_wet=cfg.h_wet, wb_ratio=cfg.wb_depth_ratio,
         dt_max=cfg.dt_max, stop_ke_fraction=cfg.stop_ke_fraction,
-        arrival_threshold=cfg.arrival_threshold, entrain_h_min=cfg.entrain_h_min,
+        arrival_threshold=cfg.arrival_threshold, v_max_min_depth=cfg.v_max_min_depth, entrain_h_min=cfg.entrain_h_min,
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,
         use_ep=bool((P0.earth_pressure > 0).any()), use_curv=bool((P0.curvature > 0).any()),
         use_ent=inp.use_ent, use_dep=inp.use_dep, use_mu_i=bool((P0.mu_i > 0).any()),

@@ -32,6 +32,7 @@ class StepFlags:
     dt_max: float
     stop_ke_fraction: float
     arrival_threshold: float
+    v_max_min_depth: float
     entrain_h_min: float
     no_creep: bool
     slope_correction: bool
@@ -210,7 +211,7 @@ def make_step(F: StepFlags):
         spd = torch.sqrt(spd2)
         hfin = hN + out["dep"] if F.use_dep else hN
         out["h_max"] = torch.maximum(S["h_max"], hfin)
-        out["v_max"] = torch.maximum(S["v_max"], spd)
+        out["v_max"] = torch.maximum(S["v_max"], torch.where(hN >= F.v_max_min_depth, spd, torch.zeros_like(spd)))
         arrived = torch.isinf(S["arrival"]) & (hN > F.arrival_threshold)
         out["arrival"] = torch.where(arrived, t_new.view(-1, 1, 1).expand_as(hN), S["arrival"])
         cell_area = F.dx * F.dx
