@@ -158,3 +158,22 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_results(ca
         got = case.parent / f"killed_{cmd[0]}"
         _killed_then_resumed(cmd, got, sorted(rng.uniform(0.3, 1.0) * wall for _ in range(3)))
         assert _outputs(got, files) == _outputs(ref, files), cmd[0]
+
+
+def test_a_corrupt_calibration_folder_is_named(case, capsys):
+    """predict / sweep --calibration on a folder whose posterior.json or .npz is corrupt: one line naming
+    the file."""
+    import shutil
+
+    cal = case.parent / "cal"
+    assert main(["calibrate", str(case / "calibrate.toml"), "--out", str(cal), "--quiet"]) == 0
+    for name, damage in (("posterior.json", lambda p: p.write_text('{"names": ["mu", "xi"], "n')),
+                         ("posterior.npz", lambda p: p.write_bytes(p.read_bytes()[:300]))):
+        bad = case.parent / f"bad_{name}"
+        shutil.copytree(cal, bad)
+        damage(bad / name)
+        capsys.readouterr()
+        assert main(["predict", str(case / "calibrate.toml"), "--calibration", str(bad), "--out",
+                     str(case.parent / "p"), "--n", "2", "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert str(bad / name) in err and len(err.strip().splitlines()) == 1, err

@@ -100,15 +100,22 @@ class CalibrationResult:
     def load(cls, directory: str | os.PathLike) -> "CalibrationResult":
         """Read what :meth:`save` wrote (posterior.json and posterior.npz; the emulator is not saved).
 
-        Raises FileNotFoundError naming the missing file, ValueError when the two files disagree."""
+        Raises FileNotFoundError naming the missing file, ValueError naming a corrupt file or when the two
+        files disagree."""
         d = Path(directory)
         for f in ("posterior.json", "posterior.npz"):
             if not (d / f).is_file():
                 raise FileNotFoundError(f"{d}: no {f} (is this the --out folder of a finished `torchslide "
                                         f"calibrate`?)")
-        info = json.loads((d / "posterior.json").read_text())
-        with np.load(d / "posterior.npz") as a:
-            arrays = {k: a[k] for k in a.files}
+        try:
+            info = json.loads((d / "posterior.json").read_text())
+        except ValueError as e:
+            raise ValueError(f"{d / 'posterior.json'} is not valid JSON ({e})") from None
+        try:
+            with np.load(d / "posterior.npz") as a:
+                arrays = {k: a[k] for k in a.files}
+        except Exception as e:  # noqa: BLE001 - numpy raises several kinds for a truncated file
+            raise ValueError(f"{d / 'posterior.npz'} is corrupt or truncated ({type(e).__name__})") from None
         names = list(info["names"])
         if arrays["x"].ndim != 2 or arrays["x"].shape[1] != len(names):
             raise ValueError(f"{d}: posterior.npz holds runs of {arrays['x'].shape[-1]} parameters, posterior.json "
