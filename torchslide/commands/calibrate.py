@@ -135,12 +135,12 @@ def _run(args: argparse.Namespace) -> int:
     ev = make_evaluator(cfg)
     ev.solver_progress = not args.quiet
     prior = ev.prior
+    prepare_work_folder(out)
+    check_case(out / "case.json", ev, resume=ckpt.exists())
     if args.resume and ckpt.exists() and _finished(out, cal["n_total"]):
         print(f"torchslide: note: the calibration in {out} has finished its {cal['n_total']} runs; nothing to "
               "resume (raise n_total to continue it)", file=sys.stderr)
         return 0
-    prepare_work_folder(out)
-    check_case(out / "case.json", ev, resume=ckpt.exists())
     ev.records_file = out / "records.npz"      # every run's predictions, kept across a resume
     if ckpt.exists() and ev.records_file.exists():
         ev.records = load_records(ev.records_file)
