@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from torchslide.cli import main
-from torchslide.files import FileStateError, atomic_path, folder_lock, lock_file, write_text_atomic
+from torchslide.files import atomic_path, folder_lock, lock_file, write_text_atomic
 
 BUDGET = {"n_initial": "4", "n_total": "6", "batch_size": "2"}
 
@@ -96,10 +96,6 @@ def test_sweep_names_a_truncated_checkpoint(case, capsys):
     assert main(["sweep", str(case / "calibrate.toml"), "--out", str(out), "--n", "3", "--quiet", "--resume"]) == 2
     err = capsys.readouterr().err
     assert "sweep checkpoint" in err and "is corrupt or truncated" in err
-
-
-def test_file_state_errors_are_value_errors():
-    assert issubclass(FileStateError, ValueError)
 
 
 def _outputs(folder: Path, files: dict) -> dict:
