@@ -17,6 +17,22 @@ def plane_dem(nx: int, ny: int, dx: float, tan_theta: float) -> DEM:
     return DEM(np.tile(-x * tan_theta, (ny, 1)), dx)
 
 
+def tilted_plane(n: int, dx: float, theta_deg: float, plan_deg: float = 0.0, half: float | None = None):
+    """A user's DEM of a plane dipping at ``theta_deg`` towards the map direction ``plan_deg`` (0 = +x,
+    counter-clockwise), on an n x n grid centred on the origin (or from -half to half).
+
+    Returns (dem, X, Y, S, T): the cell centres in map m, S the map distance along the dip direction
+    and T across it (so the slope coordinate along the surface is S / cos(theta))."""
+    half = n * dx / 2 if half is None else half
+    x = -half + (np.arange(n) + 0.5) * dx
+    X, Y = np.meshgrid(x, x)
+    a = np.radians(plan_deg)
+    S = X * np.cos(a) + Y * np.sin(a)
+    T = -X * np.sin(a) + Y * np.cos(a)
+    dem = DEM(-S * np.tan(np.radians(theta_deg)), dx, xll=-half, yll=-half)
+    return dem, X, Y, S, T
+
+
 def chute_dem(nx: int = 60, ny: int = 24, dx: float = 10.0, slope_deg: float = 30.0, x_break: float = 300.0) -> DEM:
     """Inclined plane that turns into a flat run-out at x_break, with a gentle lateral trough."""
     x = (np.arange(nx) + 0.5) * dx

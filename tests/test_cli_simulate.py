@@ -112,7 +112,8 @@ def test_simulate_batch_round_trip(case, capsys):
         assert MEMBER_KEYS <= set(s)
         assert set(s["gauges"]["G1"]) >= {"h_max", "v_max", "h_final"}
         assert s["params"]["mu"] == [0.2, 0.35][b]
-        assert s["release_volume"] == pytest.approx(2.0e4, rel=1e-6)
+        dem = cfg.terrain.dem
+        assert s["release_volume"] == pytest.approx(float((cfg.terrain.release * dem.surface_area()).sum()), rel=1e-6)
         # the raster reads back equal to the result (the solver is deterministic on CPU)
         back = read_asc(m / "h_max.asc")
         assert back.same_grid(cfg.terrain.dem)
@@ -188,3 +189,19 @@ def test_simulate_warns_when_the_flow_leaves_the_dem(tmp_path, capsys, runout, w
     assert ("of its release through the DEM edge" in err) == warned
     if warned:
         assert f"lost {100 * s['outflow_volume'] / s['release_volume']:.1f} %" in err
+
+
+def test_simulate_writes_peak_pressure_and_states_the_conventions(case, capsys):
+    """p_max = density v_max^2 (kPa) with [model] density; every summary names what its numbers measure."""
+    (case / "c.toml").write_text(cfg_text().replace("t_end = 20.0", "t_end = 5.0").replace("[model]\n", "[model]\ndensity = 1500.0\n"))
+    out = case / "out"
+    code, _, err = run_cli(["simulate", case / "c.toml", "--out", out, "-q"], capsys)
+    assert code == 0, err
+    v, p = read_asc(out / "v_max.asc").z, read_asc(out / "p_max.asc").z
+    assert v.max() > 1.0
+    np.testing.assert_allclose(p, 1.5 * v**2, rtol=1e-9, atol=1e-12)
+    s = json.loads((out / "summary.json").read_text())
+    c = s["conventions"]
+    assert c["input_thickness"] == "normal" and c["density_kg_m3"] == 1500.0
+    assert "normal to the slope" in c["thickness"] and "along the surface" in c["speed"]
+    assert s["max_p_max"] == pytest.approx(1.5 * s["max_v_max"] ** 2, rel=1e-9)

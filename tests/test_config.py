@@ -135,3 +135,31 @@ def test_bad_rasters(tmp_path):
 def test_missing_config(tmp_path):
     with pytest.raises(ConfigError, match="config file not found"):
         load_config(tmp_path / "none.toml")
+
+
+def test_terrain_thickness_convention_sets_the_release_volume(tmp_path):
+    """[terrain] thickness: a release table's volume is normal thickness x surface area by default and
+    vertical thickness x map area with "vertical"; anything else is a one-line error naming the key."""
+    from torchslide.terrain.io import write_asc
+
+    x = (np.arange(20) + 0.5) * 10.0
+    dem = DEM(np.tile(-x * np.tan(np.radians(35.0)), (12, 1)) + 500.0, 10.0)
+    write_asc(tmp_path / "dem.asc", dem.z, dem, fmt="%.17g")
+    base = ('[terrain]\ndem = "dem.asc"\nrelease = {centre = [100.0, 60.0], radii = [40.0, 30.0], volume = 1e4}\n'
+            '{extra}[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
+    for extra, thickness in (("", "normal"), ('thickness = "vertical"\n', "vertical")):
+        p = tmp_path / f"{thickness}.toml"
+        p.write_text(base.replace("{extra}", extra))
+        cfg = load_config(p)
+        area = dem.surface_area() if thickness == "normal" else np.full(dem.shape, 100.0)
+        assert cfg.terrain.thickness == thickness
+        assert abs(float((cfg.terrain.release * area).sum()) - 1e4) < 1e-6
+        assert abs(cfg.terrain.release_volume - 1e4) < 1e-6
+        assert cfg.simulate_kwargs()["thickness"] == thickness
+    p = tmp_path / "bad.toml"
+    p.write_text(base.replace("{extra}", 'thickness = "slope"\n'))
+    with pytest.raises(ConfigError, match=r"bad.toml: \[terrain\] thickness must be one of 'normal', 'vertical'.*'slope'"):
+        load_config(p)
+    p.write_text(base.replace("{extra}", "").replace("xi = 500.0", "xi = 500.0\ndensity = -1.0"))
+    with pytest.raises(ConfigError, match=r"\[model\] density must be"):
+        load_config(p)

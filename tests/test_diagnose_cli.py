@@ -228,7 +228,7 @@ def test_cli_fine_terrain_for_the_model_error(tmp_path):
     cfg = load_diagnose_config(p)
     ft = cfg.extra["diagnose"]["fine_terrain"]
     assert ft.dem.cellsize == 25.0 and ft.dem.shape == (2 * dem.ny, 2 * dem.nx)
-    assert math.isclose(float(ft.release.sum()) * 25.0**2, 1.0e5, rel_tol=1e-9)
+    assert math.isclose(float((ft.release * ft.dem.surface_area()).sum()), 1.0e5, rel_tol=1e-9)
     assert make_evaluator(cfg).fine_terrain is ft
     p0, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]')
     assert load_diagnose_config(p0).extra["diagnose"]["fine_terrain"] is None

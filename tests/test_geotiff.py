@@ -117,7 +117,7 @@ def test_simulate_writes_geotiffs_with_the_dems_crs(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "tif.toml"), "--out", str(tmp_path / "t"), "-q"]) == 0
     assert main(["simulate", str(tmp_path / "asc.toml"), "--out", str(tmp_path / "a"), "-q"]) == 0
     tifs = sorted(p.name for p in (tmp_path / "t").glob("*.tif"))
-    assert tifs == ["arrival_time.tif", "h_final.tif", "h_max.tif", "v_max.tif"]
+    assert tifs == ["arrival_time.tif", "h_final.tif", "h_max.tif", "p_max.tif", "v_max.tif"]
     assert not list((tmp_path / "t").glob("*.asc"))
     h = read_raster(tmp_path / "t" / "h_max.tif")
     assert h.same_grid(dem) and h.crs is not None and "2056" in h.crs

@@ -191,7 +191,7 @@ def test_release_volume_error_enters_the_covariance_through_its_jacobian():
 
     ev = _evaluator()
     x = np.array([[0.3, 500.0], [0.35, 800.0], [0.32, 600.0]])
-    V = float(ev.release.sum() * ev.dem.cellsize**2)
+    V = float((np.asarray(ev.release) * ev.dem.surface_area()).sum())   # normal thickness x surface area
     me0 = approximation_error(ev, x, factor=2)
     me = approximation_error(ev, x, factor=2, release_sd=0.05)
     assert me.release_jacobian.shape == (3, ev.k) and me.release_sd == 0.05

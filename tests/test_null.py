@@ -59,12 +59,13 @@ def test_null_recordings_are_finer_grid_runs_plus_the_stated_noise():
     a = math.sqrt(3) * 0.05
     assert np.all(np.abs(vf1 - 1) <= a) and np.all(vf1 != 1.0)
     fv = ev.block("final_volume").slice
-    assert np.allclose(d1[:, fv].ravel(), vf1 * V, rtol=1e-3)                 # the release volume scaled
+    Vs = float((np.asarray(ev.release) * ev.dem.surface_area()).sum())       # normal thickness x surface area
+    assert np.allclose(d1[:, fv].ravel(), vf1 * Vs, rtol=1e-3)                 # the release volume scaled
     # with the user's fine terrain, its release is scaled too
     from torchslide.diagnose.model_error import FineTerrain, refine_dem, repeat_cells
     ev_ft = ev._copy(fine_terrain=FineTerrain(refine_dem(ev.dem, 2), repeat_cells(ev.release, 2)))
     d2, vf2 = null_recordings(ev_ft, theta, 2, release_sd=0.05, seed=1, noise=False)
-    assert np.array_equal(vf2, vf1) and np.allclose(d2[:, fv].ravel(), vf1 * V, rtol=1e-3)
+    assert np.array_equal(vf2, vf1) and np.allclose(d2[:, fv].ravel(), vf1 * Vs, rtol=1e-3)
     d, _ = null_recordings(ev, theta, 2, release_sd=0.0, seed=2)
     e = d - y
     dep = ev.block("deposit").obs

@@ -28,7 +28,7 @@ def make_result(h_max, h_final, v_max=None, dem=None) -> SimulationResult:
                     v=torch.tensor([[0.0, 4.0, 0.0]] * B, dtype=torch.float64))
     return SimulationResult(
         dem=dem, h_max=h_max, v_max=v_max, h_final=h_final, arrival_time=torch.full_like(h_max, float("inf")),
-        cell_area=area, release_volume=vol.clone(), final_volume=vol, outflow_volume=z, entrained_volume=z,
+        cell_area=area, map_cell_area=CS * CS, release_volume=vol.clone(), final_volume=vol, outflow_volume=z, entrained_volume=z,
         steps=torch.zeros(B, dtype=torch.int64), t_final=z, stopped=torch.ones(B, dtype=torch.bool),
         history_t=t, mass_history=torch.zeros(B, 3, dtype=torch.float64), ke_history=torch.zeros(B, 3, dtype=torch.float64),
         gauges={"G1": g},

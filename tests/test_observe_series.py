@@ -23,7 +23,7 @@ def _result(B=2, ny=3, nx=4):
     g = GaugeSeries("G", 5.0, 5.0, t, h=torch.tensor([[0.0, 2.0, 4.0]] * B, dtype=torch.float64),
                     u=torch.tensor([[0.0, 3.0, 0.0]] * B, dtype=torch.float64), v=torch.zeros(B, 3, dtype=torch.float64))
     z = torch.zeros(B, dtype=torch.float64)
-    return dem, SimulationResult(dem=dem, h_max=h * 2, v_max=h, h_final=h, arrival_time=h, cell_area=torch.full((ny, nx), 100.0, dtype=torch.float64),
+    return dem, SimulationResult(dem=dem, h_max=h * 2, v_max=h, h_final=h, arrival_time=h, cell_area=torch.full((ny, nx), 100.0, dtype=torch.float64), map_cell_area=100.0,
                                  release_volume=z, final_volume=z, outflow_volume=z, entrained_volume=z,
                                  steps=z.long(), t_final=z, stopped=z.bool(), history_t=t,
                                  mass_history=torch.zeros(B, 3), ke_history=torch.zeros(B, 3), gauges={"G": g})

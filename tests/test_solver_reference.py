@@ -12,24 +12,28 @@ from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 from torchslide.terrain import DEM
 
+from .conftest import tilted_plane
+
 G = 9.81
 
 
 def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.0, h0: float = 1.0):
-    x0, x1 = -40.0, 60.0
+    """The dam break on a DEM of the incline in map coordinates (x_map = x cos(theta)), h0 normal to
+    the slope; returns (L1 error of the normal thickness, front, reference front (map m), result)."""
+    cs, tt = math.cos(math.radians(theta)), math.tan(math.radians(theta))
+    x0, x1 = -40.0 * cs, 60.0 * cs
     nx = int(round((x1 - x0) / dx))
     xc = x0 + (np.arange(nx) + 0.5) * dx
-    tt = math.tan(math.radians(theta))
     dem = DEM(np.tile(-xc * tt, (3, 1)), dx, xll=x0)
     rel = np.tile(np.where(xc < 0, h0, 0.0), (3, 1))
     # the reference is an infinite reservoir: the upslope edge must feed it (boundary "open")
     r = simulate(dem, rel, Params.make(mu=math.tan(math.radians(delta))), t_end=t,
                  config=SolverConfig(output_interval=t, boundary="open"))
-    cs = math.cos(math.radians(theta))
     m = G * cs * (tt - math.tan(math.radians(delta)))
     c0 = math.sqrt(G * cs * h0)
-    href = np.where(xc <= (m * t / 2 - c0) * t, h0,
-                    np.where(xc <= (2 * c0 + m * t / 2) * t, (2 * c0 - xc / t + m * t / 2) ** 2 / (9 * G * cs), 0.0))
+    xs = xc / cs   # along the slope
+    href = np.where(xs <= (m * t / 2 - c0) * t, h0,
+                    np.where(xs <= (2 * c0 + m * t / 2) * t, (2 * c0 - xs / t + m * t / 2) ** 2 / (9 * G * cs), 0.0))
     h = r.h_final[0, 1].numpy()
     err = np.abs(h - href).sum() / href.sum()
     thr = 0.05 * h0
@@ -37,15 +41,17 @@ def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.
     return err, front_num, front_ref, r
 
 
-def test_mangeney_dam_break():
-    """Case 4 (theta 22, delta 21, h0 1 m): L1 error small and decreasing under refinement,
-    front (h > 5 % h0) within a few cells."""
-    e1, fn1, fr1, r1 = _mangeney(1.0)
-    e2, fn2, fr2, _ = _mangeney(0.5)
+@pytest.mark.parametrize("theta,delta", [(22.0, 21.0), (40.0, 30.0)])
+def test_mangeney_dam_break_in_map_coordinates(theta, delta):
+    """Case 4 (AvaFrame's theta 22, delta 21, h0 1 m; and a steep 40 / 30 degree incline) on the DEM
+    grid: L1 error small and decreasing under refinement, front (h > 5 % h0) within a few cells,
+    mass conserved to round-off."""
+    e1, fn1, fr1, r1 = _mangeney(1.0, theta=theta, delta=delta)
+    e2, fn2, fr2, _ = _mangeney(0.5, theta=theta, delta=delta)
     assert e1 < 0.03
     assert e2 < 0.7 * e1
-    assert abs(fn1 - fr1) <= 3 * 1.0
-    assert abs(fn2 - fr2) <= 3 * 0.5 + 1.0
+    assert abs(fn1 - fr1) <= 5 * 1.0                 # fronts converge slowly: a few cells,
+    assert abs(fn2 - fr2) <= max(abs(fn1 - fr1), 1.5)  # and no farther on the finer grid
     assert abs(float(r1.final_volume[0] + r1.outflow_volume[0] - r1.release_volume[0])) < 1e-10 * float(r1.release_volume[0])
 
 
@@ -81,28 +87,58 @@ def _sh_reference(t_s: float, Lx=80.0, Ly=80.0, H=4.0, delta_deg=25.0, zeta_deg=
     return h_of
 
 
-def test_savage_hutter_similarity():
-    """Case 5 (Lx = Ly = 80 m, H = 4 m, delta 25, zeta 35, k = 1) at t = 20 s.
-
-    The reference approximates the lateral friction (v/|u| ~ v/u_centre), so the check is on the
-    centre of mass (within 1.5 cells), the peak thickness (10 %) and the L1 shape error (< 30 %)."""
-    Lx, H, zeta, delta = 80.0, 4.0, math.radians(35), math.radians(25)
-    dx = 4.0
-    x = np.arange(-120, 520, dx) + dx / 2
-    y = np.arange(-120, 120, dx) + dx / 2
-    X, Y = np.meshgrid(x, y)
-    dem = DEM(-X * math.tan(zeta), dx, xll=-120.0, yll=-120.0)
-    h0 = np.clip(H * (1 - (X / Lx) ** 2 - (Y / Lx) ** 2), 0, None)
-    t_s = 20.0
+def _similarity_run(dx: float, plan: float, t_s: float = 5.0, zeta_deg: float = 35.0):
+    """Case 5 on a user's DEM of the 35 degree plane in map coordinates: the release cap in slope
+    coordinates (x_s = S / cos), normal thickness. Returns (L1 error, centre of mass along the dip,
+    the reference's, both in map m)."""
+    Lx, H, delta = 80.0, 4.0, math.radians(25.0)
+    cs = math.cos(math.radians(zeta_deg))
+    dem, X, Y, S, T = tilted_plane(int(round(260.0 / dx)), dx, zeta_deg, plan)
+    h0 = np.clip(H * (1 - (S / cs / Lx) ** 2 - (T / Lx) ** 2), 0, None)
     r = simulate(dem, h0, Params.make(mu=math.tan(delta)), t_end=t_s, config=SolverConfig(output_interval=t_s))
-    href = _sh_reference(t_s)(X, Y)
+    href = _sh_reference(t_s, zeta_deg=zeta_deg)(S / cs, T)
     h = r.h_final[0].numpy()
-    com, com_ref = (h * X).sum() / h.sum(), (href * X).sum() / href.sum()
-    assert abs(com - com_ref) < 1.5 * dx  # ~1 % of the 372 m travelled
+    return np.abs(h - href).sum() / href.sum(), (h * S).sum() / h.sum(), (href * S).sum() / href.sum()
+
+
+def test_savage_hutter_similarity_in_map_coordinates():
+    """Case 5 (Lx = Ly = 80 m, H = 4 m, delta 25, zeta 35, k = 1) at t = 5 s on the DEM grid: within
+    3 % L1 at 5 m cells and falling when the cells halve; the centre where the reference puts it;
+    in a plan orientation 30 degrees off the grid as well."""
+    e10, c10, ref = _similarity_run(10.0, 0.0)
+    e5, c5, _ = _similarity_run(5.0, 0.0)
+    assert e5 < 0.03 and e5 < 0.75 * e10
+    assert abs(c5 - ref) < 0.2 * 5.0      # the pile's centre (19.2 m down the dip in map view)
+    er, cr, ref_r = _similarity_run(5.0, 30.0)
+    assert er < 0.03 and abs(cr - ref_r) < 0.2 * 5.0
+
+
+@pytest.mark.slow
+def test_savage_hutter_similarity_refinement_slow():
+    e5 = _similarity_run(5.0, 30.0)[0]
+    e25 = _similarity_run(2.5, 30.0)[0]
+    assert e25 < 0.75 * e5 and e25 < 0.015
+
+
+def test_savage_hutter_similarity_late_time():
+    """Case 5 at t = 20 s (372 m travelled): the reference approximates the lateral friction
+    (v/|u| ~ v/u_centre), so the check is on the centre of mass (within 1.5 cells), the peak thickness
+    (10 %) and the L1 shape error (< 30 %), with the lateral extent within two cells."""
+    dx, t_s, cs = 4.0, 20.0, math.cos(math.radians(35.0))
+    s = np.arange(-100.0, 440.0, dx) + dx / 2
+    t = np.arange(-120.0, 120.0, dx) + dx / 2
+    S, T = np.meshgrid(s, t)
+    dem = DEM(-S * math.tan(math.radians(35.0)), dx, xll=-100.0, yll=-120.0)
+    Lx, H = 80.0, 4.0
+    h0 = np.clip(H * (1 - (S / cs / Lx) ** 2 - (T / Lx) ** 2), 0, None)
+    r = simulate(dem, h0, Params.make(mu=math.tan(math.radians(25.0))), t_end=t_s, config=SolverConfig(output_interval=t_s))
+    href = _sh_reference(t_s)(S / cs, T)
+    h = r.h_final[0].numpy()
+    com, com_ref = (h * S).sum() / h.sum(), (href * S).sum() / href.sum()
+    assert abs(com - com_ref) < 1.5 * dx
     assert abs(h.max() - href.max()) < 0.1 * href.max()
     assert np.abs(h - href).sum() / href.sum() < 0.3
-    # lateral spreading: y-extent of the deposit matches within two cells
-    ext = lambda a: (np.abs(Y[a > 0.05]).max())
+    ext = lambda a: (np.abs(T[a > 0.05]).max())
     assert abs(ext(h) - ext(href)) <= 2 * dx
 
 
@@ -144,11 +180,12 @@ def test_thacker_paraboloid():
 
 
 def test_energy_line_parabola():
-    """Case 7 (bound): on z = C (1 - x/L)^2, L = C / tan 34 deg, a Coulomb mass released at x0
-    stops before x0 + z(x0) / mu (the point-mass energy line). In the DEM-grid formulation a point mass
-    obeys d(u^2/2)/dx = g cos(theta) (tan(theta) - mu) (horizontal u), which stops it where
-    int_x0^x cos(theta) (tan(theta) - mu) dx = 0, earlier than the energy line on steep slopes; the
-    deposit's centre of mass must lie near that point (spreading: within 15 %) and before the line."""
+    """Case 7: on z = C (1 - x/L)^2, L = C / tan 34 deg, a point mass with Coulomb friction released
+    at x0 stops at x0 + z0 / mu on the flat (the energy line, s the horizontal distance). A small, thin
+    release (1 m, radius 60 m) is nearly a point mass: its deposit's centre of mass lies before the line
+    (a depth-averaged flow also loses energy in its spreading and its shocks) and within 10 % of the
+    travel distance of it. (Without the bed's reaction on the curved surface, (u^T H u) h grad z in the
+    momentum equations, the same deposit stops about a quarter of the way short.)"""
     Cz, mu, dx = 1000.0, 0.4, 25.0
     Lp = Cz / math.tan(math.radians(34))
     nx, ny = 130, 24
@@ -157,20 +194,13 @@ def test_energy_line_parabola():
     zx = np.where(x < Lp, Cz * (1 - x / Lp) ** 2, 0.0)
     dem = DEM(np.tile(zx, (ny, 1)), dx)
     X, Y = np.meshgrid(x, y)
-    rel = np.clip(5.0 * (1 - ((X - 150) / 75) ** 2 - ((Y - 300) / 75) ** 2), 0, None)
+    rel = np.clip(1.0 * (1 - ((X - 150) / 60) ** 2 - ((Y - 300) / 60) ** 2), 0, None)
     r = simulate(dem, rel, Params.make(mu=mu), t_end=400.0, config=SolverConfig(output_interval=10.0))
     assert bool(r.stopped[0]) and not bool(r.failed[0])
-    h = r.h_final[0].numpy()
-    x0 = (rel * X).sum() / rel.sum()
-    z0 = (rel * np.tile(zx, (ny, 1))).sum() / rel.sum()
+    vol = (r.h_final[0] * r.cell_area).numpy()
+    w0 = rel * np.tile(1 / np.sqrt(1 + (2 * Cz / Lp * np.clip(1 - x / Lp, 0, None)) ** 2), (ny, 1)) ** -1
+    x0 = (w0 * X).sum() / w0.sum()
+    z0 = Cz * (1 - x0 / Lp) ** 2
     x_line = x0 + z0 / mu
-    com = (h * X).sum() / h.sum()
-    assert com <= x_line
-    xs = np.linspace(x0, 3 * Lp, 200001)
-    tan_t = np.where(xs < Lp, 2 * Cz / Lp * (1 - xs / Lp), 0.0)
-    work = np.cumsum((tan_t - mu) / np.sqrt(1 + tan_t**2)) * (xs[1] - xs[0])
-    x_pm = xs[np.argmax(work < 0)]
-    assert abs(com - x_pm) < 0.15 * (x_pm - x0)
-    # speeds stay below the energy-line speed sqrt(2 g (z0 - z - mu s)) + margin of spreading
-    v_line = math.sqrt(2 * G * (z0 - mu * 0.0))
-    assert float(r.v_max.max()) < v_line
+    com = (vol * X).sum() / vol.sum()
+    assert x_line - 0.1 * (x_line - x0) < com < x_line

@@ -224,9 +224,11 @@ def test_channel_transition_keeps_the_bed_curvature_bounded_as_cells_shrink():
 def test_release_from_shape_volume_any_resolution():
     for cs in (5.0, 10.0, 25.0):
         dem = inclined_plane(30.0, cellsize=cs, slope_length=600, runout_length=200, width=400)
-        h = release_from_shape(dem, (300.0, 200.0), (80.0, 50.0), volume=1e5)
-        assert h.sum() * cs**2 == pytest.approx(1e5, rel=1e-12)
+        h = release_from_shape(dem, (300.0, 200.0), (80.0, 50.0), volume=1e5)   # normal to the slope
+        assert (h * dem.surface_area()).sum() == pytest.approx(1e5, rel=1e-12)
         assert h.min() >= 0
+        hv = release_from_shape(dem, (300.0, 200.0), (80.0, 50.0), volume=1e5, normal=False)
+        assert hv.sum() * cs**2 == pytest.approx(1e5, rel=1e-12)
     h = release_from_shape(dem, (300.0, 200.0), 50.0, thickness=4.0, shape="cylinder")
     assert set(np.unique(h)) <= {0.0, 4.0}
     with pytest.raises(TerrainError, match="outside the DEM"):

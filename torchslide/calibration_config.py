@@ -200,7 +200,7 @@ def make_evaluator(cfg: Config):
         dem=cfg.terrain.dem, release=cfg.terrain.release, observations=cfg.extra["observations"], prior=prior,
         fixed=fixed, t_end=cfg.run.t_end, gauges=gauges, erodible_depth=cfg.terrain.erodible_depth,
         solver_config=cfg.solver_config(), dtype=cfg.run.torch_dtype, device=cfg.run.device,
-        max_batch=cfg.extra["calibration"]["max_batch"])
+        max_batch=cfg.extra["calibration"]["max_batch"], thickness=cfg.terrain.thickness)
 
 
 def load_calibration(directory, prior):

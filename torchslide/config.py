@@ -6,12 +6,15 @@ A configuration file (paths are relative to the file)::
     dem = "dem.asc"              # or: synthetic = "bondo_like" (+ cellsize = 20.0, options = {...})
     release = "release.asc"      # or an inline table: {centre = [x, y], radii = [rx, ry], volume = 3e6}
     erodible = "erodible.asc"    # optional erodible depth raster, m
+    thickness = "normal"         # release and erodible depths normal to the slope (the field's convention),
+                                 # or "vertical" (volume per unit map area)
     fill_nodata = false          # optional: fill edge nodata cells of the DEM by nearest neighbour
 
     [model]
     rheology = "voellmy"         # or "coulomb" (xi = inf)
     mu = [0.2, 0.25]             # a list runs a batch; lists must have equal lengths, scalars broadcast
     xi = 1000.0                  # m/s^2
+    density = 2000.0             # kg/m^3, for the peak pressure density * v_max^2 (not a solver parameter)
     # any other field of torchslide.physics.Params (k_ap, kappa, curvature, ...)
 
     [run]
@@ -78,10 +81,20 @@ class ConfigError(ValueError):
 
 
 BASE_SECTIONS = ("terrain", "model", "run", "gauges", "output")
+CONVENTIONS = {
+    "thickness": "flow thickness normal to the slope, m (h_max, h_final, gauge h)",
+    "speed": "speed along the surface, m/s (v_max, gauge speed)",
+    "pressure": "peak pressure density * v_max^2, kPa (p_max)",
+    "area": "map (planimetric) area, m^2",
+    "volume": "normal thickness times the surface area of each cell, m^3",
+}
+"""What the outputs measure (the conventions of r.avaflow, RAMMS and AvaFrame); written into every
+summary, predictive and posterior JSON file with :meth:`Config.conventions`."""
 OTHER_SECTIONS: set[str] = {"prior", "observations", "calibration", "diagnose"}
 """Sections of other commands' configs that the base loader accepts without a parser."""
 
-_TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata"}
+_TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata", "thickness"}
+THICKNESS = ("normal", "vertical")
 _RELEASE_TABLE_KEYS = {"centre", "center", "radii", "volume", "thickness", "shape"}
 _RUN_KEYS = {"t_end", "dtype", "device", "cfl"}
 _GAUGE_KEYS = {"name", "x", "y"}
@@ -92,27 +105,38 @@ RHEOLOGIES = ("voellmy", "coulomb")
 # ------------------------------------------------------------------------------------ dataclasses
 @dataclass
 class TerrainConfig:
-    """Validated terrain: DEM, release (ny, nx) m, optional erodible depth (ny, nx) m."""
+    """Validated terrain: DEM, release (ny, nx) m, optional erodible depth (ny, nx) m, both measured as
+    ``thickness`` says ("normal" to the slope or "vertical")."""
 
     dem: DEM
     release: np.ndarray
     erodible_depth: np.ndarray | None = None
     source: str = ""
     case: Any = None  # SyntheticCase for synthetic terrains (has points, thalweg)
+    thickness: str = "normal"
+
+    def cell_volume_area(self) -> np.ndarray:
+        """(ny, nx) m^2 that turns an input thickness into a volume: the surface area of each cell for
+        a thickness normal to the slope, the map area for a vertical one."""
+        if self.thickness == "normal":
+            return self.dem.surface_area()
+        return np.full(self.dem.shape, self.dem.cellsize**2)
 
     @property
     def release_volume(self) -> float:
         """m^3."""
-        return float(self.release.sum() * self.dem.cellsize**2)
+        return float((self.release * self.cell_volume_area()).sum())
 
 
 @dataclass
 class ModelConfig:
-    """Rheology and per-member parameter values (name -> list of B floats)."""
+    """Rheology and per-member parameter values (name -> list of B floats); density, kg/m^3, of the
+    flowing mass (for the peak pressure only)."""
 
     rheology: str
     values: dict[str, list[float]]
     batch_size: int
+    density: float = 2000.0
 
     def make_params(self, dtype=None, device="cpu"):
         """torchslide.physics.Params for these values."""
@@ -173,6 +197,10 @@ class Config:
         p = Path(p)
         return p if p.is_absolute() else self.path.parent / p
 
+    def conventions(self) -> dict[str, Any]:
+        """CONVENTIONS plus this run's: the input thickness convention and the density, kg/m^3."""
+        return dict(CONVENTIONS, input_thickness=self.terrain.thickness, density_kg_m3=self.model.density)
+
     def make_params(self):
         """Params on the run's dtype and device."""
         return self.model.make_params(dtype=self.run.torch_dtype, device=self.run.device)
@@ -198,6 +226,7 @@ class Config:
             gauges=[(g.name, g.x, g.y) for g in self.gauges],
             config=self.solver_config(),
             erodible_depth=self.terrain.erodible_depth,
+            thickness=self.terrain.thickness,
             dtype=self.run.torch_dtype,
             device=self.run.device,
         )
@@ -295,6 +324,10 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
     if has_dem == has_syn:
         raise ConfigError(f"{path}: [terrain] needs exactly one of 'dem' (a raster file) or 'synthetic' (a terrain name)")
     case = None
+    convention = t.get("thickness", "normal")
+    if convention not in THICKNESS:
+        raise ConfigError(f"{path}: [terrain] thickness must be one of {', '.join(map(repr, THICKNESS))} "
+                          f"(the convention of the release and erodible depths), got {convention!r}")
     try:
         if has_dem:
             for k in ("cellsize", "options"):
@@ -343,7 +376,7 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
                 release = synthetic.release_from_shape(
                     dem, tuple(centre), radii if np.isscalar(radii) else tuple(radii),
                     volume=r.get("volume"), thickness=r.get("thickness"), shape=r.get("shape", "ellipse"),
-                )
+                    normal=convention == "normal")
             else:
                 release = synthetic.release_from_raster(file("release"), dem)
         elif case is not None:
@@ -367,14 +400,17 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
     except TerrainError as e:
         raise ConfigError(f"{path}: [terrain] {e}") from None
     return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
-                         source=source, case=case)
+                         source=source, case=case, thickness=convention)
 
 
 def _parse_model(m: Any, path: Path) -> ModelConfig:
     from .physics import Params
 
     names = Params.names()
-    m = check_keys(m, {"rheology", *names}, "[model]", path)
+    m = check_keys(m, {"rheology", "density", *names}, "[model]", path)
+    density = _number(m.get("density", 2000.0), "density", "[model]", path)
+    if not (density > 0 and math.isfinite(density)):
+        raise ConfigError(f"{path}: [model] density must be a finite number of kg/m^3 > 0, got {m['density']!r}")
     rheology = m.get("rheology", "voellmy")
     if rheology not in RHEOLOGIES:
         raise ConfigError(f"{path}: [model] unknown rheology {rheology!r} (known: {', '.join(RHEOLOGIES)})")
@@ -407,7 +443,7 @@ def _parse_model(m: Any, path: Path) -> ModelConfig:
             + ", ".join(f"{k}: {n}" for k, n in lengths.items())
         )
     B = max(lengths.values()) if lengths else 1
-    mc = ModelConfig(rheology=rheology, values=values, batch_size=B)
+    mc = ModelConfig(rheology=rheology, values=values, batch_size=B, density=density)
     try:
         mc.make_params()
     except ValueError as e:

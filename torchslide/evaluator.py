@@ -80,7 +80,7 @@ class LandslideEvaluator:
     """Evaluate z = ln[L(x|d) pi(x)] for batches of parameter points with the batched solver.
 
     Attributes:
-        dem, release: terrain and release thickness (ny, nx) m.
+        dem, release: terrain and release thickness (ny, nx) m, measured as ``thickness`` says.
         observations: the recorded data; each validated against the DEM at construction.
         prior: prior over the calibrated parameters (names must be Params fields).
         fixed: values of the other Params fields (e.g. {"xi": 1000.0} when only mu is calibrated).
@@ -93,6 +93,7 @@ class LandslideEvaluator:
         covariance: optional (k, k) full residual covariance (else diagonal sigma, Eq. 7).
         solver_progress: show each solver call's simulated time as a progress bar.
         records_file: where every call's run records are saved (save_records), or None.
+        thickness: convention of the release and erodible depths, "normal" (to the slope) or "vertical".
     """
 
     dem: DEM
@@ -113,6 +114,7 @@ class LandslideEvaluator:
     solver_seconds: float = 0.0
     solver_progress: bool = False
     records_file: object = None
+    thickness: str = "normal"
 
     def __post_init__(self) -> None:
         if not self.observations:
@@ -165,7 +167,7 @@ class LandslideEvaluator:
         t0 = time.perf_counter()
         res = simulate(self.dem, self.release, self.params(x), t_end=self.t_end, gauges=list(self.gauges) or None,
                        config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
-                       dtype=self.dtype, device=self.device, progress=self.solver_progress)
+                       dtype=self.dtype, device=self.device, progress=self.solver_progress, thickness=self.thickness)
         self.solver_seconds += time.perf_counter() - t0
         return res
 

@@ -5,10 +5,14 @@ Thickness thresholds are in m (default 0.5 m), areas in m^2, volumes in m^3, len
 
 Definitions:
 
-* impact_area:    sum of cell_area over cells with h_max > threshold (area ever reached by the flow).
-* deposit_area:   sum of cell_area over cells with h_final > threshold.
-* deposit_volume: sum of h_final * cell_area over cells with h_final > threshold (the mapped deposit;
-                  thin films below the threshold are excluded).
+Conventions (those of the field's tools): thicknesses (h_max, h_final, gauge h) are normal to the slope,
+speeds (v_max, gauge speed) along the surface, areas are map (planimetric) areas, as a mapped outline's,
+and volumes are normal thickness times the surface area of each cell.
+
+* impact_area:    map area of the cells with h_max > threshold (area ever reached by the flow).
+* deposit_area:   map area of the cells with h_final > threshold.
+* deposit_volume: sum of h_final * cell_area (surface area) over cells with h_final > threshold (the
+                  mapped deposit; thin films below the threshold are excluded).
 * final_volume:   ``result.final_volume``: all material in the domain at the end (no threshold).
 * max_velocity, max_height, deposit_height at a point (x, y): v_max, h_max or h_final of the cell that
   contains the point (``method="cell"``, the default: the finite-volume value is a cell average), or
@@ -64,13 +68,14 @@ def _area(result: SimulationResult) -> torch.Tensor:
 
 
 def impact_area(result: SimulationResult, threshold: float = DEFAULT_THRESHOLD) -> torch.Tensor:
-    """(B,) area ever covered by more than ``threshold`` m of flow: sum cell_area [h_max > threshold], m^2."""
-    return ((result.h_max > threshold).to(result.h_max) * _area(result)).sum(dim=(-2, -1))
+    """(B,) map area ever covered by more than ``threshold`` m of flow (normal thickness):
+    map_cell_area * #[h_max > threshold], m^2."""
+    return (result.h_max > threshold).to(result.h_max).sum(dim=(-2, -1)) * result.map_cell_area
 
 
 def deposit_area(result: SimulationResult, threshold: float = DEFAULT_THRESHOLD) -> torch.Tensor:
-    """(B,) deposit area: sum cell_area [h_final > threshold], m^2."""
-    return ((result.h_final > threshold).to(result.h_final) * _area(result)).sum(dim=(-2, -1))
+    """(B,) deposit map area: map_cell_area * #[h_final > threshold], m^2."""
+    return (result.h_final > threshold).to(result.h_final).sum(dim=(-2, -1)) * result.map_cell_area
 
 
 def deposit_volume(result: SimulationResult, threshold: float = DEFAULT_THRESHOLD) -> torch.Tensor:

@@ -3,9 +3,10 @@
 One ``Params`` object holds B parameter sets (every field a (B,) tensor), so that one solver call
 runs B members. The baseline model is Voellmy friction (paper Eq. 4),
 
-    S = u/|u| (mu_eff g_n h + g |u|^2 / xi + tau_y),      mu_eff = mu + mu_i I / (I0 + I),
+    S = V/|V| (mu_eff g_n h + g |V|^2 / xi + tau_y),      mu_eff = mu + mu_i I / (I0 + I),
 
-with g_n = g cos(theta) (+ an optional centrifugal part), and the candidate terms of the diagnosis
+with h the flow thickness normal to the slope, V the velocity along the surface and g_n = g cos(theta)
+(+ an optional centrifugal part), and the candidate terms of the diagnosis
 (entrainment, curvature, Savage-Hutter earth pressure, yield stress, mu(I), deposition) each nested:
 its switch parameter at 0 gives plain Voellmy *bitwise* (the solver multiplies by the switch, never
 branches on it per member).
@@ -24,15 +25,17 @@ earth_pressure  -        0         switch in [0, 1]: k = (1 - s) k_ap + s k_SH(p
                                    k_SH = k_act where div(u) >= 0 (diverging), k_pass where converging,
                                    k_act/pass = 2 (1 -/+ sqrt(1 - cos^2 phi (1 + tan^2 delta))) / cos^2 phi - 1
 curvature       -        0         scale c of the centrifugal normal stress:
-                                   g_n_eff = max(0, g_n + c * (u^T H u) / (1 + |grad z|^2)),
-                                   H the Hessian of the DEM (positive in hollows), used in the friction
-kappa           1/m      0         entrainment: erosion rate E = kappa |u| (m/s) where h > h_flow,
-                                   capped by the remaining erodible depth raster; the bed is lowered
+                                   g_n_eff = max(0, g_n + c cos(theta) (u^T H u)), u the horizontal
+                                   velocity, H the Hessian of the DEM (positive in hollows), used in
+                                   the friction
+kappa           1/m      0         entrainment: erosion rate E = kappa |V| (m/s, normal to the bed)
+                                   where h > h_flow, capped by the remaining erodible depth raster;
+                                   the bed is lowered
 tau_y           m^2/s^2  0         yield stress / density: constant resisting stress added to friction
 mu_i            -        0         mu(I) (Pouliquen): mu_eff = mu + mu_i I/(I0 + I),
-                                   I = 5 d |u| / (2 h sqrt(g_n h)), d = MU_I_D, I0 = MU_I_I0
+                                   I = 5 d |V| / (2 h sqrt(g_n h)), d = MU_I_D, I0 = MU_I_I0
 deposition      1/s      0         deposition rate D: mass leaves the flow onto the bed at rate
-                                   D h max(0, 1 - Fr / FR_DEP), Fr = |u| / sqrt(g_n h)
+                                   D h max(0, 1 - Fr / FR_DEP), Fr = |V| / sqrt(g_n h)
                                    (slow / thin flow deposits; the deposit is part of h_final)
 =============== ======== ========= ================================================================
 

@@ -47,8 +47,8 @@ class PredictiveRuns:
 
     x: (M_ok, p) parameters; predictions: (M_ok, k) observables; threshold: m.
     impact_probability: (ny, nx) share of the draws with h_max > threshold.
-    cell_area: (ny, nx) m^2, the solver's (what observe's areas sum), so sum(P * cell_area) is the
-        draws' mean impact area.
+    cell_area: (ny, nx) map area of each cell, m^2 (what observe's areas sum), so sum(P * cell_area) is
+        the draws' mean impact area.
     quantiles: {"h_max" | "v_max" | "h_final": {q: (ny, nx)}} for q in QUANTILES (m, m/s, m).
     n_failed: draws whose run failed (left out; their reasons in ``failures``).
     """
@@ -75,7 +75,7 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
     for s in range(0, x.shape[0], evaluator.max_batch):
         xb = x[s:s + evaluator.max_batch]
         res = evaluator.simulate(xb)
-        cell_area = res.cell_area.detach().cpu().double().numpy()
+        cell_area = np.full(res.h_max.shape[1:], res.map_cell_area)
         preds, failed, why = evaluator.predict(res)
         ok = ~failed.numpy()
         failures += [{"x": xb[i].tolist(), "reason": why[i]} for i in np.nonzero(~ok)[0]]

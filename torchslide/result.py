@@ -20,8 +20,9 @@ class GaugeSeries:
         name: gauge name.
         x, y: map coordinates, m.
         t: (T,) output times, s (shared by all members; samples after a member ended repeat its final state).
-        h: (B, T) flow thickness, m.
-        u, v: (B, T) velocity components along +x and +y, m/s.
+        h: (B, T) flow thickness normal to the slope, m.
+        u, v: (B, T) map components (along +x and +y) of the velocity along the surface, m/s.
+        w: (B, T) its vertical component z_x u + z_y v, m/s (None: a horizontal surface, w = 0).
     """
 
     name: str
@@ -31,11 +32,13 @@ class GaugeSeries:
     h: torch.Tensor
     u: torch.Tensor
     v: torch.Tensor
+    w: torch.Tensor | None = None
 
     @property
     def speed(self) -> torch.Tensor:
-        """(B, T) |u|, m/s."""
-        return torch.sqrt(self.u**2 + self.v**2)
+        """(B, T) speed along the surface sqrt(u^2 + v^2 + w^2), m/s."""
+        s2 = self.u**2 + self.v**2
+        return torch.sqrt(s2 + self.w**2 if self.w is not None else s2)
 
 
 @dataclass
@@ -44,11 +47,14 @@ class SimulationResult:
 
     Attributes:
         dem: the terrain the run used.
-        h_max: (B, ny, nx) maximum flow thickness over time, m.
-        v_max: (B, ny, nx) maximum speed over time, m/s.
-        h_final: (B, ny, nx) thickness at the end (the deposit), m.
+        h_max: (B, ny, nx) maximum flow thickness normal to the slope over time, m.
+        v_max: (B, ny, nx) maximum speed along the surface over time, m/s.
+        h_final: (B, ny, nx) thickness normal to the slope at the end (the deposit), m.
         arrival_time: (B, ny, nx) first time h > arrival threshold, s (inf where never reached).
-        cell_area: (ny, nx) area in m^2 that turns a thickness into a volume (volume = sum h * cell_area).
+        cell_area: (ny, nx) surface area of each cell, m^2 (cellsize^2 / cos theta): a normal thickness
+            times it is a volume (volume = sum h * cell_area).
+        map_cell_area: the map (planimetric) area of a cell, cellsize^2, m^2: areas of the maps
+            (impact, deposit) are map areas, as a mapped outline's.
         release_volume, final_volume, outflow_volume, entrained_volume: (B,) m^3.
         steps: (B,) time steps taken per member (int64).
         t_final: (B,) physical end time per member, s.
@@ -68,6 +74,7 @@ class SimulationResult:
     h_final: torch.Tensor
     arrival_time: torch.Tensor
     cell_area: torch.Tensor
+    map_cell_area: float
     release_volume: torch.Tensor
     final_volume: torch.Tensor
     outflow_volume: torch.Tensor
@@ -85,6 +92,10 @@ class SimulationResult:
     failed: torch.Tensor | None = None
     failure_reason: list[str | None] = field(default_factory=list)
 
+    def peak_pressure(self, density: float) -> torch.Tensor:
+        """(B, ny, nx) peak pressure density * v_max^2, kPa (``density`` in kg/m^3)."""
+        return density * self.v_max**2 / 1000.0
+
     @property
     def batch_size(self) -> int:
         return int(self.h_max.shape[0])
@@ -95,12 +106,13 @@ class SimulationResult:
         return SimulationResult(
             dem=self.dem,
             h_max=self.h_max[sl], v_max=self.v_max[sl], h_final=self.h_final[sl],
-            arrival_time=self.arrival_time[sl], cell_area=self.cell_area,
+            arrival_time=self.arrival_time[sl], cell_area=self.cell_area, map_cell_area=self.map_cell_area,
             release_volume=self.release_volume[sl], final_volume=self.final_volume[sl],
             outflow_volume=self.outflow_volume[sl], entrained_volume=self.entrained_volume[sl],
             steps=self.steps[sl], t_final=self.t_final[sl], stopped=self.stopped[sl],
             history_t=self.history_t, mass_history=self.mass_history[sl], ke_history=self.ke_history[sl],
-            gauges={k: GaugeSeries(g.name, g.x, g.y, g.t, g.h[sl], g.u[sl], g.v[sl]) for k, g in self.gauges.items()},
+            gauges={k: GaugeSeries(g.name, g.x, g.y, g.t, g.h[sl], g.u[sl], g.v[sl], None if g.w is None else g.w[sl])
+                    for k, g in self.gauges.items()},
             bed_change=None if self.bed_change is None else self.bed_change[sl],
             runtime_s=self.runtime_s,
             params={k: v[sl] for k, v in self.params.items()},

@@ -125,7 +125,7 @@ class BondoConfig:
     @classmethod
     def quick(cls, work_dir: str | None = None, **kw) -> "BondoConfig":
         """A few-minute (or less) configuration of the whole pipeline: coarse terrain, few runs."""
-        base = dict(cellsize=120.0, t_end=150.0, n_initial=8, n_adaptive=4, batch_size=2, snapshots=(0, 2, 4),
+        base = dict(cellsize=120.0, t_end=300.0, n_initial=8, n_adaptive=4, batch_size=2, snapshots=(0, 2, 4),
                     grid_size=30, sweep_n=6, cases=(1, 10), num_restarts=2, raw_samples=32, tv_lag=2,
                     name="quick", lhs_only_seed=1, dtype="float64", compile=False)
         if work_dir is not None:

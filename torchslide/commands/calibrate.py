@@ -155,6 +155,7 @@ def _run(args: argparse.Namespace) -> int:
     info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
                              "x": o.x, "y": o.y} for o in ev.observations]
     info["solver_seconds_this_invocation"] = ev.solver_seconds
+    info["conventions"] = cfg.conventions()
     fit = ev.best_fit()
     if fit is not None:
         info["best_run_fit"] = fit

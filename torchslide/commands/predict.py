@@ -137,6 +137,7 @@ def _run(args: argparse.Namespace) -> int:
                                "p50_map": float(pr.cell_area[pr.impact_probability >= 0.5].sum())},
             "observations": checks,
             "n_inside_90": int(sum(c["inside"] for c in checks)),
+            "conventions": cfg.conventions(),
         }
         (tmp / "predictive.json").write_text(json.dumps(info, indent=2))
         plot_field_map(dem, pr.impact_probability, tmp / "impact_probability.png", points=points,

@@ -3,9 +3,10 @@
 Output (one batch member, B = 1), all on the DEM grid as ESRI ASCII (``.tif`` GeoTIFFs with the DEM's CRS
 instead with ``[output] format = "tif"``)::
 
-    DIR/h_max.asc          maximum flow thickness, m
-    DIR/v_max.asc          maximum speed, m/s
-    DIR/h_final.asc        final thickness (deposit), m
+    DIR/h_max.asc          maximum flow thickness normal to the slope, m
+    DIR/v_max.asc          maximum speed along the surface, m/s
+    DIR/p_max.asc          peak pressure density * v_max^2, kPa ([model] density, default 2000 kg/m^3)
+    DIR/h_final.asc        final thickness normal to the slope (deposit), m
     DIR/arrival_time.asc   first arrival time, s (nodata where never reached)
     DIR/bed_change.asc     bed elevation change, m (only with entrainment)
     DIR/summary.json       see below
@@ -17,9 +18,10 @@ with a "folder" key], "runtime_s", ...}``.
 
 Member summary.json keys: params {name: value}, release_volume, final_volume, outflow_volume,
 entrained_volume (m^3), impact_area, deposit_area (m^2; h > threshold), deposit_volume (m^3; h_final
-over cells with h_final > threshold), threshold_m, max_h_max (m), max_v_max (m/s), runout_length (m,
-synthetic cases with a thalweg only), steps, t_final (s), stopped, runtime_s (the whole batched call),
-failed, failure_reason, gauges {name: {x, y, h_max, v_max, h_final}} (m, m/s, m; from the gauge series).
+over cells with h_final > threshold), threshold_m, max_h_max (m), max_v_max (m/s), max_p_max (kPa),
+runout_length (m, synthetic cases with a thalweg only), steps, t_final (s), stopped, runtime_s (the whole
+batched call), failed, failure_reason, gauges {name: {x, y, h_max, v_max, h_final}} (m, m/s, m; from the
+gauge series), conventions (torchslide.config.CONVENTIONS, with the input thickness and the density).
 
 Nothing is half-written: the config is validated before running, results go to a temporary folder next
 to DIR, which is moved into place at the end. Exit code 0; 1 when some member failed (non-finite run;
@@ -57,7 +59,7 @@ def _f(x) -> Any:
     return v if math.isfinite(v) else str(v)
 
 
-def member_summary(result, b: int, threshold: float, thalweg=None) -> dict[str, Any]:
+def member_summary(result, b: int, threshold: float, thalweg=None, density: float = 2000.0) -> dict[str, Any]:
     """Summary dict of member b of a SimulationResult (keys in the module docstring)."""
     from .. import observe
 
@@ -74,6 +76,7 @@ def member_summary(result, b: int, threshold: float, thalweg=None) -> dict[str, 
         "threshold_m": threshold,
         "max_h_max": _f(r.h_max[0].max()),
         "max_v_max": _f(r.v_max[0].max()),
+        "max_p_max": _f(r.peak_pressure(density)[0].max()),
     }
     if thalweg is not None:
         s["runout_length"] = _f(observe.runout_length(r, thalweg, threshold)[0])
@@ -93,7 +96,7 @@ def member_summary(result, b: int, threshold: float, thalweg=None) -> dict[str, 
     return s
 
 
-def write_member(folder: Path, result, b: int, fmt: str, output_format: str = "asc") -> None:
+def write_member(folder: Path, result, b: int, fmt: str, output_format: str = "asc", density: float = 2000.0) -> None:
     """Rasters of member b into ``folder`` (``output_format`` "asc" with values as ``fmt``, or "tif")."""
     from ..terrain.io import write_named_raster
 
@@ -102,6 +105,7 @@ def write_member(folder: Path, result, b: int, fmt: str, output_format: str = "a
 
     put("h_max", result.h_max)
     put("v_max", result.v_max)
+    put("p_max", result.peak_pressure(density))
     put("h_final", result.h_final)
     put("arrival_time", result.arrival_time)
     if result.bed_change is not None:
@@ -123,8 +127,9 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
     for b in range(B):
         folder = tmp if B == 1 else tmp / f"member-{b:03d}"
         folder.mkdir(exist_ok=True)
-        write_member(folder, result, b, fmt, cfg.output_format)
-        s = member_summary(result, b, threshold, thalweg)
+        write_member(folder, result, b, fmt, cfg.output_format, cfg.model.density)
+        s = member_summary(result, b, threshold, thalweg, cfg.model.density)
+        s["conventions"] = cfg.conventions()
         (folder / "summary.json").write_text(json.dumps(s, indent=2) + "\n")
         s["folder"] = "." if B == 1 else folder.name
         summaries.append(s)
@@ -136,6 +141,7 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
             "t_end": cfg.run.t_end,
             "runtime_s": float(result.runtime_s),
             "threshold_m": threshold,
+            "conventions": cfg.conventions(),
             "members": summaries,
         }
         (tmp / "summary.json").write_text(json.dumps(batch, indent=2) + "\n")

@@ -160,7 +160,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"every one of the {n_runs} sweep runs failed; first: {reasons[0]}") from None
     summ = summarise_grid(density, axes, names).to_dict()
     info = {"n": args.n, "n_runs": n_runs, "n_failed": int(failed.sum()), "solver_seconds": ev.solver_seconds,
-            "log_evidence": log_z, **{key: summ[key] for key in ("mean", "sd", "map", "hdr90")}}
+            "log_evidence": log_z, **{key: summ[key] for key in ("mean", "sd", "map", "hdr90")},
+            "conventions": cfg.conventions()}
     if cal is not None:
         q = interpolate_density(cal.grid_axes, cal.posterior_grid, axes)
         info["tv_to_calibration"] = tv_distance(q, density, cell_volume(axes))

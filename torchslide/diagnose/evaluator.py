@@ -177,7 +177,7 @@ class DiagnosisEvaluator(LandslideEvaluator):
             t0 = time.perf_counter()
             res = simulate(self.dem, self.release, p, t_end=self.t_end, gauges=list(self.gauges) or None,
                            config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
-                           dtype=self.dtype, device=self.device)
+                           dtype=self.dtype, device=self.device, thickness=self.thickness)
             self.solver_seconds += time.perf_counter() - t0
             preds, failed, _ = self.predict(res)
             out.append(preds.numpy())

@@ -130,7 +130,7 @@ def coarsen_result(res, dem: DEM, f: int):
     ca = res.cell_area
     ca = ca.reshape(ca.shape[0] // f, f, ca.shape[1] // f, f).sum(dim=(1, 3))
     return dataclasses.replace(res, dem=dem, h_final=mean(res.h_final), h_max=mean(res.h_max), v_max=mean(res.v_max),
-                               bed_change=mean(res.bed_change), cell_area=ca,
+                               bed_change=mean(res.bed_change), cell_area=ca, map_cell_area=res.map_cell_area * f * f,
                                arrival_time=_blocks(res.arrival_time, f).amin(dim=(2, 4)))
 
 
@@ -226,7 +226,7 @@ def fine_run(evaluator, x, factor: int = 2):
         mus_f = repeat_cells(evaluator.mu_scale, factor)
     res = simulate(dem_f, rel_f, evaluator.params(x), t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
                    config=evaluator.solver_config, erodible_depth=erod_f, mu_scale=mus_f, dtype=evaluator.dtype,
-                   device=evaluator.device)
+                   device=evaluator.device, thickness=getattr(evaluator, "thickness", "normal"))
     return coarsen_result(res, evaluator.dem, factor)
 
 

@@ -2,23 +2,39 @@
 
 Formulation
 -----------
-State per member b (tensors (B, ny, nx)): h, the flow thickness per unit *horizontal* area (m, so the
-volume is sum h * cellsize^2), and hu, hv, the horizontal momentum components (m^2/s) along the map
-axes x (columns) and y (rows, row 0 south). Per cell g_n = g cos(theta), theta the local DEM slope
-(central differences; ``SolverConfig.slope_correction=False`` uses g_n = g). Equations (paper Eq. 1-4
-on the DEM grid):
+The paper's Eq. 1-4 in surface-induced coordinates (Savage & Hutter 1991; Fischer et al. 2012, as
+RAMMS and r.avaflow use them), written on the horizontal DEM grid with the metric of the surface.
+For the bed z(x, y), per cell (central differences): grad z = (z_x, z_y), cos(theta) =
+1 / sqrt(1 + |grad z|^2), the metric G = I + grad z grad z^T and G^-1 p = p - cos^2 grad z (grad z . p).
 
-    d_t h   + d_x(h u)                    + d_y(h v)          = Q           (entrainment / deposition)
-    d_t(hu) + d_x(h u^2 + k g_n h^2 / 2)  + d_y(h u v)        = -g_n h d_x z - S_x
-    d_t(hv) + d_x(h u v)                  + d_y(h v^2 + k g_n h^2 / 2) = -g_n h d_y z - S_y
-    S = u/|u| (mu_eff g_n h + g |u|^2 / xi + tau_y)
+State per member b (tensors (B, ny, nx)): h, the thickness per unit *map* area (the vertical thickness,
+m; volume = sum h cellsize^2), and (hu, hv), the horizontal momentum (m^2/s) of the horizontal velocity
+u = (u, v), the map projection of the velocity V = (u, v, z_x u + z_y v) along the surface. The flow
+thickness normal to the slope is h_n = cos h; its speed |V| = sqrt(|u|^2 + (grad z . u)^2).
 
-On a plane z = -x tan(theta) a uniform layer feels g_n tan(theta) - mu g_n, i.e. exactly
-a = g cos(theta) (tan(theta) - mu), so the uniform-slope, Voellmy terminal-velocity
-(u^2 = xi h (sin - mu cos)) and Mangeney dam-break solutions of docs/verification.md hold with the
-grid's x as the along-slope coordinate. On a DEM of a tilted plane in map coordinates the horizontal
-acceleration should be g cos(theta) (sin(theta) - mu cos(theta)): this formulation, which has no
-metric factors of the surface, moves 1/cos(theta) too fast in map view there.
+    d_t h  + div(h u)                 = Q                                              (mass)
+    d_t(hu) + div(h u (x) u)          = -G^-1 [ g h grad z + grad(k g_n h_n^2 / 2) / cos
+                                                 + (u^T H u) h grad z ] - S / cos          (momentum)
+    S = V/|V| (mu_eff g_n h_n + tau_y + g |V|^2 / xi)  projected on the map,  g_n = g cos(theta)
+
+H is the DEM Hessian: (u^T H u) h grad z is the bed's reaction that keeps the flow on a curved surface
+(a point mass then conserves g z + |V|^2 / 2). The pressure is the hydrostatic one of the normal
+thickness, k g_n h_n^2 / 2 per unit bed width. Friction (friction.py) acts along the surface on
+Q = h V and so stops but never reverses. Entrainment erodes kappa |V| normal to the bed per unit bed
+area; the candidate terms use h_n, |V| and g_n (torchslide.physics).
+
+On a plane of slope theta this gives, for a uniform layer, the horizontal acceleration
+g cos(theta) (sin(theta) - mu cos(theta)) along the dip, i.e. g (sin - mu cos) along the surface, in any
+plan orientation; the Voellmy terminal speed |V|^2 = xi h_n (sin - mu cos); the Mangeney dam break and
+the Savage-Hutter similarity solution mapped to map coordinates (x_map = x cos(theta)); and a release
+of normal thickness h_n on the plane holds h_n x its surface area (docs/verification.md).
+``SolverConfig.slope_correction=False`` drops the metric (cos = 1, G = I): the classic shallow-water
+equations of a fluid with vertical hydrostatic pressure (a lake at rest is then exact on any bed).
+
+Inputs and outputs follow the field's conventions: the release and erodible depths are normal to the
+slope (``simulate(thickness="normal")``, the default; "vertical" takes them per unit map area); h_max,
+h_final and gauge h are normal thicknesses, v_max and gauge speeds are along the surface;
+``SimulationResult.cell_area`` is the surface area of each cell (volume = sum h_n cell_area).
 
 Scheme
 ------
@@ -27,19 +43,20 @@ reconstruction of the surface w = h + z in wet cells and of h at wet/dry fronts,
 (mean of the two cells, exact for a plane), desingularised velocities, and a pressure/bed-source pair
 written per cell,
 
-    -(k g_n)_j (Phi_{j+1/2} - Phi_{j-1/2}) / dx  -  (g_n)_j hbar_j (B_{j+1/2} - B_{j-1/2}) / dx,
+    -(k g_n cos)_j (Phi_{j+1/2} - Phi_{j-1/2}) / dx  -  g hbar_j (B_{j+1/2} - B_{j-1/2}) / dx,
 
-with Phi the central-upwind average of h^2/2 at a face and hbar the mean face thickness of the cell.
-This balances a lake at rest exactly (even where g_n varies from cell to cell) and drives a uniform
-layer on a plane exactly (docs/verification.md, cases 1-2). Positivity for any dt: draining-flux limiter (Bollermann
+with Phi the central-upwind average of h^2/2 at a face and hbar the mean face thickness of the cell;
+this horizontal gradient (plus the curvature reaction) is then turned along the surface by G^-1 per
+cell. Without the metric it balances a lake at rest exactly, and with it it drives a uniform layer on a
+plane exactly (docs/verification.md, cases 1-2). Positivity for any dt: draining-flux limiter (Bollermann
 et al. 2013), so the mass update is conservative to round-off (outflow through the boundaries is
 counted). The DEM edge is an outflow boundary by default (zero-gradient ghost cells; a face whose flux
 points into the domain carries nothing in, so a flow touching the upslope edge is not fed from outside);
 SolverConfig(boundary="open") makes it transmissive, as the infinite-plane verification cases need.
 SSP-RK2 (Heun) in time; each stage is flux + bed source, then entrainment / deposition, then friction on the whole momentum vector (friction.py: stops, never reverses; turbulent
 term implicit). A cell stopped by friction in both stages is set exactly at rest. No creep: a face
-between two resting cells whose driving jump |k g_n dh + g_n dz| friction can hold passes no flux
-(D-Claw rule).
+between two resting cells where friction can hold the driving force, measured along the surface, passes
+no flux (the D-Claw rule; scheme.frozen_faces).
 
 Per-member time steps: dt_b from the CFL condition, clipped so members land exactly on the output
 times; all members advance together with a (B, 1, 1) dt; an ended member has dt_b = 0 (bitwise

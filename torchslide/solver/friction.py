@@ -1,15 +1,19 @@
 """Basal friction (paper Eq. 4) and the friction-side candidate terms.
 
-S = u/|u| (mu_eff g_n_eff h + tau_y) + g |u| u / xi        (stress / density, m^2/s^2)
+S = V/|V| (mu_eff g_n_eff h_n + tau_y + g |V|^2 / xi)        (stress / density per unit bed area, m^2/s^2)
 
-applied to the whole momentum vector q = h u as a fractional step that can stop but never reverse:
+with h_n the normal thickness and V the velocity along the surface, applied per unit horizontal area
+(bed area per horizontal area 1 / cos) to the momentum along the surface Q = h V (h the thickness per
+horizontal area, |Q| = sqrt(|q|^2 + (grad z . q)^2) for the horizontal momentum q) as a fractional
+step that can stop but never reverse:
 
-    q_c = q * max(0, 1 - dt (mu_eff g_n_eff h + tau_y) / |q|)          (Coulomb + yield, clipped)
-    q   = q_c * 2 / (1 + sqrt(1 + 4 a |q_c|)),   a = dt g / (xi h^2)     (turbulent, implicit)
+    Q_c = Q * max(0, 1 - dt (mu_eff g_n_eff h_n + tau_y) / (cos |Q|))     (Coulomb + yield, clipped)
+    Q   = Q_c * 2 / (1 + sqrt(1 + 4 a |Q_c|)),   a = dt g / (xi cos h^2)     (turbulent, implicit)
 
-the second line solves q + dt g |q| q / (xi h^2) = q_c exactly, so a steady state of the step is
-exactly g |u|^2 / xi = g_n h (tan(theta) - mu), i.e. the Voellmy terminal velocity
-u^2 = xi h (sin(theta) - mu cos(theta)) on a plane (docs/verification.md, case 3), independent of dt.
+the second line solves Q + dt g |Q| Q / (xi cos h^2) = Q_c exactly, so a steady state on a plane is
+exactly g |V|^2 / (xi cos) = g h (sin(theta) - mu cos(theta)), i.e. the Voellmy terminal velocity
+|V|^2 = xi h_n (sin(theta) - mu cos(theta)) along the surface (docs/verification.md, case 3),
+independent of dt.
 """
 from __future__ import annotations
 
@@ -40,28 +44,33 @@ def mu_effective(mu_c: Tensor, mu_i: Tensor, speed: Tensor, h: Tensor, gn: Tenso
     return mu_c + mu_i * inertial / (MU_I_I0 + inertial)
 
 
-def curvature_gn(gn: Tensor, scale: Tensor, u: Tensor, v: Tensor, hess: tuple[Tensor, Tensor, Tensor],
-                 grad2: Tensor) -> Tensor:
-    """g_n_eff = max(0, g_n + c (u^T H u) / (1 + |grad z|^2)): centrifugal normal acceleration.
+def curvature_gn(gn: Tensor, scale: Tensor, cent: Tensor) -> Tensor:
+    """g_n_eff = max(0, g_n + c cent): the normal acceleration with the centrifugal part.
 
-    H = (z_xx, z_xy, z_yy) is the DEM Hessian (positive in hollows, so flow through a hollow presses
-    harder on the bed); c is the ``curvature`` switch (0 = no curvature term).
+    cent = cos(theta) u^T H u is the normal acceleration a point needs to follow the surface (H the DEM
+    Hessian, positive in hollows, so flow through a hollow presses harder on the bed; u horizontal);
+    c is the ``curvature`` switch (0 = no curvature term).
     """
-    zxx, zxy, zyy = hess
-    cent = (zxx * u * u + 2.0 * zxy * u * v + zyy * v * v) / (1.0 + grad2)
     return torch.clamp(gn + scale * cent, min=0.0)
 
 
 def apply_friction(h: Tensor, qx: Tensor, qy: Tensor, dt: Tensor, coul: Tensor, xi: Tensor,
-                   g: float, h_eps: float) -> tuple[Tensor, Tensor]:
-    """One friction fractional step on the momentum vector (stops, never reverses).
+                   g: float, h_eps: float, slope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
+    """One friction fractional step on the momentum along the surface (stops, never reverses).
+
+    The momentum along the surface of the horizontal momentum q = (qx, qy) is Q = (qx, qy, z_x qx +
+    z_y qy); friction opposes Q and scales it, so it scales q by the same factor.
 
     Args:
-        h: (B, ny, nx) thickness, m; qx, qy: momentum, m^2/s; dt: (B, 1, 1) s.
-        coul: resisting stress mu_eff g_n_eff h + tau_y, m^2/s^2 (broadcastable).
-        xi: (B, 1, 1) Voellmy coefficient, m/s^2 (inf: no turbulent term).
+        h: (B, ny, nx) thickness per horizontal area, m; qx, qy: horizontal momentum, m^2/s; dt: (B, 1, 1) s.
+        coul: resisting force per horizontal area (mu_eff g_n_eff h_n + tau_y) / cos, m^2/s^2 (broadcastable).
+        xi: (B, 1, 1) or per cell Voellmy coefficient times cos theta, m/s^2 (inf: no turbulent term);
+            the turbulent force per horizontal area is g |Q|^2 / (xi cos h^2).
+        slope: (z_x, z_y) of the bed.
     """
-    qn = torch.sqrt(qx * qx + qy * qy)
+    zx, zy = slope
+    w = zx * qx + zy * qy
+    qn = torch.sqrt(qx * qx + qy * qy + w * w)
     moving = qn > 0
     qs = torch.where(moving, qn, torch.ones_like(qn))
     keep = torch.where(moving, torch.clamp(1.0 - dt * coul / qs, min=0.0), torch.zeros_like(qn))

@@ -94,22 +94,20 @@ def bed_terms(z: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor
     return zp, zL, zR, Bf, bias
 
 
-def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, rest: Tensor,
-          mu_c: Tensor, tau: Tensor, d: int, dx: float, theta: float, h_wet: float, no_creep: bool,
-          wb_ratio: float = 0.25, bed=None):
+def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tensor | None, d: int,
+          theta: float, h_wet: float, wb_ratio: float = 0.25, bed=None):
     """Central-upwind fluxes along direction ``d``.
 
     Args:
-        h: (B, ny, nx) thickness, m; un, ut: velocity normal / tangential to the faces, m/s.
-        z: (B or 1, ny, nx) bed, m. kg: k g_n per cell (pressure coefficient), gn: g_n per cell, m/s^2.
-        rest: (B, ny, nx) bool, cell momentum exactly zero. mu_c: Coulomb coefficient per cell;
-        tau: yield stress / density (m^2/s^2), broadcastable. bed: ``bed_terms(z, d)`` when the caller
-        has it (None: computed here).
+        h: (B, ny, nx) thickness per unit horizontal area, m; un, ut: horizontal velocity normal /
+        tangential to the faces, m/s. z: (B or 1, ny, nx) bed, m. kg: pressure coefficient per cell,
+        m/s^2 (the pressure is kg h^2 / 2). frozen: (B, ...) bool at the n + 1 faces (no flux), or None.
+        bed: ``bed_terms(z, d)`` when the caller has it (None: computed here).
     Returns:
         Fh, Fqn, Fqt: mass and momentum fluxes (normal, tangential) at the n + 1 faces (per unit width);
-        phi: the face pressure potential (a+ h-^2/2 - a- h+^2/2)/(a+ - a-) (times k g_n of the cell it
+        phi: the face pressure potential (a+ h-^2/2 - a- h+^2/2)/(a+ - a-) (times kg of the cell it
         enters); hbar, dB: per cell mean face thickness and bed difference (east - west) for the
-        well-balanced bed source -g_n hbar dB/dx (KP07 Eq. 3.13); amax: (B,) largest one-sided speed.
+        well-balanced bed source g hbar dB/dx (KP07 Eq. 3.13); amax: (B,) largest one-sided speed.
     """
     n = h.shape[d]
     hp = torch.clamp(pad_linear(h, d), min=0.0)
@@ -145,30 +143,68 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, gn: Tensor, 
     Fqn = (ap * qL * uL - am * qR * uR) * inv + apam * (qR - qL)
     Fqt = (ap * qL * tL - am * qR * tR) * inv + apam * (hR * tR - hL * tL)
     phi = 0.5 * (ap * hL * hL - am * hR * hR) * inv
-    if no_creep:
-        # D-Claw "no failure" rule: both cells at rest and friction holds the driving jump
-        restL, restR = faces_of(pad_replicate(rest, d), d, n)
-        hcL, hcR = faces_of(hp, d, n)
-        # bed-only (1, ny, nx) and per-member (B, 1, 1) fields are padded without expanding to B
-        gnL, gnR = faces_of(pad_replicate(gn, d), d, n)
-        if mu_c.shape[-1] == 1 and mu_c.shape[-2] == 1:
-            muf = mu_c  # one value per member: the face mean is the value itself
-        else:
-            muL, muR = faces_of(pad_replicate(mu_c, d), d, n)
-            muf = 0.5 * (muL + muR)
-        hbf = 0.5 * (hcL + hcR)
-        gnf = 0.5 * (gnL + gnR)
-        drive = torch.abs(0.5 * (kgL + kgR) * (hcR - hcL) + gnf * (zR - zL)) * hbf
-        hold = dx * (muf * gnf * hbf + tau)
-        frozen = restL & restR & (drive <= hold)
-        keep = ~frozen
-        Fh = torch.where(keep, Fh, zero)
-        Fqn = torch.where(keep, Fqn, zero)
-        Fqt = torch.where(keep, Fqt, zero)
+    if frozen is not None:
+        Fh = torch.where(frozen, zero, Fh)
+        Fqn = torch.where(frozen, zero, Fqn)
+        Fqt = torch.where(frozen, zero, Fqt)
     hbar = 0.5 * (hR.narrow(d, 0, n) + hL.narrow(d, 1, n))
     dB = Bf.narrow(d, 1, n) - Bf.narrow(d, 0, n)
     amax = torch.maximum(ap, -am).amax(dim=(1, 2))
     return Fh, Fqn, Fqt, phi, hbar, dB, amax
+
+
+def _face_drive(h: Tensor, kg: Tensor, bed, g: float, d: int, dx: float) -> tuple[Tensor, Tensor]:
+    """Signed horizontal driving force per unit horizontal area at the n + 1 faces along ``d``,
+    -(kg dh + g dz) hbar / dx (positive towards +d), and the face mean thickness hbar, m."""
+    n = h.shape[d]
+    hp = torch.clamp(pad_linear(h, d), min=0.0)
+    hcL, hcR = faces_of(hp, d, n)
+    kgL, kgR = faces_of(pad_replicate(kg.expand_as(h) if kg.shape != h.shape else kg, d), d, n)
+    _, zL, zR, _, _ = bed
+    hbf = 0.5 * (hcL + hcR)
+    return -(0.5 * (kgL + kgR) * (hcR - hcL) + g * (zR - zL)) * hbf / dx, hbf
+
+
+def _face_mean(q: Tensor, d: int) -> Tensor:
+    """Mean of the two cells beside each of the n + 1 faces along ``d`` (edge value replicated)."""
+    n = q.shape[d]
+    qL, qR = faces_of(pad_replicate(q, d), d, n)
+    return 0.5 * (qL + qR)
+
+
+def frozen_faces(h: Tensor, kg: Tensor, rest: Tensor, hold: tuple[Tensor, Tensor], g: float, dx: float,
+                 slope: tuple[Tensor, Tensor, Tensor], beds) -> tuple[Tensor, Tensor]:
+    """Faces that pass no flux (no creep; the D-Claw "no failure" rule on a sloping surface).
+
+    A face is frozen when both cells beside it are at rest and friction can hold the driving force
+    there: the horizontal drive f per unit map area, whose face-normal component is -(kg dh + g dz)
+    hbar / dx from the face itself and whose tangential component is the bed's, -g hbar dz/dt (cell
+    slopes), measured along the surface, |F_s|^2 = |f|^2 - cos^2 (grad z . f)^2 (the norm of the
+    metric's inverse), against hold = mu g_n hbar + tau_y / cos. On a plane the test is the same in
+    any plan orientation.
+
+    Args:
+        h: (B, ny, nx) thickness per map area, m; kg: pressure coefficient per cell, m/s^2;
+        rest: (B, ny, nx) bool, momentum exactly zero; hold: (mu g_n per cell, tau_y / cos per cell),
+        broadcastable; slope: (z_x, z_y, cos theta) per cell; beds: (bed_terms along x, along y).
+    Returns:
+        (frozen x faces (B, ny, nx + 1), frozen y faces (B, ny + 1, nx)).
+    """
+    zx, zy, cs = slope
+    muc, tauc = hold
+    out = []
+    for d, bed in ((2, beds[0]), (1, beds[1])):
+        f_n, hf = _face_drive(h, kg, bed, g, d, dx)
+        zxf, zyf, csf, muf, tauf = (_face_mean(q.expand_as(h) if q.shape != h.shape else q, d)
+                                    for q in (zx, zy, cs, muc, tauc))
+        f_t = -g * (zyf if d == 2 else zxf) * hf
+        ax, ay = (f_n, f_t) if d == 2 else (f_t, f_n)
+        along = zxf * ax + zyf * ay
+        drive2 = ax * ax + ay * ay - csf * csf * along * along
+        lim = muf * hf + tauf
+        restL, restR = faces_of(pad_replicate(rest, d), d, h.shape[d])
+        out.append(restL & restR & (drive2 <= lim * lim))
+    return out[0], out[1]
 
 
 def diff(F: Tensor, d: int) -> Tensor:

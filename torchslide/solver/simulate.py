@@ -15,14 +15,17 @@ from ..terrain.grid import DEM
 from . import crop as _crop
 from .config import SolverConfig
 from .friction import desingularised_velocity
-from .stepping import StepFlags, make_step, static_geometry
+from .stepping import StepFlags, make_step, static_geometry, surface_geometry
 
 Tensor = torch.Tensor
 
 # per-member entries of the state dict (first dimension = member); "z" only when the bed evolves
 _MEMBER_KEYS = ("h", "hu", "hv", "outflow", "t", "t_next", "k_out", "active", "ke_peak", "h_max", "v_max",
                 "arrival", "steps", "ke", "mass", "hit", "dt", "failed", "stopped",
-                "g_h", "g_u", "g_v", "mass_hist", "ke_hist")
+                "g_h", "g_u", "g_v", "g_w", "mass_hist", "ke_hist")
+
+THICKNESS = ("normal", "vertical")
+"""Conventions of an input thickness: normal to the slope (the field's, default) or vertical."""
 
 _STEP_CACHE: dict = {}
 
@@ -61,7 +64,7 @@ def _get_step(F: StepFlags, compile_: bool):
         step = make_step(F)
 
         def advance(S: dict, P: dict, out_times: Tensor, gidx: Tensor, gin: Tensor) -> dict:
-            return _record(step(S, P), out_times, gidx, F.h_eps, out_times.shape[0], gin)
+            return _record(step(S, P), out_times, gidx, F.h_eps, out_times.shape[0], P["rec"], gin)
 
         fn = _with_recompile_limit(torch.compile(advance, dynamic=True)) if compile_ else advance
         _STEP_CACHE[key] = fn
@@ -86,11 +89,14 @@ def _with_recompile_limit(compiled):
     return call
 
 
-def _record(S: dict, out_times: Tensor, gidx: Tensor, h_eps: float, K: int, gin: Tensor | None = None) -> dict:
+def _record(S: dict, out_times: Tensor, gidx: Tensor, h_eps: float, K: int, rec: tuple,
+            gin: Tensor | None = None) -> dict:
     """Write the current state into output slot k_out of members that just reached an output time.
 
-    gidx: (G,) flat gauge indices into the (cropped) rasters of S; gin: (G,) bool, gauge inside the
-    cropped window (outside it the flow has never been: the gauge reads 0); None = all inside.
+    gidx: (G,) flat gauge indices into the (cropped) rasters of S; rec: (z_x, z_y, cos theta) rasters
+    of the same window; gin: (G,) bool, gauge inside the cropped window (outside it the flow has never
+    been: the gauge reads 0); None = all inside. Gauges record the normal thickness and the velocity
+    along the surface (u, v, w = z_x u + z_y v).
     """
     hit = S["hit"]
     k = S["k_out"].clamp(max=K - 1)
@@ -103,8 +109,9 @@ def _record(S: dict, out_times: Tensor, gidx: Tensor, h_eps: float, K: int, gin:
             hf, hu, hv = (torch.where(gin, x, torch.zeros_like(x)) for x in (hf, hu, hv))
         uf = desingularised_velocity(hf, hu, h_eps)
         vf = desingularised_velocity(hf, hv, h_eps)
+        zx, zy, cs = (r.expand(1, *r.shape[-2:]).flatten(1)[:, gidx] for r in rec)
         kg = k.view(-1, 1, 1).expand(-1, gidx.numel(), 1)
-        for key, val in (("g_h", hf), ("g_u", uf), ("g_v", vf)):
+        for key, val in (("g_h", cs * hf), ("g_u", uf), ("g_v", vf), ("g_w", zx * uf + zy * vf)):
             cur = S[key].gather(2, kg)
             S[key] = S[key].scatter(2, kg, torch.where(hit.view(-1, 1, 1), val.unsqueeze(2), cur))
     kk = k.view(-1, 1)
@@ -120,31 +127,37 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
              gauges: Sequence[tuple[str, float, float]] | None = None,
              config: SolverConfig | None = None, erodible_depth=None, mu_scale=None,
              dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu",
-             progress: bool = False) -> SimulationResult:
+             progress: bool = False, thickness: str = "normal") -> SimulationResult:
     """Run B members (one per parameter set) from a release on a DEM until t_end or until they stop.
 
     Args:
         dem: terrain (z (ny, nx), cellsize m).
-        release: (ny, nx) shared or (B, ny, nx) initial flow thickness, m (>= 0, finite).
+        release: (ny, nx) shared or (B, ny, nx) initial flow thickness, m (>= 0, finite), measured
+            as ``thickness`` says.
         params: B parameter sets (torchslide.physics.Params).
         t_end: end time, s (> 0).
         gauges: (name, x, y) map points sampled every ``config.output_interval`` s.
         config: numerical settings (SolverConfig()).
-        erodible_depth: (ny, nx) erodible bed depth, m, for entrainment (kappa > 0).
+        erodible_depth: (ny, nx) erodible bed depth, m, for entrainment (kappa > 0), measured as
+            ``thickness`` says.
         mu_scale: (ny, nx) per-cell friction multiplier (> 0) applied to mu.
         dtype, device: where the run happens (float64 default; float32 allowed).
         progress: show a tqdm bar of the slowest member's time.
+        thickness: "normal" (default, the field's convention: thickness normal to the slope) or
+            "vertical" (thickness along the vertical, i.e. volume per unit map area).
     Returns:
         SimulationResult (see torchslide.result); failed members are flagged, never silent.
     """
     t0_wall = time.perf_counter()
     cfg = config or SolverConfig()
     cfg.validate()
-    _check_call(dem, params, dtype, t_end)
+    _check_call(dem, params, dtype, t_end, thickness)
     device = torch.device(device)
     params.validate()
     P0 = params.to(device=device, dtype=dtype)
-    inp = _inputs(dem, release, P0, erodible_depth, mu_scale, gauges, dtype, device)
+    z0 = torch.as_tensor(dem.z, dtype=dtype, device=device).unsqueeze(0)
+    metric = surface_geometry(z0, float(dem.cellsize), cfg.slope_correction, False)[:3]
+    inp = _inputs(dem, release, P0, erodible_depth, mu_scale, gauges, dtype, device, metric, thickness)
     F = _step_flags(cfg, P0, inp, float(dem.cellsize))
     out_times = _output_times(t_end, cfg.output_interval, dtype, device)
     S = _initial_state(inp, P0.B, dem, out_times, cfg, dtype, device)
@@ -153,7 +166,10 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     return _result(S, exceeded, P0, inp, dem, out_times, release_volume, cfg, time.perf_counter() - t0_wall)
 
 
-def _check_call(dem: DEM, params: Params, dtype: torch.dtype, t_end: float) -> None:
+def _check_call(dem: DEM, params: Params, dtype: torch.dtype, t_end: float, thickness: str) -> None:
+    if thickness not in THICKNESS:
+        raise ValueError(f"thickness must be one of {THICKNESS} (the convention of the release and "
+                         f"erodible depths), got {thickness!r}")
     if not isinstance(dem, DEM):
         raise ValueError(f"dem must be a torchslide.terrain.DEM, got {type(dem).__name__}")
     if not isinstance(params, Params):
@@ -166,9 +182,10 @@ def _check_call(dem: DEM, params: Params, dtype: torch.dtype, t_end: float) -> N
 
 @dataclass
 class _Inputs:
-    """The checked rasters and gauges of a call: h0 (B, ny, nx) m; erod0, mu_scale (ny, nx) or None;
-    gauges [(name, x, y)] and their flat cell indices; use_ent / use_dep: some member entrains /
-    deposits (the bed then evolves)."""
+    """The checked rasters and gauges of a call: h0 (B, ny, nx) and erod0 (ny, nx) or None, per unit
+    map area (vertical thickness), m; mu_scale (ny, nx) or None; gauges [(name, x, y)] and their flat
+    cell indices; use_ent / use_dep: some member entrains / deposits (the bed then evolves);
+    metric: (z_x, z_y, cos theta) of the DEM, each (1, ny, nx)."""
 
     h0: Tensor
     erod0: Tensor | None
@@ -177,26 +194,31 @@ class _Inputs:
     gidx: list
     use_ent: bool
     use_dep: bool
+    metric: tuple
 
     @property
     def evolve(self) -> bool:
         return self.use_ent or self.use_dep
 
 
-def _inputs(dem: DEM, release, P0: Params, erodible_depth, mu_scale, gauges, dtype, device) -> _Inputs:
-    """Convert and check the rasters and gauges (ValueError naming the input and the value)."""
+def _inputs(dem: DEM, release, P0: Params, erodible_depth, mu_scale, gauges, dtype, device, metric: tuple,
+            thickness: str) -> _Inputs:
+    """Convert and check the rasters and gauges (ValueError naming the input and the value); a
+    thickness normal to the slope becomes the thickness per unit map area h / cos(theta)."""
+    per_map_area = metric[2].squeeze(0) if thickness == "normal" else torch.ones_like(metric[2].squeeze(0))
     B = P0.B
     ny, nx = dem.shape
     rel = _as_tensor(release, "release", dtype, device)
     _check_raster(rel, "release", (ny, nx), allow_batch=True)
     if rel.ndim == 3 and rel.shape[0] != B:
         raise ValueError(f"release has {rel.shape[0]} members (shape {tuple(rel.shape)}) but params has B = {B}")
-    h0 = rel.expand(B, ny, nx).clone() if rel.ndim == 2 else rel.clone()
+    h0 = (rel.expand(B, ny, nx) if rel.ndim == 2 else rel) / per_map_area
     use_ent = bool((P0.kappa > 0).any())
     erod0 = None
     if erodible_depth is not None:
         erod0 = _as_tensor(erodible_depth, "erodible_depth", dtype, device)
         _check_raster(erod0, "erodible_depth", (ny, nx), allow_batch=False)
+        erod0 = erod0 / per_map_area
     elif use_ent:
         b = int(torch.nonzero(P0.kappa > 0)[0])
         raise ValueError(f"parameter kappa[{b}] = {float(P0.kappa[b])} > 0 needs an erodible_depth raster")
@@ -215,7 +237,7 @@ def _inputs(dem: DEM, release, P0: Params, erodible_depth, mu_scale, gauges, dty
         names.append(str(name))
     if len(set(names)) != len(names):
         raise ValueError(f"gauge names must be unique, got {names}")
-    return _Inputs(h0, erod0, ms, gauge_list, gidx, use_ent, bool((P0.deposition > 0).any()))
+    return _Inputs(h0, erod0, ms, gauge_list, gidx, use_ent, bool((P0.deposition > 0).any()), metric)
 
 
 def _step_flags(cfg: SolverConfig, P0: Params, inp: _Inputs, dx: float) -> StepFlags:
@@ -259,8 +281,9 @@ def _initial_state(inp: _Inputs, B: int, dem: DEM, out_times: Tensor, cfg: Solve
         "k_out": torch.zeros(B, dtype=torch.long, device=device),
         "active": torch.ones(B, dtype=torch.bool, device=device),
         "ke_peak": zeros_b.clone(),
-        "h_max": h0.clone(), "v_max": torch.zeros_like(h0),
-        "arrival": torch.where(h0 > cfg.arrival_threshold, torch.zeros_like(h0), torch.full_like(h0, math.inf)),
+        "h_max": h0 * inp.metric[2], "v_max": torch.zeros_like(h0),
+        "arrival": torch.where(h0 * inp.metric[2] > cfg.arrival_threshold, torch.zeros_like(h0),
+                               torch.full_like(h0, math.inf)),
         "steps": torch.zeros(B, dtype=torch.long, device=device),
         "ke": zeros_b.clone(), "mass": h0.sum(dim=(1, 2)) * cell_area,
         "hit": torch.ones(B, dtype=torch.bool, device=device), "dt": zeros_b.clone(),
@@ -269,11 +292,12 @@ def _initial_state(inp: _Inputs, B: int, dem: DEM, out_times: Tensor, cfg: Solve
         "g_h": torch.zeros(B, G_, K, dtype=dtype, device=device),
         "g_u": torch.zeros(B, G_, K, dtype=dtype, device=device),
         "g_v": torch.zeros(B, G_, K, dtype=dtype, device=device),
+        "g_w": torch.zeros(B, G_, K, dtype=dtype, device=device),
         "mass_hist": torch.zeros(B, K, dtype=dtype, device=device),
         "ke_hist": torch.zeros(B, K, dtype=dtype, device=device),
     }
     # slot 0 = the initial state
-    S = _record(S, out_times, torch.tensor(inp.gidx, dtype=torch.long, device=device), cfg.h_eps, K)
+    S = _record(S, out_times, torch.tensor(inp.gidx, dtype=torch.long, device=device), cfg.h_eps, K, inp.metric)
     S["hit"] = torch.zeros(B, dtype=torch.bool, device=device)
     return S
 
@@ -318,6 +342,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
         P_ = dict(Pw)
         if P_.get("mu_scale") is not None and not b.covers(ny, nx):
             P_["mu_scale"] = P_["mu_scale"][:, b.r0:b.r1, b.c0:b.c1].contiguous()
+        P_["rec"] = tuple(m[:, b.r0:b.r1, b.c0:b.c1].contiguous() for m in inp.metric)
         if not inp.evolve:  # the bed terms of this box, once (not once per step)
             P_["geo"] = static_geometry(sub_["z"], F)
         gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
@@ -382,30 +407,32 @@ def _result(S: dict, exceeded: Tensor, P0: Params, inp: _Inputs, dem: DEM, out_t
     """The SimulationResult of the final state: samples after a member ended repeat its final state."""
     B, ny, nx = S["h"].shape
     K = out_times.shape[0]
-    cell_area = float(dem.cellsize) ** 2
+    map_area = float(dem.cellsize) ** 2
+    zx, zy, cs = (m.squeeze(0) for m in inp.metric)
     after = torch.arange(K, device=out_times.device).view(1, K) >= S["k_out"].view(B, 1)
     uF = desingularised_velocity(S["h"], S["hu"], cfg.h_eps)
     vF = desingularised_velocity(S["h"], S["hv"], cfg.h_eps)
+    wF = zx * uF + zy * vF
     S["mass_hist"] = torch.where(after, S["mass"].view(B, 1), S["mass_hist"])
     S["ke_hist"] = torch.where(after, S["ke"].view(B, 1), S["ke_hist"])
     gauges_out: dict[str, GaugeSeries] = {}
     for gi, (name, gx, gy) in enumerate(inp.gauges):
         fi = inp.gidx[gi]
-        gh = torch.where(after, S["h"].flatten(1)[:, fi].view(B, 1), S["g_h"][:, gi])
-        gu = torch.where(after, uF.flatten(1)[:, fi].view(B, 1), S["g_u"][:, gi])
-        gv = torch.where(after, vF.flatten(1)[:, fi].view(B, 1), S["g_v"][:, gi])
-        gauges_out[str(name)] = GaugeSeries(str(name), float(gx), float(gy), out_times, gh, gu, gv)
-    h_final = S["h"] + S["dep"] if inp.use_dep else S["h"]
+        final = {"g_h": (cs * S["h"]).flatten(1), "g_u": uF.flatten(1), "g_v": vF.flatten(1), "g_w": wF.flatten(1)}
+        gh, gu, gv, gw = (torch.where(after, final[k][:, fi].view(B, 1), S[k][:, gi]) for k in ("g_h", "g_u", "g_v", "g_w"))
+        gauges_out[str(name)] = GaugeSeries(str(name), float(gx), float(gy), out_times, gh, gu, gv, gw)
+    per_map = S["h"] + S["dep"] if inp.use_dep else S["h"]
+    h_final = cs * per_map
     if inp.use_ent:
-        entrained = (inp.erod0.unsqueeze(0) - S["erod"]).sum(dim=(1, 2)) * cell_area
+        entrained = (inp.erod0.unsqueeze(0) - S["erod"]).sum(dim=(1, 2)) * map_area
     else:
         entrained = torch.zeros_like(release_volume)
     z0 = torch.as_tensor(dem.z, dtype=S["h"].dtype, device=S["h"].device).unsqueeze(0)
     bed_change = S["z"] - z0 if inp.evolve else (torch.zeros_like(inp.h0) if inp.erod0 is not None else None)
     return SimulationResult(
         dem=dem, h_max=S["h_max"], v_max=S["v_max"], h_final=h_final, arrival_time=S["arrival"],
-        cell_area=torch.full((ny, nx), cell_area, dtype=S["h"].dtype, device=S["h"].device),
-        release_volume=release_volume, final_volume=h_final.sum(dim=(1, 2)) * cell_area, outflow_volume=S["outflow"],
+        cell_area=map_area / cs, map_cell_area=map_area,
+        release_volume=release_volume, final_volume=per_map.sum(dim=(1, 2)) * map_area, outflow_volume=S["outflow"],
         entrained_volume=entrained, steps=S["steps"], t_final=S["t"], stopped=S["stopped"],
         history_t=out_times, mass_history=S["mass_hist"], ke_history=S["ke_hist"], gauges=gauges_out,
         bed_change=bed_change, runtime_s=runtime_s, params=P0.as_dict(),

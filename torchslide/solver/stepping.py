@@ -13,7 +13,7 @@ import torch
 
 from ..physics import FR_DEP
 from .friction import apply_friction, curvature_gn, desingularised_velocity, mu_effective
-from .scheme import bed_terms, diff, draining_factors, pad_linear, pad_replicate, sweep
+from .scheme import bed_terms, diff, draining_factors, frozen_faces, pad_linear, pad_replicate, sweep
 
 Tensor = torch.Tensor
 
@@ -45,34 +45,55 @@ class StepFlags:
     inflow: bool = False      # SolverConfig.boundary == "open": boundary faces may carry mass into the domain
 
 
-def _geometry(z: Tensor, F: StepFlags):
-    """Slope-dependent fields from the bed z (B or 1, ny, nx): g_n, |grad z|^2 and the Hessian."""
+def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool):
+    """Metric fields of the bed surface z (B or 1, ny, nx), central differences (linear ghost cells).
+
+    Returns (z_x, z_y, cos theta, Hessian (z_xx, z_xy, z_yy) or None). cos theta = 1 / sqrt(1 + |grad z|^2).
+    Without ``slope_correction`` the metric is that of a horizontal plane (z_x = z_y = 0, cos = 1: the
+    classic shallow-water equations); the Hessian is then only computed when ``hessian`` is asked.
+    """
     ny, nx = z.shape[1], z.shape[2]
     zpx = pad_linear(z, 2)
     zpy = pad_linear(z, 1)
-    zx = (zpx.narrow(2, 3, nx) - zpx.narrow(2, 1, nx)) / (2 * F.dx)
-    zy = (zpy.narrow(1, 3, ny) - zpy.narrow(1, 1, ny)) / (2 * F.dx)
-    grad2 = zx * zx + zy * zy
-    if F.slope_correction:
-        gn = F.g / torch.sqrt(1.0 + grad2)
-    else:
-        gn = torch.full_like(z, F.g)
+    zx = (zpx.narrow(2, 3, nx) - zpx.narrow(2, 1, nx)) / (2 * dx)
+    zy = (zpy.narrow(1, 3, ny) - zpy.narrow(1, 1, ny)) / (2 * dx)
     hess = None
-    if F.use_curv:
-        zxx = (zpx.narrow(2, 3, nx) - 2 * z + zpx.narrow(2, 1, nx)) / F.dx**2
-        zyy = (zpy.narrow(1, 3, ny) - 2 * z + zpy.narrow(1, 1, ny)) / F.dx**2
+    if slope_correction or hessian:
+        zxx = (zpx.narrow(2, 3, nx) - 2 * z + zpx.narrow(2, 1, nx)) / dx**2
+        zyy = (zpy.narrow(1, 3, ny) - 2 * z + zpy.narrow(1, 1, ny)) / dx**2
         zp2 = pad_linear(zpx, 1)  # (.., ny+4, nx+4)
         zxy = (zp2[:, 3:ny + 3, 3:nx + 3] - zp2[:, 3:ny + 3, 1:nx + 1]
-               - zp2[:, 1:ny + 1, 3:nx + 3] + zp2[:, 1:ny + 1, 1:nx + 1]) / (4 * F.dx**2)
+               - zp2[:, 1:ny + 1, 3:nx + 3] + zp2[:, 1:ny + 1, 1:nx + 1]) / (4 * dx**2)
         hess = (zxx, zxy, zyy)
-    return gn, grad2, hess
+    if not slope_correction:
+        return torch.zeros_like(z), torch.zeros_like(z), torch.ones_like(z), hess
+    return zx, zy, 1.0 / torch.sqrt(1.0 + zx * zx + zy * zy), hess
+
+
+def _geometry(z: Tensor, F: StepFlags):
+    return surface_geometry(z, F.dx, F.slope_correction, F.use_curv)
 
 
 def static_geometry(z: Tensor, F: StepFlags):
-    """Everything the step needs from a bed that does not evolve: (g_n, |grad z|^2, Hessian or None,
+    """Everything the step needs from a bed that does not evolve: (z_x, z_y, cos theta, Hessian or None,
     (bed_terms along x, bed_terms along y)); computed once per cropping box by the caller and passed
     in as ``P["geo"]`` (it is the same for every step on that box)."""
     return (*_geometry(z, F), (bed_terms(z, 2), bed_terms(z, 1)))
+
+
+def surface_speed(u: Tensor, v: Tensor, zx: Tensor, zy: Tensor) -> Tensor:
+    """|V|, m/s: the speed along the surface of a flow with horizontal velocity (u, v),
+    V = (u, v, z_x u + z_y v)."""
+    w = zx * u + zy * v
+    return torch.sqrt(u * u + v * v + w * w)
+
+
+def inverse_metric(px: Tensor, py: Tensor, zx: Tensor, zy: Tensor, cs: Tensor) -> tuple[Tensor, Tensor]:
+    """G^-1 p with G = I + grad z grad z^T (the surface metric in map coordinates):
+    p - grad z cos^2 (grad z . p). Turns the horizontal gradient of a potential into the horizontal
+    projection of its gradient along the surface."""
+    a = cs * cs * (zx * px + zy * py)
+    return px - zx * a, py - zy * a
 
 
 def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
@@ -89,27 +110,31 @@ def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
 
 
 def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None):
-    """Forward-Euler stage: fluxes + bed source, entrainment / deposition, friction.
+    """Forward-Euler stage: fluxes + gravity and pressure, entrainment / deposition, friction.
 
+    h is the thickness per unit horizontal area (the vertical thickness, m), (hu, hv) the horizontal
+    momentum; the normal thickness is cos h and the surface speed |V| (module docstring of the solver).
     With ``dt`` None the time step is chosen here from the CFL condition and ``dt_cap`` (B,).
-    ``geo``: (g_n, |grad z|^2, Hessian, (bed_terms x, bed_terms y)) when the caller already has them
-    (a bed that does not evolve: both stages share them); None computes them from ``z``.
+    ``geo``: ``static_geometry`` of the bed when the caller already has it (a bed that does not evolve:
+    both stages share it); None computes it from ``z``.
     Returns the new (h, hu, hv, z, erod, dep), the outflow volume of the stage (B,) m^3 and dt (B,).
     """
-    dx = F.dx
-    gn, grad2, hess, beds = geo if geo is not None else (*_geometry(z, F), None)
+    dx, g = F.dx, F.g
+    if geo is None:
+        geo = (*_geometry(z, F), (bed_terms(z, 2), bed_terms(z, 1)))
+    zx, zy, cs, hess, (bx, by) = geo
+    gn = g * cs
     u = desingularised_velocity(h, hu, F.h_eps)
     v = desingularised_velocity(h, hv, F.h_eps)
     k = _earth_pressure(u, v, P, F)
-    kg = k * gn
-    rest = (hu == 0) & (hv == 0)
+    kg = k * gn * cs          # pressure k g_n hn^2 / 2 of the normal thickness hn = cos h, per horizontal length
     mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
     tau = P["tau_y"]
-    bx, by = (beds if beds is not None else (None, None))
-    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, gn, rest, mu_c, tau, 2, dx, F.theta, F.h_wet,
-                                                  F.no_creep, F.wb_ratio, bx)
-    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, gn, rest, mu_c, tau, 1, dx, F.theta, F.h_wet,
-                                                  F.no_creep, F.wb_ratio, by)
+    fx = fy = None
+    if F.no_creep:
+        fx, fy = frozen_faces(h, kg, (hu == 0) & (hv == 0), (mu_c * gn, tau / cs), g, dx, (zx, zy, cs), (bx, by))
+    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, fx, 2, F.theta, F.h_wet, F.wb_ratio, bx)
+    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, fy, 1, F.theta, F.h_wet, F.wb_ratio, by)
     if dt is None:
         dt = torch.minimum(F.cfl * dx / (ax + ay), dt_cap)
         dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
@@ -119,23 +144,31 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     Fhy, Fqny, Fqty = Fhy * facy, Fqny * facy, Fqty * facy
     lam = dtb / dx
     hn = h - lam * (diff(Fhx, 2) + diff(Fhy, 1))
-    qx = hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + (kg * diff(phix, 2) + gn * hbarx * dBx))
-    qy = hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + (kg * diff(phiy, 1) + gn * hbary * dBy))
+    # gravity + pressure as horizontal gradients (times dx), then projected along the surface (Eq. 2-3)
+    px = kg * diff(phix, 2) + g * hbarx * dBx
+    py = kg * diff(phiy, 1) + g * hbary * dBy
+    if F.slope_correction:
+        # the bed's reaction that keeps the flow on a curved surface: (u^T H u) h grad z
+        cent = h * _hessian_form(hess, u, v) * dx
+        px, py = inverse_metric(px + cent * zx, py + cent * zy, zx, zy, cs)
+    qx = hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px)
+    qy = hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py)
     nx, ny = h.shape[2], h.shape[1]
     bnd = ((Fhx.narrow(2, nx, 1).sum(dim=(1, 2)) - Fhx.narrow(2, 0, 1).sum(dim=(1, 2)))
            + (Fhy.narrow(1, ny, 1).sum(dim=(1, 2)) - Fhy.narrow(1, 0, 1).sum(dim=(1, 2))))
     outflow = dt * dx * bnd
-    # --- mass sources (explicit in the stage-start state)
+    # --- mass sources (explicit in the stage-start state; rates per unit horizontal area)
     if F.use_ent or F.use_dep:
-        speed0 = torch.sqrt(u * u + v * v)
+        speed0 = surface_speed(u, v, zx, zy)
     if F.use_ent:
-        rate = P["kappa"] * speed0 * (h > F.entrain_h_min).to(h.dtype)
+        # erosion kappa |V| normal to the bed per unit bed area = kappa |V| / cos per horizontal area
+        rate = P["kappa"] * speed0 / cs * (cs * h > F.entrain_h_min).to(h.dtype)
         de = torch.minimum(dtb * rate, erod)
         hn = hn + de
         erod = erod - de
         z = z - de
     if F.use_dep:
-        hs = torch.clamp(h, min=F.h_eps)
+        hs = torch.clamp(cs * h, min=F.h_eps)
         froude = speed0 / torch.sqrt(torch.clamp(gn, min=1e-12) * hs)
         rate = P["deposition"] * h * torch.clamp(1.0 - froude / FR_DEP, min=0.0)
         hpos = torch.clamp(hn, min=0.0)
@@ -146,14 +179,15 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
         hn = hn - dd
         dep = dep + dd
         z = z + dd
-    # --- friction on the momentum vector (Eq. 4)
+    # --- friction on the momentum along the surface (Eq. 4)
     un = desingularised_velocity(hn, qx, F.h_eps)
     vn = desingularised_velocity(hn, qy, F.h_eps)
-    gne = curvature_gn(gn, P["curvature"], un, vn, hess, grad2) if F.use_curv else gn
-    spd = torch.sqrt(un * un + vn * vn) if F.use_mu_i else None
-    mue = mu_effective(mu_c, P["mu_i"], spd, hn, gne, F.h_eps, F.use_mu_i)
-    coul = mue * gne * torch.clamp(hn, min=0.0) + tau
-    qx, qy = apply_friction(hn, qx, qy, dtb, coul, P["xi"], F.g, F.h_eps)
+    gne = curvature_gn(gn, P["curvature"], cs * _hessian_form(hess, un, vn)) if F.use_curv else gn
+    spd = surface_speed(un, vn, zx, zy) if F.use_mu_i else None
+    hnp = torch.clamp(hn, min=0.0)
+    mue = mu_effective(mu_c, P["mu_i"], spd, cs * hnp, gne, F.h_eps, F.use_mu_i)
+    coul = mue * gne * hnp + tau / cs
+    qx, qy = apply_friction(hn, qx, qy, dtb, coul, P["xi"] * cs, F.g, F.h_eps, (zx, zy))
     thin = hn < F.h_eps
     qx = torch.where(thin, hn * desingularised_velocity(hn, qx, F.h_eps), qx)
     qy = torch.where(thin, hn * desingularised_velocity(hn, qy, F.h_eps), qy)
@@ -161,13 +195,22 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     return hn, qx, qy, z, erod, dep, outflow, dt
 
 
+def _hessian_form(hess, u: Tensor, v: Tensor) -> Tensor:
+    """u^T H u, m/s^2, for the bed Hessian H = (z_xx, z_xy, z_yy): the vertical acceleration of a
+    point moving with horizontal velocity (u, v) along the surface."""
+    zxx, zxy, zyy = hess
+    return zxx * u * u + 2.0 * zxy * u * v + zyy * v * v
+
+
 def make_step(F: StepFlags):
     """The step function for one call's constants ``F``: ``step(S, P) -> S`` (dicts of tensors).
 
     S holds h, hu, hv (B, ny, nx); z (B or 1, ny, nx); erod, dep (B, ny, nx) or placeholders;
     outflow, t, t_next, ke_peak (B,); active (B,) bool; h_max, v_max, arrival (B, ny, nx);
-    steps (B,) int64. P holds the member parameters as (B, 1, 1) tensors and, optionally, "geo":
-    ``static_geometry(z, F)`` of the (static) bed of S.
+    steps (B,) int64; h, hu, hv per unit horizontal area, h_max (normal thickness) and v_max (speed
+    along the surface) as the outputs. P holds the member parameters as (B, 1, 1) tensors, "rec":
+    (z_x, z_y, cos theta) of the initial bed, and, optionally, "geo": ``static_geometry(z, F)`` of the
+    (static) bed of S.
     """
 
     def step(S: dict, P: dict) -> dict:
@@ -203,16 +246,19 @@ def make_step(F: StepFlags):
         out["dt"] = dt
         out["hit"] = hit
         out["steps"] = S["steps"] + active.to(S["steps"].dtype)
-        # --- per-step records
+        # --- per-step records (normal thickness, speed along the surface; P["rec"]: the initial bed's
+        # z_x, z_y, cos theta on this box)
+        rzx, rzy, rcs = P["rec"]
         hN = out["h"]
         uN = desingularised_velocity(hN, out["hu"], F.h_eps)
         vN = desingularised_velocity(hN, out["hv"], F.h_eps)
-        spd2 = uN * uN + vN * vN
-        spd = torch.sqrt(spd2)
+        spd = surface_speed(uN, vN, rzx, rzy)
+        spd2 = spd * spd
         hfin = hN + out["dep"] if F.use_dep else hN
-        out["h_max"] = torch.maximum(S["h_max"], hfin)
-        out["v_max"] = torch.maximum(S["v_max"], torch.where(hN >= F.v_max_min_depth, spd, torch.zeros_like(spd)))
-        arrived = torch.isinf(S["arrival"]) & (hN > F.arrival_threshold)
+        hnorm = rcs * hN
+        out["h_max"] = torch.maximum(S["h_max"], rcs * hfin)
+        out["v_max"] = torch.maximum(S["v_max"], torch.where(hnorm >= F.v_max_min_depth, spd, torch.zeros_like(spd)))
+        arrived = torch.isinf(S["arrival"]) & (hnorm > F.arrival_threshold)
         out["arrival"] = torch.where(arrived, t_new.view(-1, 1, 1).expand_as(hN), S["arrival"])
         cell_area = F.dx * F.dx
         ke = 0.5 * (hN * spd2).sum(dim=(1, 2)) * cell_area

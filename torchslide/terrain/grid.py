@@ -102,6 +102,13 @@ class DEM:
         i = int((y - self.yll) // self.cellsize)
         return i, j
 
+    def surface_area(self) -> np.ndarray:
+        """(ny, nx) surface area of each cell, m^2: cellsize^2 / cos(theta) = cellsize^2 sqrt(1 + |grad z|^2),
+        the slope from central differences (one-sided at the edges), as the solver measures it. A
+        thickness normal to the slope times this is a volume."""
+        gy, gx = np.gradient(self.z, self.cellsize) if min(self.shape) > 1 else (np.zeros(self.shape),) * 2
+        return self.cellsize**2 * np.sqrt(1.0 + gx * gx + gy * gy)
+
     def same_grid(self, other: "DEM", rtol: float = 1e-9) -> bool:
         """True when ``other`` has the same shape, cell size and origin."""
         return (

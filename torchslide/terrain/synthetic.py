@@ -59,8 +59,8 @@ class SyntheticCase:
 
     @property
     def release_volume(self) -> float:
-        """Release volume, m^3 (sum of thickness times cell area)."""
-        return float(self.release.sum() * self.dem.cellsize**2)
+        """Release volume, m^3 (the thickness, normal to the slope, times the surface area of each cell)."""
+        return float((self.release * self.dem.surface_area()).sum())
 
 
 def _grid(extent_x: float, extent_y: float, cellsize: float):
@@ -178,12 +178,14 @@ def channel_with_bends(cellsize: float = 10.0, *, theta_deg: float = 25.0, slope
 # ----------------------------------------------------------------------------------------- releases
 def release_from_shape(dem: DEM, centre: tuple[float, float], radii: tuple[float, float] | float, *,
                        volume: float | None = None, thickness: float | None = None,
-                       shape: str = "ellipse") -> np.ndarray:
-    """Release thickness (ny, nx), m (vertical), of an elliptic body sampled at cell centres.
+                       shape: str = "ellipse", normal: bool = True) -> np.ndarray:
+    """Release thickness (ny, nx), m, of an elliptic body sampled at cell centres: normal to the slope
+    (``normal``, the field's convention) or vertical.
 
     shape "ellipse": paraboloid cap h = h0 (1 - rho^2) for rho < 1, rho^2 = ((x-xc)/rx)^2 + ((y-yc)/ry)^2;
     shape "cylinder": h = h0 inside the ellipse. Give ``volume`` (m^3; the sampled field is scaled so
-    that sum(h) * cellsize^2 equals it exactly at every resolution) or the peak ``thickness`` h0 (m).
+    that sum(h * area) equals it exactly at every resolution, area the surface area of each cell for a
+    normal thickness (DEM.surface_area), the map area for a vertical one) or the peak ``thickness`` h0 (m).
     """
     if shape not in ("ellipse", "cylinder"):
         raise TerrainError(f"release shape must be 'ellipse' or 'cylinder', got {shape!r}")
@@ -212,7 +214,8 @@ def release_from_shape(dem: DEM, centre: tuple[float, float], radii: tuple[float
     if volume is not None:
         if not volume > 0:
             raise TerrainError(f"release volume must be positive, got {volume!r}")
-        return base * (volume / (base.sum() * dem.cellsize**2))
+        area = dem.surface_area() if normal else dem.cellsize**2
+        return base * (volume / (base * area).sum())
     if not thickness > 0:
         raise TerrainError(f"release thickness must be positive, got {thickness!r}")
     return base * float(thickness)
@@ -320,7 +323,7 @@ def bondo_like(cellsize: float = 20.0) -> SyntheticCase:
     z_l3 = float(_bondo_profile(points["L3"][0]))
     on_path = thalweg[:, 0] >= x_rel_top
     info = {
-        "release_volume_m3": float(release.sum() * cellsize**2),
+        "release_volume_m3": float((release * dem.surface_area()).sum()),
         "release_top_x_m": x_rel_top,
         "z_release_top_m": z_rel_top,
         "z_L3_m": z_l3,
