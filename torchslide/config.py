@@ -4,8 +4,10 @@ A configuration file (paths are relative to the file)::
 
     [terrain]
     dem = "dem.asc"              # or: synthetic = "bondo_like" (+ cellsize = 20.0, options = {...})
-    release = "release.asc"      # or an inline table: {centre = [x, y], radii = [rx, ry], volume = 3e6}
-    erodible = "erodible.asc"    # optional erodible depth raster, m
+    release = "release.asc"      # or an inline table: {centre = [x, y], radii = [rx, ry], volume = 3e6},
+                                 # or polygons: "release.shp" (a thickness attribute per feature) or
+                                 # {polygons = "release.gpkg", thickness = 2.0} (where a feature has none)
+    erodible = "erodible.asc"    # optional erodible depth, m: a raster or polygons as for release
     thickness = "normal"         # release and erodible depths normal to the slope (the field's convention),
                                  # or "vertical" (volume per unit map area)
     fill_nodata = false          # optional: fill edge nodata cells of the DEM by nearest neighbour
@@ -96,6 +98,7 @@ OTHER_SECTIONS: set[str] = {"prior", "observations", "calibration", "diagnose"}
 _TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata", "thickness"}
 THICKNESS = ("normal", "vertical")
 _RELEASE_TABLE_KEYS = {"centre", "center", "radii", "volume", "thickness", "shape"}
+_POLYGON_TABLE_KEYS = {"polygons", "thickness", "attribute"}
 _RUN_KEYS = {"t_end", "dtype", "device", "cfl"}
 _GAUGE_KEYS = {"name", "x", "y"}
 OUTPUT_FORMATS = ("asc", "tif")
@@ -366,7 +369,9 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
         # release
         if "release" in t:
             r = t["release"]
-            if isinstance(r, dict):
+            if _is_polygons(r):
+                release = _polygon_thickness(r, "release", dem, base, path)
+            elif isinstance(r, dict):
                 r = check_keys(r, _RELEASE_TABLE_KEYS, "[terrain] release", path)
                 centre = r.get("centre", r.get("center"))
                 if centre is None or "radii" not in r:
@@ -392,7 +397,10 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
 
         erod = None
         if "erodible" in t:
-            erod = io.read_raster_like(file("erodible"), dem, what="erodible depth")
+            if _is_polygons(t["erodible"]):
+                erod = _polygon_thickness(t["erodible"], "erodible", dem, base, path)
+            else:
+                erod = io.read_raster_like(file("erodible"), dem, what="erodible depth")
             if (erod < 0).any():
                 raise ConfigError(f"{path}: [terrain] erodible depth is negative in {int((erod < 0).sum())} cells")
         elif case is not None and case.erodible_depth is not None:
@@ -401,6 +409,35 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
         raise ConfigError(f"{path}: [terrain] {e}") from None
     return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
                          source=source, case=case, thickness=convention)
+
+
+def _is_polygons(v: Any) -> bool:
+    """A [terrain] release / erodible value that names polygons: a vector file or a {polygons = ...} table."""
+    from .terrain.vector import is_vector
+
+    return (isinstance(v, str) and is_vector(v)) or (isinstance(v, dict) and "polygons" in v)
+
+
+def _polygon_thickness(v: Any, key: str, dem: DEM, base: Path, path: Path) -> np.ndarray:
+    """(ny, nx) thickness, m, of [terrain] ``key`` given as polygons (the attribute, or the table's
+    thickness where a feature has none)."""
+    from .terrain.vector import rasterize_thickness
+
+    if isinstance(v, dict):
+        check_keys(v, _POLYGON_TABLE_KEYS, f"[terrain] {key}", path)
+        f, default, attr = v["polygons"], v.get("thickness"), v.get("attribute", "thickness")
+        if default is not None and not (_number(default, "thickness", f"[terrain] {key}", path) > 0):
+            raise ConfigError(f"{path}: [terrain] {key} thickness must be > 0 m, got {default!r}")
+        if not isinstance(attr, str) or not attr:
+            raise ConfigError(f"{path}: [terrain] {key} attribute must be a field name, got {attr!r}")
+    else:
+        f, default, attr = v, None, "thickness"
+    if not isinstance(f, str) or not f:
+        raise ConfigError(f"{path}: [terrain] {key} polygons must be a file path string, got {f!r}")
+    p = Path(f) if Path(f).is_absolute() else base / f
+    if not p.is_file():
+        raise ConfigError(f"{path}: [terrain] {key} file not found: {p}")
+    return rasterize_thickness(p, dem, attribute=attr, default=None if default is None else float(default), what=key)
 
 
 def _parse_model(m: Any, path: Path) -> ModelConfig:

@@ -16,7 +16,9 @@ returns (B, m), which is why they are listed in :data:`VECTOR_KINDS` and must be
 * ``deposit_map``: final thickness h_final (m) on every cell of the DEM grid with a finite value in the
   raster (nodata cells are left out).
 * ``impact_map``: 1 where h_max > threshold, else 0, per cell (the indicator of ``impact_area``).
-  With a Gaussian error model on a 0/1 quantity, sigma ~ 0.3-0.5 is sensible.
+  With a Gaussian error model on a 0/1 quantity, sigma ~ 0.3-0.5 is sensible. The recording is a 0/1
+  raster (nodata where not mapped) or an observed outline as a polygon file (1 inside, 0 outside).
+  Thicknesses are normal to the slope and speeds along the surface (torchslide.observe).
 
 Error model: independent Gaussian errors with standard deviation ``sigma`` (scalar or per element),
 optionally *correlated*: ``corr_length`` (m for maps, s for gauge series) is the length of an
@@ -283,6 +285,12 @@ class SeriesObservation:
 
     @classmethod
     def from_raster(cls, path, kind: str, dem: DEM, sigma, **kw) -> "SeriesObservation":
+        """A map observation from a raster on ``dem``'s grid, or for impact_map an observed outline
+        (a polygon file: 1 inside, 0 outside, every cell mapped)."""
+        from .terrain.vector import is_vector, rasterize_outline
+
+        if kind == "impact_map" and is_vector(path):
+            return cls.from_array(kind, rasterize_outline(path, dem), dem, sigma, source=str(path), **kw)
         arr = read_map(path, dem, what=kind.replace("_", " "))
         return cls.from_array(kind, arr, dem, sigma, source=str(path), **kw)
 
