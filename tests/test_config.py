@@ -115,7 +115,7 @@ def test_output_format(case, monkeypatch):
 def test_bad_rasters(tmp_path):
     write_case(tmp_path, nan_dem=True)
     (tmp_path / "c.toml").write_text(cfg_text())
-    with pytest.raises(ConfigError, match=r"dem\.asc: 1 nodata cells"):
+    with pytest.raises(ConfigError, match=r"\[terrain\] release covers 1 nodata cells of the DEM \(outside its domain\)"):
         load_config(tmp_path / "c.toml")
     d2 = tmp_path / "neg"
     d2.mkdir()

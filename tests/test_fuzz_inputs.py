@@ -68,7 +68,7 @@ def _edit_raster(case: Path, name: str, fn) -> None:
 
 RASTERS = [
     ("dem.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a), "non-finite"),
-    ("dem.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, -9999.0, a), "nodata"),
+    ("dem.asc", lambda a: np.full_like(a, -9999.0), "every cell is nodata"),
     ("release.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, np.nan, a), "non-finite"),
     ("release.asc", lambda a: np.where(np.arange(a.size).reshape(a.shape) == 7, -1.0, a), "negative"),
     ("release.asc", lambda a: a[:-1], "release"),

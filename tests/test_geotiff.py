@@ -75,14 +75,14 @@ def test_south_up_file_reads_like_north_up(tmp_path):
     ],
 )
 def test_unsupported_layouts_are_refused_on_every_path(tmp_path, transform, count, band, match):
-    from torchslide.terrain.io import _read_geotiff_array, read_geotiff
+    from torchslide.terrain.io import _geotiff, read_geotiff
 
     p = tmp_path / "x.tif"
     _write(p, _dem().z[::-1], transform, count=count)
     with pytest.raises(TerrainError, match=match):
         read_geotiff(p, band=band)
     with pytest.raises(TerrainError, match=match):
-        _read_geotiff_array(p, band=band)
+        _geotiff(p, band=band)
     if band == 1:  # what a release or map raster goes through
         with pytest.raises(TerrainError, match=match):
             read_raster_like(p, _dem(), what="release")

@@ -87,3 +87,64 @@ def test_failed_member_flagged_not_silent():
     assert bool(r.failed[1]) and "non-finite" in r.failure_reason[1]
     assert not bool(r.failed[0]) and r.failure_reason[0] is None
     assert torch.equal(r.member(0).h_final, single.h_final)
+
+
+def _holed(nodata_cols=(14, 15)):
+    """A 20 x 12 plane at 30 degrees towards +x whose columns ``nodata_cols`` are outside the domain."""
+    from tests.conftest import plane_dem
+
+    dem = plane_dem(20, 12, 10.0, math.tan(math.radians(30.0)))
+    outside = np.zeros(dem.shape, dtype=bool)
+    outside[:, list(nodata_cols)] = True
+    return DEM(dem.z, dem.cellsize, outside=outside)
+
+
+def test_nodata_cells_are_outside_the_domain():
+    """A flow reaching nodata cells: with "outflow" what enters them leaves (counted as outflow, the cells
+    stay empty, nothing reaches beyond); with "wall" nothing enters them, and less leaves the domain
+    (only through the DEM's side edges). Mass balances to round-off either way."""
+    dem = _holed()
+    rel = np.zeros(dem.shape)
+    rel[3:9, 2:6] = 2.0
+    out = {}
+    for nodata in ("outflow", "wall"):
+        r = simulate(dem, rel, Params.make(mu=0.2, xi=500.0), t_end=30.0, config=SolverConfig(nodata=nodata))
+        h = r.h_max[0].numpy()
+        assert h[:, 14:16].max() == 0.0 and h[:, 16:].max() == 0.0   # never inside the hole, nor beyond it
+        assert h[:, 13].max() > 0.1                                  # the flow got there
+        bal = float(r.final_volume[0] + r.outflow_volume[0] - r.release_volume[0])
+        assert abs(bal) < 1e-10 * float(r.release_volume[0])
+        out[nodata] = float(r.outflow_volume[0]) / float(r.release_volume[0])
+    assert out["outflow"] > 0.2 and out["wall"] < 0.5 * out["outflow"]
+
+
+def test_a_release_or_gauge_on_nodata_is_refused():
+    dem = _holed()
+    rel = np.zeros(dem.shape)
+    rel[3:9, 12:15] = 2.0
+    with pytest.raises(ValueError, match=r"release covers 6 cells outside the DEM's domain \(nodata\), first at row 3"):
+        simulate(dem, rel, Params.make(mu=0.2), t_end=1.0)
+    rel[:] = 0.0
+    rel[3:9, 2:6] = 2.0
+    with pytest.raises(ValueError, match=r"gauge 'g' lies in a cell outside the DEM's domain"):
+        simulate(dem, rel, Params.make(mu=0.2), t_end=1.0, gauges=[("g", 145.0, 55.0)])
+    with pytest.raises(ValueError, match=r"SolverConfig.nodata = 'sink' is invalid"):
+        simulate(dem, rel, Params.make(mu=0.2), t_end=1.0, config=SolverConfig(nodata="sink"))
+
+
+def test_dem_nodata_read_as_outside_and_written_back_as_nodata(tmp_path):
+    """A DEM file with nodata: read as cells outside the domain (never silently filled); every raster
+    written on that grid has nodata there again; the .prj beside an .asc carries the CRS both ways."""
+    from torchslide.terrain.io import read_raster, write_asc
+
+    dem = _holed()
+    write_asc(tmp_path / "dem.asc", np.where(dem.outside, np.nan, dem.z), DEM(dem.z, dem.cellsize, crs="EPSG:2056"),
+              fmt="%.17g")
+    back = read_raster(tmp_path / "dem.asc", nodata="outside")
+    assert np.array_equal(back.outside, dem.outside) and np.isfinite(back.z).all()
+    assert back.crs.strip() == "EPSG:2056"
+    write_asc(tmp_path / "h.asc", np.ones(dem.shape), back)
+    again = read_raster(tmp_path / "h.asc", nodata="outside")
+    assert np.array_equal(again.outside, dem.outside) and again.crs.strip() == "EPSG:2056"
+    with pytest.raises(Exception, match="nodata cells"):
+        read_raster(tmp_path / "dem.asc")

@@ -276,3 +276,30 @@ def test_bondo_like_resolution_independent():
     assert b.points == a.points
     np.testing.assert_allclose(b.thalweg, a.thalweg)
     assert b.release_volume == pytest.approx(a.release_volume, rel=1e-12)
+
+
+def test_config_cellsize_resamples_a_dem_file_and_keeps_the_release_volume(tmp_path):
+    """[terrain] cellsize with a DEM file: the grid is resampled inside torchslide (a plane stays the
+    plane), and a release raster of the file's grid keeps its volume on the new grid."""
+    from torchslide.config import load_config
+    from torchslide.terrain.io import write_asc
+
+    x = (np.arange(60) + 0.5) * 5.0
+    z = np.tile(500.0 - 0.7 * x, (40, 1)) + 0.2 * (np.arange(40)[:, None] * 5.0)
+    src = DEM(z, 5.0, xll=1000.0, yll=2000.0, crs="EPSG:2056")
+    write_asc(tmp_path / "dem.asc", src.z, src, fmt="%.17g")
+    rel = release_from_shape(src, (1080.0, 2100.0), (30.0, 25.0), volume=2e4)
+    write_asc(tmp_path / "rel.asc", rel, src, fmt="%.17g")
+    (tmp_path / "c.toml").write_text('[terrain]\ndem = "dem.asc"\nrelease = "rel.asc"\ncellsize = 20.0\n'
+                                     '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
+    cfg = load_config(tmp_path / "c.toml")
+    dem = cfg.terrain.dem
+    assert dem.shape == (10, 15) and dem.cellsize == 20.0 and (dem.xll, dem.yll) == (1000.0, 2000.0)
+    X, Y = np.meshgrid(dem.x_centres(), dem.y_centres())
+    np.testing.assert_allclose(dem.z, 500.0 - 0.7 * (X - 1000.0) + 0.2 * (Y - 2002.5), atol=1e-9)
+    assert dem.crs == "EPSG:2056"
+    assert cfg.terrain.release_volume == pytest.approx(2e4, rel=1e-9)
+    # a raster on another CRS than the DEM's is refused
+    (tmp_path / "rel.prj").write_text("EPSG:21781\n")
+    with pytest.raises(Exception, match=r"rel.asc: release CRS differs from the DEM's"):
+        load_config(tmp_path / "c.toml")

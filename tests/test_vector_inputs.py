@@ -142,3 +142,34 @@ def test_unknown_polygon_table_key_and_missing_file(tmp_path):
                                      '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
     with pytest.raises(ConfigError, match=r"bad.geojson: not a readable vector file"):
         load_config(tmp_path / "c.toml")
+
+
+def test_paths_give_run_out_in_the_summary_and_as_an_observation(tmp_path, capsys):
+    """[[paths]] from a line file or inline points: summary.json holds the run-out along each, and a
+    runout_length observation names its path."""
+    from torchslide.calibration_config import load_calibration_config
+    from torchslide.cli import main
+
+    dem = _plane(tmp_path)
+    write_geojson(tmp_path / "path.geojson", [LineString([(X0 + 5, Y0 + 100), (X0 + 295, Y0 + 100)])], [{}])
+    text = ('[terrain]\ndem = "dem.asc"\nrelease = {centre = [2600060.0, 1200100.0], radii = 40.0, volume = 2e4}\n'
+            '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 20.0\n'
+            '[[paths]]\nname = "down"\nline = "path.geojson"\n'
+            '[[paths]]\nname = "across"\npoints = [[2600100.0, 1200005.0], [2600100.0, 1200195.0]]\nmax_offset = 15.0\n')
+    (tmp_path / "c.toml").write_text(text)
+    assert main(["simulate", str(tmp_path / "c.toml"), "--out", str(tmp_path / "out"), "-q"]) == 0
+    s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert set(s["runout"]) == {"down", "across"}
+    h = np.loadtxt(tmp_path / "out" / "h_max.asc", skiprows=7)[::-1]
+    reached = np.nonzero((h > 0.5).any(axis=0))[0]
+    assert s["runout"]["down"] == pytest.approx((reached.max() + 0.5) * 10.0 - 5.0)   # the farthest cell centre
+    assert 0.0 < s["runout"]["across"] < 190.0
+    cal = text + ('[prior]\nmu = [0.2, 0.4]\nxi = [200.0, 1000.0]\n'
+                  '[[observations]]\nkind = "runout_length"\npath = "down"\nvalue = 200.0\nsigma = 20.0\n'
+                  '[calibration]\nn_total = 4\nn_initial = 2\n')
+    (tmp_path / "cal.toml").write_text(cal)
+    o = load_calibration_config(tmp_path / "cal.toml").extra["observations"][0]
+    assert np.allclose(o.thalweg, [[X0 + 5, Y0 + 100], [X0 + 295, Y0 + 100]])
+    (tmp_path / "cal.toml").write_text(cal.replace('path = "down"', 'path = "river"'))
+    with pytest.raises(ConfigError, match=r"observation 1: path 'river' is not a \[\[paths\]\] name \(known: \['across', 'down'\]\)"):
+        load_calibration_config(tmp_path / "cal.toml")

@@ -107,14 +107,11 @@ def parse_observations(table: Any, cfg: Config) -> list[Observation]:
     if not isinstance(table, list) or not table:
         raise ConfigError(f"{path}: [[observations]] must list at least one observation")
     out = []
-    thalweg = getattr(cfg.terrain.case, "thalweg", None)
     for i, d in enumerate(table):
         if not isinstance(d, dict):
             raise ConfigError(f"{path}: observation {i + 1} must be a table")
         try:
-            d = dict(d)
-            if d.get("kind") == "runout_length" and "thalweg" not in d and thalweg is not None:
-                d["thalweg"] = np.asarray(thalweg).tolist()
+            d = with_path(dict(d), cfg)
             o = Observation.from_dict(d)
             o.validate(cfg.terrain.dem).check_recorded()
         except ValueError as e:
@@ -122,6 +119,23 @@ def parse_observations(table: Any, cfg: Config) -> list[Observation]:
         out.append(o)
     check_unique_names(out, path)
     return out
+
+
+def with_path(d: dict, cfg: Config) -> dict:
+    """A runout_length observation's polyline from ``path = "name"`` (a [[paths]] entry, or a synthetic
+    case's "thalweg", the default when the case has one); its max_offset comes along."""
+    if d.get("kind") != "runout_length" or "thalweg" in d:
+        return d
+    paths = {p.name: p for p in cfg.run_out_paths()}
+    name = d.pop("path", "thalweg" if "thalweg" in paths else None)
+    if name is None:
+        raise ValueError("kind 'runout_length' needs path = \"name\" of a [[paths]] entry (or a thalweg polyline)")
+    if name not in paths:
+        raise ValueError(f"path {name!r} is not a [[paths]] name (known: {sorted(paths)})")
+    d["thalweg"] = paths[name].xy.tolist()
+    if paths[name].max_offset is not None:
+        d["options"] = dict(d.get("options", {}), max_offset=paths[name].max_offset)
+    return d
 
 
 def check_unique_names(observations, path) -> None:

@@ -4,13 +4,16 @@ A configuration file (paths are relative to the file)::
 
     [terrain]
     dem = "dem.asc"              # or: synthetic = "bondo_like" (+ cellsize = 20.0, options = {...})
+    cellsize = 20.0              # optional: resample the DEM (and release / erodible rasters) to this, m
     release = "release.asc"      # or an inline table: {centre = [x, y], radii = [rx, ry], volume = 3e6},
                                  # or polygons: "release.shp" (a thickness attribute per feature) or
                                  # {polygons = "release.gpkg", thickness = 2.0} (where a feature has none)
     erodible = "erodible.asc"    # optional erodible depth, m: a raster or polygons as for release
     thickness = "normal"         # release and erodible depths normal to the slope (the field's convention),
                                  # or "vertical" (volume per unit map area)
-    fill_nodata = false          # optional: fill edge nodata cells of the DEM by nearest neighbour
+    nodata = "outflow"           # DEM nodata cells lie outside the domain: mass entering them leaves it
+                                 # ("outflow"), or they are a wall ("wall")
+    fill_nodata = false          # optional instead: fill edge nodata cells of the DEM by nearest neighbour
 
     [model]
     rheology = "voellmy"         # or "coulomb" (xi = inf)
@@ -30,6 +33,11 @@ A configuration file (paths are relative to the file)::
     name = "G1"
     x = 1700.0
     y = 1331.0
+
+    [[paths]]                    # optional: run-out along a path (summary.json, kind runout_length)
+    name = "channel"
+    line = "channel.geojson"     # a line feature file, or points = [[x0, y0], [x1, y1], ...] (map m)
+    max_offset = 300.0           # optional: ignore cells farther than this from the path, m
 
     [output]
     format = "asc"               # rasters that simulate / predict write: "asc" (ESRI ASCII) or "tif"
@@ -82,7 +90,7 @@ class ConfigError(ValueError):
     """Bad configuration or input data; the message is one line naming the file, section and key."""
 
 
-BASE_SECTIONS = ("terrain", "model", "run", "gauges", "output")
+BASE_SECTIONS = ("terrain", "model", "run", "gauges", "paths", "output")
 CONVENTIONS = {
     "thickness": "flow thickness normal to the slope, m (h_max, h_final, gauge h)",
     "speed": "speed along the surface, m/s (v_max, gauge speed)",
@@ -95,12 +103,14 @@ summary, predictive and posterior JSON file with :meth:`Config.conventions`."""
 OTHER_SECTIONS: set[str] = {"prior", "observations", "calibration", "diagnose"}
 """Sections of other commands' configs that the base loader accepts without a parser."""
 
-_TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata", "thickness"}
+_TERRAIN_KEYS = {"dem", "release", "erodible", "synthetic", "cellsize", "options", "fill_nodata", "thickness", "nodata"}
+NODATA = ("outflow", "wall")
 THICKNESS = ("normal", "vertical")
 _RELEASE_TABLE_KEYS = {"centre", "center", "radii", "volume", "thickness", "shape"}
 _POLYGON_TABLE_KEYS = {"polygons", "thickness", "attribute"}
 _RUN_KEYS = {"t_end", "dtype", "device", "cfl"}
 _GAUGE_KEYS = {"name", "x", "y"}
+_PATH_KEYS = {"name", "line", "points", "max_offset"}
 OUTPUT_FORMATS = ("asc", "tif")
 RHEOLOGIES = ("voellmy", "coulomb")
 
@@ -117,6 +127,7 @@ class TerrainConfig:
     source: str = ""
     case: Any = None  # SyntheticCase for synthetic terrains (has points, thalweg)
     thickness: str = "normal"
+    nodata: str = "outflow"
 
     def cell_volume_area(self) -> np.ndarray:
         """(ny, nx) m^2 that turns an input thickness into a volume: the surface area of each cell for
@@ -179,6 +190,16 @@ class GaugeConfig:
 
 
 @dataclass
+class PathConfig:
+    """A named polyline (N, 2) in map m along which run-out is measured; cells farther than max_offset
+    (m, None: any) from it are ignored."""
+
+    name: str
+    xy: np.ndarray
+    max_offset: float | None = None
+
+
+@dataclass
 class Config:
     """A validated configuration. ``raw`` is the parsed TOML; ``extra`` holds extra-section results."""
 
@@ -187,6 +208,7 @@ class Config:
     model: ModelConfig
     run: RunConfig
     gauges: list[GaugeConfig] = field(default_factory=list)
+    paths: list[PathConfig] = field(default_factory=list)
     raw: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
     output_format: str = "asc"
@@ -199,6 +221,13 @@ class Config:
         """A path from the config, relative to the config file's folder."""
         p = Path(p)
         return p if p.is_absolute() else self.path.parent / p
+
+    def run_out_paths(self) -> list[PathConfig]:
+        """The [[paths]], and a synthetic case's thalweg as the path "thalweg" when it has one."""
+        thalweg = getattr(self.terrain.case, "thalweg", None)
+        own = [] if thalweg is None or any(p.name == "thalweg" for p in self.paths) else \
+            [PathConfig("thalweg", np.asarray(thalweg, dtype=np.float64))]
+        return own + list(self.paths)
 
     def conventions(self) -> dict[str, Any]:
         """CONVENTIONS plus this run's: the input thickness convention and the density, kg/m^3."""
@@ -213,6 +242,8 @@ class Config:
         kw = dict(self.run.solver)
         if self.run.cfl is not None:
             kw["cfl"] = self.run.cfl
+        if self.terrain.nodata != "outflow":
+            kw["nodata"] = self.terrain.nodata
         if not kw:
             return None
         from .solver.config import SolverConfig
@@ -327,16 +358,24 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
     if has_dem == has_syn:
         raise ConfigError(f"{path}: [terrain] needs exactly one of 'dem' (a raster file) or 'synthetic' (a terrain name)")
     case = None
+    nodata = t.get("nodata", "outflow")
+    if nodata not in NODATA:
+        raise ConfigError(f"{path}: [terrain] nodata must be one of {', '.join(map(repr, NODATA))} "
+                          f"(what DEM nodata cells are), got {nodata!r}")
     convention = t.get("thickness", "normal")
     if convention not in THICKNESS:
         raise ConfigError(f"{path}: [terrain] thickness must be one of {', '.join(map(repr, THICKNESS))} "
                           f"(the convention of the release and erodible depths), got {convention!r}")
     try:
         if has_dem:
-            for k in ("cellsize", "options"):
-                if k in t:
-                    raise ConfigError(f"{path}: [terrain] {k} is only used with 'synthetic', not with 'dem'")
-            dem = io.read_raster(file("dem"), fill_nodata=bool(t.get("fill_nodata", False)))
+            if "options" in t:
+                raise ConfigError(f"{path}: [terrain] options is only used with 'synthetic', not with 'dem'")
+            src = io.read_raster(file("dem"), nodata="fill" if t.get("fill_nodata", False) else "outside")
+            dem = src
+            if "cellsize" in t:
+                from .terrain.resample import resample_dem
+
+                dem = resample_dem(src, _cellsize(t, path))
             source = str(t["dem"])
         else:
             name = t["synthetic"]
@@ -349,10 +388,7 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
             if not isinstance(t.get("options", {}), dict):
                 raise ConfigError(f"{path}: [terrain] options must be a table")
             if "cellsize" in t:
-                cs = _number(t["cellsize"], "cellsize", "[terrain]", path)
-                if not cs > 0:
-                    raise ConfigError(f"{path}: [terrain] cellsize must be > 0 m, got {t['cellsize']!r}")
-                kwargs["cellsize"] = cs
+                kwargs["cellsize"] = _cellsize(t, path)
             try:
                 _check_grid_size(synthetic.SYNTHETIC_TERRAINS[name], kwargs, path)
                 out = synthetic.SYNTHETIC_TERRAINS[name](**kwargs)
@@ -363,6 +399,7 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
             else:
                 dem = out
             source = f"synthetic:{name}"
+            src = dem
         if not np.isfinite(dem.z).all():  # DEM() already refuses this; keep the check explicit
             raise ConfigError(f"{path}: [terrain] DEM has NaN cells")
 
@@ -383,7 +420,7 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
                     volume=r.get("volume"), thickness=r.get("thickness"), shape=r.get("shape", "ellipse"),
                     normal=convention == "normal")
             else:
-                release = synthetic.release_from_raster(file("release"), dem)
+                release = _on_grid(synthetic.release_from_raster(file("release"), src), src, dem, convention)
         elif case is not None:
             release = case.release
         else:
@@ -394,13 +431,18 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
             raise ConfigError(f"{path}: [terrain] release thickness is negative in {int((release < 0).sum())} cells")
         if release.sum() <= 0:
             raise ConfigError(f"{path}: [terrain] release is empty (zero volume)")
+        if dem.outside is not None and (release[dem.outside] > 0).any():
+            i, j = np.argwhere(dem.outside & (release > 0))[0]
+            x, y = dem.cell_centre(int(i), int(j))
+            raise ConfigError(f"{path}: [terrain] release covers {int((dem.outside & (release > 0)).sum())} nodata "
+                              f"cells of the DEM (outside its domain), first at x={x:g} m, y={y:g} m")
 
         erod = None
         if "erodible" in t:
             if _is_polygons(t["erodible"]):
                 erod = _polygon_thickness(t["erodible"], "erodible", dem, base, path)
             else:
-                erod = io.read_raster_like(file("erodible"), dem, what="erodible depth")
+                erod = _on_grid(io.read_raster_like(file("erodible"), src, what="erodible depth"), src, dem, convention)
             if (erod < 0).any():
                 raise ConfigError(f"{path}: [terrain] erodible depth is negative in {int((erod < 0).sum())} cells")
         elif case is not None and case.erodible_depth is not None:
@@ -408,7 +450,24 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
     except TerrainError as e:
         raise ConfigError(f"{path}: [terrain] {e}") from None
     return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
-                         source=source, case=case, thickness=convention)
+                         source=source, case=case, thickness=convention, nodata=nodata)
+
+
+def _cellsize(t: dict, path: Path) -> float:
+    cs = _number(t["cellsize"], "cellsize", "[terrain]", path)
+    if not (cs > 0 and math.isfinite(cs)):
+        raise ConfigError(f"{path}: [terrain] cellsize must be > 0 m, got {t['cellsize']!r}")
+    return cs
+
+
+def _on_grid(a: np.ndarray, src: DEM, dem: DEM, convention: str) -> np.ndarray:
+    """A thickness raster of the DEM file's grid on the (resampled) inversion grid, its volume kept."""
+    if dem is src:
+        return a
+    from .terrain.resample import resample_thickness
+
+    area = (lambda d: d.surface_area()) if convention == "normal" else (lambda d: np.full(d.shape, d.cellsize**2))
+    return resample_thickness(a, src, dem, area(src), area(dem))
 
 
 def _is_polygons(v: Any) -> bool:
@@ -574,6 +633,49 @@ def _parse_gauges(g: Any, dem: DEM, path: Path) -> list[GaugeConfig]:
     return out
 
 
+def _parse_paths(p: Any, dem: DEM, path: Path) -> list[PathConfig]:
+    """[[paths]]: name, a line file or inline points (>= 2 vertices inside the DEM), optional max_offset."""
+    from .terrain.vector import read_polyline
+
+    if not isinstance(p, list):
+        raise ConfigError(f"{path}: paths must be an array of tables ([[paths]])")
+    out: list[PathConfig] = []
+    for n, item in enumerate(p):
+        where = f"[[paths]] #{n + 1}"
+        check_keys(item, _PATH_KEYS, where, path)
+        name = item.get("name")
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{path}: {where} name must be a non-empty string")
+        if any(q.name == name for q in out):
+            raise ConfigError(f"{path}: {where} duplicate path name {name!r}")
+        if ("line" in item) == ("points" in item):
+            raise ConfigError(f"{path}: {where} needs exactly one of line (a line file) or points ([[x, y], ...])")
+        if "line" in item:
+            f = item["line"]
+            fp = Path(f) if Path(str(f)).is_absolute() else path.parent / str(f)
+            if not fp.is_file():
+                raise ConfigError(f"{path}: {where} line file not found: {fp}")
+            try:
+                xy = read_polyline(fp, dem)
+            except TerrainError as e:
+                raise ConfigError(f"{path}: {where}: {e}") from None
+        else:
+            try:
+                xy = np.asarray(item["points"], dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ConfigError(f"{path}: {where} points must be [[x, y], ...] in m, got {item['points']!r}") from None
+            if xy.ndim != 2 or xy.shape[1] != 2 or xy.shape[0] < 2 or not np.isfinite(xy).all():
+                raise ConfigError(f"{path}: {where} points must be two or more [x, y] pairs in m, got {item['points']!r}")
+        first = xy[0]
+        if not dem.contains(float(first[0]), float(first[1])):
+            raise ConfigError(f"{path}: {where} ({name!r}) starts at x={first[0]:g}, y={first[1]:g}, outside the DEM")
+        off = item.get("max_offset")
+        if off is not None and not (_number(off, "max_offset", where, path) > 0):
+            raise ConfigError(f"{path}: {where} max_offset must be > 0 m, got {off!r}")
+        out.append(PathConfig(name, xy, None if off is None else float(off)))
+    return out
+
+
 # ------------------------------------------------------------------------------------ entry points
 def _parse_output(o: Any, path: Path) -> str:
     """[output] -> the raster format ("asc" or "tif"); "tif" is refused here when rasterio is missing."""
@@ -605,8 +707,10 @@ def parse_config(raw: dict[str, Any], path, extra_sections: dict[str, Callable[[
     model = _parse_model(raw["model"], path)
     run = _parse_run(raw["run"], path)
     gauges = _parse_gauges(raw.get("gauges", []), terrain.dem, path)
+    paths = _parse_paths(raw.get("paths", []), terrain.dem, path)
     fmt = _parse_output(raw.get("output", {}), path)
-    cfg = Config(path=path, terrain=terrain, model=model, run=run, gauges=gauges, raw=raw, output_format=fmt)
+    cfg = Config(path=path, terrain=terrain, model=model, run=run, gauges=gauges, paths=paths, raw=raw,
+                 output_format=fmt)
     for name, parser in extra_sections.items():
         if name in raw:
             cfg.extra[name] = parser(raw[name], cfg)

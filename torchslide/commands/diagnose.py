@@ -83,7 +83,7 @@ from typing import Any
 
 from ..config import Config, ConfigError, check_keys, load_config
 from ..observe import Observation
-from ..calibration_config import check_unique_names, parse_calibration, parse_prior
+from ..calibration_config import check_unique_names, parse_calibration, parse_prior, with_path
 
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
@@ -153,7 +153,7 @@ def parse_observations(table: Any, cfg: Config) -> list:
                 raise ConfigError(f"{path}: {where}: {e}") from None
             continue
         try:
-            o = Observation.from_dict(dict(d))
+            o = Observation.from_dict(with_path(dict(d), cfg))
             o.validate(dem).check_recorded()
         except ValueError as e:
             raise ConfigError(f"{path}: observation {i + 1}: {e}") from None

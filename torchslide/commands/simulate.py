@@ -19,7 +19,7 @@ with a "folder" key], "runtime_s", ...}``.
 Member summary.json keys: params {name: value}, release_volume, final_volume, outflow_volume,
 entrained_volume (m^3), impact_area, deposit_area (m^2; h > threshold), deposit_volume (m^3; h_final
 over cells with h_final > threshold), threshold_m, max_h_max (m), max_v_max (m/s), max_p_max (kPa),
-runout_length (m, synthetic cases with a thalweg only), steps, t_final (s), stopped, runtime_s (the whole
+runout {path name: m} (the run-out along each [[paths]] polyline, and a synthetic case's "thalweg"), steps, t_final (s), stopped, runtime_s (the whole
 batched call), failed, failure_reason, gauges {name: {x, y, h_max, v_max, h_final}} (m, m/s, m; from the
 gauge series), conventions (torchslide.config.CONVENTIONS, with the input thickness and the density).
 
@@ -59,7 +59,7 @@ def _f(x) -> Any:
     return v if math.isfinite(v) else str(v)
 
 
-def member_summary(result, b: int, threshold: float, thalweg=None, density: float = 2000.0) -> dict[str, Any]:
+def member_summary(result, b: int, threshold: float, paths=(), density: float = 2000.0) -> dict[str, Any]:
     """Summary dict of member b of a SimulationResult (keys in the module docstring)."""
     from .. import observe
 
@@ -78,8 +78,8 @@ def member_summary(result, b: int, threshold: float, thalweg=None, density: floa
         "max_v_max": _f(r.v_max[0].max()),
         "max_p_max": _f(r.peak_pressure(density)[0].max()),
     }
-    if thalweg is not None:
-        s["runout_length"] = _f(observe.runout_length(r, thalweg, threshold)[0])
+    if paths:
+        s["runout"] = {p.name: _f(observe.runout_length(r, p.xy, threshold, p.max_offset)[0]) for p in paths}
     s.update({
         "steps": int(r.steps[0]),
         "t_final": _f(r.t_final[0]),
@@ -121,14 +121,14 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
     import torch
 
     fmt = "%.17g" if result.h_max.dtype == torch.float64 else "%.9g"
-    thalweg = getattr(cfg.terrain.case, "thalweg", None)
+    paths = cfg.run_out_paths()
     B = result.batch_size
     summaries = []
     for b in range(B):
         folder = tmp if B == 1 else tmp / f"member-{b:03d}"
         folder.mkdir(exist_ok=True)
         write_member(folder, result, b, fmt, cfg.output_format, cfg.model.density)
-        s = member_summary(result, b, threshold, thalweg, cfg.model.density)
+        s = member_summary(result, b, threshold, paths, cfg.model.density)
         s["conventions"] = cfg.conventions()
         (folder / "summary.json").write_text(json.dumps(s, indent=2) + "\n")
         s["folder"] = "." if B == 1 else folder.name

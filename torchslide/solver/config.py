@@ -47,6 +47,10 @@ class SolverConfig:
             flow touches the upslope edge of the DEM. "open": transmissive, the state continues through
             the edge as on an infinite domain (the uniform-layer verification cases); where a flow at the
             edge moves into the domain this feeds it without limit.
+        nodata: cells outside the DEM's domain (``DEM.outside``: nodata in the DEM file). "outflow"
+            (default): mass that enters them leaves the domain (counted in the outflow volume), like at
+            the DEM edge; "wall": faces between the domain and such cells pass no mass (a reflecting
+            wall). The release must not cover them.
     """
 
     cfl: float = 0.45
@@ -69,6 +73,7 @@ class SolverConfig:
     crop: bool = True
     crop_every: int = 2
     boundary: str = "outflow"
+    nodata: str = "outflow"
 
     def validate(self) -> None:
         def need(ok: bool, name: str, rule: str) -> None:
@@ -89,3 +94,4 @@ class SolverConfig:
         need(self.max_steps >= 1, "max_steps", "need >= 1")
         need(self.crop_every >= 1, "crop_every", "need >= 1")
         need(self.boundary in ("outflow", "open"), "boundary", "need 'outflow' or 'open'")
+        need(self.nodata in ("outflow", "wall"), "nodata", "need 'outflow' or 'wall'")

@@ -195,6 +195,7 @@ class _Inputs:
     use_ent: bool
     use_dep: bool
     metric: tuple
+    inside: Tensor | None = None
 
     @property
     def evolve(self) -> bool:
@@ -237,7 +238,22 @@ def _inputs(dem: DEM, release, P0: Params, erodible_depth, mu_scale, gauges, dty
         names.append(str(name))
     if len(set(names)) != len(names):
         raise ValueError(f"gauge names must be unique, got {names}")
-    return _Inputs(h0, erod0, ms, gauge_list, gidx, use_ent, bool((P0.deposition > 0).any()), metric)
+    inside = None
+    if dem.outside is not None:
+        outside = torch.as_tensor(dem.outside, device=device)
+        bad = outside & (h0 > 0).any(dim=0)
+        if bool(bad.any()):
+            i, j = (int(v) for v in torch.nonzero(bad)[0])
+            x, y = dem.cell_centre(i, j)
+            raise ValueError(f"release covers {int(bad.sum())} cells outside the DEM's domain (nodata), first at "
+                             f"row {i} from the south, col {j} (x={x:g} m, y={y:g} m)")
+        for name, k in zip(names, gidx):
+            if bool(outside.flatten()[k]):
+                raise ValueError(f"gauge {name!r} lies in a cell outside the DEM's domain (nodata)")
+        if erod0 is not None:
+            erod0 = torch.where(outside, torch.zeros_like(erod0), erod0)
+        inside = (~outside).unsqueeze(0)
+    return _Inputs(h0, erod0, ms, gauge_list, gidx, use_ent, bool((P0.deposition > 0).any()), metric, inside)
 
 
 def _step_flags(cfg: SolverConfig, P0: Params, inp: _Inputs, dx: float) -> StepFlags:
@@ -249,7 +265,8 @@ def _step_flags(cfg: SolverConfig, P0: Params, inp: _Inputs, dx: float) -> StepF
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,
         use_ep=bool((P0.earth_pressure > 0).any()), use_curv=bool((P0.curvature > 0).any()),
         use_ent=inp.use_ent, use_dep=inp.use_dep, use_mu_i=bool((P0.mu_i > 0).any()),
-        use_mu_scale=inp.mu_scale is not None, inflow=cfg.boundary == "open")
+        use_mu_scale=inp.mu_scale is not None, inflow=cfg.boundary == "open",
+        domain="" if inp.inside is None else cfg.nodata)
 
 
 def _output_times(t_end: float, interval: float, dtype, device) -> Tensor:
@@ -343,6 +360,8 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
         if P_.get("mu_scale") is not None and not b.covers(ny, nx):
             P_["mu_scale"] = P_["mu_scale"][:, b.r0:b.r1, b.c0:b.c1].contiguous()
         P_["rec"] = tuple(m[:, b.r0:b.r1, b.c0:b.c1].contiguous() for m in inp.metric)
+        if inp.inside is not None:
+            P_["inside"] = inp.inside[:, b.r0:b.r1, b.c0:b.c1].contiguous()
         if not inp.evolve:  # the bed terms of this box, once (not once per step)
             P_["geo"] = static_geometry(sub_["z"], F)
         gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)

@@ -13,7 +13,7 @@ import torch
 
 from ..physics import FR_DEP
 from .friction import apply_friction, curvature_gn, desingularised_velocity, mu_effective
-from .scheme import bed_terms, diff, draining_factors, frozen_faces, pad_linear, pad_replicate, sweep
+from .scheme import bed_terms, diff, draining_factors, faces_of, frozen_faces, pad_linear, pad_replicate, sweep
 
 Tensor = torch.Tensor
 
@@ -43,6 +43,7 @@ class StepFlags:
     use_mu_i: bool
     use_mu_scale: bool
     inflow: bool = False      # SolverConfig.boundary == "open": boundary faces may carry mass into the domain
+    domain: str = ""          # cells outside the DEM's domain: "" none, "outflow" or "wall" (SolverConfig.nodata)
 
 
 def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool):
@@ -133,6 +134,9 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     fx = fy = None
     if F.no_creep:
         fx, fy = frozen_faces(h, kg, (hu == 0) & (hv == 0), (mu_c * gn, tau / cs), g, dx, (zx, zy, cs), (bx, by))
+    if F.domain == "wall":
+        wx, wy = _domain_walls(P["inside"])
+        fx, fy = (wx, wy) if fx is None else (fx | wx, fy | wy)
     Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, fx, 2, F.theta, F.h_wet, F.wb_ratio, bx)
     Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, fy, 1, F.theta, F.h_wet, F.wb_ratio, by)
     if dt is None:
@@ -157,6 +161,10 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     bnd = ((Fhx.narrow(2, nx, 1).sum(dim=(1, 2)) - Fhx.narrow(2, 0, 1).sum(dim=(1, 2)))
            + (Fhy.narrow(1, ny, 1).sum(dim=(1, 2)) - Fhy.narrow(1, 0, 1).sum(dim=(1, 2))))
     outflow = dt * dx * bnd
+    if F.domain == "outflow":   # what entered a cell outside the domain has left it
+        gone = ~P["inside"]
+        outflow = outflow + torch.where(gone, hn, torch.zeros_like(hn)).sum(dim=(1, 2)) * (dx * dx)
+        hn, qx, qy = (torch.where(gone, torch.zeros_like(a), a) for a in (hn, qx, qy))
     # --- mass sources (explicit in the stage-start state; rates per unit horizontal area)
     if F.use_ent or F.use_dep:
         speed0 = surface_speed(u, v, zx, zy)
@@ -193,6 +201,15 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     qy = torch.where(thin, hn * desingularised_velocity(hn, qy, F.h_eps), qy)
     hn = torch.clamp(hn, min=0.0)
     return hn, qx, qy, z, erod, dep, outflow, dt
+
+
+def _domain_walls(inside: Tensor) -> tuple[Tensor, Tensor]:
+    """Faces between a cell of the domain and one outside it: (x faces (1, ny, nx + 1), y faces (1, ny + 1, nx))."""
+    out = []
+    for d in (2, 1):
+        a, b = faces_of(pad_replicate(inside, d), d, inside.shape[d])
+        out.append(a != b)
+    return out[0], out[1]
 
 
 def _hessian_form(hess, u: Tensor, v: Tensor) -> Tensor:

@@ -37,6 +37,7 @@ class DEM:
     xll: float = 0.0
     yll: float = 0.0
     crs: str | None = field(default=None, repr=False)
+    outside: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.z = np.asarray(self.z, dtype=np.float64)
@@ -53,6 +54,14 @@ class DEM:
                 f"DEM z has {int(bad.sum())} non-finite (NaN/nodata) cells inside the domain, "
                 f"first at row {i}, col {j} (x={x:.1f} m, y={y:.1f} m)"
             )
+        if self.outside is not None:
+            self.outside = np.asarray(self.outside, dtype=bool)
+            if self.outside.shape != self.z.shape:
+                raise TerrainError(f"DEM outside mask has shape {self.outside.shape}, the grid is {self.z.shape}")
+            if self.outside.all():
+                raise TerrainError("DEM: every cell is outside the domain (nodata)")
+            if not self.outside.any():
+                self.outside = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -117,3 +126,15 @@ class DEM:
             and abs(self.xll - other.xll) <= 1e-6 * self.cellsize
             and abs(self.yll - other.yll) <= 1e-6 * self.cellsize
         )
+
+
+def same_crs(a: str | None, b: str | None) -> bool:
+    """Whether two CRS descriptions (WKT, "EPSG:n", PROJ) name the same system; True when one is unknown."""
+    if not a or not b:
+        return True
+    try:
+        from rasterio.crs import CRS
+
+        return CRS.from_user_input(a) == CRS.from_user_input(b)
+    except Exception:
+        return a == b

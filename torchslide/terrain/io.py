@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .grid import DEM, TerrainError
+from .grid import DEM, TerrainError, same_crs
 
 __all__ = [
     "read_asc",
@@ -60,6 +60,22 @@ def _edge_connected(bad: np.ndarray) -> np.ndarray:
     return np.isin(lab, list(edge_labels)) if edge_labels else np.zeros_like(bad)
 
 
+NODATA = ("error", "fill", "outside")
+"""What a DEM reader does with nodata cells: refuse them, fill edge-connected ones by nearest neighbour,
+or mark them outside the domain (DEM.outside; their z filled by nearest neighbour for the slopes only)."""
+
+
+def _dem_with_nodata(z: np.ndarray, path, cellsize, xll, yll, crs, nodata: str) -> DEM:
+    """A DEM of ``z`` (NaN at nodata) handled as ``nodata`` says (NODATA)."""
+    bad = ~np.isfinite(z)
+    if nodata == "outside" and bad.any():
+        if bad.all():
+            raise TerrainError(f"{path}: every cell is nodata")
+        return DEM(z=_fill_nearest(z, bad), cellsize=cellsize, xll=xll, yll=yll, crs=crs, outside=bad)
+    return DEM(z=_handle_nodata(z, path, cellsize, xll, yll, nodata == "fill"), cellsize=cellsize, xll=xll, yll=yll,
+               crs=crs)
+
+
 def _handle_nodata(z: np.ndarray, path, cellsize, xll, yll, fill_nodata: bool) -> np.ndarray:
     """Raise on nodata/NaN cells, or fill edge-connected ones by nearest neighbour when asked."""
     bad = ~np.isfinite(z)
@@ -86,7 +102,7 @@ def _handle_nodata(z: np.ndarray, path, cellsize, xll, yll, fill_nodata: bool) -
     )
 
 
-def read_asc(path, *, fill_nodata: bool = False, allow_nodata: bool = False) -> DEM:
+def read_asc(path, *, fill_nodata: bool = False, allow_nodata: bool = False, nodata: str | None = None) -> DEM:
     """Read an ESRI ASCII grid into a :class:`DEM` (row 0 south).
 
     Header keys are case-insensitive; ``xllcorner``/``yllcorner`` or ``xllcenter``/``yllcenter``
@@ -94,13 +110,23 @@ def read_asc(path, *, fill_nodata: bool = False, allow_nodata: bool = False) -> 
     :class:`TerrainError` naming the file, the count and the first location, unless
     ``fill_nodata=True`` (cells connected to the grid edge are filled from the nearest valid cell).
     ``allow_nodata=True`` sets nodata cells to 0 instead (for non-DEM rasters); leave it False for DEMs.
+    ``nodata="outside"`` marks them outside the domain (DEM.outside). The CRS comes from a ``.prj``
+    file beside the grid, when there is one.
     """
     z, cellsize, xll, yll = read_asc_array(path)
+    crs = read_prj(path)
     if allow_nodata:
-        z = np.where(np.isfinite(z), z, 0.0)
-    else:
-        z = _handle_nodata(z, path, cellsize, xll, yll, fill_nodata)
-    return DEM(z=z, cellsize=cellsize, xll=xll, yll=yll)
+        return DEM(z=np.where(np.isfinite(z), z, 0.0), cellsize=cellsize, xll=xll, yll=yll, crs=crs)
+    return _dem_with_nodata(z, path, cellsize, xll, yll, crs, nodata or ("fill" if fill_nodata else "error"))
+
+
+def read_prj(path) -> str | None:
+    """The CRS (WKT) in the ``.prj`` file beside an ESRI ASCII grid, or None when there is none."""
+    prj = Path(path).with_suffix(".prj")
+    if not prj.is_file():
+        return None
+    text = prj.read_text().strip()
+    return text or None
 
 
 def read_asc_array(path) -> tuple[np.ndarray, float, float, float]:
@@ -199,13 +225,11 @@ def _isfloat(s: str) -> bool:
 def write_asc(path, array, dem: DEM, *, nodata_value: float | None = -9999.0, fmt: str = "%.6g") -> None:
     """Write ``array`` ((ny, nx), row 0 south, on ``dem``'s grid) as an ESRI ASCII grid.
 
-    Non-finite cells are written as ``nodata_value``. Uses ``xllcorner``/``yllcorner``. ``fmt``
-    defaults to 6 significant digits; pass ``"%.17g"`` for an exact float64 round trip.
+    Non-finite cells and cells outside the DEM's domain are written as ``nodata_value``. Uses
+    ``xllcorner``/``yllcorner``. ``fmt`` defaults to 6 significant digits; pass ``"%.17g"`` for an exact
+    float64 round trip. The DEM's CRS goes into a ``.prj`` file beside the grid.
     """
-    a = np.asarray(array, dtype=np.float64)
-    if a.shape != dem.shape:
-        raise TerrainError(f"{path}: array shape {a.shape} does not match the DEM grid {dem.shape}")
-    a = a[::-1]
+    a = _masked(array, dem, path)[::-1]
     bad = ~np.isfinite(a)
     if bad.any():
         if nodata_value is None:
@@ -222,6 +246,16 @@ def write_asc(path, array, dem: DEM, *, nodata_value: float | None = -9999.0, fm
         lines.append(f"NODATA_value {nodata_value:g}")
     body = "\n".join(" ".join(fmt % v for v in row) for row in a)
     Path(path).write_text("\n".join(lines) + "\n" + body + "\n")
+    if dem.crs:
+        Path(path).with_suffix(".prj").write_text(dem.crs + "\n")
+
+
+def _masked(array, dem: DEM, path) -> np.ndarray:
+    """``array`` as float64 (ny, nx), NaN outside the DEM's domain; TerrainError when the shape differs."""
+    a = np.asarray(array, dtype=np.float64)
+    if a.shape != dem.shape:
+        raise TerrainError(f"{path}: array shape {a.shape} does not match the DEM grid {dem.shape}")
+    return np.where(dem.outside, np.nan, a) if dem.outside is not None else a
 
 
 # ----------------------------------------------------------------------------------------- GeoTIFF
@@ -274,16 +308,11 @@ def _geotiff(path, band: int = 1):
     return z, cs, xll, yll, crs
 
 
-def read_geotiff(path, *, fill_nodata: bool = False, band: int = 1) -> DEM:
-    """Read one band of a GeoTIFF into a :class:`DEM` (needs rasterio). Square, unrotated pixels only."""
+def read_geotiff(path, *, fill_nodata: bool = False, band: int = 1, nodata: str | None = None) -> DEM:
+    """Read one band of a GeoTIFF into a :class:`DEM` (needs rasterio). Square, unrotated pixels only;
+    nodata as for :func:`read_asc`."""
     z, cs, xll, yll, crs = _geotiff(path, band)
-    z = _handle_nodata(z, path, cs, xll, yll, fill_nodata)
-    return DEM(z=z, cellsize=cs, xll=xll, yll=yll, crs=crs)
-
-
-def _read_geotiff_array(path, band: int = 1):
-    """(z (ny, nx) row 0 south with NaN at nodata, cellsize, xll, yll) of a GeoTIFF (checks of _geotiff)."""
-    return _geotiff(path, band)[:4]
+    return _dem_with_nodata(z, path, cs, xll, yll, crs, nodata or ("fill" if fill_nodata else "error"))
 
 
 def write_geotiff(path, array, dem: DEM, *, nodata_value: float = -9999.0) -> None:
@@ -291,9 +320,7 @@ def write_geotiff(path, array, dem: DEM, *, nodata_value: float = -9999.0) -> No
     rasterio = _rasterio()
     from rasterio.transform import from_origin
 
-    a = np.asarray(array, dtype=np.float64)
-    if a.shape != dem.shape:
-        raise TerrainError(f"{path}: array shape {a.shape} does not match the DEM grid {dem.shape}")
+    a = _masked(array, dem, path)
     a = np.where(np.isfinite(a), a, nodata_value)[::-1]
     _, _, _, ymax = dem.extent
     transform = from_origin(dem.xll, ymax, dem.cellsize, dem.cellsize)
@@ -316,11 +343,11 @@ def _kind(path) -> str:
     )
 
 
-def read_raster(path, *, fill_nodata: bool = False) -> DEM:
-    """Read an .asc or .tif raster into a :class:`DEM` (dispatch on the extension)."""
+def read_raster(path, *, fill_nodata: bool = False, nodata: str | None = None) -> DEM:
+    """Read an .asc or .tif raster into a :class:`DEM` (dispatch on the extension); ``nodata``: NODATA."""
     if _kind(path) == "asc":
-        return read_asc(path, fill_nodata=fill_nodata)
-    return read_geotiff(path, fill_nodata=fill_nodata)
+        return read_asc(path, fill_nodata=fill_nodata, nodata=nodata)
+    return read_geotiff(path, fill_nodata=fill_nodata, nodata=nodata)
 
 
 read_dem = read_raster
@@ -367,8 +394,11 @@ def read_raster_on_grid(path, dem: DEM, what: str = "map") -> np.ndarray:
     """
     if _kind(path) == "asc":
         z, cs, xll, yll = read_asc_array(path)
+        crs = read_prj(path)
     else:
-        z, cs, xll, yll = _read_geotiff_array(path)
+        z, cs, xll, yll, crs = _geotiff(path)
+    if not same_crs(crs, dem.crs):
+        raise TerrainError(f"{path}: {what} CRS differs from the DEM's; reproject it onto the DEM's grid and CRS")
     ny, nx = z.shape
     same = (
         (ny, nx) == dem.shape

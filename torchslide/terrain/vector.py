@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .grid import DEM, TerrainError
+from .grid import DEM, TerrainError, same_crs
 
 __all__ = ["VECTOR_EXTENSIONS", "is_vector", "Feature", "read_features", "rasterize_thickness",
-           "rasterize_outline", "read_polyline", "same_crs"]
+           "rasterize_outline", "read_polyline"]
 
 VECTOR_EXTENSIONS = (".shp", ".geojson", ".json", ".gpkg", ".fgb", ".kml", ".gml")
 
@@ -74,18 +74,6 @@ def read_features(path, geometry: str = "polygon") -> tuple[list[Feature], str |
         attrs = {n: fields[k][i] for k, n in enumerate(names)}
         out.append(Feature(g, attrs, i + 1))
     return out, meta.get("crs")
-
-
-def same_crs(a: str | None, b: str | None) -> bool:
-    """Whether two CRS descriptions (WKT, "EPSG:n", PROJ) name the same system; True when one is unknown."""
-    if not a or not b:
-        return True
-    try:
-        from rasterio.crs import CRS
-
-        return CRS.from_user_input(a) == CRS.from_user_input(b)
-    except Exception:
-        return a == b
 
 
 def _check_crs(path, crs, dem: DEM) -> None:
