@@ -3,8 +3,9 @@
 Writes the files a user brings, for the built-in Bondo-like valley (torchslide.terrain.synthetic.bondo_like):
 
     DIR/dem.asc          the terrain, ESRI ASCII, m
-    DIR/release.asc      the release thickness, m (3e6 m^3)
-    DIR/simulate.toml    two friction values run as one batch, gauges L1-L3 on the flow path
+    DIR/release.asc      the release thickness normal to the slope, m (3e6 m^3)
+    DIR/simulate.toml    two friction values run as one batch, gauges L1-L3 on the flow path, the
+                         valley's thalweg as a run-out path
     DIR/calibrate.toml   a prior over (mu, xi) and one recording: the maximum speed at L1
 
 The recording is a synthetic one (mu = 0.23, xi = 1000 m/s^2 with 10 % noise, on 60 m cells): 62.5 m/s.
@@ -25,6 +26,7 @@ EXAMPLES = ("bondo",)
 TERRAIN = """[terrain]
 dem = "dem.asc"
 release = "release.asc"
+thickness = "normal"
 """
 
 SIMULATE = """
@@ -32,6 +34,7 @@ SIMULATE = """
 rheology = "voellmy"
 mu = [0.2, 0.25]
 xi = 1000.0
+density = 2000.0
 
 [run]
 t_end = 300.0
@@ -39,7 +42,10 @@ dtype = "float64"
 device = "cpu"
 boundary = "outflow"
 
-{gauges}"""
+{gauges}[[paths]]
+name = "thalweg"
+points = {path}
+"""
 
 CALIBRATE = """
 [model]
@@ -99,7 +105,8 @@ def _run(args: argparse.Namespace) -> int:
     with staged_output(out, anc, "example") as tmp:
         write_asc(tmp / "dem.asc", case.dem.z, case.dem, fmt="%.6f")
         write_asc(tmp / "release.asc", case.release, case.dem, fmt="%.6f")
-        (tmp / "simulate.toml").write_text(TERRAIN + SIMULATE.format(gauges=gauge_tables(case.points)))
+        path = "[" + ", ".join(f"[{px:.1f}, {py:.1f}]" for px, py in case.thalweg[::50]) + "]"
+        (tmp / "simulate.toml").write_text(TERRAIN + SIMULATE.format(gauges=gauge_tables(case.points), path=path))
         (tmp / "calibrate.toml").write_text(TERRAIN + CALIBRATE.format(x=x, y=y))
     print(f"wrote {out}: dem.asc, release.asc ({case.dem.ny} x {case.dem.nx} cells of {args.cellsize:g} m), "
           f"simulate.toml, calibrate.toml")
