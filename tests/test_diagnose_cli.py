@@ -118,6 +118,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--null-runs", "1"]) == 0
     j = json.loads((out / "report.json").read_text())
     assert j["verdict"] in ("missing_physics", "no_missing_physics", "unexplained")
+    assert "normal to the slope" in j["conventions"]["thickness"] and j["conventions"]["input_thickness"] == "normal"
     # --null-runs 1: one null recording diagnosed like the data; bf_min and located_min set on it (fit_max
     # needs 3, so the config's is kept), the data decided again, the first decision kept
     nc = j["null_calibration"]

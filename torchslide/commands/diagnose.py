@@ -355,7 +355,7 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     log = (lambda s: None) if args.quiet else print
     d = diagnose(ev, dg["candidates"], bud, th, log=log)
-    write_report(d, out)           # with the thresholds given; rewritten below when null runs reset them
+    write_report(d, out, cfg.conventions())           # with the thresholds given; rewritten below when null runs reset them
     if args.null_runs:
         from ..diagnose.null import null_calibration
         named = f" ({d.missing_physics})" if d.missing_physics else ""
@@ -368,6 +368,6 @@ def _run(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return 1
         d.redecide(d.null_calibration["thresholds"], f"set on {args.null_runs} null simulations of this design")
-        write_report(d, out)
+        write_report(d, out, cfg.conventions())
     print(f"verdict: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "") + f"; report in {out}")
     return 0

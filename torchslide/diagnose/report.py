@@ -337,12 +337,15 @@ def _fit_notes(residuals: dict, level: float = 3.0) -> list[str]:
     return L
 
 
-def write_report(diag, out) -> Path:
+def write_report(diag, out, conventions: dict | None = None) -> Path:
+    """report.json (with ``conventions``, what its numbers measure, when given), report.md and figures."""
     from ..files import write_text_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     j = diag.to_json()
+    if conventions is not None:
+        j["conventions"] = conventions
     write_text_atomic(out / "report.json", json.dumps(j, indent=1))
     try:
         figs = write_figures(diag, out)
