@@ -45,7 +45,7 @@ EDITS = [
     (CAL, ("mu = [0.02, 0.3]", "kappa = [0.0, 0.1, 0.2]"), "kappa"),
     (CAL, ("xi = [100.0, 2200.0]", 'xi = { dist = "cauchy", low = 100.0, high = 2200.0 }'), "cauchy"),
     (CAL, ("xi = [100.0, 2200.0]", "zeta = [100.0, 2200.0]"), "zeta"),
-    (CAL, ("value = 62.5", "value = -62.5"), "v_L1"),
+    (CAL, ("value = 70.5", "value = -70.5"), "v_L1"),
     (CAL, ("sigma = 6.25", "sigma = 0.0"), "sigma"),
     (CAL, ('kind = "max_velocity"', 'kind = "max_speed"'), "max_speed"),
     (CAL, ("y = 1086.6\n", ""), "x, y"),
