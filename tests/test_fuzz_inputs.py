@@ -46,7 +46,7 @@ EDITS = [
     (CAL, ("xi = [100.0, 2200.0]", 'xi = { dist = "cauchy", low = 100.0, high = 2200.0 }'), "cauchy"),
     (CAL, ("xi = [100.0, 2200.0]", "zeta = [100.0, 2200.0]"), "zeta"),
     (CAL, ("value = 70.5", "value = -70.5"), "v_L1"),
-    (CAL, ("sigma = 6.25", "sigma = 0.0"), "sigma"),
+    (CAL, ("sigma = 7.05", "sigma = 0.0"), "sigma"),
     (CAL, ('kind = "max_velocity"', 'kind = "max_speed"'), "max_speed"),
     (CAL, ("y = 1086.6\n", ""), "x, y"),
     (CAL, ("n_initial = 30", "n_initial = 1"), "n_initial"),
