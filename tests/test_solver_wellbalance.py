@@ -66,10 +66,10 @@ def test_static_pile_no_creep():
 
 @pytest.mark.parametrize("plan", [0.0, 30.0, 45.0])
 def test_a_layer_starts_exactly_when_the_slope_beats_friction_in_any_plan_orientation(plan):
-    """The no-creep rule measures the drive along the surface: a uniform layer on a 25 degree plane
-    stays at rest for mu just above tan(theta) and moves for mu just below, whatever the plane's
-    orientation on the grid (a rule on the face-normal components alone holds it up to
-    tan(theta) < sqrt(2) mu at 45 degrees)."""
+    """Onset along the surface: a uniform layer on a 25 degree plane stays at rest for mu just above
+    tan(theta) and moves for mu just below, whatever the plane's orientation on the grid (friction on
+    the horizontal momentum instead of the momentum along the surface would hold it up to
+    tan(theta) = mu / cos(theta))."""
     tan_t = math.tan(math.radians(25.0))
     dem, *_ = tilted_plane(10, 5.0, 25.0, plan)
     for mu, moves in ((tan_t * 1.02, False), (tan_t * 0.98, True)):
