@@ -281,3 +281,24 @@ def test_report_cell_says_which_refits_the_recheck_refined():
             "[2.3, 4.78], log Z -1307.03 -> -1296.88") in cell
     assert "posterior covers the ridge" in _refit_check(dict(c, param="tau_y", profile=[{"refined": False}]))
     assert "profile" not in _refit_check(c)
+
+
+def test_cli_design_ranks_where_a_new_gauge_reveals_each_candidate(tmp_path, capsys):
+    """`torchslide diagnose CONFIG --out DIR --design`: the baseline's local fit, then design.json (every
+    candidate's detectable switch now and the best new gauges), a raster per candidate and the figure;
+    a bad --design-sigma is a one-line error."""
+    import json
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape,
+                  candidates='["curvature", "mu_i"]\nlocal_lhs = 4\nlocal_starts = 1\nlocal_max_iter = 4\n')
+    out = tmp_path / "out"
+    assert main(["diagnose", str(p), "--out", str(out), "--design", "--design-sigma", "0.5"]) == 2
+    assert "--design-sigma must be two numbers" in capsys.readouterr().err
+    assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--design", "--design-top", "2"]) == 0
+    j = json.loads((out / "design.json").read_text())
+    assert set(j["candidates"]) == {"curvature", "mu_i"} and set(j["baseline"]) == {"mu", "xi"}
+    for c, v in j["candidates"].items():
+        assert len(v["best_new_gauges"]) == 2
+        assert (out / f"design_{c}.asc").exists()
+    assert (out / "design.png").exists()

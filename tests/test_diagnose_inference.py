@@ -560,7 +560,8 @@ def test_fit_flags_use_the_calibrated_baselines_fit_not_the_refined_one(tmp_path
     monkeypatch.setattr(pipeline, "localise", lambda *a, **k: calls.append(real_localise(*a, **k)) or calls[-1])
     # the mode check always refines (margin -inf) and its refinement is always adopted
     monkeypatch.setattr(pipeline, "adopt_refined_baseline", lambda *a: True)
-    bud = Budgets(baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40, model_error_runs=0, batch_size=8,
+    bud = Budgets(inference="emulator", baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40,
+                  model_error_runs=0, batch_size=8,
                   n_initial=4, n_total=6, n_total_max=6, n_posterior_samples=6, n_posterior_samples_after=4,
                   refit_refine_rounds=1, baseline_refine_rounds=0,
                   top_k=1, n_perm=9, mode_search_iters=1, mode_search_pop=2, mode_margin=-math.inf,

@@ -116,3 +116,194 @@ def test_the_optimiser_recovers_the_optimum_of_a_small_solver_case():
     f = fit(residuals, np.array([0.4, 1200.0]), bounds, log_norm=0.0, log_prior=0.0)
     np.testing.assert_allclose(f.x, truth[0], rtol=0.02)
     assert f.log_like > -0.5 and f.n_runs <= 30 * 5
+
+
+# ---- the local path (torchslide.diagnose.local_path) ----
+
+def test_the_boundary_corrected_likelihood_ratio_holds_its_level():
+    """A switch s >= 0 whose true value is its bound 0, two nuisance parameters re-tuned: 2 ln LR is 0 in
+    half of the null draws and chi2_1 in the other half, so p = P(chi2_1 > lambda) / 2 rejects at its level."""
+    from torchslide.diagnose.local_path import lr_pvalue
+
+    rng = np.random.default_rng(3)
+    J = rng.normal(size=(15, 3))
+    T, b = J[:, :2], J[:, 2]
+    P = np.eye(15) - T @ np.linalg.pinv(T)            # what re-tuning the nuisance cannot absorb
+    s_b = P @ b
+    n = 20000
+    E = rng.normal(size=(n, 15))                      # whitened noise, nothing hidden
+    score = E @ s_b / (s_b @ s_b)                     # the unconstrained switch estimate
+    lam = np.where(score > 0, score**2 * (s_b @ s_b), 0.0)
+    p = np.array([lr_pvalue(v) for v in lam])
+    assert np.mean(lam == 0) == pytest.approx(0.5, abs=0.015)
+    for level in (0.05, 0.01):
+        assert np.mean(p <= level) == pytest.approx(level, rel=0.15)
+
+
+def _linear_problem(truth_s: float, seed: int = 4):
+    rng = np.random.default_rng(seed)
+    J = rng.normal(size=(12, 3)) * 4.0
+    d = J @ np.array([0.5, 0.4, truth_s]) + rng.normal(size=12) * 0.5
+
+    def full(X):
+        return X @ J.T - d, np.zeros(len(X), dtype=bool)
+
+    def nested(X):
+        return X @ J[:, :2].T - d, np.zeros(len(X), dtype=bool)
+
+    return full, nested
+
+
+@pytest.mark.parametrize("truth_s", [0.0, 0.3])
+def test_savage_dickey_of_the_laplace_marginal_equals_the_laplace_bayes_factor(truth_s):
+    """Nested linear models with uniform priors: the Savage-Dickey ratio of the switch's truncated Gaussian
+    marginal and the ratio of the two Laplace evidences are the same exact number."""
+    from torchslide.diagnose.local_path import savage_dickey
+
+    full, nested = _linear_problem(truth_s)
+    wide = np.array([[-5.0, -5.0], [5.0, 5.0]])
+    f0 = fit(nested, np.zeros(2), wide, log_norm=0.0, log_prior=-math.log(100.0))
+    box = np.array([[-5.0, -5.0, 0.0], [5.0, 5.0, 1.0]])
+    f1 = fit(full, np.array([0.0, 0.0, 0.5]), box, log_norm=0.0, log_prior=-math.log(100.0))
+    two_ln_bf = 2 * (f1.log_evidence - f0.log_evidence)
+    assert savage_dickey(f1, 2, (0.0, 1.0)) == pytest.approx(two_ln_bf, abs=1e-6)
+    if truth_s == 0.0:
+        assert two_ln_bf < 0          # nothing hidden: the Occam factor wins
+    else:
+        assert two_ln_bf > 10
+
+
+def test_the_box_fraction_chooses_the_path():
+    """The 90 % ellipse of a Gaussian with sds (0.005, 5) in a box of 0.28 x 2100 fills pi chi2_2(0.9) 0.025 /
+    588 (6e-4) of it: the local path; one as wide as the box fills most of it: the emulator path."""
+    from scipy import stats
+
+    from torchslide.diagnose.local import LocalFit
+    from torchslide.diagnose.local_path import box_fraction, choose_path
+
+    bounds = np.array([[0.02, 100.0], [0.3, 2200.0]])
+
+    def gauss(sd):
+        cov = np.diag(np.square(sd))
+        return LocalFit(x=np.array([0.2, 1000.0]), log_like=0.0, jacobian=np.eye(2), precision=np.linalg.inv(cov),
+                        covariance=cov, centre=np.array([0.2, 1000.0]), log_evidence=0.0, n_runs=0, converged=True,
+                        message="")
+
+    narrow = gauss([0.005, 5.0])
+    expected = math.pi * stats.chi2.ppf(0.9, 2) * 0.005 * 5.0 / (0.28 * 2100.0)
+    assert box_fraction(narrow, bounds) == pytest.approx(expected, rel=1e-9)
+    assert choose_path(narrow, bounds, 1e-3)[0] == "local"
+    path, why = choose_path(gauss([0.1, 800.0]), bounds, 1e-3)
+    assert path == "emulator" and "of the prior box" in why
+
+
+def test_laplace_draws_stay_in_the_box_and_follow_the_truncated_gaussian():
+    from torchslide.diagnose.local import LocalFit
+
+    cov = np.array([[0.04, 0.0], [0.0, 0.01]])
+    f = LocalFit(x=np.array([0.0, 0.5]), log_like=0.0, jacobian=np.eye(2), precision=np.linalg.inv(cov),
+                 covariance=cov, centre=np.array([-0.1, 0.5]), log_evidence=0.0, n_runs=0, converged=True, message="")
+    box = np.array([[0.0, 0.0], [1.0, 1.0]])
+    d = f.draws(4000, box, seed=0)
+    assert d.shape == (4000, 2) and np.all((d >= box[0]) & (d <= box[1]))
+    from scipy import stats
+    tn = stats.truncnorm((0 + 0.1) / 0.2, (1 + 0.1) / 0.2, loc=-0.1, scale=0.2)
+    assert d[:, 0].mean() == pytest.approx(tn.mean(), abs=0.01)
+
+
+def _plane_case(kappa: float):
+    """Recordings on a small inclined plane (deposit map, two gauges' depth and speed series, the final
+    volume; sigmas of centimetres and decimetres per second) made with entrainment switch ``kappa`` on
+    an erodible layer, and the diagnosis evaluator of plain Voellmy."""
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.diagnose import DiagnosisEvaluator
+    from torchslide.observe import Observation
+    from torchslide.observe_series import SeriesObservation
+    from torchslide.physics import Params
+    from torchslide.solver import SolverConfig, simulate
+    from torchslide.terrain.synthetic import inclined_plane, release_from_shape
+
+    dem = inclined_plane(30.0, 40.0, slope_length=600.0, runout_length=600.0, width=320.0, transition=200.0)
+    rel = release_from_shape(dem, (150.0, 160.0), 60.0, volume=2.0e4)
+    erod = np.zeros(dem.shape)
+    erod[:, : dem.shape[1] // 2] = 1.0
+    gauges = [("g1", 450.0, 160.0), ("g2", 700.0, 160.0)]
+    res = simulate(dem, rel, Params.make(mu=0.3, xi=600.0, kappa=kappa), t_end=40.0, gauges=gauges,
+                   config=SolverConfig(), erodible_depth=erod)
+    t = np.arange(2.0, 40.0, 2.0)
+    obs = [SeriesObservation.from_array("deposit_map", res.h_final[0].numpy(), dem, 0.05, name="deposit"),
+           Observation("final_volume", float(res.final_volume[0]), 200.0, name="final_volume")]
+    for name, _, _ in gauges:
+        g = res.gauges[name]
+        obs += [SeriesObservation("gauge_series", np.interp(t, g.t.numpy(), g.h[0].numpy()), 0.05,
+                                  name=f"{name}:h", gauge=name, quantity="h", times=t),
+                SeriesObservation("gauge_series", np.interp(t, g.t.numpy(), g.speed[0].numpy()), 0.2,
+                                  name=f"{name}:speed", gauge=name, quantity="speed", times=t)]
+    return DiagnosisEvaluator(dem=dem, release=rel, observations=obs, t_end=40.0, gauges=gauges,
+                              prior=Prior({"mu": Uniform(0.2, 0.45), "xi": Uniform(200.0, 1500.0)}),
+                              solver_config=SolverConfig(), erodible_depth=erod)
+
+
+@pytest.mark.parametrize("kappa", [0.001, 0.0])
+def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
+    """Rich recordings (a deposit map and a depth series): the baseline's posterior fills a tiny part of the
+    box, so "auto" takes the local path and says why. With entrainment hidden its local fit recovers
+    kappa within its 90 % interval, its likelihood ratio is far beyond the boundary-corrected reference and
+    it is named; with nothing hidden its evidence is below the baseline's and nothing is named."""
+    from torchslide.diagnose import Budgets, Thresholds, diagnose
+    from torchslide.diagnose.report import write_markdown
+
+    ev = _plane_case(kappa)
+    bud = Budgets(model_error_runs=0, n_posterior_samples=8, n_posterior_samples_after=6, top_k=2, n_perm=9,
+                  local_lhs=8, local_starts=1, profile_top=1)
+    d = diagnose(ev, ["entrainment", "mu_i"], bud, Thresholds(), log=lambda s: None, workdir=tmp_path)
+    inf = d.decision["inference"]
+    assert inf["path"] == "local" and "of the prior box" in inf["why"]
+    ent = next(c for c in d.candidates if c["name"] == "entrainment")
+    assert ent["inference"] == "laplace"
+    assert sum(c.get("profile_ends") is not None for c in d.candidates) == 1      # profile_top = 1
+    if kappa > 0:
+        assert ent["profile_ends"] is not None and min(ent["profile_ends"]["two_ln_drop"]) > 0
+        lo, hi = ent["parameters"]["kappa"]["hdr90"]
+        assert lo <= kappa <= hi
+        assert ent["lr_pvalue"] < 1e-6 and ent["two_ln_bf"] > 20
+        assert d.verdict == "missing_physics" and d.missing_physics == "entrainment"
+    else:
+        assert ent["two_ln_bf"] < 0 and ent["lr_pvalue"] > 0.01
+        assert d.verdict == "no_missing_physics"
+    md = write_markdown(d.to_json(), [])
+    assert "local" in md and "Laplace" in md
+
+
+def test_the_design_equals_the_detectability_with_the_extra_gauge_recorded():
+    """The design's detectable switch at a cell equals what local.detectable_switch gives once a gauge's peak
+    depth and peak speed at that cell are among the observations (same screening members), and a cell the
+    flow never reaches adds nothing."""
+    import dataclasses
+
+    from torchslide.diagnose.design import design
+    from torchslide.diagnose.local import detectable_switch
+    from torchslide.diagnose.screen import members
+    from torchslide.observe import Observation
+
+    ev = _plane_case(0.0)
+    x0 = np.array([0.3, 600.0])
+    d = design(ev, x0, ["entrainment"], sigma_h=0.2, sigma_v=1.0, threshold=6.0, top=3)
+    m = d.maps["entrainment"]
+    best = d.best["entrainment"][0]
+    assert best["switch"] == pytest.approx(m.min()) and best["switch"] < d.now["entrainment"]
+    assert np.isfinite(d.now["entrainment"])
+    far = np.unravel_index(np.argmax(np.where(np.isfinite(m), m, -np.inf)), m.shape)
+    assert m[far] == pytest.approx(d.now["entrainment"], rel=1e-6)     # nothing reaches there
+    # the same number from the observations with the gauge added
+    x, y = best["x"], best["y"]
+    extra = [Observation("max_height", 1.0, 0.2, x=x, y=y, name="new:h"),
+             Observation("max_velocity", 1.0, 1.0, x=x, y=y, name="new:v")]
+    ev2 = dataclasses.replace(ev, observations=list(ev.observations) + extra)
+    values, steps = members(ev2, x0, ["entrainment"])
+    preds, _ = ev2.run_values(values)
+    W = ev2.likelihood.whiten(__import__("torch").as_tensor(preds)).numpy()
+    J = ((W - W[0])[1:] / np.array([steps["mu"], steps["xi"], steps["entrainment"]])[:, None]).T
+    assert detectable_switch(J, 2, 6.0) == pytest.approx(best["switch"], rel=1e-6)
+    js = d.to_json()["candidates"]["entrainment"]
+    assert len(js["best_new_gauges"]) == 3 and js["detectable_now"] == pytest.approx(d.now["entrainment"])

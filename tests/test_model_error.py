@@ -157,7 +157,8 @@ def test_grid_model_error_from_a_pilot_calibration(tmp_path):
     from torchslide.diagnose.pipeline import grid_model_error
 
     ev = _evaluator()
-    bud = Budgets(baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40, model_error_runs=3, batch_size=8,
+    bud = Budgets(inference="emulator", baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40,
+                  model_error_runs=3, batch_size=8,
                   mcmc_steps=200, release_volume_sd=0.05)
     ev_me, me = grid_model_error(ev, bud, tmp_path, log=lambda s: None)
     assert me.samples.shape == (3, ev.k) and ev_me.model_error is me

@@ -267,16 +267,23 @@ class GaussianLikelihood:
             self.sigma, self.chol = None, L
             self._log_norm = -0.5 * k * _LOG_2PI - torch.log(torch.diagonal(L)).sum()
 
-    def log_likelihood(self, simulated: torch.Tensor) -> torch.Tensor:
-        """simulated: (n, k) model outputs -> (n,) ln L (Eq. 6). Non-finite outputs give nan."""
+    @property
+    def log_norm(self) -> float:
+        """-0.5 log det(2 pi Sigma): ln L = log_norm - |whiten(y)|^2 / 2."""
+        return float(self._log_norm)
+
+    def whiten(self, simulated: torch.Tensor) -> torch.Tensor:
+        """simulated: (n, k) model outputs -> (n, k) whitened residuals L^-1 (y - d), Sigma = L L^T."""
         y = _as2d(torch.as_tensor(simulated, dtype=torch.float64))
         r = y - self.observed.to(y)
         if self.chol is None:
-            quad = ((r / self.sigma.to(y)) ** 2).sum(-1)
-        else:
-            w = torch.linalg.solve_triangular(self.chol.to(y), r.T, upper=False)
-            quad = (w**2).sum(0)
-        return self._log_norm.to(y) - 0.5 * quad
+            return r / self.sigma.to(y)
+        return torch.linalg.solve_triangular(self.chol.to(y), r.T, upper=False).T
+
+    def log_likelihood(self, simulated: torch.Tensor) -> torch.Tensor:
+        """simulated: (n, k) model outputs -> (n,) ln L (Eq. 6). Non-finite outputs give nan."""
+        w = self.whiten(simulated)
+        return self._log_norm.to(w) - 0.5 * (w**2).sum(-1)
 
     __call__ = log_likelihood
 

@@ -51,7 +51,8 @@ class BondoConfig:
         cellsize: terrain cell size, m (the paper's DEM is finer; see README for what was run).
         t_end: simulated time, s.
         n_initial: b0 maximin-LHS runs shared by all cases; n_adaptive: adaptive runs per case.
-        batch_size: q points per iteration per case (all cases' points run in one solver call).
+        batch_size: q points per iteration per case (all cases' points run in one solver call); 1 is
+            the paper's Algorithm 1.
         snapshots: adaptive-run counts at which the posterior is stored (Fig. 3, TV tables).
         grid_size: posterior grid per axis.
         seed: LHS / acquisition seed; lhs_only_seed: seed of the 120-run LHS-only comparison design.
@@ -74,7 +75,7 @@ class BondoConfig:
     t_end: float = 300.0
     n_initial: int = 40
     n_adaptive: int = 80
-    batch_size: int = 10
+    batch_size: int = 1
     snapshots: tuple = (0, 20, 50, 80)
     grid_size: int = 100
     seed: int = 0

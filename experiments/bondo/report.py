@@ -128,7 +128,7 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append(f"- run directory: `{run_dir.name}`; cell size **{cfg['cellsize']:g} m**, t_end {cfg['t_end']:g} s, "
              f"{cfg['dtype']}; cases {cfg['cases']}")
     L.append(f"- {cfg['n_initial']} shared initial maximin-LHS runs, {cfg['n_adaptive']} adaptive runs per case "
-             f"in batches of q = {cfg['batch_size']} per case (the q points of all cases run in one solver call), "
+             f"in batches of q = {cfg['batch_size']} per case (the points of all cases run in one solver call), "
              f"grid {cfg['grid_size']} x {cfg['grid_size']}")
     L.append(f"- brute-force reference: {cfg['sweep_n']} x {cfg['sweep_n']} sweep over the prior box, observables "
              f"interpolated bilinearly to the {cfg['grid_size']} x {cfg['grid_size']} grid")
@@ -170,8 +170,9 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append("- Terrain: the analytic Bondo-like valley of `torchslide.terrain.synthetic.bondo_like` "
              "(3e6 m^3 release), not the real DEM; solver: torchslide, not r.avaflow. Table 1 values therefore differ "
              "from the paper's.")
-    L.append(f"- Active learning picks q = {cfg['batch_size']} points per case and iteration (kriging believer) "
-             "instead of one, so that all cases' points run in one batched solver call.")
+    if cfg["batch_size"] > 1:
+        L.append(f"- Active learning picks q = {cfg['batch_size']} points per case and iteration (kriging believer) "
+                 "instead of one.")
     L.append(f"- The brute-force reference is a {cfg['sweep_n']} x {cfg['sweep_n']} sweep with observables "
              "interpolated bilinearly; for very narrow posteriors (deposit height, 10 % noise) the interpolation "
              "error of the reference itself can be a sizeable part of the TV distance.")

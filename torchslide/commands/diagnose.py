@@ -18,6 +18,15 @@ and a [diagnose] section::
 
     [diagnose]                   # every key optional; defaults shown
     candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
+    inference = "auto"           # "local": baseline and candidates fitted on the solver (trust-region least squares,
+                                 #     Laplace evidence, likelihood ratio, profile); "emulator": GP emulator over the
+                                 #     prior box; "auto": local when the baseline's 90 % Laplace region fills less
+                                 #     than local_max_fraction of the prior box (rich data: a GP with tens of runs
+                                 #     cannot resolve such a peak), else emulator
+    local_max_fraction = 0.01
+    local_lhs = 16               # local path: maximin-LHS runs ranking the baseline's starts, fits from the
+    local_starts = 2             #     local_starts best; local_max_iter evaluations (2p + 1 members each) per fit
+    local_max_iter = 30
     n_posterior_samples = 32     # baseline posterior-predictive members (and per baseline refinement round)
     n_posterior_samples_after = 16   # posterior-predictive members of every refit (verification)
     n_initial = 16               # refit budgets: LHS runs, first-stage total ...
@@ -56,6 +65,7 @@ and a [diagnose] section::
     explain_min = 0.5            # fraction of the located structure a named term must remove (0..1)
     ess_min = 2.0                # importance-sampling ESS a verified evidence needs (>= 1)
     z_threshold = 3.0            # per-value / cluster / window detection level
+    lr_alpha = 0.01              # local path: a candidate's likelihood ratio must reach this boundary-corrected p-value
     # fit_max = 4.0              # not set by default (off): an observable whose fit Z (its chi-square with the
                                  #     likelihood's covariance, as a normal score) exceeds it is a mismatch; one
                                  #     number, or a table per observable name ([diagnose.fit_max] "g1:speed" = -1.5)
@@ -89,9 +99,12 @@ HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, 
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
              "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
-             "mode_search_iters", "mode_search_max_iters", "profile_top", "top_k", "batch_size", "n_perm")
-_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold")
-_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", *_INT_KEYS, *_THRESHOLD_KEYS}
+             "mode_search_iters", "mode_search_max_iters", "profile_top", "top_k", "batch_size", "n_perm",
+             "local_lhs", "local_starts", "local_max_iter")
+_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold",
+                   "lr_alpha")
+_DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
+              *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
 def diagnose_defaults() -> dict:
@@ -101,6 +114,7 @@ def diagnose_defaults() -> dict:
 
     b, t = Budgets(), Thresholds()
     return {"candidates": list(CANDIDATES), "seed": b.seed, "release_volume_sd": b.release_volume_sd,
+            "inference": b.inference, "local_max_fraction": b.local_max_fraction,
             **{k: getattr(b, k) for k in _INT_KEYS},
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 _VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
@@ -179,9 +193,16 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
         low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
-               "mode_search_max_iters": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2}.get(k, 1)
+               "mode_search_max_iters": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2,
+               "local_lhs": 0}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
+    if c["inference"] not in ("auto", "local", "emulator"):
+        raise ConfigError(f"{path}: [diagnose] inference must be \"auto\", \"local\" or \"emulator\", got "
+                          f"{c['inference']!r}")
+    v = c["local_max_fraction"]
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v <= 1:
+        raise ConfigError(f"{path}: [diagnose] local_max_fraction must be a share of the prior box in (0, 1], got {v!r}")
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
         raise ConfigError(f"{path}: [diagnose] seed must be an integer, got {c['seed']!r}")
     if c["n_total"] < c["n_initial"]:
@@ -211,6 +232,8 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
                               f"the baseline), got {c[k]!r}")
     if not 0.0 <= c["explain_min"] <= 1.0:
         raise ConfigError(f"{path}: [diagnose] explain_min is a fraction in [0, 1], got {c['explain_min']!r}")
+    if not 0.0 < c["lr_alpha"] < 1.0:
+        raise ConfigError(f"{path}: [diagnose] lr_alpha is a p-value level in (0, 1), got {c['lr_alpha']!r}")
     if c["ess_min"] < 1.0:
         raise ConfigError(f"{path}: [diagnose] ess_min must be >= 1 (an effective number of draws), got {c['ess_min']!r}")
     c["fine_terrain"] = _parse_fine_terrain(table.get("fine_terrain"), cfg, c["model_error_factor"])
@@ -321,6 +344,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "from the baseline's posterior, each diagnosed like the data (costs N diagnoses; "
                         "torchslide.diagnose.null; N >= 10 advised); a rerun with the same seed reuses the "
                         "finished null cases in OUT/null, also those of a smaller N")
+    p.add_argument("--design", action="store_true",
+                   help="instead of the diagnosis: rank where one more gauge (peak depth and peak speed) would "
+                        "reveal each candidate best, at the baseline's local fit (torchslide.diagnose.design); "
+                        "writes OUT/design.json, OUT/design_<candidate>.asc and OUT/design.png")
+    p.add_argument("--design-sigma", default="0.5,2.0", metavar="H,V",
+                   help="the new gauge's errors: peak depth (m), peak speed (m/s) (default 0.5,2.0)")
+    p.add_argument("--design-top", type=int, default=5, metavar="N", help="best cells listed per candidate")
 
 
 def budgets_and_thresholds(cfg: Config):
@@ -330,7 +360,8 @@ def budgets_and_thresholds(cfg: Config):
 
     cal, dg = cfg.extra["calibration"], cfg.extra["diagnose"]
     bud = Budgets(baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
-                  **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"])
+                  **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"],
+                  inference=dg["inference"], local_max_fraction=float(dg["local_max_fraction"]))
     return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS}, fit_max=dg.get("fit_max"))
 
 
@@ -354,6 +385,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--null-runs must be >= 0, got {args.null_runs}")
     out = Path(args.out)
     log = (lambda s: None) if args.quiet else print
+    if args.design:
+        return _design(ev, dg["candidates"], bud, th, args, cfg, out, log)
     d = diagnose(ev, dg["candidates"], bud, th, log=log)
     write_report(d, out, cfg.conventions())           # with the thresholds given; rewritten below when null runs reset them
     if args.null_runs:
@@ -371,3 +404,70 @@ def _run(args: argparse.Namespace) -> int:
         write_report(d, out, cfg.conventions())
     print(f"verdict: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "") + f"; report in {out}")
     return 0
+
+
+def _design_sigma(text: str) -> tuple[float, float]:
+    try:
+        h, v = (float(x) for x in text.split(","))
+    except ValueError:
+        raise ConfigError(f"--design-sigma must be two numbers H,V (m, m/s), got {text!r}") from None
+    if not (h > 0 and v > 0 and math.isfinite(h) and math.isfinite(v)):
+        raise ConfigError(f"--design-sigma values must be finite and > 0, got {text!r}")
+    return h, v
+
+
+def _design(ev, candidates, bud, th, args, cfg: Config, out: Path, log) -> int:
+    """``--design``: the baseline's local fit, then torchslide.diagnose.design at its mode."""
+    import json
+
+    import numpy as np
+
+    from ..diagnose.design import design
+    from ..diagnose.local_path import fit_model
+    from ..files import write_text_atomic
+    from ..terrain.io import write_named_raster
+
+    sh, sv = _design_sigma(args.design_sigma)
+    if args.design_top < 1:
+        raise ConfigError(f"--design-top must be >= 1, got {args.design_top}")
+    f, n = fit_model(ev, n_lhs=bud.local_lhs, starts=bud.local_starts, seed=bud.seed, rel_step=bud.local_rel_step,
+                     max_iter=bud.local_max_iter, log=log)
+    log(f"[design] baseline local fit ({n} runs): " + ", ".join(f"{k} {v:.4g}" for k, v in zip(ev.prior.names, f.x)))
+    d = design(ev, f.x, candidates, sigma_h=sh, sigma_v=sv, threshold=th.bf_min, top=args.design_top)
+    out.mkdir(parents=True, exist_ok=True)
+    j = {"baseline": dict(zip(ev.prior.names, map(float, f.x))), **d.to_json(), "conventions": cfg.conventions()}
+    write_text_atomic(out / "design.json", json.dumps(j, indent=1))
+    for c, m in d.maps.items():
+        write_named_raster(out, f"design_{c}", np.where(np.isfinite(m), m, np.nan), ev.dem)
+    _design_figure(d, ev, out / "design.png")
+    for c in candidates:
+        b = d.best[c][0] if d.best[c] else None
+        log(f"[design] {c}: detectable from {d.now[c]:.3g} now" +
+            (f"; from {b['switch']:.3g} with a gauge at x = {b['x']:.0f}, y = {b['y']:.0f}" if b else ""))
+    print(f"design written to {out}")
+    return 0
+
+
+def _design_figure(d, ev, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    cs = list(d.maps)
+    fig, axs = plt.subplots(1, len(cs), figsize=(4.0 * len(cs), 3.6), squeeze=False)
+    for ax, c in zip(axs[0], cs):
+        m = d.maps[c]
+        ratio = np.where(np.isfinite(m), m / d.now[c], np.nan) if np.isfinite(d.now[c]) else m
+        im = ax.imshow(ratio, origin="lower", extent=ev.dem.extent[0::2] + ev.dem.extent[1::2], cmap="viridis_r",
+                       vmin=0.0, vmax=1.0)
+        for g in ev.gauges:
+            ax.plot(g[1], g[2], "w^", ms=6)
+        for b in d.best[c]:
+            ax.plot(b["x"], b["y"], "r+", ms=8)
+        ax.set_title(f"{c}: now {d.now[c]:.3g}", fontsize=9)
+        fig.colorbar(im, ax=ax, label="detectable switch with a new gauge / now")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -8,6 +8,8 @@
 * predictive: posterior samples and posterior-predictive runs
 * localise: standardised residuals, p-values, Getis-Ord map clusters (permutation + BH FDR), gauge windows
 * screen: one-batch finite-difference screening with the baseline directions projected out
+* local: least squares on the solver, Laplace evidence, switch information (the local path's maths)
+* local_path: the local path's models: baseline and candidate fits, path choice, likelihood ratio, profile
 * refit: calibration in the enlarged (baseline + switch) space
 * verify: checks with solver runs: verified (importance-weighted) evidence, WAIC, Savage-Dickey,
   located mismatches re-scored after a refit, the beta = 0 slice as a second baseline proposal

@@ -4,7 +4,9 @@ Every refitted candidate gets these checks (the statistics come from torchslide.
 are computed from *solver runs* at posterior draws, not from the emulator alone):
 
 * ``reliable``: its verified evidence rests on an importance-sampling ESS >= ``ess_min`` draws (and
-  so does the baseline's);
+  so does the baseline's); on the local path (local_path.py) both local fits converged;
+* ``likelihood_ratio`` (local path only): the boundary-corrected p-value of 2 ln(L_c / L_0) is at
+  most ``lr_alpha``;
 * ``evidence``: the lower bound 2 ln BF - 2 * 2 se (verified evidences, bootstrap standard errors of
   both) >= ``bf_min``;
 * ``savage_dickey``: the Savage-Dickey 2 ln BF at switch = 0 is > 0 (same sign as the evidence);
@@ -64,6 +66,7 @@ class Thresholds:
     ess_min: float = 2.0        # importance-sampling ESS (draws) for a verified evidence to count
     z_threshold: float = 3.0    # per-value / cluster / window detection level (localisation)
     fit_max: float | dict | None = None  # Z_fit of an observable above which its fit is a mismatch (None: off)
+    lr_alpha: float = 0.01      # local path: largest boundary-corrected p-value of the likelihood ratio
 
     def to_json(self) -> dict:
         return asdict(self)
@@ -97,8 +100,13 @@ def fit_flags(fit_z: dict | None, th: Thresholds) -> list:
 
 def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dict:
     """Pass/fail of every check for one refitted candidate ``c`` (see the module doc)."""
-    ess_b = baseline.get("ess", 0.0) or 0.0
-    out = {"reliable": bool((c.get("ess") or 0.0) >= th.ess_min and ess_b >= th.ess_min)}
+    if "reliable" in c:
+        out = {"reliable": bool(c["reliable"] and baseline.get("reliable", False))}
+    else:
+        ess_b = baseline.get("ess", 0.0) or 0.0
+        out = {"reliable": bool((c.get("ess") or 0.0) >= th.ess_min and ess_b >= th.ess_min)}
+    if "lr_pvalue" in c:
+        out["likelihood_ratio"] = bool(c["lr_pvalue"] is not None and c["lr_pvalue"] <= th.lr_alpha)
     lb = c.get("two_ln_bf_lower")
     out["evidence"] = bool(lb is not None and np.isfinite(lb) and lb >= th.bf_min)
     sd = c.get("two_ln_bf_savage_dickey")

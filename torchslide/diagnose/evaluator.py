@@ -161,14 +161,13 @@ class DiagnosisEvaluator(LandslideEvaluator):
         """A copy whose likelihood includes ``model_error`` (see the class doc; None: without)."""
         return self._copy(model_error=model_error, fixed=dict(self.fixed))
 
-    def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
-        """Predictions (n, k) and failed (n,) for explicit Params values {name: (n,) array} (+ fixed),
-        in chunks of max_batch members (screening uses this for one batch of perturbed parameter sets)."""
+    def simulate_values(self, values: dict):
+        """SimulationResults of explicit Params values {name: (n,) array} (+ fixed), one per chunk of
+        max_batch members (a generator)."""
         from ..solver import simulate
         n = max(np.size(v) for v in values.values())
         allv = {k: v for k, v in self.fixed.items()}
         allv.update(values)
-        out, fails = [], []
         for s in range(0, n, self.max_batch):
             sub = {k: (np.asarray(v, dtype=np.float64).reshape(-1)[s:s + self.max_batch] if np.size(v) > 1 else v)
                    for k, v in allv.items()}
@@ -179,6 +178,13 @@ class DiagnosisEvaluator(LandslideEvaluator):
                            config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
                            dtype=self.dtype, device=self.device, thickness=self.thickness)
             self.solver_seconds += time.perf_counter() - t0
+            yield res
+
+    def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (n, k) and failed (n,) for explicit Params values {name: (n,) array} (+ fixed),
+        in chunks of max_batch members (screening uses this for one batch of perturbed parameter sets)."""
+        out, fails = [], []
+        for res in self.simulate_values(values):
             preds, failed, _ = self.predict(res)
             out.append(preds.numpy())
             fails.append(failed.numpy())

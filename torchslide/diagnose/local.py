@@ -41,7 +41,8 @@ class LocalFit:
     """The mode of a posterior and its Laplace approximation (physical units of the parameters).
 
     x: (p,) mode; log_like: ln L there (with the normaliser); jacobian: (k, p) dr/dx there;
-    precision: (p, p) J^T J; covariance: its inverse; log_evidence: the Laplace ln Z (module doc);
+    precision: (p, p) J^T J; covariance: its inverse; centre: (p,) the Gaussian's centre (x, or beyond
+    the box where the mode sits on an active bound); log_evidence: the Laplace ln Z (module doc);
     n_runs: solver members used; converged: the optimiser's own test passed; message: its status.
     """
 
@@ -50,6 +51,7 @@ class LocalFit:
     jacobian: np.ndarray
     precision: np.ndarray
     covariance: np.ndarray
+    centre: np.ndarray
     log_evidence: float
     n_runs: int
     converged: bool
@@ -63,6 +65,20 @@ class LocalFit:
         """(2, p) central ``level`` interval of each parameter under the Gaussian approximation."""
         q = stats.norm.ppf(0.5 + level / 2)
         return np.stack([self.x - q * self.sd, self.x + q * self.sd])
+
+    def draws(self, n: int, bounds: np.ndarray, seed: int = 0) -> np.ndarray:
+        """(n, p) draws of the Laplace Gaussian N(centre, covariance) truncated to the box (rejection in
+        batches; a box that holds almost none of the Gaussian gives its draws clipped to the box)."""
+        lo, hi = np.asarray(bounds, dtype=np.float64)
+        rng = np.random.default_rng(seed)
+        out = np.empty((0, self.x.size))
+        for _ in range(20):
+            d = rng.multivariate_normal(self.centre, self.covariance, size=max(64, 8 * n))
+            out = np.vstack([out, d[np.all((d >= lo) & (d <= hi), axis=1)]])
+            if len(out) >= n:
+                return out[:n]
+        d = rng.multivariate_normal(self.centre, self.covariance, size=n - len(out))
+        return np.vstack([out, np.clip(d, lo, hi)])
 
 
 def steps(bounds: np.ndarray, rel: float = 1e-3) -> np.ndarray:
@@ -90,14 +106,17 @@ def jacobian(residuals: Residuals, x: np.ndarray, bounds: np.ndarray, h: np.ndar
 
 
 def box_log_probability(x: np.ndarray, covariance: np.ndarray, bounds: np.ndarray) -> float:
-    """ln P(lo <= X <= hi) for X ~ N(x, covariance) (scipy's multivariate normal CDF; exact in 1-D)."""
+    """ln P(lo <= X <= hi) for X ~ N(x, covariance) (scipy's multivariate normal CDF, in standardised
+    coordinates so that parameters of very different scales keep a well-conditioned correlation; exact in 1-D)."""
     lo, hi = np.asarray(bounds, dtype=np.float64)
     x = np.asarray(x, dtype=np.float64)
+    sd = np.sqrt(np.diag(covariance))
+    a, b = (lo - x) / sd, (hi - x) / sd
     if x.size == 1:
-        s = math.sqrt(float(covariance[0, 0]))
-        return float(np.log(stats.norm.cdf((hi[0] - x[0]) / s) - stats.norm.cdf((lo[0] - x[0]) / s)))
-    mvn = stats.multivariate_normal(mean=x, cov=covariance, allow_singular=False)
-    return float(np.log(mvn.cdf(hi, lower_limit=lo)))
+        return float(np.log(stats.norm.cdf(b[0]) - stats.norm.cdf(a[0])))
+    corr = covariance / np.outer(sd, sd)
+    mvn = stats.multivariate_normal(mean=np.zeros(x.size), cov=0.5 * (corr + corr.T), allow_singular=False)
+    return float(np.log(mvn.cdf(b, lower_limit=a)))
 
 
 def laplace_log_evidence(log_like: float, log_prior: float, precision: np.ndarray, x: np.ndarray,
@@ -108,19 +127,22 @@ def laplace_log_evidence(log_like: float, log_prior: float, precision: np.ndarra
     if sign <= 0:
         raise np.linalg.LinAlgError("the precision J^T J is not positive definite: a parameter the data do not inform")
     cov = np.linalg.inv(precision)
+    cov = 0.5 * (cov + cov.T)
     return float(log_like + log_prior + 0.5 * p * math.log(2 * math.pi) - 0.5 * logdet
                  + box_log_probability(x, cov, bounds))
 
 
 def fit(residuals: Residuals, x0: np.ndarray, bounds: np.ndarray, log_norm: float, log_prior: float,
-        rel_step: float = 3e-3, max_iter: int = 30, tol: float = 1e-8) -> LocalFit:
+        rel_step: float = 3e-3, max_iter: int = 30, ftol: float = 1e-6, xtol: float = 1e-6) -> LocalFit:
     """The mode in the prior box by trust-region least squares on the solver, and its Laplace fit.
 
     ``residuals``: batched whitened residuals (Residuals); ``log_norm``: the likelihood's normaliser c
     (ln L = c - |r|^2 / 2); ``log_prior``: ln pi, constant in the box (uniform prior). ``rel_step``:
     finite-difference step as a share of each prior range; a solver's outputs are smooth in the
     parameters only above its time-step noise (a small chute case stalled at 1e-3 and converged in 16
-    evaluations at 3e-3); ``max_iter``: most evaluations of the residuals and their Jacobian."""
+    evaluations at 3e-3); ``max_iter``: most evaluations of the residuals and their Jacobian; ``ftol``:
+    stop when |r|^2 / 2 falls by less than this share of itself (1e-6 of a misfit of thousands is a
+    thousandth of a nat); ``xtol``: ... or the step is below this share of the prior range."""
     b = np.asarray(bounds, dtype=np.float64)
     h = steps(b, rel_step)
     scale = b[1] - b[0]
@@ -138,18 +160,21 @@ def fit(residuals: Residuals, x0: np.ndarray, bounds: np.ndarray, log_norm: floa
 
     u0 = np.clip((np.asarray(x0, dtype=np.float64) - b[0]) / scale, 0.0, 1.0)
     res = optimize.least_squares(lambda u: both(u)[0], u0, jac=lambda u: both(u)[1] * scale, bounds=(0.0, 1.0),
-                                 method="trf", xtol=tol, ftol=tol, gtol=tol, max_nfev=max_iter, x_scale="jac")
+                                 method="trf", xtol=xtol, ftol=ftol, gtol=1e-10, max_nfev=max_iter, x_scale="jac")
     x = b[0] + res.x * scale
     r, J = both(res.x)
     A = J.T @ J
     log_like = float(log_norm - 0.5 * r @ r)
     cov = np.linalg.inv(A)
+    cov = 0.5 * (cov + cov.T)
     # on an active bound the gradient J^T r is not 0: the Gaussian's centre lies beyond the bound, at
-    # x - A^-1 J^T r, where the quadratic model of ln L is higher by (J^T r)^T A^-1 (J^T r) / 2
+    # x - A^-1 J^T r, where the quadratic model of ln L is higher by (J^T r)^T A^-1 (J^T r) / 2; only the
+    # components on a bound (pushing outwards) count: inside, the gradient left is the optimiser's tolerance
     g = J.T @ r
+    g = np.where(((res.x <= 1e-9) & (g > 0)) | ((res.x >= 1 - 1e-9) & (g < 0)), g, 0.0)
     step = np.linalg.solve(A, g)
     log_z = laplace_log_evidence(log_like + 0.5 * float(g @ step), log_prior, A, x - step, b)
-    return LocalFit(x=x, log_like=log_like, jacobian=J, precision=A, covariance=cov, log_evidence=log_z,
+    return LocalFit(x=x, log_like=log_like, jacobian=J, precision=A, covariance=cov, centre=x - step, log_evidence=log_z,
                     n_runs=n_runs, converged=bool(res.success), message=str(res.message))
 
 

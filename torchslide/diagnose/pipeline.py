@@ -1,6 +1,14 @@
 """``diagnose(evaluator, candidates, ...)``: the whole missing-physics diagnosis in one call.
 
-The stages (``_diagnose``; their wall times in Diagnosis.timings):
+Two inference paths, chosen by Budgets.inference and reported in decision["inference"] with the reason:
+
+* local (``_diagnose_local``, local_path.py), for posteriors far narrower than the prior box (rich
+  data): the baseline fitted on the solver (pilot fit, then the grid's approximation error at its
+  Laplace draws and the refit), localisation, screening, each candidate fitted on the solver with its
+  Laplace evidence, likelihood ratio and profile, decision;
+* emulator (below), for broad posteriors of sparse data: GP active learning over the box.
+
+The emulator path's stages (``_diagnose``; their wall times in Diagnosis.timings):
 
 1. model error (Budgets.model_error_runs > 0): the grid's approximation error from a pilot
    calibration's posterior draws run on the inversion grid and on finer cells, with
@@ -43,10 +51,22 @@ from .verify import (grid_result, hdi_from_grid, hdi_interval, logmeanexp, needs
 from .polish import local_search
 from .profile import sampling_log_density, switch_profile
 from .screen import ScreenResult, detectable_switch, screen
+from .local_path import choose_path, fit_candidate, fit_model, laplace_result, profile_ends
 
 
 @dataclass
 class Budgets:
+    inference: str = "auto"            # "local": every model fitted on the solver, Laplace evidence (local_path.py);
+                                       # "emulator": GP emulator over the box (the stages below); "auto": local
+                                       # when the baseline's 90 % Laplace region fills less than
+                                       # local_max_fraction of the prior box (local_path.choose_path): a GP
+                                       # over the box with the refits' few tens of runs resolves features
+                                       # of a few per cent of it, not less
+    local_max_fraction: float = 0.01
+    local_lhs: int = 16                # local path: maximin-LHS runs ranking the baseline's start points ...
+    local_starts: int = 2              # ... local fits from this many of the best
+    local_rel_step: float = 3e-3       # finite-difference step, share of each prior range
+    local_max_iter: int = 30           # evaluations (each one batch of 2p + 1 members) per local fit
     n_posterior_samples: int = 32      # posterior-predictive members (baseline)
     n_posterior_samples_after: int = 16  # posterior-predictive members of every refit (verification)
     n_initial: int = 16                # refit LHS runs
@@ -154,7 +174,7 @@ class Diagnosis:
         ``th``; the earlier decision is kept as decision["decision_before"], ``source`` says where ``th``
         came from."""
         keep = {k: self.decision.get(k) for k in ("fit_z", "fit_z_source", "baseline_verification",
-                                                   "baseline_mode_check", "elpd_waic_baseline")}
+                                                   "baseline_mode_check", "elpd_waic_baseline", "inference")}
         before = {"verdict": self.verdict, "missing_physics": self.missing_physics,
                   "reason": self.decision.get("reason"), "thresholds": self.thresholds.to_json()}
         dec = decide(self.candidates, self.localisation.located, keep["baseline_verification"] or {},
@@ -186,7 +206,8 @@ class Diagnosis:
             "fit_before": self.fit_before,
             "fit_after": self.fit_after,
             "baseline": {"log_evidence": self.fit_before.get("log_evidence"),
-                         "log_evidence_emulator": self.baseline.log_evidence,
+                         "log_evidence_emulator": None if (self.decision.get("inference") or {}).get("path") == "local"
+                         else self.baseline.log_evidence,
                          "verification": self.decision.get("baseline_verification"),
                          "parameters": _params(self.baseline_refined or self.baseline),
                          "parameters_calibration": _params(self.baseline) if self.baseline_refined else None},
@@ -658,6 +679,8 @@ def _check_budgets(bud: Budgets, baseline) -> None:
     if bud.release_volume_sd > 0 and bud.model_error_runs < 2:
         raise ValueError(f"release_volume_sd = {bud.release_volume_sd:g} needs model_error_runs >= 2 (its Jacobian is "
                          f"taken at the pilot's posterior draws), got model_error_runs = {bud.model_error_runs}")
+    if bud.inference not in ("auto", "local", "emulator"):
+        raise ValueError(f"inference must be \"auto\", \"local\" or \"emulator\", got {bud.inference!r}")
     if bud.model_error_runs > 0 and baseline is not None:
         raise ValueError("model_error_runs > 0 changes the likelihood: the baseline must be calibrated here, not given")
 
@@ -850,6 +873,20 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
         t0 = time.perf_counter()
 
     _check_budgets(bud, baseline)
+    path = None
+    if bud.inference != "emulator":
+        pilot = _pilot_stage(evaluator, bud, baseline, log)
+        if pilot is None:
+            if bud.inference == "local":
+                raise RuntimeError("inference = \"local\": the baseline cannot be fitted locally (see the log)")
+            path = ("emulator", "no local fit of the baseline (fewer data values than parameters, or it failed)")
+        else:
+            path = ("local", "inference = \"local\"") if bud.inference == "local" else \
+                choose_path(pilot, evaluator.prior.bounds.numpy(), bud.local_max_fraction)
+        log(f"[diagnose] inference path: {path[0]} ({path[1]})")
+        lap("pilot_s")
+        if path[0] == "local":
+            return _diagnose_local(evaluator, candidates, pilot, path[1], bud, th, log, T, lap)
     model_error = None
     if bud.model_error_runs > 0:
         evaluator, me = grid_model_error(evaluator, bud, workdir, log)
@@ -895,7 +932,8 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     dec = decide(cand_out, base.loc.located, base.ver, base.misfit, th, fit_z=fit_z_first)
     dec.update(fit_z=fit_z_first, fit_z_source="calibrated baseline",
                baseline_verification=dict(base.ver, source=base.source), baseline_mode_check=check,
-               elpd_waic_baseline=base.elpd["elpd"])
+               elpd_waic_baseline=base.elpd["elpd"],
+               inference={"path": "emulator", "why": path[1] if path else "inference = \"emulator\""})
     log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
     after_pred, after_loc, fit_after = _after_stage(cand_out, dec, refits, th, bud)
     lap("after_s")
@@ -906,3 +944,136 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                      fit_before=fit_before, fit_after=fit_after, after_predictive=after_pred,
                      after_localisation=after_loc, thresholds=th, timings=T, evaluator=evaluator,
                      model_error=model_error, baseline_refined=base.refined, consistency=consistency)
+
+
+# ---- the local path (local_path.py): every model fitted on the solver, Laplace evidence ----
+
+def _pilot_stage(evaluator, bud: Budgets, baseline, log):
+    """The baseline's local fit on the stated likelihood (a given baseline's MAP is one more start); None
+    when there are fewer data values than parameters (a ridge, not a peak) or every fit failed."""
+    if evaluator.k < evaluator.prior.dim:
+        log(f"[diagnose] {evaluator.k} data value(s) for {evaluator.prior.dim} parameters: no local fit")
+        return None
+    extra = None if baseline is None else posterior_mode(baseline)[None]
+    try:
+        f, n = fit_model(evaluator, n_lhs=bud.local_lhs, starts=bud.local_starts, extra_starts=extra, seed=bud.seed,
+                         rel_step=bud.local_rel_step, max_iter=bud.local_max_iter, log=log)
+    except (RuntimeError, np.linalg.LinAlgError) as e:
+        log(f"[diagnose] local baseline fit failed: {e}")
+        return None
+    log(f"[diagnose] local baseline fit ({n} runs): " + ", ".join(
+        f"{k} {v:.4g} +- {s:.2g}" for k, v, s in zip(evaluator.prior.names, f.x, f.sd)) + f"; ln L {f.log_like:.1f}")
+    return f
+
+
+def _local_baseline(evaluator, pilot, bud: Budgets, log):
+    """(evaluator, baseline fit, model-error summary): with model_error_runs > 0 the grid's approximation
+    error at draws of the pilot's Laplace posterior enters the likelihood and the baseline is refitted."""
+    if bud.model_error_runs <= 0:
+        return evaluator, pilot, None
+    from .model_error import approximation_error
+
+    seed = bud.seed if bud.model_error_seed is None else bud.model_error_seed
+    x = pilot.draws(bud.model_error_runs, evaluator.prior.bounds.numpy(), seed=seed + 5)
+    me = approximation_error(evaluator, x, bud.model_error_factor, release_sd=bud.release_volume_sd)
+    s = me.summary(evaluator.blocks)
+    log(f"[diagnose] approximation error of the grid from {s['n']} run pairs (x{s['factor']} finer): " +
+        ", ".join(f"{k} rms mean {v['rms_mean']:.3g} sd {v['rms_sd']:.3g}" for k, v in s["blocks"].items()))
+    evaluator = evaluator.with_model_error(me)
+    f, _ = fit_model(evaluator, n_lhs=0, extra_starts=pilot.x[None], rel_step=bud.local_rel_step,
+                     max_iter=bud.local_max_iter, log=log)
+    return evaluator, f, s
+
+
+def _laplace_ver(f) -> dict:
+    """The evidence record of a Laplace fit (the emulator path's verified-evidence keys where they apply)."""
+    return {"log_evidence": float(f.log_evidence), "se": 0.0, "ess": None, "method": "laplace",
+            "reliable": bool(f.converged and np.all(np.isfinite(f.covariance))), "converged": bool(f.converged),
+            "message": f.message, "verified": True}
+
+
+def _local_candidate(evaluator, c: str, base: _Baseline, base_fit, scr: ScreenResult, bud: Budgets, log):
+    """(_Refit, report row) of candidate ``c`` on the local path."""
+    names = list(evaluator.prior.names) + [CANDIDATES[c].param]
+    start = scr.linear_opt.get(c)
+    cf = fit_candidate(evaluator, c, base_fit, start, bud, log)
+    cal = laplace_result(cf.fit, names, cf.evaluator.prior.bounds.numpy(), seed=bud.seed + 1)
+    pred = posterior_predictive(cf.evaluator, cal.samples[: bud.n_posterior_samples_after])
+    ver = _laplace_ver(cf.fit)
+    r = _Refit(cf.evaluator, cal, pred, ver, [])
+    el = waic(cf.evaluator, pred.draws) if len(pred.draws) > 1 else {"elpd": float("nan")}
+    rs = rescore(evaluator, base.loc.located, base.pred.draws, pred.draws) if len(pred.draws) > 1 else {}
+    lbf = 0.5 * cf.two_ln_bf
+    row = {"name": c, "param": CANDIDATES[c].param, "inference": "laplace", "log_evidence": ver["log_evidence"],
+           "log_bayes_factor": lbf, "two_ln_bf": cf.two_ln_bf, "two_ln_bf_lower": cf.two_ln_bf,
+           "reliable": ver["reliable"] and base.ver["reliable"], "likelihood_ratio": cf.lr, "lr_pvalue": cf.lr_pvalue,
+           "two_ln_bf_savage_dickey": cf.two_ln_bf_savage_dickey, "profile_ends": None,
+           "delta_waic": 2 * (el["elpd"] - base.elpd["elpd"]), "located_rescored": rs,
+           "misfit_after": cf.evaluator.misfit(pred.mean) if len(pred.draws) else float("inf"),
+           "screening_score": scr.scores[c], "mimic": scr.mimic[c], "parameters": _params(cal),
+           "n_runs": cf.n_runs + len(pred.x), "best_x": cf.fit.x.tolist(), "fit_message": cf.fit.message}
+    log(f"[diagnose] local fit {c}: 2 ln BF {cf.two_ln_bf:.1f}, 2 ln LR {cf.lr:.1f} (p {cf.lr_pvalue:.2g}), "
+        f"SD {cf.two_ln_bf_savage_dickey:.1f}, dWAIC {row['delta_waic']:.1f}, explained {rs.get('explained')}")
+    return r, row, cf
+
+
+def _local_profiles(evaluator, rows: list, fits: dict, bud: Budgets, log) -> None:
+    """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows."""
+    ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
+    for row in ranked:
+        prof, n = profile_ends(evaluator, fits[row["name"]], bud, log)
+        row["profile_ends"], row["n_runs"] = prof, row["n_runs"] + n
+        if min(prof["two_ln_drop"]) < -1.0:     # the profile beats the fit: the fit is not at its mode
+            row["reliable"] = False
+        log(f"[diagnose] profile of {row['name']}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
+            f"{row['param']} = {[round(v, 5) for v in prof['interval90']]} (Gaussian {prof['gaussian']:.2f})")
+
+
+def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Thresholds, log, T: dict, lap):
+    """The stages of the local path (local_path.py): model error, baseline fit, localisation, screening,
+    per-candidate fit and evidence, decision."""
+    evaluator, f0, model_error = _local_baseline(evaluator, pilot, bud, log)
+    names = list(evaluator.prior.names)
+    cal = laplace_result(f0, names, evaluator.prior.bounds.numpy(), seed=bud.seed)
+    pred = posterior_predictive(evaluator, cal.samples[: bud.n_posterior_samples])
+    base = _Baseline(cal, pred, _laplace_ver(f0), None, source="local fit (Laplace)")
+    lap("baseline_s")
+    _assess(evaluator, base, th, bud)
+    fit_z = {b: i["Z_fit"] for b, i in base.loc.blocks.items() if i.get("Z_fit") is not None}
+    log(f"[diagnose] located {base.loc.n_located} mismatch(es); max |score| {base.loc.max_abs():.2f}")
+    lap("predictive_s")
+    scr = _screen_stage(evaluator, base, candidates, th, log)
+    lap("screen_s")
+    refits, cand_out, fits = {}, [], {}
+    for c in scr.ranking[: bud.top_k]:
+        try:
+            refits[c], row, fits[c] = _local_candidate(evaluator, c, base, f0, scr, bud, log)
+        except RuntimeError as e:
+            log(f"[diagnose] local fit {c} failed: {e}")
+            row = {"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
+                   "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c], "parameters": {},
+                   "not_refit": f"local fit failed: {e}"}
+        cand_out.append(row)
+    cand_out += [{"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
+                  "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
+                  "parameters": {}, "not_refit": "screening score below the top_k"}
+                 for c in candidates if c not in scr.ranking[: bud.top_k]]
+    lap("refit_s")
+    _local_profiles(evaluator, cand_out, fits, bud, log)
+    lap("profile_s")
+    consistency = _consistency_stage(evaluator, base, scr, log)
+    lap("consistency_s")
+    fit_before = _fit(evaluator, base.pred, base.loc, base.ver["log_evidence"])
+    dec = decide(cand_out, base.loc.located, base.ver, base.misfit, th, fit_z=fit_z)
+    dec.update(fit_z=fit_z, fit_z_source="baseline local fit", baseline_verification=dict(base.ver, source=base.source),
+               baseline_mode_check=None, elpd_waic_baseline=base.elpd["elpd"],
+               inference={"path": "local", "why": why, "baseline_converged": bool(f0.converged)})
+    log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
+    after_pred, after_loc, fit_after = _after_stage(cand_out, dec, refits, th, bud)
+    lap("after_s")
+    cand_out.sort(key=lambda c: -(c["log_bayes_factor"] if c["log_bayes_factor"] is not None else -1e300))
+    return Diagnosis(verdict=dec["verdict"], decision=dec, baseline=cal, predictive=base.pred, localisation=base.loc,
+                     screening=scr, refits={c: (r.evaluator, r.calibration) for c, r in refits.items()},
+                     candidates=cand_out, fit_before=fit_before, fit_after=fit_after, after_predictive=after_pred,
+                     after_localisation=after_loc, thresholds=th, timings=T, evaluator=evaluator,
+                     model_error=model_error, consistency=consistency)

@@ -92,6 +92,8 @@ def _refit_check(c: dict) -> str:
     refined the refit, and the evidence's convergence ('-' when not refitted)."""
     if c.get("log_evidence") is None:
         return "-"
+    if c.get("inference") == "laplace":
+        return _local_check(c)
     ms = c.get("mode_search")
     parts = []
     if ms:
@@ -116,6 +118,18 @@ def _refit_check(c: dict) -> str:
     return "; ".join(parts) or "-"
 
 
+def _local_check(c: dict) -> str:
+    """A local-path candidate's checks: the likelihood ratio and its boundary-corrected p-value, and the
+    profile's 2 ln drops at the ends of the switch's 90 % interval against a Gaussian's."""
+    out = (f"local fit (Laplace); 2 ln LR {_fmt(c.get('likelihood_ratio'), '{:.1f}')}, p "
+           f"{_fmt(c.get('lr_pvalue'), '{:.2g}')} (switch at its bound 0: chi2_0 / 2 + chi2_1 / 2)")
+    pe = c.get("profile_ends")
+    if pe:
+        out += (f"; profile 2 ln drop at the 90 % ends " + " / ".join(f"{v:.2f}" for v in pe["two_ln_drop"])
+                + f" (Gaussian {pe['gaussian']:.2f})")
+    return out
+
+
 def write_markdown(j: dict, figures: list[str]) -> str:
     """report.md from a report.json-style ``j``: the verdict, where the baseline disagrees, the subset
     consistency, the screening, the candidates, the fit before and after, the figures."""
@@ -136,6 +150,10 @@ def _verdict_section(j: dict) -> list[str]:
     L = ["# Missing-physics diagnosis", "", f"**Verdict: {j['verdict']}**" +
          (f" — missing physics: **{j['missing_physics']}**" if j["missing_physics"] else ""), "",
          f"Reason: {j['decision']['reason']}", ""]
+    inf = j["decision"].get("inference")
+    if inf:
+        L += [f"Inference: {'local fits on the solver with Laplace evidence' if inf['path'] == 'local' else 'GP emulator over the prior box'}"
+              f" ({inf['why']}).", ""]
     unseen = [c for c, v in ((j.get("screening") or {}).get("candidates") or {}).items()
               if v.get("detectable_switch") and not v["detectable_switch"].get("within_prior")]
     if unseen:
@@ -208,7 +226,8 @@ def _candidates_section(candidates: list) -> list[str]:
     L = ["", "## Candidates", "",
          "'refit check': the local search on the solver after the refit (a gain of more than the margin over every "
          "refit run: the refit's runs had not sampled the peak, so it was refined with the search's runs) and whether the "
-         "verified evidence ended trustworthy and stable.", "",
+         "verified evidence ended trustworthy and stable; on the local path, the likelihood ratio with its "
+         "boundary-corrected p-value and the profile at the ends of the switch's 90 % interval.", "",
          "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDI | refit check |",
          "|---|---|---|---|---|---|---|---|"]
     for c in candidates:

@@ -55,12 +55,13 @@ class ScreenResult:
                 "failed": self.failed}
 
 
-def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) -> ScreenResult:
-    """Rank ``candidates`` (names of physics.CANDIDATES) at x0 (baseline prior point) with one batch."""
+def members(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) -> tuple[dict, dict]:
+    """The screening batch at x0 (module doc): ({param: (n,) values}, {param or candidate: its step});
+    member 0 is x0, then one per baseline parameter, then one per candidate."""
     names = list(evaluator.prior.names)
     bounds = evaluator.prior.bounds.numpy()
     base = {n: float(v) for n, v in zip(names, x0)}
-    members = [dict(base)]
+    batch = [dict(base)]
     steps = {}
     for i, n in enumerate(names):
         m = dict(base)
@@ -74,8 +75,7 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
             h = -h
         m[n] += h
         steps[n] = h
-        members.append(m)
-    cand_fixed = {}
+        batch.append(m)
     for c in candidates:
         cd = CANDIDATES[c]
         m = dict(base)
@@ -84,14 +84,22 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
         steps[c] = h
         for k, v in cd.fixed:
             m[k] = v
-            cand_fixed[k] = True
-        members.append(m)
-    keys = sorted({k for m in members for k in m})
+        batch.append(m)
+    keys = sorted({k for m in batch for k in m})
     defaults = {"phi_int": math.nan}
     values = {}
     for k in keys:
         fill = base.get(k, evaluator.fixed.get(k, defaults.get(k, 0.0)))
-        values[k] = np.array([m.get(k, fill) for m in members], dtype=np.float64)
+        values[k] = np.array([m.get(k, fill) for m in batch], dtype=np.float64)
+    return values, steps
+
+
+def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) -> ScreenResult:
+    """Rank ``candidates`` (names of physics.CANDIDATES) at x0 (baseline prior point) with one batch."""
+    names = list(evaluator.prior.names)
+    bounds = evaluator.prior.bounds.numpy()
+    base = {n: float(v) for n, v in zip(names, x0)}
+    values, steps = members(evaluator, x0, candidates, step_fraction)
     preds, failed = evaluator.run_values(values)
     w = 1.0 / evaluator.sigma
     y0 = preds[0]
@@ -119,7 +127,7 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
         lin[c] = _linear_opt(A, Jc, r, names, base, bounds, CANDIDATES[c])
     ranking = sorted(candidates, key=lambda c: -scores[c])
     return ScreenResult(x0=base, scores=scores, mimic=mimic, norms=norms, effects=effects, ranking=ranking,
-                        linear_opt=lin, n_members=len(members), steps={c: steps[c] for c in candidates},
+                        linear_opt=lin, n_members=len(preds), steps={c: steps[c] for c in candidates},
                         failed=[int(i) for i in np.nonzero(failed)[0]],
                         jacobian=None if failed[: 1 + len(names)].any() else A, residual=r)
 

@@ -1,0 +1,208 @@
+"""The diagnosis's local path: every model fitted on the solver and described by its Laplace approximation.
+
+Rich data (gauge series, deposit maps) give posteriors far narrower than the prior box. There the
+baseline and each candidate model are fitted by trust-region least squares on the solver
+(local.fit) and their evidence is the Laplace integral at the mode (local.laplace_log_evidence):
+
+1. ``fit_model``: a maximin-LHS batch over the box ranks start points (one batched call), local.fit
+   runs from the best ``starts`` and the highest mode is kept;
+2. ``choose_path``: the fraction of the prior box that the baseline's 90 % Laplace ellipsoid fills;
+   below ``max_fraction`` the local path is used (a GP over the box cannot resolve such a peak with
+   tens of runs), else the emulator path (the paper's case: broad posteriors, sparse data);
+3. ``laplace_result``: the fit as a CalibrationResult (Laplace draws truncated to the box as its
+   samples), so the localisation, WAIC, re-scoring and report of the pipeline apply unchanged;
+4. ``fit_candidate``: the enlarged model (baseline + switch) from the baseline's mode, with the
+   switch started at the screening's linearised optimum; its 2 ln BF against the baseline, the
+   likelihood ratio lambda = 2 (ln L_c - ln L_0) with its boundary-corrected reference (the switch's
+   null value 0 is the bound of its range, so under the null lambda ~ chi2_0 / 2 + chi2_1 / 2, Self &
+   Liang 1987: p = P(chi2_1 > lambda) / 2), the Savage-Dickey ratio of the Laplace marginal at 0, and
+   the profile of ln L at the ends of the switch's 90 % interval for the ``profile_top`` candidates
+   with the largest 2 ln BF (``profile_ends``: mu, xi re-fitted with the switch held; a Gaussian gives
+   2 ln drops of chi2_1(0.9) = 2.71 there, a very different drop says the Laplace shape does not hold,
+   and a negative one that the fit is not at its mode, which makes the candidate unreliable).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from scipy import special, stats
+
+from ..active import maximin_lhs
+from ..calibration import CalibrationResult
+from .candidates import CANDIDATES
+from .local import LocalFit, fit
+from .refit import candidate_evaluator
+from .verify import hdi_interval
+
+
+@dataclass
+class Problem:
+    """An evaluator's likelihood as whitened residuals: ln L(x) = log_norm - |r(x)|^2 / 2.
+
+    names: the free parameters; bounds: (2, p) their prior box."""
+
+    evaluator: object
+    names: list
+    bounds: np.ndarray
+    log_norm: float
+
+    def residuals(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """X (n, p) -> (whitened residuals (n, k), failed (n,)); one batched solver call per max_batch."""
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        preds, failed = self.evaluator.run_values({n: X[:, i] for i, n in enumerate(self.names)})
+        r = self.evaluator.likelihood.whiten(torch.as_tensor(preds)).numpy()
+        bad = failed | ~np.all(np.isfinite(r), axis=1)
+        return np.where(bad[:, None], np.inf, r), bad
+
+    def log_prior(self, x: np.ndarray) -> float:
+        return float(self.evaluator.prior.log_prob(torch.as_tensor(np.atleast_2d(x), dtype=torch.float64))[0])
+
+
+def problem(evaluator) -> Problem:
+    return Problem(evaluator, list(evaluator.prior.names), evaluator.prior.bounds.numpy().astype(np.float64),
+                   evaluator.likelihood.log_norm)
+
+
+def _with_prior(f: LocalFit, prob: Problem) -> LocalFit:
+    """local.fit takes ln pi = 0; the prior density at the mode is added here (a prior that is flat over
+    the posterior's width, the case this path is for)."""
+    f.log_evidence += prob.log_prior(f.x)
+    return f
+
+
+def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, seed: int = 0,
+              rel_step: float = 3e-3, max_iter: int = 30, log=print) -> tuple[LocalFit, int]:
+    """(best LocalFit, solver members used) of ``evaluator``'s model: ``n_lhs`` maximin-LHS points in one
+    batch, local.fit from the ``starts`` best of them and from every ``extra_starts`` (m, p) point."""
+    prob = problem(evaluator)
+    lo, hi = prob.bounds
+    pts = lo + maximin_lhs(n_lhs, len(prob.names), seed) * (hi - lo) if n_lhs > 0 else np.empty((0, len(lo)))
+    n_runs = len(pts)
+    x0 = []
+    if len(pts):
+        R, _ = prob.residuals(pts)
+        order = np.argsort(np.sum(R * R, axis=1))
+        x0 = [pts[i] for i in order[:starts]]
+    if extra_starts is not None:
+        x0 = [np.asarray(x, dtype=np.float64) for x in np.atleast_2d(extra_starts)] + list(x0)
+    best = None
+    for x in x0:
+        try:
+            f = _with_prior(fit(prob.residuals, x, prob.bounds, prob.log_norm, 0.0, rel_step=rel_step,
+                                max_iter=max_iter), prob)
+        except (RuntimeError, np.linalg.LinAlgError) as e:
+            log(f"[diagnose] local fit from {np.round(x, 4).tolist()} failed: {e}")
+            continue
+        n_runs += f.n_runs
+        if best is None or f.log_like + prob.log_prior(f.x) > best.log_like + prob.log_prior(best.x):
+            best = f
+    if best is None:
+        raise RuntimeError(f"every local fit of {prob.names} failed")
+    return best, n_runs
+
+
+def box_fraction(f: LocalFit, bounds: np.ndarray, level: float = 0.9) -> float:
+    """Share of the prior box's volume filled by the ``level`` ellipsoid of the Laplace Gaussian (capped at 1)."""
+    b = np.asarray(bounds, dtype=np.float64)
+    p = f.x.size
+    r2 = stats.chi2.ppf(level, p)
+    log_ball = 0.5 * p * math.log(math.pi) - special.gammaln(0.5 * p + 1)
+    log_v = log_ball + 0.5 * p * math.log(r2) + 0.5 * np.linalg.slogdet(f.covariance)[1]
+    return float(min(1.0, math.exp(log_v - np.sum(np.log(b[1] - b[0])))))
+
+
+def choose_path(f: LocalFit, bounds: np.ndarray, max_fraction: float) -> tuple[str, str]:
+    """("local" | "emulator", why) from the baseline's Laplace fit (module doc, item 2)."""
+    frac = box_fraction(f, bounds)
+    if frac < max_fraction:
+        return "local", (f"the baseline posterior's 90 % region fills {frac:.2g} of the prior box (< {max_fraction:g}): "
+                         f"fitted on the solver with the Laplace evidence")
+    return "emulator", (f"the baseline posterior's 90 % region fills {frac:.2g} of the prior box (>= {max_fraction:g}): "
+                        f"GP emulator over the box")
+
+
+def laplace_result(f: LocalFit, names: list, bounds: np.ndarray, n_draws: int = 2000, seed: int = 0) -> CalibrationResult:
+    """The fit as a CalibrationResult: mode, Laplace draws (truncated to the box) as samples, Laplace ln Z."""
+    b = np.asarray(bounds, dtype=np.float64)
+    s = f.draws(n_draws, b, seed=seed)
+    summary = {"names": list(names), "mean": {n: float(s[:, i].mean()) for i, n in enumerate(names)},
+               "sd": {n: float(s[:, i].std()) for i, n in enumerate(names)},
+               "map": {n: float(f.x[i]) for i, n in enumerate(names)},
+               "hdr90": {n: [float(v) for v in hdi_interval(s[:, i], b[0, i], b[1, i])] for i, n in enumerate(names)}}
+    return CalibrationResult(names=list(names), bounds=b, x=f.x[None].copy(),
+                             z=np.array([f.log_like]), failed=np.zeros(1, bool), reasons=[""], n_initial=0,
+                             grid_axes=None, posterior_grid=None, log_evidence=float(f.log_evidence), tv_history=[],
+                             summary=summary, samples=s, stopped_reason="laplace (local fit on the solver)")
+
+
+def lr_pvalue(lam: float) -> float:
+    """Boundary-corrected p-value of the likelihood ratio for one switch at its bound 0 (module doc)."""
+    return 1.0 if lam <= 0 else float(0.5 * stats.chi2.sf(lam, 1))
+
+
+def savage_dickey(f: LocalFit, i: int, prior_range) -> float:
+    """2 ln BF_10 = 2 ln(prior density at 0 / posterior density at 0), the posterior marginal of
+    parameter ``i`` being the Laplace Gaussian's, truncated to the prior range."""
+    lo, hi = float(prior_range[0]), float(prior_range[1])
+    m, s = float(f.centre[i]), float(math.sqrt(f.covariance[i, i]))
+    log_mass = math.log(max(stats.norm.cdf((hi - m) / s) - stats.norm.cdf((lo - m) / s), 1e-300))
+    log_post0 = stats.norm.logpdf((lo - m) / s) - math.log(s) - log_mass
+    return float(2 * (-math.log(hi - lo) - log_post0))
+
+
+@dataclass
+class CandidateFit:
+    """A candidate's local fit: its evaluator and LocalFit, the likelihood ratio against the baseline
+    and its boundary-corrected p-value, Savage-Dickey, members used."""
+
+    name: str
+    evaluator: object
+    fit: LocalFit
+    two_ln_bf: float
+    lr: float
+    lr_pvalue: float
+    two_ln_bf_savage_dickey: float
+    n_runs: int
+
+
+def fit_candidate(evaluator, c: str, base: LocalFit, start: dict | None, bud, log=print) -> CandidateFit:
+    """The enlarged model of candidate ``c`` fitted from the screening's linearised optimum ``start``
+    {name: value} (module doc, item 4); None (the residual points away from the term): from the
+    baseline's mode with the switch at 5 % of its range."""
+    cd = CANDIDATES[c]
+    ev_c = candidate_evaluator(evaluator, c)
+    names = list(ev_c.prior.names)
+    b = ev_c.prior.bounds.numpy().astype(np.float64)
+    x_small = np.append(base.x, cd.prior[0] + 0.05 * (cd.prior[1] - cd.prior[0]))
+    starts = [x_small] if start is None else [np.clip([start[n] for n in names], b[0], b[1])]
+    fc, n = fit_model(ev_c, n_lhs=0, extra_starts=np.array(starts), rel_step=bud.local_rel_step,
+                      max_iter=bud.local_max_iter, log=log)
+    lam = 2 * (fc.log_like - base.log_like)
+    return CandidateFit(c, ev_c, fc, 2 * (fc.log_evidence - base.log_evidence), lam, lr_pvalue(lam),
+                        savage_dickey(fc, names.index(cd.param), cd.prior), n)
+
+
+def profile_ends(evaluator, cf: CandidateFit, bud, log=print) -> tuple[dict, int]:
+    """ln L re-maximised over the baseline parameters with the switch held at each end of its 90 %
+    interval (the Laplace draws' HDI on the prior range); the 2 ln drop from the mode at each end
+    ((dict, members used))."""
+    cd, fc = CANDIDATES[cf.name], cf.fit
+    names = list(cf.evaluator.prior.names)
+    bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)
+    i = names.index(cd.param)
+    s = fc.draws(2000, bounds, seed=1)[:, i]
+    ends = hdi_interval(s, bounds[0, i], bounds[1, i])
+    out, n_runs = {"interval90": [float(v) for v in ends], "two_ln_drop": [], "gaussian": float(stats.chi2.ppf(0.9, 1))}, 0
+    for v in ends:
+        if abs(v - fc.x[i]) <= 1e-12 * (bounds[1, i] - bounds[0, i]):
+            out["two_ln_drop"].append(0.0)
+            continue
+        ev_s = evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(v)})
+        fs, n = fit_model(ev_s, n_lhs=0, extra_starts=np.delete(fc.x, i)[None], rel_step=bud.local_rel_step,
+                          max_iter=bud.local_max_iter, log=log)
+        n_runs += n
+        out["two_ln_drop"].append(float(2 * (fc.log_like - fs.log_like)))
+    return out, n_runs
