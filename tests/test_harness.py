@@ -381,6 +381,27 @@ def test_strict_success_is_the_blind_tests_target():
     assert not strict_success(_case("entrainment", "entrainment", after=100.0))
 
 
+def test_success_against_detectability():
+    """Below the switch the recordings can reveal, "nothing missing" or "unexplained" succeed and another
+    term's name fails; at or above it only a strict success counts; null and patch cases are scored as before."""
+    from experiments.hidden_physics.summary import case_row, detectability_success
+
+    def det(scenario, found, truth, switch, **kw):
+        c = _case(scenario, found, **kw)
+        c["truth"]["curvature"] = truth
+        c["diagnosis"]["screening"] = {"candidates": {"curvature": {"detectable_switch": {"switch": switch}}}}
+        return c
+
+    assert detectability_success(det("curvature", "none", 1.0, 4.6))
+    assert detectability_success(det("curvature", "unexplained", 1.0, 4.6))
+    assert not detectability_success(det("curvature", "mu_i", 1.0, 4.6))
+    assert not detectability_success(det("curvature", "none", 1.0, 0.5))
+    assert detectability_success(det("curvature", "curvature", 1.0, 0.5))
+    row = case_row(det("curvature", "none", 1.0, 4.6))
+    assert row["true_switch"] == 1.0 and row["detectable_switch"] == 4.6 and row["detectability_success"]
+    assert detectability_success(_case("null", "none")) and not detectability_success(_case("null", "mu_i"))
+
+
 def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     """make_page from summaries written by summary.py: a scenario meets its target with 4 of 5 strict
     successes; a run with every scenario at 5 seeds says how many of 7 targets it meets, a partial one

@@ -53,6 +53,7 @@ def apply_thresholds(results, th: dict, force: bool = False) -> int:
     (harness.coverage); returns the number of cases whose verdict or named term changed. ``force``: also
     the cases already decided with ``th`` (after a change of the decision rule)."""
     from torchslide.diagnose.decide import Thresholds, decide
+    from torchslide.diagnose.pipeline import DECISION_CONTEXT
 
     from .harness import coverage
 
@@ -70,7 +71,7 @@ def apply_thresholds(results, th: dict, force: bool = False) -> int:
             d = decide(cands, j["located"], j["decision"].get("baseline_verification") or {},
                        j["fit_before"]["misfit"], Thresholds(**th), fit_z=fit_z)
             # what the pipeline added to its decision is kept
-            for k in ("fit_z", "fit_z_source", "baseline_verification", "baseline_mode_check", "elpd_waic_baseline"):
+            for k in DECISION_CONTEXT:
                 d[k] = j["decision"].get(k)
             changed += (d["verdict"], d["missing_physics"]) != (j["verdict"], j["missing_physics"])
             j.setdefault("decision_as_run", {"verdict": j["verdict"], "missing_physics": j["missing_physics"],

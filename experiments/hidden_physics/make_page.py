@@ -176,10 +176,19 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
          f"{len(s['cases'])} cases, decided with the thresholds "
          + ", ".join(f"{k} {v:.3g}" for k, v in s["thresholds"].items() if isinstance(v, (int, float))) + ".", ""]
     if rows:
-        L += ["| scenario | strict successes | verdicts (count) |", "|---|---|---|"]
+        L += ["| scenario | strict successes | verdicts (count) | true switch / detectable from (seeds) | "
+              "successes against detectability |", "|---|---|---|---|---|"]
         for sc, (k, n) in scenario_counts(rows).items():
-            found = Counter(r["found"] for r in rows if r["scenario"] == sc)
-            L.append(f"| {sc} | {k}/{n} | " + ", ".join(f"{f} {c}" for f, c in sorted(found.items())) + " |")
+            rs = [r for r in rows if r["scenario"] == sc]
+            found = Counter(r["found"] for r in rs)
+            det = ", ".join(f"{r['true_switch']:.3g} / {r['detectable_switch']:.3g}" for r in rs
+                            if r.get("true_switch") is not None and r.get("detectable_switch") is not None) or "-"
+            ds = sum(bool(r.get("detectability_success")) for r in rs)
+            L.append(f"| {sc} | {k}/{n} | " + ", ".join(f"{f} {c}" for f, c in sorted(found.items()))
+                     + f" | {det} | {ds}/{n} |")
+        L += ["", "'Against detectability': below the smallest switch the recordings can reveal (the screening's "
+              "detectable switch at the calibrated baseline), a case succeeds when no other library term is named; "
+              "above it, only a strict success counts (summary.py).", ""]
         f = figdir / f"confusion_{name}.png"
         _plot_confusion(rows, f, f"{name}: strength 1, seeds 0-{N_SEEDS - 1}")
         L += ["", f"![confusion matrix, {name}]({f.relative_to(out).as_posix()})", ""]
@@ -187,6 +196,10 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
         f = figdir / f"detection_vs_strength_{name}.png"
         _plot_strength(s, f, f"{name}: detection against strength")
         L += [f"![detection against strength, {name}]({f.relative_to(out).as_posix()})", ""]
+    paths = Counter(r.get("inference", "emulator") for r in s["cases"])
+    L += ["Inference (torchslide/diagnose/pipeline.py): " + ", ".join(
+        f"{'local fits on the solver' if k == 'local' else 'GP emulator'} in {v} of {len(s['cases'])} cases"
+        for k, v in sorted(paths.items())) + ".", ""]
     walls = [r["wall_s"] for r in s["cases"] if r.get("wall_s") is not None]
     if walls:
         L += [f"Wall time per case: median {np.median(walls):.0f} s, range {min(walls):.0f}-{max(walls):.0f} s "

@@ -11,6 +11,11 @@ A case is a *strict success* (the target of the blind test, >= 4 of 5 seeds per 
 * out-of-library term (a low-friction patch): no library term named;
 * a library term: that term named, with 2 ln BF >= 6 over the runner-up, its switch's 90 % interval
   covering the truth, and the misfit reduced by the refit.
+
+Measured against detectability (the issue's criterion): a library term whose true switch is below the
+smallest switch these recordings can reveal (the screening's detectable switch at the calibrated
+baseline, torchslide.diagnose.screen.detectable_switch) counts as a success when no *other* library term
+is named ("nothing missing" or "unexplained" are honest there); above it, only a strict success counts.
 """
 from __future__ import annotations
 
@@ -57,6 +62,25 @@ def strict_success(case: dict) -> bool:
             and after < j["fit_before"]["misfit"])
 
 
+def detectability(case: dict) -> tuple[float | None, float | None]:
+    """(true switch, the smallest switch the case's recordings can reveal) of a library term, else (None, None)."""
+    term = case["truth"]["term"]
+    if term is None or term == "outside":
+        return None, None
+    from .scenarios import SWITCH
+    det = ((case["diagnosis"].get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
+    truth = case["truth"].get(SWITCH[term])
+    return (None if truth is None else float(truth)), (None if not det or det.get("switch") is None else float(det["switch"]))
+
+
+def detectability_success(case: dict) -> bool:
+    """Success measured against detectability (module doc)."""
+    truth, det = detectability(case)
+    if truth is None or det is None or truth >= det:
+        return strict_success(case)
+    return found_label(case) in ("none", "unexplained", true_label(case))
+
+
 def case_row(case: dict) -> dict:
     """The compact row of one saved case."""
     j = case["diagnosis"]
@@ -68,7 +92,9 @@ def case_row(case: dict) -> dict:
             "two_ln_bf_over_runner_up": d.get("two_ln_bf_over_runner_up"),
             "true_term_covered_hdr90": case.get("true_term_covered_hdr90"),
             "misfit_before": j["fit_before"]["misfit"], "misfit_after": after,
-            "wall_s": case.get("wall_s")}
+            "inference": (d.get("inference") or {}).get("path", "emulator"), "wall_s": case.get("wall_s"),
+            "true_switch": detectability(case)[0], "detectable_switch": detectability(case)[1],
+            "detectability_success": detectability_success(case)}
 
 
 def summarise(folder) -> dict:

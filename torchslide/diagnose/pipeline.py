@@ -142,6 +142,11 @@ def check_candidates(candidates) -> list[str]:
     return list(candidates)
 
 
+DECISION_CONTEXT = ("fit_z", "fit_z_source", "baseline_verification", "baseline_mode_check", "elpd_waic_baseline",
+                    "inference")
+"""What the pipeline adds to decide()'s output; kept when a saved case is decided again."""
+
+
 @dataclass
 class Diagnosis:
     verdict: str
@@ -173,8 +178,7 @@ class Diagnosis:
         verdict is a pure function of the saved statistics and the thresholds, so this equals a run with
         ``th``; the earlier decision is kept as decision["decision_before"], ``source`` says where ``th``
         came from."""
-        keep = {k: self.decision.get(k) for k in ("fit_z", "fit_z_source", "baseline_verification",
-                                                   "baseline_mode_check", "elpd_waic_baseline", "inference")}
+        keep = {k: self.decision.get(k) for k in DECISION_CONTEXT}
         before = {"verdict": self.verdict, "missing_physics": self.missing_physics,
                   "reason": self.decision.get("reason"), "thresholds": self.thresholds.to_json()}
         dec = decide(self.candidates, self.localisation.located, keep["baseline_verification"] or {},
