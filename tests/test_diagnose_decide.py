@@ -235,3 +235,23 @@ def test_subset_consistency_flags_the_observation_that_wants_other_parameters():
     assert abs(res[0]["rest_wants"]["mu"] - 0.2) < 0.002
     with pytest.raises(ValueError, match="do not match"):
         subset_consistency(blocks, J[:, :1], r, ["mu", "xi"], x0)
+
+
+def test_local_path_checks_reliability_and_the_likelihood_ratio():
+    """A local-path candidate is named only when both local fits are reliable and its likelihood ratio
+    reaches lr_alpha; the emulator's ESS check does not apply to it."""
+    from torchslide.diagnose.decide import Thresholds, decide
+
+    from .conftest import cand
+
+    base = {"log_evidence": 0.0, "reliable": True}
+    th = Thresholds(bf_min=6.0)
+    ok = cand("entrainment", 40.0, ess=None, reliable=True, lr_pvalue=1e-8)
+    d = decide([ok], [], base, 100.0, th)
+    assert d["verdict"] == "missing_physics" and d["checks"]["entrainment"]["likelihood_ratio"]
+    d = decide([dict(ok, lr_pvalue=0.2)], [], base, 100.0, th)
+    assert d["missing_physics"] is None and not d["checks"]["entrainment"]["likelihood_ratio"]
+    d = decide([dict(ok, reliable=False)], [], base, 100.0, th)
+    assert d["missing_physics"] is None and not d["checks"]["entrainment"]["reliable"]
+    d = decide([ok], [], dict(base, reliable=False), 100.0, th)
+    assert d["missing_physics"] is None

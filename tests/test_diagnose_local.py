@@ -307,3 +307,21 @@ def test_the_design_equals_the_detectability_with_the_extra_gauge_recorded():
     assert detectable_switch(J, 2, 6.0) == pytest.approx(best["switch"], rel=1e-6)
     js = d.to_json()["candidates"]["entrainment"]
     assert len(js["best_new_gauges"]) == 3 and js["detectable_now"] == pytest.approx(d.now["entrainment"])
+
+
+def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_is_unreliable(monkeypatch):
+    """_local_profiles profiles the profile_top candidates with the largest 2 ln BF; a profile that beats
+    the fit (a negative 2 ln drop beyond 1) marks the candidate unreliable."""
+    from torchslide.diagnose import pipeline
+
+    drops = {"a": [2.7, -3.0], "b": [2.5, 2.9], "c": [2.6, 2.8]}
+    monkeypatch.setattr(pipeline, "profile_ends",
+                        lambda ev, cf, bud, log: ({"two_ln_drop": drops[cf], "interval90": [0.0, 1.0],
+                                                   "gaussian": 2.71}, 10))
+    rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None}
+            for n, bf in (("a", 30.0), ("b", 20.0), ("c", 10.0))]
+    pipeline._local_profiles(None, rows, {"a": "a", "b": "b", "c": "c"}, pipeline.Budgets(profile_top=2),
+                             log=lambda s: None)
+    by = {r["name"]: r for r in rows}
+    assert by["a"]["profile_ends"] and by["b"]["profile_ends"] and by["c"]["profile_ends"] is None
+    assert not by["a"]["reliable"] and by["b"]["reliable"] and by["a"]["n_runs"] == 15

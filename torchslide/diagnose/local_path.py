@@ -48,10 +48,12 @@ class Problem:
     names: list
     bounds: np.ndarray
     log_norm: float
+    n_runs: int = 0     # solver members run so far, by every fit of this problem (failed ones included)
 
     def residuals(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """X (n, p) -> (whitened residuals (n, k), failed (n,)); one batched solver call per max_batch."""
         X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        self.n_runs += len(X)
         preds, failed = self.evaluator.run_values({n: X[:, i] for i, n in enumerate(self.names)})
         r = self.evaluator.likelihood.whiten(torch.as_tensor(preds)).numpy()
         bad = failed | ~np.all(np.isfinite(r), axis=1)
@@ -80,7 +82,6 @@ def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, se
     prob = problem(evaluator)
     lo, hi = prob.bounds
     pts = lo + maximin_lhs(n_lhs, len(prob.names), seed) * (hi - lo) if n_lhs > 0 else np.empty((0, len(lo)))
-    n_runs = len(pts)
     x0 = []
     if len(pts):
         R, _ = prob.residuals(pts)
@@ -96,12 +97,11 @@ def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, se
         except (RuntimeError, np.linalg.LinAlgError) as e:
             log(f"[diagnose] local fit from {np.round(x, 4).tolist()} failed: {e}")
             continue
-        n_runs += f.n_runs
         if best is None or f.log_like + prob.log_prior(f.x) > best.log_like + prob.log_prior(best.x):
             best = f
     if best is None:
         raise RuntimeError(f"every local fit of {prob.names} failed")
-    return best, n_runs
+    return best, prob.n_runs
 
 
 def box_fraction(f: LocalFit, bounds: np.ndarray, level: float = 0.9) -> float:

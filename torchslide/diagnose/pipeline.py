@@ -836,6 +836,13 @@ def _candidate_report(evaluator, c: str, r: _Refit, base: _Baseline, scr: Screen
     return out
 
 
+def _not_refit(c: str, scr: ScreenResult, why: str) -> dict:
+    """The report row of a candidate that was screened but not refitted (``why``)."""
+    return {"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
+            "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c], "parameters": {},
+            "not_refit": why}
+
+
 def _consistency_stage(evaluator, base: _Baseline, scr: ScreenResult, log) -> list | None:
     """Subset consistency at the final baseline: the screening's linearisation when the baseline stayed
     the calibration's, else p + 1 runs at the refined baseline's best run."""
@@ -924,10 +931,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     if bud.profile_top > 0:
         _profile_stage(base, refits, bud, log)
     cand_out = [_candidate_report(evaluator, c, refits[c], base, scr, bud, log) for c in top]
-    cand_out += [{"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
-                  "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
-                  "parameters": {}, "not_refit": "screening score below the top_k"}
-                 for c in candidates if c not in refits]
+    cand_out += [_not_refit(c, scr, "screening score below the top_k") for c in candidates if c not in refits]
     lap("refit_s")
     consistency = _consistency_stage(evaluator, base, scr, log)
     lap("consistency_s")
@@ -1054,14 +1058,10 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
             refits[c], row, fits[c] = _local_candidate(evaluator, c, base, f0, scr, bud, log)
         except RuntimeError as e:
             log(f"[diagnose] local fit {c} failed: {e}")
-            row = {"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
-                   "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c], "parameters": {},
-                   "not_refit": f"local fit failed: {e}"}
+            row = _not_refit(c, scr, f"local fit failed: {e}")
         cand_out.append(row)
-    cand_out += [{"name": c, "param": CANDIDATES[c].param, "log_evidence": None, "log_bayes_factor": None,
-                  "two_ln_bf": None, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
-                  "parameters": {}, "not_refit": "screening score below the top_k"}
-                 for c in candidates if c not in scr.ranking[: bud.top_k]]
+    cand_out += [_not_refit(c, scr, "screening score below the top_k") for c in candidates
+                 if c not in scr.ranking[: bud.top_k]]
     lap("refit_s")
     _local_profiles(evaluator, cand_out, fits, bud, log)
     lap("profile_s")
