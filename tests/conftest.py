@@ -223,15 +223,14 @@ def tiny_budgets(extra: str = "") -> str:
     """The [diagnose] candidates value ["mu_i"] followed by tiny budgets (``extra``: more [diagnose] keys)
     and a tiny [calibration] section, for setup_diagnose_case(candidates=...)."""
     return ('["mu_i"]\nn_posterior_samples = 4\nn_posterior_samples_after = 4\nn_initial = 4\nn_total = 6\n'
-            'n_total_max = 6\nbaseline_refine_rounds = 0\nrefit_refine_rounds = 1\ntop_k = 1\nn_perm = 9\n'
-            'model_error_runs = 2\nmode_search_iters = 1\ninference = "emulator"\n' + extra +
+            'n_total_max = 6\ntop_k = 1\nn_perm = 9\n'
+            'model_error_runs = 2\ninference = "emulator"\n' + extra +
             '\n[calibration]\nn_initial = 4\nn_total = 6\nbatch_size = 2\ngrid_size = 40')
 
 
 TINY_HARNESS_BUDGETS = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
                             baseline_n_initial=6, baseline_n_total=8, batch_size=8, top_k=1,
-                            n_perm=19, mcmc_steps=200, model_error_runs=0, mode_search_iters=2,
-                            inference="emulator")
+                            n_perm=19, mcmc_steps=200, model_error_runs=0, inference="emulator")
 
 
 

@@ -316,8 +316,8 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_is_unreliable(
 
     drops = {"a": [2.7, -3.0], "b": [2.5, 2.9], "c": [2.6, 2.8]}
     monkeypatch.setattr(pipeline, "profile_ends",
-                        lambda ev, cf, bud, log: ({"two_ln_drop": drops[cf], "interval90": [0.0, 1.0],
-                                                   "gaussian": 2.71}, 10))
+                        lambda ev, cfs, bud, log: [({"two_ln_drop": drops[cf], "interval90": [0.0, 1.0],
+                                                     "gaussian": 2.71}, 10) for cf in cfs])
     rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None}
             for n, bf in (("a", 30.0), ("b", 20.0), ("c", 10.0))]
     pipeline._local_profiles(None, rows, {"a": "a", "b": "b", "c": "c"}, pipeline.Budgets(profile_top=2),
@@ -325,3 +325,57 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_is_unreliable(
     by = {r["name"]: r for r in rows}
     assert by["a"]["profile_ends"] and by["b"]["profile_ends"] and by["c"]["profile_ends"] is None
     assert not by["a"]["reliable"] and by["b"]["reliable"] and by["a"]["n_runs"] == 15
+
+
+# ---- fits in lockstep (torchslide.diagnose.lockstep) ----
+
+def test_lockstep_answers_every_job_as_if_alone_in_one_call_per_round():
+    """Jobs asking different numbers of times: each gets the answers a direct evaluation gives, a round
+    holds one request of every job still running (so there are as many rounds as the longest job asks),
+    a job's exception comes back in its place and an exception of evaluate reaches the jobs of its round."""
+    from torchslide.diagnose.lockstep import Lockstep
+
+    sizes = []
+
+    def evaluate(reqs):
+        sizes.append(len(reqs))
+        if any(r == "boom" for r in reqs):
+            raise ValueError("evaluate failed")
+        return [r * r for r in reqs]
+
+    ls = Lockstep(evaluate)
+
+    def job(n):
+        if n == 0:
+            raise RuntimeError("job failed")
+        return [ls.ask(n * 10 + k) for k in range(n)]
+
+    out = ls.map(job, [3, 1, 0, 5])
+    assert out[0] == [(30 + k) ** 2 for k in range(3)] and out[1] == [100] and out[3] == [(50 + k) ** 2 for k in range(5)]
+    assert isinstance(out[2], RuntimeError)
+    assert sizes == [3, 2, 2, 1, 1] and ls.rounds == 5
+    bad = ls.map(lambda r: ls.ask(r), [2, "boom"])
+    assert all(isinstance(o, ValueError) for o in bad)
+    assert ls.ask(4) == 16          # outside map: evaluated at once
+
+
+def test_merged_residuals_equal_each_model_run_alone():
+    """The baseline, two candidate models (one with a fixed phi_int) and a profile model (switch held)
+    evaluated in one batch give each model's residuals as its own runs do."""
+    from torchslide.diagnose.local_path import merged_residuals, problem
+    from torchslide.diagnose.refit import candidate_evaluator
+
+    ev = _plane_case(0.001)
+    probs = [problem(ev), problem(candidate_evaluator(ev, "entrainment")),
+             problem(candidate_evaluator(ev, "earth_pressure")),
+             problem(ev.with_prior(ev.prior, fixed={"kappa": 0.002}))]
+    X = [np.array([[0.3, 600.0], [0.35, 400.0]]), np.array([[0.3, 600.0, 0.001]]),
+         np.array([[0.28, 700.0, 0.5], [0.3, 600.0, 0.0]]), np.array([[0.31, 650.0]])]
+    merged = merged_residuals(list(zip(probs, X)))
+    for p, x, (r, bad) in zip(probs, X, merged):
+        r1, bad1 = merged_residuals([(p, x)])[0]
+        assert not bad.any() and not bad1.any()
+        np.testing.assert_allclose(r, r1, rtol=1e-9, atol=1e-9)
+    assert [p.n_runs for p in probs] == [4, 2, 4, 2]
+    with pytest.raises(ValueError, match="share the terrain"):
+        merged_residuals([(probs[0], X[0]), (problem(_plane_case(0.0)), X[0])])

@@ -168,7 +168,7 @@ def test_harness_case_on_cuda(tmp_path):
 
     from .conftest import TINY_HARNESS_BUDGETS
 
-    bud = {**TINY_HARNESS_BUDGETS, "mode_search_iters": 1}
+    bud = dict(TINY_HARNESS_BUDGETS)
     _reset_memory()
     c = run_case("entrainment", 0, tmp_path / "res", budgets=bud, candidates=["entrainment", "mu_i"],
                  log=lambda s: None, device=DEVICE, max_batch=64)

@@ -42,9 +42,7 @@ def _tiny(**kw):
     return Budgets(**{**dict(inference="emulator", baseline_n_initial=4, baseline_n_total=6, baseline_grid_size=40,
                              model_error_runs=0,
                              batch_size=8, n_initial=4, n_total=6, n_total_max=6, n_posterior_samples=6,
-                             n_posterior_samples_after=4, refit_refine_rounds=1, baseline_refine_rounds=0, top_k=1,
-                             n_perm=9, mode_search_iters=1, mode_search_pop=2, refit_recheck=False, profile_top=0,
-                             slice_check=False, mcmc_steps=200), **kw})
+                             n_posterior_samples_after=4, top_k=1, n_perm=9, profile_top=0, mcmc_steps=200), **kw})
 
 
 def test_null_recordings_are_finer_grid_runs_plus_the_stated_noise():

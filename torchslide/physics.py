@@ -73,6 +73,14 @@ _DEFAULTS: dict[str, float | None] = {
 }
 
 
+def default_value(name: str) -> float:
+    """The value of parameter ``name`` when it is not given (its term off); KeyError for an unknown name."""
+    v = _DEFAULTS[name]
+    if v is None:
+        raise KeyError(f"parameter {name!r} has no default (it is required)")
+    return float(v)
+
+
 # The values each parameter may take (low, high, low_open, high_open): the rules of Params.validate as
 # intervals, so that a prior's range can be checked before any run (check_range). phi_int's second rule
 # (phi_int >= atan(mu)) couples two parameters and is checked per member by Params.validate.

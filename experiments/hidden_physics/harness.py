@@ -33,7 +33,7 @@ from .summary import summarise, write_json
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
-                       baseline_n_initial=10, baseline_n_total=16, baseline_refine_rounds=3, batch_size=8, top_k=len(LIBRARY),
+                       baseline_n_initial=10, baseline_n_total=16, batch_size=8, top_k=len(LIBRARY),
                        n_perm=49)
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
 
@@ -120,7 +120,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
 
 
 def parse_budgets(items) -> dict:
-    """``["mode_search_max_iters=24", ...]`` -> {field: value} of torchslide.diagnose.Budgets, each value
+    """``["local_max_iter=40", ...]`` -> {field: value} of torchslide.diagnose.Budgets, each value
     converted to the field's type; ValueError naming the item otherwise."""
     fields = {f.name: f for f in dataclasses.fields(Budgets)}
     out = {}

@@ -23,19 +23,15 @@ and a [diagnose] section::
                                  #     prior box; "auto": local when the baseline's 90 % Laplace region fills less
                                  #     than local_max_fraction of the prior box (rich data: a GP with tens of runs
                                  #     cannot resolve such a peak), else emulator
-    local_max_fraction = 0.01
+    local_max_fraction = 0.05
     local_lhs = 16               # local path: maximin-LHS runs ranking the baseline's starts, fits from the
     local_starts = 2             #     local_starts best; local_max_iter evaluations (2p + 1 members each) per fit
     local_max_iter = 30
-    n_posterior_samples = 32     # baseline posterior-predictive members (and per baseline refinement round)
-    n_posterior_samples_after = 16   # posterior-predictive members of every refit (verification)
-    n_initial = 16               # refit budgets: LHS runs, first-stage total ...
+    n_posterior_samples = 32     # baseline posterior-predictive members
+    n_posterior_samples_after = 16   # posterior-predictive members of every candidate's fit
+    n_initial = 16               # emulator path, refit budgets: LHS runs, first-stage total ...
     n_total = 32
     n_total_max = 48             # ... and the total a refit with untrustworthy evidence is continued to
-                                 #     when refit_refine_rounds = 0
-    refit_refine_rounds = 4      # rounds (at most) refining a refit with untrustworthy evidence (local emulator, zoomed
-                                 #     grid posterior) or leaning against an unsampled switch bound; 0: never
-    baseline_refine_rounds = 3   # rounds refining the baseline's verified evidence
     model_error_runs = 12        # > 0: the grid's approximation error (runs on cells model_error_factor times
     model_error_factor = 2       #     smaller at this many pilot posterior draws) enters every likelihood; 0: off
     # fine_terrain = { dem = "dem_5m.asc", release = "release_5m.asc", erodible = "erodible_5m.asc" }
@@ -46,14 +42,9 @@ and a [diagnose] section::
     release_volume_sd = 0.0      # > 0: the release volume's relative sd (e.g. 0.058 for a volume known to
                                  #     +-10 %, the sd of that uniform error), marginalised in every likelihood
                                  #     with the grid's error (needs model_error_runs >= 2); 0: taken as exact
-    mode_search_iters = 4        # local search on the solver after every refit (a refit that missed its mode
-                                 #     is refined with its runs); 0: off
-    mode_search_max_iters = 0    # > mode_search_iters: every mode search goes on while it still climbs (by
-                                 #     more than 1 in ln posterior over 4 iterations), up to this many
-                                 #     iterations (a narrow curved ridge followed to its top); 0: off
-    profile_top = 2              # refits (largest verified evidence above the baseline's) profiled along their
-                                 #     switch; refined where the profile finds ridge mass they missed; 0: off
-    top_k = 2                    # candidates refitted
+    profile_top = 2              # local path: candidates (largest 2 ln BF) profiled at the ends of their
+                                 #     switch's 90 % interval; 0: off
+    top_k = 2                    # candidates fitted (by screening rank)
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
     seed = 0
@@ -98,8 +89,7 @@ from ..calibration_config import check_unique_names, parse_calibration, parse_pr
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
-             "baseline_refine_rounds", "refit_refine_rounds", "model_error_runs", "model_error_factor",
-             "mode_search_iters", "mode_search_max_iters", "profile_top", "top_k", "batch_size", "n_perm",
+             "model_error_runs", "model_error_factor", "profile_top", "top_k", "batch_size", "n_perm",
              "local_lhs", "local_starts", "local_max_iter")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold",
                    "lr_alpha")
@@ -192,8 +182,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     if dup:
         raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
-        low = {"baseline_refine_rounds": 0, "refit_refine_rounds": 0, "model_error_runs": 0, "mode_search_iters": 0,
-               "mode_search_max_iters": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2,
+        low = {"model_error_runs": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2,
                "local_lhs": 0}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")

@@ -10,9 +10,10 @@
 * screen: one-batch finite-difference screening with the baseline directions projected out
 * local: least squares on the solver, Laplace evidence, switch information (the local path's maths)
 * local_path: the local path's models: baseline and candidate fits, path choice, likelihood ratio, profile
+* lockstep: several fits advanced together, their solver runs merged into one batched call per round
 * refit: calibration in the enlarged (baseline + switch) space
 * verify: checks with solver runs: verified (importance-weighted) evidence, WAIC, Savage-Dickey,
-  located mismatches re-scored after a refit, the beta = 0 slice as a second baseline proposal
+  located mismatches re-scored after a refit
 * decide: thresholds (set on null data) and the verdict
 * pipeline: diagnose() -> Diagnosis
 * report: report.json, report.md and figures

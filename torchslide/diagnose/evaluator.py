@@ -23,8 +23,21 @@ from ..bayes import GaussianLikelihood
 from ..evaluator import LandslideEvaluator
 from ..observe import Observation
 from ..observe_series import SeriesObservation
-from ..physics import Params
+from ..physics import Params, default_value
 from ..result import SimulationResult
+
+
+def stack_values(parts: list[tuple[int, dict]]) -> dict:
+    """One batch of Params values from several groups of members: ``parts`` [(n_i, {name: scalar or
+    (n_i,) array})] -> {name: (sum n_i,) array}; a name that a group does not give takes its default
+    there (physics.default_value: the term off), so groups with different terms share one solver call."""
+    keys = sorted({k for _, v in parts for k in v})
+    out = {}
+    for k in keys:
+        cols = [np.broadcast_to(np.asarray(v[k] if k in v else default_value(k), dtype=np.float64).reshape(-1), (n,))
+                for n, v in parts]
+        out[k] = np.concatenate(cols)
+    return out
 
 
 @dataclass

@@ -20,6 +20,9 @@ baseline and each candidate model are fitted by trust-region least squares on th
    with the largest 2 ln BF (``profile_ends``: mu, xi re-fitted with the switch held; a Gaussian gives
    2 ln drops of chi2_1(0.9) = 2.71 there, a very different drop says the Laplace shape does not hold,
    and a negative one that the fit is not at its mode, which makes the candidate unreliable).
+
+Fits that can run side by side (the starts of one model, the candidates, the profile ends) run in
+lockstep (lockstep.Lockstep, ``merged_residuals``): one solver call per round for all of them.
 """
 from __future__ import annotations
 
@@ -33,7 +36,9 @@ from scipy import special, stats
 from ..active import maximin_lhs
 from ..calibration import CalibrationResult
 from .candidates import CANDIDATES
+from .evaluator import stack_values
 from .local import LocalFit, fit
+from .lockstep import Lockstep
 from .refit import candidate_evaluator
 from .verify import hdi_interval
 
@@ -42,30 +47,53 @@ from .verify import hdi_interval
 class Problem:
     """An evaluator's likelihood as whitened residuals: ln L(x) = log_norm - |r(x)|^2 / 2.
 
-    names: the free parameters; bounds: (2, p) their prior box."""
+    names: the free parameters; bounds: (2, p) their prior box; lockstep: the Lockstep whose rounds
+    run this problem's points together with other fits' (None: each request is its own solver call)."""
 
     evaluator: object
     names: list
     bounds: np.ndarray
     log_norm: float
     n_runs: int = 0     # solver members run so far, by every fit of this problem (failed ones included)
+    lockstep: Lockstep | None = None
+
+    def values(self, X: np.ndarray) -> dict:
+        """Params values of the points X (n, p): the free parameters' columns over the evaluator's fixed ones."""
+        return {**self.evaluator.fixed, **{n: X[:, i] for i, n in enumerate(self.names)}}
 
     def residuals(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """X (n, p) -> (whitened residuals (n, k), failed (n,)); one batched solver call per max_batch."""
         X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        self.n_runs += len(X)
-        preds, failed = self.evaluator.run_values({n: X[:, i] for i, n in enumerate(self.names)})
-        r = self.evaluator.likelihood.whiten(torch.as_tensor(preds)).numpy()
-        bad = failed | ~np.all(np.isfinite(r), axis=1)
-        return np.where(bad[:, None], np.inf, r), bad
+        if self.lockstep is not None:
+            return self.lockstep.ask((self, X))
+        return merged_residuals([(self, X)])[0]
 
     def log_prior(self, x: np.ndarray) -> float:
         return float(self.evaluator.prior.log_prob(torch.as_tensor(np.atleast_2d(x), dtype=torch.float64))[0])
 
 
-def problem(evaluator) -> Problem:
+def merged_residuals(requests: list) -> list:
+    """[(Problem, X (n_i, p_i))] -> [(residuals (n_i, k), failed (n_i,))], all points in one batch of the
+    first problem's evaluator. The problems must share the terrain, observations and model error (models of
+    one diagnosis: they differ only in which parameters are free and which are fixed)."""
+    runner = requests[0][0].evaluator
+    for prob, _ in requests[1:]:
+        e = prob.evaluator
+        if e.dem is not runner.dem or e.observations is not runner.observations or e.model_error is not runner.model_error:
+            raise ValueError("problems of one batch must share the terrain, the observations and the model error")
+    for prob, X in requests:
+        prob.n_runs += len(X)
+    preds, failed = runner.run_values(stack_values([(len(X), prob.values(X)) for prob, X in requests]))
+    r = runner.likelihood.whiten(torch.as_tensor(preds)).numpy()
+    bad = failed | ~np.all(np.isfinite(r), axis=1)
+    r = np.where(bad[:, None], np.inf, r)
+    cuts = np.cumsum([len(X) for _, X in requests])[:-1]
+    return list(zip(np.split(r, cuts), np.split(bad, cuts)))
+
+
+def problem(evaluator, lockstep: Lockstep | None = None) -> Problem:
     return Problem(evaluator, list(evaluator.prior.names), evaluator.prior.bounds.numpy().astype(np.float64),
-                   evaluator.likelihood.log_norm)
+                   evaluator.likelihood.log_norm, lockstep=lockstep)
 
 
 def _with_prior(f: LocalFit, prob: Problem) -> LocalFit:
@@ -76,10 +104,13 @@ def _with_prior(f: LocalFit, prob: Problem) -> LocalFit:
 
 
 def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, seed: int = 0,
-              rel_step: float = 3e-3, max_iter: int = 30, log=print) -> tuple[LocalFit, int]:
+              rel_step: float = 3e-3, max_iter: int = 30, log=print, lockstep: Lockstep | None = None
+              ) -> tuple[LocalFit, int]:
     """(best LocalFit, solver members used) of ``evaluator``'s model: ``n_lhs`` maximin-LHS points in one
-    batch, local.fit from the ``starts`` best of them and from every ``extra_starts`` (m, p) point."""
-    prob = problem(evaluator)
+    batch, local.fit from the ``starts`` best of them and from every ``extra_starts`` (m, p) point. The
+    fits from several starts run in lockstep (one solver call per round for all of them); inside a
+    ``lockstep`` of the caller's they run one after another, each round shared with the caller's other fits."""
+    prob = problem(evaluator, lockstep)
     lo, hi = prob.bounds
     pts = lo + maximin_lhs(n_lhs, len(prob.names), seed) * (hi - lo) if n_lhs > 0 else np.empty((0, len(lo)))
     x0 = []
@@ -89,14 +120,29 @@ def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, se
         x0 = [pts[i] for i in order[:starts]]
     if extra_starts is not None:
         x0 = [np.asarray(x, dtype=np.float64) for x in np.atleast_2d(extra_starts)] + list(x0)
+
+    def one(x):
+        return _with_prior(fit(prob.residuals, x, prob.bounds, prob.log_norm, 0.0, rel_step=rel_step,
+                               max_iter=max_iter), prob)
+
+    if lockstep is None and len(x0) > 1:
+        prob.lockstep = Lockstep(merged_residuals)
+        fits = prob.lockstep.map(one, x0)
+        prob.lockstep = None
+    else:
+        fits = []
+        for x in x0:
+            try:
+                fits.append(one(x))
+            except (RuntimeError, np.linalg.LinAlgError) as e:
+                fits.append(e)
     best = None
-    for x in x0:
-        try:
-            f = _with_prior(fit(prob.residuals, x, prob.bounds, prob.log_norm, 0.0, rel_step=rel_step,
-                                max_iter=max_iter), prob)
-        except (RuntimeError, np.linalg.LinAlgError) as e:
-            log(f"[diagnose] local fit from {np.round(x, 4).tolist()} failed: {e}")
+    for x, f in zip(x0, fits):
+        if isinstance(f, (RuntimeError, np.linalg.LinAlgError)):
+            log(f"[diagnose] local fit from {np.round(x, 4).tolist()} failed: {f}")
             continue
+        if isinstance(f, BaseException):
+            raise f
         if best is None or f.log_like + prob.log_prior(f.x) > best.log_like + prob.log_prior(best.x):
             best = f
     if best is None:
@@ -168,7 +214,8 @@ class CandidateFit:
     n_runs: int
 
 
-def fit_candidate(evaluator, c: str, base: LocalFit, start: dict | None, bud, log=print) -> CandidateFit:
+def fit_candidate(evaluator, c: str, base: LocalFit, start: dict | None, bud, log=print,
+                  lockstep: Lockstep | None = None) -> CandidateFit:
     """The enlarged model of candidate ``c`` fitted from the screening's linearised optimum ``start``
     {name: value} (module doc, item 4); None (the residual points away from the term): from the
     baseline's mode with the switch at 5 % of its range."""
@@ -179,30 +226,58 @@ def fit_candidate(evaluator, c: str, base: LocalFit, start: dict | None, bud, lo
     x_small = np.append(base.x, cd.prior[0] + 0.05 * (cd.prior[1] - cd.prior[0]))
     starts = [x_small] if start is None else [np.clip([start[n] for n in names], b[0], b[1])]
     fc, n = fit_model(ev_c, n_lhs=0, extra_starts=np.array(starts), rel_step=bud.local_rel_step,
-                      max_iter=bud.local_max_iter, log=log)
+                      max_iter=bud.local_max_iter, log=log, lockstep=lockstep)
     lam = 2 * (fc.log_like - base.log_like)
     return CandidateFit(c, ev_c, fc, 2 * (fc.log_evidence - base.log_evidence), lam, lr_pvalue(lam),
                         savage_dickey(fc, names.index(cd.param), cd.prior), n)
 
 
-def profile_ends(evaluator, cf: CandidateFit, bud, log=print) -> tuple[dict, int]:
-    """ln L re-maximised over the baseline parameters with the switch held at each end of its 90 %
-    interval (the Laplace draws' HDI on the prior range); the 2 ln drop from the mode at each end
-    ((dict, members used))."""
+def profile_interval(cf: CandidateFit) -> list[float]:
+    """The ends of the switch's 90 % interval: the HDI of the Laplace draws on the switch's prior range."""
+    fc = cf.fit
+    names = list(cf.evaluator.prior.names)
+    bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)
+    i = names.index(CANDIDATES[cf.name].param)
+    return [float(v) for v in hdi_interval(fc.draws(2000, bounds, seed=1)[:, i], bounds[0, i], bounds[1, i])]
+
+
+def profile_drop(evaluator, cf: CandidateFit, value: float, bud, log=print,
+                 lockstep: Lockstep | None = None) -> tuple[float, int]:
+    """(2 ln drop of the profile likelihood from the mode with the switch held at ``value``, members used):
+    ln L re-maximised over the baseline parameters (module doc, item 4)."""
     cd, fc = CANDIDATES[cf.name], cf.fit
     names = list(cf.evaluator.prior.names)
     bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)
     i = names.index(cd.param)
-    s = fc.draws(2000, bounds, seed=1)[:, i]
-    ends = hdi_interval(s, bounds[0, i], bounds[1, i])
-    out, n_runs = {"interval90": [float(v) for v in ends], "two_ln_drop": [], "gaussian": float(stats.chi2.ppf(0.9, 1))}, 0
-    for v in ends:
-        if abs(v - fc.x[i]) <= 1e-12 * (bounds[1, i] - bounds[0, i]):
-            out["two_ln_drop"].append(0.0)
-            continue
-        ev_s = evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(v)})
-        fs, n = fit_model(ev_s, n_lhs=0, extra_starts=np.delete(fc.x, i)[None], rel_step=bud.local_rel_step,
-                          max_iter=bud.local_max_iter, log=log)
-        n_runs += n
-        out["two_ln_drop"].append(float(2 * (fc.log_like - fs.log_like)))
-    return out, n_runs
+    if abs(value - fc.x[i]) <= 1e-12 * (bounds[1, i] - bounds[0, i]):
+        return 0.0, 0
+    ev_s = evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(value)})
+    fs, n = fit_model(ev_s, n_lhs=0, extra_starts=np.delete(fc.x, i)[None], rel_step=bud.local_rel_step,
+                      max_iter=bud.local_max_iter, log=log, lockstep=lockstep)
+    return float(2 * (fc.log_like - fs.log_like)), n
+
+
+def fit_candidates(evaluator, cands: list, base: LocalFit, starts: dict, bud, log=print) -> dict:
+    """{candidate: CandidateFit, or the exception that ended its fit}: ``fit_candidate`` of every
+    candidate in ``cands`` (``starts``: the screening's linearised optima), all in lockstep (one solver
+    call per round for all of them)."""
+    ls = Lockstep(merged_residuals)
+    out = ls.map(lambda c: fit_candidate(evaluator, c, base, starts.get(c), bud, log, lockstep=ls), cands)
+    log(f"[diagnose] {len(cands)} candidate fits in {ls.rounds} batched rounds")
+    return dict(zip(cands, out))
+
+
+def profile_ends(evaluator, fits: list, bud, log=print) -> list[tuple[dict, int]]:
+    """[(profile record, members used)] of each CandidateFit in ``fits``: the 2 ln drop of the profile
+    likelihood at both ends of its switch's 90 % interval (``profile_drop``; a Gaussian gives
+    chi2_1(0.9) = 2.71 at both), every end's fit in lockstep."""
+    ends = [profile_interval(cf) for cf in fits]
+    jobs = [(cf, v) for cf, e in zip(fits, ends) for v in e]
+    ls = Lockstep(merged_residuals)
+    out = ls.map(lambda j: profile_drop(evaluator, j[0], j[1], bud, log, lockstep=ls), jobs)
+    for o in out:
+        if isinstance(o, BaseException):
+            raise o
+    gauss = float(stats.chi2.ppf(0.9, 1))
+    return [({"interval90": e, "two_ln_drop": [d for d, _ in out[2 * k: 2 * k + 2]], "gaussian": gauss},
+             sum(n for _, n in out[2 * k: 2 * k + 2])) for k, e in enumerate(ends)]

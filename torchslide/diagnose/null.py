@@ -6,8 +6,8 @@ errors, the terrain. This module makes such data for the user's case and runs th
 on each:
 
 1. n parameter sets theta_i from the posterior draws of the baseline the data's verdict rests on
-   (Diagnosis.predictive.x: the calibration's posterior, or the beta = 0 slice's or the mode check's
-   refinement when the diagnosis adopted one), taken in one fixed random order of the draws: the first
+   (Diagnosis.predictive.x: the local fit's Laplace draws or the calibration's posterior), taken in one
+   fixed random order of the draws: the first
    n of it, so that a calibration with more runs starts with the runs of one with fewer;
 2. each run on cells ``factor`` times smaller than the inversion grid (model_error.fine_run: the user's
    fine terrain when given, else the DEM interpolated bilinearly), seen on the inversion grid, with the

@@ -60,8 +60,8 @@ def write_figures(diag, out: Path) -> list[str]:
             fig.savefig(f, dpi=90)
             plt.close(fig)
             files.append(f.name)
-    # posteriors of the refit switches: 1-D marginal of the MCMC samples (histogram) or of the refined
-    # grid posterior (verify.refine_refit), on the switch's prior range
+    # posteriors of the refit switches: 1-D marginal of the samples (histogram) or of the grid posterior,
+    # on the switch's prior range
     refits = [(c, cal) for c, (_, cal) in diag.refits.items()
               if getattr(cal, "samples", None) is not None or getattr(cal, "posterior_grid", None) is not None]
     if refits:
@@ -88,34 +88,15 @@ def write_figures(diag, out: Path) -> list[str]:
 
 
 def _refit_check(c: dict) -> str:
-    """One cell: the mode search's outcome, the re-check and the profile along the switch when they
-    refined the refit, and the evidence's convergence ('-' when not refitted)."""
+    """One cell: the local path's checks, or whether the emulator path's verified evidence converged
+    ('-' when not refitted)."""
     if c.get("log_evidence") is None:
         return "-"
     if c.get("inference") == "laplace":
         return _local_check(c)
-    ms = c.get("mode_search")
-    parts = []
-    if ms:
-        gap = ms.get("gap_to_draws")
-        vs = f"search {ms['improvement']:+.1f} over its runs" + ("" if gap is None else f", {gap:+.1f} over its draws")
-        parts.append(f"peak missed by the refit ({vs}), refined" if ms["missed_mode"] else f"mode confirmed ({vs})")
-    rc = c.get("refit_recheck")
-    if rc and rc.get("refined"):
-        parts.append(f"re-checked at the refined baseline (its points {rc['gap_to_draws']:+.1f} over the draws), "
-                     f"log Z {rc['log_evidence_before']:.2f} -> {rc['log_evidence']:.2f}")
-    pr = c.get("profile") or []
-    took = [r for r in pr if r.get("refined") and r.get("adopted")]
-    if took:
-        a, b = took[0]["interval_before"], took[-1]["interval_after"]
-        parts.append(f"profile along {c.get('param', 'the switch')} found ridge mass the posterior missed: refined "
-                     f"{len(took)}x, 90 % interval [{a[0]:.3g}, {a[1]:.3g}] -> [{b[0]:.3g}, {b[1]:.3g}], log Z "
-                     f"{took[0]['log_evidence_before']:.2f} -> {took[-1]['log_evidence_refined']:.2f}")
-    elif pr:
-        parts.append(f"profile along {c.get('param', 'the switch')}: posterior covers the ridge")
     if "evidence_converged" in c:
-        parts.append("evidence converged" if c["evidence_converged"] else "evidence NOT converged")
-    return "; ".join(parts) or "-"
+        return "evidence converged" if c["evidence_converged"] else "evidence NOT converged"
+    return "-"
 
 
 def _local_check(c: dict) -> str:
@@ -125,7 +106,7 @@ def _local_check(c: dict) -> str:
            f"{_fmt(c.get('lr_pvalue'), '{:.2g}')} (switch at its bound 0: chi2_0 / 2 + chi2_1 / 2)")
     pe = c.get("profile_ends")
     if pe:
-        out += (f"; profile 2 ln drop at the 90 % ends " + " / ".join(f"{v:.2f}" for v in pe["two_ln_drop"])
+        out += ("; profile 2 ln drop at the 90 % ends " + " / ".join(f"{v:.2f}" for v in pe["two_ln_drop"])
                 + f" (Gaussian {pe['gaussian']:.2f})")
     return out
 
@@ -242,31 +223,18 @@ def _fit_section(j: dict) -> list[str]:
     fb, fa = j["fit_before"], j["fit_after"]
     L = ["", "## Fit before / after", "", f"- baseline: log Z {_fmt(fb['log_evidence'], '{:.2f}')}, misfit {_fmt(fb['misfit'], '{:.1f}')} (k = {fb['k']})"]
     src = (j["decision"].get("baseline_verification") or {}).get("source")
-    mc = j["decision"].get("baseline_mode_check") or {}
     if src:
         L[-1] += f"; evidence from the {src}"
-    if mc.get("missed_mode"):
-        L.append(f"- baseline mode check: a run at the refits' nested points beat every baseline run by "
-                 f"{_fmt(mc.get('improvement'), '{:.1f}')} in ln posterior; the refined baseline's log Z is "
-                 f"{_fmt(mc.get('log_evidence'), '{:.2f}')} ({'adopted' if mc.get('adopted') else 'not adopted'})")
     if fa:
         L.append(f"- after ({fa.get('model')}): log Z {_fmt(fa['log_evidence'], '{:.2f}')}, misfit {_fmt(fa['misfit'], '{:.1f}')}")
-    # the fit flags' statistic: the calibrated baseline's fit Z, shown apart when the baseline was refined later
-    fz = j["decision"].get("fit_z") or {}
-    first = any(fb["residuals"].get(n, {}).get("Z_fit") is None or abs(z - fb["residuals"][n]["Z_fit"]) > 0.05
-                for n, z in fz.items() if z is not None)
     L += ["", "'fit Z': the block's chi-square with the likelihood's own covariance (grid error included) as a "
-          "normal score (0 = as expected; localise.block_fit)."
-          + (" 'fit Z calibrated': the same for the calibrated baseline, before the refits refined it (what the fit "
-             "flags compare with fit_max)." if first else ""), "",
-          "| observable | before | after | fit Z before | fit Z after |" + (" fit Z calibrated |" if first else ""),
-          "|---|---|---|---|---|" + ("---|" if first else "")]
+          "normal score (0 = as expected; localise.block_fit).", "",
+          "| observable | before | after | fit Z before | fit Z after |", "|---|---|---|---|---|"]
     for name, r in fb["residuals"].items():
         a = fa.get("residuals", {}).get(name, {}) if fa else {}
         key = "z" if "z" in r else "rms_z"
         L.append(f"| {name} ({'z' if key == 'z' else 'rms z'}) | {_fmt(r.get(key), '{:.2f}')} | {_fmt(a.get(key), '{:.2f}')} "
-                 f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |"
-                 + (f" {_fmt(fz.get(name), '{:.1f}')} |" if first else ""))
+                 f"| {_fmt(r.get('Z_fit'), '{:.1f}')} | {_fmt(a.get('Z_fit'), '{:.1f}')} |")
     return L + _fit_notes(fb["residuals"])
 
 

@@ -17,9 +17,7 @@ call is just that: p + 1 runs.
 
 ``linear_opt``: the linearised optimum of every candidate, the joint least-squares solution of
 r = A db + J_c beta (beta > 0; None otherwise) as a point {name: value} of the candidate's model
-(x0 + db, switch beta). The refits' mode check (pipeline._mode_search) starts from it too: a refit's
-active learning can settle in a far basin of the switch (entrainment at twice the strength: kappa
-0.0098 against 0.003 in truth, 116 lower in ln posterior) while the screening pointed near the truth.
+(x0 + db, switch beta). The local path's candidate fits start from it (local_path.fit_candidate).
 """
 from __future__ import annotations
 
@@ -29,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .candidates import CANDIDATES
+from .evaluator import stack_values
 
 
 @dataclass
@@ -85,13 +84,7 @@ def members(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) -
         for k, v in cd.fixed:
             m[k] = v
         batch.append(m)
-    keys = sorted({k for m in batch for k in m})
-    defaults = {"phi_int": math.nan}
-    values = {}
-    for k in keys:
-        fill = base.get(k, evaluator.fixed.get(k, defaults.get(k, 0.0)))
-        values[k] = np.array([m.get(k, fill) for m in batch], dtype=np.float64)
-    return values, steps
+    return stack_values([(1, {**evaluator.fixed, **m}) for m in batch]), steps
 
 
 def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) -> ScreenResult:
