@@ -91,6 +91,10 @@ def test_calibrate_round_trip_and_resume(tmp_path, capsys):
     (PRIOR, OBS.format(value=10.0, sigma=1.0) + "[calibration]\nclip_range = 0.0\n", "clip_range must be a finite number > 0"),
     (PRIOR, OBS.format(value=10.0, sigma=1.0) + '[calibration]\ntv_threshold = "small"\n',
      "tv_threshold must be a finite number >= 0, got 'small'"),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + '[calibration]\ninference = "laplace"\n',
+     'inference must be "auto", "local" or "emulator", got \'laplace\''),
+    (PRIOR, OBS.format(value=10.0, sigma=1.0) + '[calibration]\nlocal_max_fraction = 0\n',
+     "local_max_fraction must be a share of the prior box in (0, 1], got 0"),
 ])
 def test_bad_input_is_refused_before_any_run(tmp_path, capsys, prior, obs, msg):
     cfg = write(tmp_path, BASE + prior + obs)
@@ -160,3 +164,43 @@ def test_calibrate_shows_the_solver_calls_progress(tmp_path, capsys):
     assert main(["calibrate", str(cfg), "--out", str(tmp_path / "cal")]) == 0
     err = capsys.readouterr().err
     assert "calibrate:" in err and "s simulated" in err and "/60 s simulated" in err
+
+
+def test_a_posterior_too_sharp_for_the_emulator_is_fitted_on_the_solver(tmp_path, capsys):
+    """Peak speeds and depths at three points known to 1 %: the posterior fills a sliver of the prior box,
+    so calibrate (inference "auto") fits the mode on the solver and reports its Laplace posterior, which
+    holds the truth; posterior.json says which path was taken and why. "emulator" keeps the GP's."""
+    from torchslide.calibration_config import load_calibration_config, make_evaluator
+
+    pts = [(375.0, 150.0), (475.0, 150.0), (575.0, 150.0)]
+    obs = "".join(f'\n[[observations]]\nkind = "{k}"\nname = "{k}_{i}"\nx = {x}\ny = {y}\nvalue = 1.0\nsigma = 1.0\n'
+                  for i, (x, y) in enumerate(pts) for k in ("max_velocity", "max_height"))
+    ev = make_evaluator(load_calibration_config(write(tmp_path, BASE + PRIOR + obs + CAL)))
+    _, y = ev.evaluate(np.array([[0.2, 1000.0]]))
+    y = y[0].numpy()
+    assert np.all(y > 0.1)
+    obs = "".join(f'\n[[observations]]\nkind = "{k}"\nname = "{k}_{i}"\nx = {x}\ny = {yy}\nvalue = {v:.10g}\n'
+                  f'sigma = {0.01 * v:.10g}\n' for (i, (x, yy)), k, v in
+                  zip([(i, p) for i, p in enumerate(pts) for _ in range(2)], ["max_velocity", "max_height"] * 3, y))
+    for inference in ("auto", "emulator"):
+        cfg = write(tmp_path, BASE + PRIOR + obs + CAL + f'inference = "{inference}"\n')
+        out = tmp_path / inference
+        assert main(["calibrate", str(cfg), "--out", str(out), "--quiet"]) == 0
+        post = json.loads((out / "posterior.json").read_text())
+        inf = post["inference"]
+        if inference == "emulator":
+            assert inf["path"] == "emulator" and inf["why"] == 'inference = "emulator"'
+            continue
+        assert inf["path"] == "local" and inf["box_fraction"] < 0.05 and "of the prior box" in inf["why"]
+        assert inf["n_runs"] > 0 and np.isfinite(inf["log_evidence_emulator"])
+        assert post["n_runs"] == 10 and post["stopped_reason"].startswith("laplace")
+        for n, t in (("mu", 0.2), ("xi", 1000.0)):
+            lo, hi = post["hdr90"][n]
+            assert lo <= t <= hi and (hi - lo) < 0.1 * (PRIOR_BOX[n][1] - PRIOR_BOX[n][0])
+        assert (out / "posterior.png").exists()
+        assert max(abs(o["standardised_residual"]) for o in post["best_run_fit"]["observations"]) < 1.0
+        cap = capsys.readouterr()
+        assert "inference: local" in cap.out and "misses" not in cap.err
+
+
+PRIOR_BOX = {"mu": (0.05, 0.5), "xi": (200.0, 2000.0)}

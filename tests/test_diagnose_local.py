@@ -191,7 +191,7 @@ def test_the_box_fraction_chooses_the_path():
 
     narrow = gauss([0.005, 5.0])
     expected = math.pi * stats.chi2.ppf(0.9, 2) * 0.005 * 5.0 / (0.28 * 2100.0)
-    assert box_fraction(narrow, bounds) == pytest.approx(expected, rel=1e-9)
+    assert box_fraction(narrow.covariance, bounds) == pytest.approx(expected, rel=1e-9)
     assert choose_path(narrow, bounds, 1e-3)[0] == "local"
     path, why = choose_path(gauss([0.1, 800.0]), bounds, 1e-3)
     assert path == "emulator" and "of the prior box" in why

@@ -26,6 +26,8 @@ Used by the calibrate, predict, sweep and diagnose commands.
     acquisition = "entropy"      # or "expvar"
     tv_threshold = 0.0           # optional early stop on TV(p_i, p_{i-10})
     max_batch = 32               # most members per solver call
+    inference = "auto"           # "auto": a posterior whose 90 % region fills less than local_max_fraction of
+    local_max_fraction = 0.05    #     the prior box is fitted on the solver (mode + Laplace); "emulator" | "local"
     truth = { mu = 0.23, xi = 1000.0 }   # optional, synthetic cases: drawn as a cross, reported in posterior.json
 """
 from __future__ import annotations
@@ -40,7 +42,7 @@ from .config import Config, ConfigError, check_keys, load_config
 from .observe import Observation
 
 _CAL_KEYS = {"n_initial", "n_total", "batch_size", "seed", "grid_size", "acquisition", "tv_threshold",
-             "max_batch", "clip_range", "truth"}
+             "max_batch", "clip_range", "truth", "inference", "local_max_fraction"}
 _PRIOR_DISTS = {
     "uniform": ({"low", "high"}, set()),
     "truncnormal": ({"low", "high", "mean", "sd"}, set()),
@@ -151,7 +153,8 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
     path = cfg.path
     check_keys(table, _CAL_KEYS, "[calibration]", path)
     c = {"n_initial": 40, "n_total": 120, "batch_size": 1, "seed": 0, "grid_size": 100,
-         "acquisition": "entropy", "tv_threshold": None, "max_batch": 32, "clip_range": 1000.0}
+         "acquisition": "entropy", "tv_threshold": None, "max_batch": 32, "clip_range": 1000.0,
+         "inference": "auto", "local_max_fraction": 0.05}
     c.update(table)
     for k in ("n_initial", "n_total", "batch_size", "grid_size", "max_batch"):
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < 1:
@@ -176,6 +179,13 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
         t = c["truth"]
         if not isinstance(t, dict) or not all(isinstance(v, (int, float)) for v in t.values()):
             raise ConfigError(f"{path}: [calibration] truth must be a table of numbers, e.g. {{ mu = 0.23, xi = 1000.0 }}")
+    if c["inference"] not in ("auto", "local", "emulator"):
+        raise ConfigError(f"{path}: [calibration] inference must be \"auto\", \"local\" or \"emulator\", got "
+                          f"{c['inference']!r}")
+    v = c["local_max_fraction"]
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v <= 1:
+        raise ConfigError(f"{path}: [calibration] local_max_fraction must be a share of the prior box in (0, 1], "
+                          f"got {v!r}")
     if c["acquisition"] not in ("entropy", "expvar"):
         raise ConfigError(f"{path}: [calibration] acquisition must be 'entropy' or 'expvar', got {c['acquisition']!r}")
     return c

@@ -171,6 +171,35 @@ class LandslideEvaluator:
         self.solver_seconds += time.perf_counter() - t0
         return res
 
+    def simulate_values(self, values: dict):
+        """SimulationResults of explicit Params values {name: (n,) array} (+ fixed), one per chunk of
+        max_batch members (a generator)."""
+        from .solver import simulate
+        n = max(np.size(v) for v in values.values())
+        allv = {k: v for k, v in self.fixed.items()}
+        allv.update(values)
+        for s in range(0, n, self.max_batch):
+            sub = {k: (np.asarray(v, dtype=np.float64).reshape(-1)[s:s + self.max_batch] if np.size(v) > 1 else v)
+                   for k, v in allv.items()}
+            nb = min(self.max_batch, n - s)
+            p = Params.make(B=nb, dtype=self.dtype, device=self.device, **sub)
+            t0 = time.perf_counter()
+            res = simulate(self.dem, self.release, p, t_end=self.t_end, gauges=list(self.gauges) or None,
+                           config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
+                           dtype=self.dtype, device=self.device, thickness=self.thickness)
+            self.solver_seconds += time.perf_counter() - t0
+            yield res
+
+    def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
+        """Predictions (n, k) and failed (n,) for explicit Params values {name: (n,) array} (+ fixed),
+        in chunks of max_batch members (screening uses this for one batch of perturbed parameter sets)."""
+        out, fails = [], []
+        for res in self.simulate_values(values):
+            preds, failed, _ = self.predict(res)
+            out.append(preds.numpy())
+            fails.append(failed.numpy())
+        return np.concatenate(out), np.concatenate(fails)
+
     def predict(self, result: SimulationResult) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
         """Observables (B, k) float64 of a result, a failed mask (B,) and reasons."""
         B = result.batch_size

@@ -8,7 +8,9 @@ ignored when they are in [prior]). Writes posterior.json, posterior.npz, posteri
 runs.csv, a checkpoint (so ``--resume`` continues an interrupted run without repeating a finished
 run) and TensorBoard logs under DIR/tensorboard. posterior.json's ``best_run_fit`` gives each
 observation's standardised residual on the best run, and calibrate warns (stderr) about every
-observation that even the best run misses by more than 3 sigma.
+observation that even the best run misses by more than 3 sigma. A posterior too sharp for the emulator
+(``[calibration] inference``, diagnose.local_path.local_calibration) is fitted on the solver and described
+by its Laplace approximation; posterior.json's ``inference`` says which path was taken and why.
 """
 from __future__ import annotations
 
@@ -149,9 +151,16 @@ def _run(args: argparse.Namespace) -> int:
                     acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
                     tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
                     clip_range=cal["clip_range"])
+    from ..diagnose.local_path import local_calibration
+
+    res, inference = local_calibration(ev, res, cal["inference"], cal["local_max_fraction"], seed=cal["seed"],
+                                       log=lambda s: None if args.quiet else print(s, file=sys.stderr))
+    if inference["path"] == "local":        # the mode's run joins the records: best_run_fit is the mode's fit
+        ev.evaluate(np.array([[res.summary["map"][n] for n in prior.names]]))
     ev.records = unique_records(ev.records)
     res.save(out)
     info = json.loads((out / "posterior.json").read_text())
+    info["inference"] = inference
     info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
                              "x": o.x, "y": o.y} for o in ev.observations]
     info["solver_seconds_this_invocation"] = ev.solver_seconds
@@ -173,5 +182,6 @@ def _run(args: argparse.Namespace) -> int:
     for n in prior.names:
         print(f"{n}: mean {s['mean'][n]:.4g}  sd {s['sd'][n]:.3g}  MAP {s['map'][n]:.4g}  "
               f"90% HDR [{s['hdr90'][n][0]:.4g}, {s['hdr90'][n][1]:.4g}]")
-    print(f"log evidence {res.log_evidence:.3f}; {res.n_runs} runs; results in {out}")
+    print(f"log evidence {res.log_evidence:.3f}; {res.n_runs} runs; inference: {inference['path']} "
+          f"({inference['why']}); results in {out}")
     return 0

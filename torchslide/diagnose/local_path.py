@@ -26,6 +26,7 @@ lockstep (lockstep.Lockstep, ``merged_residuals``): one solver call per round fo
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -79,7 +80,8 @@ def merged_residuals(requests: list) -> list:
     runner = requests[0][0].evaluator
     for prob, _ in requests[1:]:
         e = prob.evaluator
-        if e.dem is not runner.dem or e.observations is not runner.observations or e.model_error is not runner.model_error:
+        if (e.dem is not runner.dem or e.observations is not runner.observations
+                or getattr(e, "model_error", None) is not getattr(runner, "model_error", None)):
             raise ValueError("problems of one batch must share the terrain, the observations and the model error")
     for prob, X in requests:
         prob.n_runs += len(X)
@@ -150,19 +152,21 @@ def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, se
     return best, prob.n_runs
 
 
-def box_fraction(f: LocalFit, bounds: np.ndarray, level: float = 0.9) -> float:
-    """Share of the prior box's volume filled by the ``level`` ellipsoid of the Laplace Gaussian (capped at 1)."""
+def box_fraction(covariance: np.ndarray, bounds: np.ndarray, level: float = 0.9) -> float:
+    """Share of the prior box's volume filled by the ``level`` ellipsoid of a Gaussian of ``covariance``
+    (p, p) (capped at 1)."""
     b = np.asarray(bounds, dtype=np.float64)
-    p = f.x.size
+    covariance = np.atleast_2d(covariance)
+    p = covariance.shape[0]
     r2 = stats.chi2.ppf(level, p)
     log_ball = 0.5 * p * math.log(math.pi) - special.gammaln(0.5 * p + 1)
-    log_v = log_ball + 0.5 * p * math.log(r2) + 0.5 * np.linalg.slogdet(f.covariance)[1]
+    log_v = log_ball + 0.5 * p * math.log(r2) + 0.5 * np.linalg.slogdet(covariance)[1]
     return float(min(1.0, math.exp(log_v - np.sum(np.log(b[1] - b[0])))))
 
 
 def choose_path(f: LocalFit, bounds: np.ndarray, max_fraction: float) -> tuple[str, str]:
     """("local" | "emulator", why) from the baseline's Laplace fit (module doc, item 2)."""
-    frac = box_fraction(f, bounds)
+    frac = box_fraction(f.covariance, bounds)
     if frac < max_fraction:
         return "local", (f"the baseline posterior's 90 % region fills {frac:.2g} of the prior box (< {max_fraction:g}): "
                          f"fitted on the solver with the Laplace evidence")
@@ -281,3 +285,49 @@ def profile_ends(evaluator, fits: list, bud, log=print) -> list[tuple[dict, int]
     gauss = float(stats.chi2.ppf(0.9, 1))
     return [({"interval90": e, "two_ln_drop": [d for d, _ in out[2 * k: 2 * k + 2]], "gaussian": gauss},
              sum(n for _, n in out[2 * k: 2 * k + 2])) for k, e in enumerate(ends)]
+
+
+INFERENCE = ("auto", "local", "emulator")
+"""How a posterior is described: the GP emulator over the box, the local fit on the solver, or the
+local fit when the emulator's posterior is too sharp for it (``local_calibration``)."""
+
+
+def local_calibration(evaluator, cal: CalibrationResult, inference: str = "auto", max_fraction: float = 0.05,
+                      rel_step: float = 3e-3, max_iter: int = 30, seed: int = 0,
+                      log=print) -> tuple[CalibrationResult, dict]:
+    """A calibration described on the solver when its posterior is too sharp for the emulator.
+
+    ``inference`` "auto": when the 90 % region of the emulator's posterior (a Gaussian of its draws'
+    covariance) fills less than ``max_fraction`` of the prior box, the mode is fitted on the solver from
+    the emulator's MAP (fit_model) and the posterior is its Laplace approximation (``laplace_result``;
+    the calibration's runs, tv history and emulator are kept with it); "local": always; "emulator": never.
+    Returns (result, {"path", "why", "box_fraction", "log_evidence_emulator", "n_runs"}); a local fit
+    that fails (e.g. fewer data values than parameters) leaves the emulator's result, saying why."""
+    from ..predict import posterior_samples
+
+    if inference not in INFERENCE:
+        raise ValueError(f"inference must be one of {INFERENCE}, got {inference!r}")
+    b = np.asarray(cal.bounds, dtype=np.float64)
+    draws = posterior_samples(cal, 2000, seed=seed)
+    frac = box_fraction(np.cov(draws.T) + np.diag((1e-9 * (b[1] - b[0])) ** 2), b)
+    info = {"path": "emulator", "box_fraction": frac, "log_evidence_emulator": float(cal.log_evidence), "n_runs": 0}
+    if inference == "emulator" or (inference == "auto" and frac >= max_fraction):
+        info["why"] = ("inference = \"emulator\"" if inference == "emulator" else
+                       f"the emulator's 90 % region fills {frac:.2g} of the prior box (>= {max_fraction:g})")
+        return cal, info
+    start = np.array([cal.summary["map"][n] for n in cal.names])
+    try:
+        f, n = fit_model(evaluator, n_lhs=0, extra_starts=start[None], rel_step=rel_step, max_iter=max_iter, log=log)
+    except (RuntimeError, np.linalg.LinAlgError) as e:
+        info["why"] = f"the local fit on the solver failed ({e}): the emulator's posterior is kept"
+        return cal, info
+    lap = laplace_result(f, list(cal.names), b, seed=seed)
+    res = dataclasses.replace(lap, x=cal.x, z=cal.z, failed=cal.failed, reasons=cal.reasons, n_initial=cal.n_initial,
+                              tv_history=cal.tv_history, emulator=cal.emulator, timings=cal.timings)
+    info.update(path="local", n_runs=n, converged=bool(f.converged), log_evidence=float(f.log_evidence),
+                why=("inference = \"local\"" if inference == "local" else
+                     f"the emulator's 90 % region fills {frac:.2g} of the prior box (< {max_fraction:g}): "
+                     f"the mode fitted on the solver, Laplace posterior"))
+    log(f"[calibrate] local fit on the solver ({n} runs): " +
+        ", ".join(f"{k} {v:.4g} +- {s:.2g}" for k, v, s in zip(cal.names, f.x, f.sd)))
+    return res, info
