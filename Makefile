@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-inference clean
+.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-inference bench-executor clean
 
 venv: $(STAMP)
 
@@ -38,7 +38,7 @@ test-all: $(STAMP)
 test-gpu: $(STAMP)
 	$(PY) -m pytest -q tests/test_gpu.py -m "" --timeout=1800 --durations=10
 
-bench: bench-solver bench-inference
+bench: bench-solver bench-inference bench-executor
 
 bench-solver: $(STAMP)
 	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 \
@@ -48,6 +48,10 @@ bench-solver: $(STAMP)
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"
 	OMP_NUM_THREADS=1 $(PY) -m bench.bench_inference --quick --seeds 5 --out bench/results/inference.json
+
+# a 256-run sweep in this process and on a Dask LocalCluster of 1 and 2 workers (one torch thread each)
+bench-executor: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) -m bench.bench_executor --out bench/results/executor.json
 
 clean:
 	rm -rf $(VENV) demo_out diagnose_demo .pytest_cache

@@ -27,6 +27,10 @@ A configuration file (paths are relative to the file)::
     dtype = "float64"            # or "float32"
     device = "cpu"               # or "cuda", "cuda:1"
     cfl = 0.4                    # optional, passed to SolverConfig
+    executor = "local"           # where batches run (calibrate, predict, sweep, diagnose): "local" (this process)
+                                 # or "dask": chunks of max_batch members on Dask workers (pip install
+    workers = 4                  # torchslide[dask]): a LocalCluster of this many processes, or the cluster
+    # scheduler = "tcp://host:8786"  # at this scheduler address (torchslide.executor)
     # any other SolverConfig field is accepted here too (output_interval, stop_ke_fraction, ...)
 
     [[gauges]]
@@ -108,7 +112,7 @@ NODATA = ("outflow", "wall")
 THICKNESS = ("normal", "vertical")
 _RELEASE_TABLE_KEYS = {"centre", "center", "radii", "volume", "thickness", "shape"}
 _POLYGON_TABLE_KEYS = {"polygons", "thickness", "attribute"}
-_RUN_KEYS = {"t_end", "dtype", "device", "cfl"}
+_RUN_KEYS = {"t_end", "dtype", "device", "cfl", "executor", "scheduler", "workers"}
 _GAUGE_KEYS = {"name", "x", "y"}
 _PATH_KEYS = {"name", "line", "points", "max_offset"}
 OUTPUT_FORMATS = ("asc", "tif")
@@ -174,6 +178,15 @@ class RunConfig:
     device: str = "cpu"
     cfl: float | None = None
     solver: dict[str, Any] = field(default_factory=dict)
+    executor: str = "local"
+    scheduler: str | None = None
+    workers: int | None = None
+
+    def make_executor(self):
+        """The torchslide.executor of ``executor`` / ``scheduler`` / ``workers``."""
+        from .executor import make_executor
+
+        return make_executor(self.executor, scheduler=self.scheduler, workers=self.workers)
 
     @property
     def torch_dtype(self):
@@ -582,6 +595,7 @@ def _parse_run(r: Any, path: Path) -> RunConfig:
         cfl = _number(r["cfl"], "cfl", "[run]", path)
         if not 0 < cfl <= 1:
             raise ConfigError(f"{path}: [run] cfl must be in (0, 1], got {r['cfl']!r}")
+    executor, scheduler, workers = parse_executor(r, path)
     solver = {k: v for k, v in r.items() if k not in _RUN_KEYS}
     for k, v in solver.items():
         default = sf[k]
@@ -603,7 +617,26 @@ def _parse_run(r: Any, path: Path) -> RunConfig:
         raise ConfigError(f"{path}: [run] t_end / output_interval = {t_end:g} / {interval:g} s gives "
                           f"{t_end / interval:.3g} output times (at most {MAX_OUTPUT_TIMES:.0e}): shorten t_end or "
                           "lengthen output_interval")
-    return RunConfig(t_end=t_end, dtype=dtype, device=device, cfl=cfl, solver=solver)
+    return RunConfig(t_end=t_end, dtype=dtype, device=device, cfl=cfl, solver=solver, executor=executor,
+                     scheduler=scheduler, workers=workers)
+
+
+def parse_executor(r: dict, path: Path) -> tuple[str, str | None, int | None]:
+    """[run] executor, scheduler, workers (checked: one-line ConfigError naming the key and value)."""
+    executor = r.get("executor", "local")
+    if executor not in ("local", "dask"):
+        raise ConfigError(f"{path}: [run] executor must be \"local\" or \"dask\", got {executor!r}")
+    scheduler = r.get("scheduler")
+    if scheduler is not None and (not isinstance(scheduler, str) or "://" not in scheduler):
+        raise ConfigError(f"{path}: [run] scheduler must be an address like \"tcp://host:8786\", got {scheduler!r}")
+    workers = r.get("workers")
+    if workers is not None and (not isinstance(workers, int) or isinstance(workers, bool) or workers < 1):
+        raise ConfigError(f"{path}: [run] workers must be an integer >= 1, got {workers!r}")
+    if executor == "local" and (scheduler is not None or workers is not None):
+        raise ConfigError(f"{path}: [run] scheduler / workers need executor = \"dask\"")
+    if scheduler is not None and workers is not None:
+        raise ConfigError(f"{path}: [run] give scheduler (a running cluster) or workers (a local one), not both")
+    return executor, scheduler, workers
 
 
 def _parse_gauges(g: Any, dem: DEM, path: Path) -> list[GaugeConfig]:

@@ -94,6 +94,8 @@ class LandslideEvaluator:
         solver_progress: show each solver call's simulated time as a progress bar.
         records_file: where every call's run records are saved (save_records), or None.
         thickness: convention of the release and erodible depths, "normal" (to the slope) or "vertical".
+        executor: where the chunks of max_batch members run (torchslide.executor; None: here, one after
+            another). The evaluator is sent to workers without its records, executor and progress bar.
     """
 
     dem: DEM
@@ -115,6 +117,13 @@ class LandslideEvaluator:
     solver_progress: bool = False
     records_file: object = None
     thickness: str = "normal"
+    executor: object = field(default=None, repr=False)
+
+    def __getstate__(self) -> dict:
+        """What a worker needs to run chunks: everything but the run records, the executor and the progress bar."""
+        state = dict(self.__dict__)
+        state.update(records=[], records_file=None, executor=None, solver_progress=False, solver_seconds=0.0)
+        return state
 
     def __post_init__(self) -> None:
         if not self.observations:
@@ -162,43 +171,66 @@ class LandslideEvaluator:
 
     def simulate(self, x: torch.Tensor) -> SimulationResult:
         """Run the solver once for all n points (n <= max_batch is the caller's business)."""
+        return self.simulate_params(self.params(x))
+
+    def simulate_params(self, p: Params) -> SimulationResult:
+        """One solver call of the members ``p`` on this evaluator's terrain and settings."""
         from .solver import simulate  # imported here: bayes-level modules stay importable without it
 
         t0 = time.perf_counter()
-        res = simulate(self.dem, self.release, self.params(x), t_end=self.t_end, gauges=list(self.gauges) or None,
+        res = simulate(self.dem, self.release, p, t_end=self.t_end, gauges=list(self.gauges) or None,
                        config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
                        dtype=self.dtype, device=self.device, progress=self.solver_progress, thickness=self.thickness)
         self.solver_seconds += time.perf_counter() - t0
         return res
 
+    def value_chunks(self, values: dict) -> list[dict]:
+        """Explicit Params values {name: scalar or (n,) array} (+ fixed) as chunks of max_batch members."""
+        n = max(np.size(v) for v in values.values())
+        allv = {**self.fixed, **values}
+        return [{k: (np.asarray(v, dtype=np.float64).reshape(-1)[s:s + self.max_batch] if np.size(v) > 1 else v)
+                 for k, v in allv.items()} for s in range(0, n, self.max_batch)]
+
+    def map_chunks(self, fn, chunks: list) -> list:
+        """[fn(chunk)] on the executor (here, one after another, when there is none); each result's last
+        item is the chunk's solver seconds, which a worker's runs add to ``solver_seconds`` here."""
+        if self.executor is None:
+            return [fn(c) for c in chunks]
+        out = self.executor.map(fn, chunks, progress=self.solver_progress)
+        self.solver_seconds += sum(o[-1] for o in out)
+        return out
+
+    def values_chunk(self, values: dict) -> tuple:
+        """One chunk of ``value_chunks``: (predictions (n, k), failed (n,), reasons, SimulationResult, seconds)."""
+        t0 = time.perf_counter()
+        nb = max(np.size(v) for v in values.values())
+        res = self.simulate_params(Params.make(B=nb, dtype=self.dtype, device=self.device, **values))
+        preds, failed, why = self.predict(res)
+        return preds, failed, why, res, time.perf_counter() - t0
+
     def simulate_values(self, values: dict):
         """SimulationResults of explicit Params values {name: (n,) array} (+ fixed), one per chunk of
-        max_batch members (a generator)."""
-        from .solver import simulate
-        n = max(np.size(v) for v in values.values())
-        allv = {k: v for k, v in self.fixed.items()}
-        allv.update(values)
-        for s in range(0, n, self.max_batch):
-            sub = {k: (np.asarray(v, dtype=np.float64).reshape(-1)[s:s + self.max_batch] if np.size(v) > 1 else v)
-                   for k, v in allv.items()}
-            nb = min(self.max_batch, n - s)
-            p = Params.make(B=nb, dtype=self.dtype, device=self.device, **sub)
-            t0 = time.perf_counter()
-            res = simulate(self.dem, self.release, p, t_end=self.t_end, gauges=list(self.gauges) or None,
-                           config=self.solver_config, erodible_depth=self.erodible_depth, mu_scale=self.mu_scale,
-                           dtype=self.dtype, device=self.device, thickness=self.thickness)
-            self.solver_seconds += time.perf_counter() - t0
-            yield res
+        max_batch members (in this process)."""
+        for v in self.value_chunks(values):
+            yield self.values_chunk(v)[3]
+
+    def _predictions_chunk(self, values: dict) -> tuple:
+        preds, failed, why, _, sec = self.values_chunk(values)
+        return preds, failed, why, sec
+
+    def maps_chunk(self, values: dict) -> tuple:
+        """One chunk of ``value_chunks`` for maps: (predictions (n, k), failed (n,), reasons, {"h_max", "v_max",
+        "h_final": (n, ny, nx) float32 arrays}, map cell area (ny, nx) or scalar, seconds)."""
+        preds, failed, why, res, sec = self.values_chunk(values)
+        maps = {k: getattr(res, k).detach().cpu().float().numpy() for k in ("h_max", "v_max", "h_final")}
+        return preds, failed, why, maps, res.map_cell_area, sec
 
     def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:
         """Predictions (n, k) and failed (n,) for explicit Params values {name: (n,) array} (+ fixed),
-        in chunks of max_batch members (screening uses this for one batch of perturbed parameter sets)."""
-        out, fails = [], []
-        for res in self.simulate_values(values):
-            preds, failed, _ = self.predict(res)
-            out.append(preds.numpy())
-            fails.append(failed.numpy())
-        return np.concatenate(out), np.concatenate(fails)
+        in chunks of max_batch members on the executor (screening uses this for one batch of perturbed
+        parameter sets)."""
+        out = self.map_chunks(self._predictions_chunk, self.value_chunks(values))
+        return np.concatenate([o[0].numpy() for o in out]), np.concatenate([o[1].numpy() for o in out])
 
     def predict(self, result: SimulationResult) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
         """Observables (B, k) float64 of a result, a failed mask (B,) and reasons."""
@@ -216,19 +248,13 @@ class LandslideEvaluator:
         return preds, failed, reasons
 
     def evaluate(self, x: torch.Tensor) -> tuple[EvaluationResult, torch.Tensor]:
-        """(EvaluationResult, predictions (n, k)) for (n, p) points, in chunks of max_batch."""
+        """(EvaluationResult, predictions (n, k)) for (n, p) points, in chunks of max_batch on the executor."""
         x = torch.as_tensor(x, dtype=torch.float64).reshape(-1, len(self.names))
-        zs, fails, reasons, preds_all = [], [], [], []
-        for s in range(0, x.shape[0], self.max_batch):
-            xb = x[s:s + self.max_batch]
-            preds, failed, why = self.predict(self.simulate(xb))
-            z = self.likelihood.log_likelihood(preds) + self.prior.log_prob(xb)
-            zs.append(z)
-            fails.append(failed)
-            reasons += why
-            preds_all.append(preds)
-        preds = torch.cat(preds_all)
-        out = EvaluationResult(torch.cat(zs), torch.cat(fails), reasons)
+        out = self.map_chunks(self._predictions_chunk,
+                              self.value_chunks({n: x[:, i].numpy() for i, n in enumerate(self.names)}))
+        preds = torch.cat([o[0] for o in out])
+        out = EvaluationResult(self.likelihood.log_likelihood(preds) + self.prior.log_prob(x),
+                               torch.cat([o[1] for o in out]), [r for o in out for r in o[2]])
         for i in range(x.shape[0]):
             self.records.append(RunRecord(x[i].numpy().copy(), preds[i].numpy().copy(), float(out.z[i]),
                                           bool(out.failed[i]), out.reasons[i]))

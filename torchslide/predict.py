@@ -71,18 +71,18 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
     failed."""
     x = torch.as_tensor(np.asarray(samples, dtype=np.float64)).reshape(-1, len(evaluator.names))
     keep_x, preds_all, fields, failures = [], [], {"h_max": [], "v_max": [], "h_final": []}, []
+    chunks = evaluator.value_chunks({n: x[:, i].numpy() for i, n in enumerate(evaluator.names)})
+    starts = list(range(0, x.shape[0], evaluator.max_batch))
     cell_area = None
-    for s in range(0, x.shape[0], evaluator.max_batch):
+    for s, (preds, failed, why, maps, area, _) in zip(starts, evaluator.map_chunks(evaluator.maps_chunk, chunks)):
         xb = x[s:s + evaluator.max_batch]
-        res = evaluator.simulate(xb)
-        cell_area = np.full(res.h_max.shape[1:], res.map_cell_area)
-        preds, failed, why = evaluator.predict(res)
+        cell_area = np.broadcast_to(area, maps["h_max"].shape[1:])
         ok = ~failed.numpy()
         failures += [{"x": xb[i].tolist(), "reason": why[i]} for i in np.nonzero(~ok)[0]]
         keep_x.append(xb.numpy()[ok])
         preds_all.append(preds.numpy()[ok])
         for name in fields:  # float32 on the host: M maps of the grid fit in memory
-            fields[name].append(getattr(res, name).detach().cpu().float().numpy()[ok])
+            fields[name].append(maps[name][ok])
         if progress is not None:
             progress(min(s + evaluator.max_batch, x.shape[0]))
     maps = {k: np.concatenate(v) for k, v in fields.items()}

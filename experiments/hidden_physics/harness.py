@@ -16,6 +16,7 @@ sigmas, budgets) needs thresholds from its own null seeds.
 from __future__ import annotations
 
 import argparse
+import functools
 import dataclasses
 import json
 import time
@@ -180,7 +181,12 @@ def main(argv=None) -> int:
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     p.add_argument("--compile", action="store_true", help="torch.compile the diagnosis' solver steps")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="run the cases as tasks of a Dask LocalCluster of N processes (torchslide.executor)")
+    p.add_argument("--scheduler", default=None, metavar="ADDR", help="... or of the Dask cluster at ADDR")
     a = p.parse_args(argv)
+    if a.workers is not None and a.workers < 1:
+        p.error(f"--workers must be >= 1, got {a.workers}")
     if a.max_batch < 1:
         p.error(f"--max-batch must be >= 1, got {a.max_batch}")
     if a.fine_factor < 1:
@@ -198,36 +204,67 @@ def main(argv=None) -> int:
         return _run_all(a, budgets, seeds, strengths)
 
 
-def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
-    th = load_thresholds(a.thresholds)
+def _case(a, budgets: dict, th: Thresholds, item: tuple) -> tuple:
+    """One case (scenario, seed, strength) run and saved in a.out, unless saved or held by another process
+    (its claim file): (tag, verdict, missing physics, wall s) or (tag, why skipped, None, 0)."""
+    sc, seed, strength = item
     out = Path(a.out)
+    tag = case_tag(sc, seed, strength)
+    if (out / f"{tag}.json").exists():
+        return tag, "done before", None, 0.0
+    claim = _claim(out, tag)
+    if claim is None:
+        return tag, f"skipped, another process holds {out / (tag + '.running')} (delete it if that process is gone)", \
+            None, 0.0
+    print(f"=== {tag}", flush=True)
+    try:
+        with terrain_variant(a.terrain):
+            c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=budgets or None,
+                         thresholds=th, fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
+                         fine_factor=a.fine_factor, compile_solver=a.compile, sigmas=a.sigmas,
+                         log=lambda s: print(s, flush=True))
+    finally:
+        claim.unlink(missing_ok=True)
+    _write_summary(out)
+    return tag, c["diagnosis"]["verdict"], c["diagnosis"]["missing_physics"], c["wall_s"]
+
+
+def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
+    """Every case of seeds x strengths x scenarios: one after another, or as tasks of a Dask cluster
+    (--workers / --scheduler; the cases' files and claims are on this machine's ``out``)."""
+    th = load_thresholds(a.thresholds)
+    items = []
     for seed in seeds:
         for strength in strengths:
             for sc in a.scenarios.split(","):
-                tag = case_tag(sc, seed, strength)
-                if (out / f"{tag}.json").exists():
-                    continue
                 beyond = out_of_range(sc, strength)
                 if beyond:
-                    print(f"=== {tag}: skipped, {beyond}", flush=True)
-                    continue
-                claim = _claim(out, tag)
-                if claim is None:
-                    print(f"=== {tag}: skipped, another process holds {out / (tag + '.running')} "
-                          "(delete it if that process is gone)", flush=True)
-                    continue
-                print(f"=== {tag}", flush=True)
-                try:
-                    c = run_case(sc, seed, out, cellsize=a.cellsize, strength=strength, budgets=budgets or None,
-                                 thresholds=th, fine_terrain=a.fine_terrain, device=a.device, max_batch=a.max_batch,
-                                 fine_factor=a.fine_factor, compile_solver=a.compile, sigmas=a.sigmas,
-                                 log=lambda s: print(s, flush=True))
-                finally:
-                    claim.unlink(missing_ok=True)
-                _write_summary(out)
-                print(f"=== {tag}: {c['diagnosis']['verdict']} {c['diagnosis']['missing_physics']} "
-                      f"({c['wall_s']:.0f} s)", flush=True)
+                    print(f"=== {case_tag(sc, seed, strength)}: skipped, {beyond}", flush=True)
+                else:
+                    items.append((sc, seed, strength))
+    fn = functools.partial(_case, a, budgets, th)
+    if a.workers is None and a.scheduler is None:
+        results = []
+        for it in items:
+            results.append(fn(it))
+            _report(results[-1])
+        return 0
+    from torchslide.executor import DaskExecutor
+
+    ex = DaskExecutor(scheduler=a.scheduler, workers=a.workers)
+    try:
+        for r in ex.map(fn, items, progress=True, desc="cases"):
+            _report(r)
+    finally:
+        ex.close()
+    _write_summary(Path(a.out))
     return 0
+
+
+def _report(r: tuple) -> None:
+    tag, verdict, named, wall = r
+    if verdict != "done before":
+        print(f"=== {tag}: {verdict}" + (f" {named} ({wall:.0f} s)" if wall else ""), flush=True)
 
 
 if __name__ == "__main__":

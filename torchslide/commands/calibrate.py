@@ -23,6 +23,7 @@ import numpy as np
 
 from ..calibration_config import load_calibration_config, make_evaluator
 from ..config import ConfigError
+from . import add_executor_arguments, executor_for
 
 HELP = "calibrate rheological parameters by Bayesian active learning"
 
@@ -31,6 +32,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--resume", action="store_true", help="continue an interrupted calibration in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_executor_arguments(p)
 
 
 def write_runs_csv(path: Path, res, obs_names, records) -> None:
@@ -146,17 +148,18 @@ def _run(args: argparse.Namespace) -> int:
     ev.records_file = out / "records.npz"      # every run's predictions, kept across a resume
     if ckpt.exists() and ev.records_file.exists():
         ev.records = load_records(ev.records_file)
-    res = calibrate(ev, prior.bounds, n_initial=cal["n_initial"], n_total=cal["n_total"],
-                    batch_size=cal["batch_size"], seed=cal["seed"], grid_size=cal["grid_size"],
-                    acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
-                    tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
-                    clip_range=cal["clip_range"])
     from ..diagnose.local_path import local_calibration
 
-    res, inference = local_calibration(ev, res, cal["inference"], cal["local_max_fraction"], seed=cal["seed"],
-                                       log=lambda s: None if args.quiet else print(s, file=sys.stderr))
-    if inference["path"] == "local":        # the mode's run joins the records: best_run_fit is the mode's fit
-        ev.evaluate(np.array([[res.summary["map"][n] for n in prior.names]]))
+    with executor_for(args, cfg, ev):
+        res = calibrate(ev, prior.bounds, n_initial=cal["n_initial"], n_total=cal["n_total"],
+                        batch_size=cal["batch_size"], seed=cal["seed"], grid_size=cal["grid_size"],
+                        acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
+                        tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
+                        clip_range=cal["clip_range"])
+        res, inference = local_calibration(ev, res, cal["inference"], cal["local_max_fraction"], seed=cal["seed"],
+                                           log=lambda s: None if args.quiet else print(s, file=sys.stderr))
+        if inference["path"] == "local":    # the mode's run joins the records: best_run_fit is the mode's fit
+            ev.evaluate(np.array([[res.summary["map"][n] for n in prior.names]]))
     ev.records = unique_records(ev.records)
     res.save(out)
     info = json.loads((out / "posterior.json").read_text())

@@ -85,6 +85,7 @@ from typing import Any
 from ..config import Config, ConfigError, check_keys, load_config
 from ..observe import Observation
 from ..calibration_config import check_unique_names, parse_calibration, parse_prior, with_path
+from . import add_executor_arguments, executor_for
 
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
 
@@ -340,6 +341,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--design-sigma", default="0.5,2.0", metavar="H,V",
                    help="the new gauge's errors: peak depth (m), peak speed (m/s) (default 0.5,2.0)")
     p.add_argument("--design-top", type=int, default=5, metavar="N", help="best cells listed per candidate")
+    add_executor_arguments(p)
 
 
 def budgets_and_thresholds(cfg: Config):
@@ -361,9 +363,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..diagnose import diagnose
-    from ..diagnose.report import write_report
-
     cfg = load_diagnose_config(args.config)
     ev = make_evaluator(cfg)
     dg = cfg.extra["diagnose"]
@@ -374,8 +373,18 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--null-runs must be >= 0, got {args.null_runs}")
     out = Path(args.out)
     log = (lambda s: None) if args.quiet else print
-    if args.design:
-        return _design(ev, dg["candidates"], bud, th, args, cfg, out, log)
+    with executor_for(args, cfg, ev):
+        if args.design:
+            return _design(ev, dg["candidates"], bud, th, args, cfg, out, log)
+        return _diagnose_case(ev, cfg, bud, th, args, out, log)
+
+
+def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log) -> int:
+    """The diagnosis of the config's case, its report, and (--null-runs) its thresholds set on null runs."""
+    from ..diagnose import diagnose
+    from ..diagnose.report import write_report
+
+    dg = cfg.extra["diagnose"]
     d = diagnose(ev, dg["candidates"], bud, th, log=log)
     write_report(d, out, cfg.conventions())           # with the thresholds given; rewritten below when null runs reset them
     if args.null_runs:

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import ConfigError
+from . import add_executor_arguments, executor_for
 from ..observe import DEFAULT_THRESHOLD
 
 HELP = "posterior-predictive runs of a calibration: impact probability and quantile maps, data checks"
@@ -53,6 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "impact_area observation, else 0.5)")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    add_executor_arguments(p)
 
 
 def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndarray) -> None:
@@ -106,7 +108,8 @@ def _run(args: argparse.Namespace) -> int:
         done[0] = n
 
     try:
-        pr = run_predictive(ev, samples, args.threshold, progress=progress)
+        with executor_for(args, cfg, ev):
+            pr = run_predictive(ev, samples, args.threshold, progress=progress)
     except RuntimeError as e:
         raise ConfigError(str(e)) from None
     finally:

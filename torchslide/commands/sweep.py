@@ -29,6 +29,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..config import ConfigError
+from . import add_executor_arguments, executor_for
 
 HELP = "brute-force reference posterior on a grid over the prior box (optionally against a calibration)"
 
@@ -43,6 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a `torchslide calibrate` output folder to compare with (TV distance, p <= 2)")
     p.add_argument("--resume", action="store_true", help="continue an interrupted sweep in --out")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    add_executor_arguments(p)
 
 
 def interpolate_density(axes_from, density: np.ndarray, axes_to) -> np.ndarray:
@@ -90,9 +92,27 @@ def run(args: argparse.Namespace) -> int:
     return run_locked(args.out, _run, args)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _sweep_runs(ev, x, z, failed, preds, reasons, done: int, ckpt: Path, bar) -> None:
+    """Evaluate the nodes x[done:] into z, failed, preds, reasons (in place), one checkpoint per step of
+    max_batch members per worker (each step: one chunk per worker of the evaluator's executor)."""
     import torch
 
+    from ..files import atomic_path
+
+    n_runs = len(x)
+    step = ev.max_batch * (ev.executor.workers if ev.executor is not None else 1)
+    for s in range(done, n_runs, step):
+        e = min(s + step, n_runs)
+        res, p = ev.evaluate(torch.as_tensor(x[s:e]))
+        z[s:e], failed[s:e], preds[s:e] = res.z.numpy(), res.failed.numpy(), p.numpy()
+        reasons[s:e] = res.reasons
+        with atomic_path(ckpt) as tmp:
+            np.savez(tmp, x=x, z=z, failed=failed, preds=preds, reasons=np.array(reasons), done=e)
+        if bar is not None:
+            bar.update(e - s)
+
+
+def _run(args: argparse.Namespace) -> int:
     from ..figures import plot_posterior_any
     from ..files import atomic_path, write_text_atomic
     from ..posterior import cell_volume, grid_axes, grid_points, normalise_log_grid, summarise_grid, tv_distance
@@ -140,15 +160,8 @@ def _run(args: argparse.Namespace) -> int:
 
         bar = tqdm(total=n_runs, initial=done, desc="sweep", unit="run")
     try:
-        for s in range(done, n_runs, ev.max_batch):
-            e = min(s + ev.max_batch, n_runs)
-            res, p = ev.evaluate(torch.as_tensor(x[s:e]))
-            z[s:e], failed[s:e], preds[s:e] = res.z.numpy(), res.failed.numpy(), p.numpy()
-            reasons[s:e] = res.reasons
-            with atomic_path(ckpt) as tmp:
-                np.savez(tmp, x=x, z=z, failed=failed, preds=preds, reasons=np.array(reasons), done=e)
-            if bar is not None:
-                bar.update(e - s)
+        with executor_for(args, cfg, ev):
+            _sweep_runs(ev, x, z, failed, preds, reasons, done, ckpt, bar)
     finally:
         if bar is not None:
             bar.close()
