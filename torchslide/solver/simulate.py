@@ -55,13 +55,18 @@ def _check_raster(t: Tensor, name: str, shape: tuple[int, int], allow_batch: boo
         raise ValueError(f"{name} must be {rule} everywhere, got {float(t[idx])} at index {idx}")
 
 
-def _get_step(F: StepFlags, compile_: bool):
-    """``advance(S, P, out_times, gidx, gin)``: one time step (stepping.make_step) and its output
-    record (_record), compiled together when ``compile_`` (one compiled call per step)."""
-    key = (F, compile_)
+def _get_step(F: StepFlags, kernel: str, device="cpu"):
+    """``advance(S, P, out_times, gidx, gin)``: one time step and its output record (_record): the torch
+    step (stepping.make_step), compiled with its record when ``kernel`` is "compiled" (one compiled call
+    per step), or the fused CPU step (fused_cpu) when ``kernel`` is "fused" and it covers ``F``."""
+    from . import fused_cpu
+
+    fused = kernel == "fused" and fused_cpu.supported(F, device) is None
+    compile_ = kernel == "compiled"
+    key = (F, compile_, fused)
     fn = _STEP_CACHE.get(key)
     if fn is None:
-        step = make_step(F)
+        step = fused_cpu.fused_step(F) if fused else make_step(F)
 
         def advance(S: dict, P: dict, out_times: Tensor, gidx: Tensor, gin: Tensor) -> dict:
             return _record(step(S, P), out_times, gidx, F.h_eps, out_times.shape[0], P["rec"], gin)
@@ -340,7 +345,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
     B = P0.B
     ny, nx = S["h"].shape[1:]
     device = S["h"].device
-    step = _get_step(F, cfg.compile)
+    step = _get_step(F, "compiled" if cfg.compile else cfg.kernel, device)
     Pm, shared = _member_params(P0, inp, t_end)
     gidx = torch.tensor(inp.gidx, dtype=torch.long, device=device)
     member_keys = list(_MEMBER_KEYS) + (["z"] if inp.evolve else []) + (["erod"] if inp.use_ent else []) \
