@@ -14,6 +14,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "$(TORCH)"
 	$(PY) -m pip install -q -e ".[dev]"
+	$(PY) -c "from torchslide.solver import fused_cpu; fused_cpu.warm()"   # the fused CPU step, compiled once
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -42,7 +43,7 @@ bench: bench-solver bench-inference bench-executor
 
 bench-solver: $(STAMP)
 	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 \
-		--full-batch 8 --full-configs eager-f64-whole:1,eager-f64-crop:1,compiled-f64-crop,compiled-f32-crop,compiled-f32-crop:32
+		--full-batch 8 --full-configs eager-f64-whole:1,eager-f64-crop,fused-f64-crop,fused-f32-crop,compiled-f64-crop,compiled-f32-crop,compiled-f32-crop:32
 	OMP_NUM_THREADS=1 $(PY) -m bench.stop_rule --out bench/results/stop_rule.json
 
 bench-inference: $(STAMP)

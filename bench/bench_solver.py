@@ -6,13 +6,15 @@ Two parts, each measured in this one process (medians of ``--repeats``; ratios b
 same run only, since the machines are shared):
 
 1. Throughput (cell-updates per second, whole grid, active-region cropping off so that every step
-   costs the same): eager vs torch.compile at batch 1/8/32, float64 and float32. A cell-update is one
-   cell of one member advanced by one (two-stage) time step.
+   costs the same) of each kernel (SolverConfig.kernel: eager, compiled = torch.compile, fused = the
+   fused CPU step) at batch 1/8/32, float64 and float32. A cell-update is one cell of one member
+   advanced by one (two-stage) time step. first_call_s: the first call in this process (compilation,
+   or for "fused" loading numba's on-disk cache; the very first call after an install compiles it).
 2. Full runs: the wall time per member of one Bondo-like run (mu 0.23, xi 1000, t_end 300 s; 20 m
    cells by default) for the configurations a calibration can use: eager float64 on the whole grid
-   (the reference), eager with cropping, and compiled + cropped in float64 and float32. Compiled
-   rows are warmed up first (the compilation time is reported separately as first_call_s). The
-   "runs_120_min" column is 120 x the per-member wall time (one calibration of 40 + 80 runs).
+   (the reference), with cropping, per kernel and precision. Compiled and fused rows are warmed up
+   first (first_call_s). The "runs_120_min" column is 120 x the per-member wall time (one calibration
+   of 40 + 80 runs).
 """
 from __future__ import annotations
 
@@ -46,8 +48,8 @@ def _timed(case, p, t_end, cfg, dtype, device):
     return r, time.perf_counter() - t0
 
 
-def throughput(case, B: int, compile_: bool, dtype: str, device: str, t_end: float, repeats: int) -> dict:
-    cfg = SolverConfig(compile=compile_, crop=False, stop_ke_fraction=0.0, output_interval=t_end, check_every=20)
+def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int) -> dict:
+    cfg = SolverConfig(kernel=kernel, crop=False, stop_ke_fraction=0.0, output_interval=t_end, check_every=20)
     p = Params.make(mu=np.linspace(0.15, 0.3, B), xi=1000.0)
     ny, nx = case.dem.shape
     _, warm = _timed(case, p, t_end, cfg, DTYPES[dtype], device)  # warm-up / compilation
@@ -56,23 +58,23 @@ def throughput(case, B: int, compile_: bool, dtype: str, device: str, t_end: flo
         r, w = _timed(case, p, t_end, cfg, DTYPES[dtype], device)
         walls.append(w)
         rates.append(float(r.steps.sum()) * ny * nx / w)
-    return {"B": B, "compile": compile_, "dtype": dtype, "cell_updates_per_s_median": statistics.median(rates),
+    return {"B": B, "kernel": kernel, "dtype": dtype, "cell_updates_per_s_median": statistics.median(rates),
             "wall_s_median": statistics.median(walls), "first_call_s": warm,
             "steps_per_member": float(r.steps.float().mean())}
 
 
-def full_run(case, B: int, compile_: bool, crop: bool, dtype: str, device: str, t_end: float, repeats: int) -> dict:
-    cfg = SolverConfig(compile=compile_, crop=crop)
+def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_end: float, repeats: int) -> dict:
+    cfg = SolverConfig(kernel=kernel, crop=crop)
     p = Params.make(B=B, mu=0.23, xi=1000.0)
     warm = None
-    if compile_:  # compile both code paths (small and large boxes) before timing
+    if kernel != "eager":  # compile (or load) both code paths (small and large boxes) before timing
         _, warm = _timed(case, p, min(60.0, t_end), cfg, DTYPES[dtype], device)
     walls = []
     for _ in range(repeats):
         r, w = _timed(case, p, t_end, cfg, DTYPES[dtype], device)
         walls.append(w)
     w = statistics.median(walls)
-    return {"compile": compile_, "crop": crop, "dtype": dtype, "B": B, "wall_s_median": w,
+    return {"kernel": kernel, "crop": crop, "dtype": dtype, "B": B, "wall_s_median": w,
             "wall_s_per_member": w / B, "runs_120_min": 120 * w / B / 60.0, "first_call_s": warm,
             "t_final_s": float(r.t_final[0]), "steps": int(r.steps[0]), "stopped": bool(r.stopped[0]),
             "release_volume_m3": float(r.release_volume[0]), "final_volume_m3": float(r.final_volume[0]),
@@ -82,11 +84,11 @@ def full_run(case, B: int, compile_: bool, crop: bool, dtype: str, device: str, 
 def full_run_speedups(rows: list) -> dict:
     """{"full_run_speedup_vs_eager_whole_f64": {config-B: per-member speed-up}} against the eager
     float64 whole-grid row of the same run (empty when that row is missing)."""
-    base = [r for r in rows if not r["compile"] and not r["crop"] and r["dtype"] == "float64"]
+    base = [r for r in rows if r["kernel"] == "eager" and not r["crop"] and r["dtype"] == "float64"]
     if not base:
         return {}
     return {"full_run_speedup_vs_eager_whole_f64": {
-        f"{'compiled' if r['compile'] else 'eager'}-{r['dtype']}-{'crop' if r['crop'] else 'whole'}-B{r['B']}":
+        f"{r['kernel']}-{r['dtype']}-{'crop' if r['crop'] else 'whole'}-B{r['B']}":
             base[0]["wall_s_per_member"] / r["wall_s_per_member"] for r in rows}}
 
 
@@ -98,12 +100,12 @@ def main(argv=None) -> None:
     ap.add_argument("--t-short", type=float, default=5.0, help="simulated seconds of the throughput runs")
     ap.add_argument("--batches", default="1,8,32")
     ap.add_argument("--dtypes", default="float64,float32")
-    ap.add_argument("--no-compile", action="store_true")
+    ap.add_argument("--kernels", default="eager,compiled,fused", help="comma list of SolverConfig.kernel values")
     ap.add_argument("--full-batch", type=int, default=8, help="members in the full Bondo-like run")
     ap.add_argument("--full-repeats", type=int, default=1)
     ap.add_argument("--full-t-end", type=float, default=300.0, help="simulated seconds of the full run")
     ap.add_argument("--full-configs", default="eager-f64-whole,eager-f64-crop,compiled-f64-crop,compiled-f32-crop",
-                    help="comma list of {eager|compiled}-{f64|f32}-{whole|crop}[:B] (B defaults to --full-batch); "
+                    help="comma list of {eager|compiled|fused}-{f64|f32}-{whole|crop}[:B] (B defaults to --full-batch); "
                          "'' skips the full runs")
     ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
     ap.add_argument("--skip-throughput", action="store_true")
@@ -112,7 +114,7 @@ def main(argv=None) -> None:
     ny, nx = case.dem.shape
     res = {"load_average_at_start": os.getloadavg()[0], "terrain": "torchslide.terrain.synthetic.bondo_like",
            "grid": [ny, nx], "cellsize_m": case.dem.cellsize, "device": args.device, "torch": torch.__version__,
-           "threads": torch.get_num_threads(), "cpu": platform.processor() or platform.machine(),
+           "threads": torch.get_num_threads(), "numba_threads": os.environ.get("NUMBA_NUM_THREADS"), "cpu": platform.processor() or platform.machine(),
            "cpu_count": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "gpu": torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None,
            "throughput": [], "full_run": []}
@@ -125,24 +127,26 @@ def main(argv=None) -> None:
     if not args.skip_throughput:
         for dtype in args.dtypes.split(","):
             for B in [int(b) for b in args.batches.split(",")]:
-                for comp in ([False] if args.no_compile else [False, True]):
-                    row = throughput(case, B, comp, dtype, args.device, args.t_short, args.repeats)
+                for kernel in args.kernels.split(","):
+                    row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats)
                     print(json.dumps(row), flush=True)
                     res["throughput"].append(row)
                     save()
         ratios = {}
         for row in res["throughput"]:
-            if row["compile"]:
-                e = [r for r in res["throughput"] if r["B"] == row["B"] and r["dtype"] == row["dtype"] and not r["compile"]]
+            if row["kernel"] != "eager":
+                e = [r for r in res["throughput"] if r["B"] == row["B"] and r["dtype"] == row["dtype"]
+                     and r["kernel"] == "eager"]
                 if e:
-                    ratios[f"{row['dtype']}_B{row['B']}"] = row["cell_updates_per_s_median"] / e[0]["cell_updates_per_s_median"]
-        res["compile_speedup"] = ratios
+                    ratios[f"{row['kernel']}_{row['dtype']}_B{row['B']}"] = (row["cell_updates_per_s_median"]
+                                                                          / e[0]["cell_updates_per_s_median"])
+        res["speedup_vs_eager"] = ratios
     for spec in filter(None, args.full_configs.split(",")):   # "" skips the full runs
         spec, _, b = spec.partition(":")
         mode, prec, dom = spec.split("-")
-        if mode == "compiled" and args.no_compile:
+        if mode not in args.kernels.split(","):
             continue
-        row = full_run(case, int(b) if b else args.full_batch, mode == "compiled", dom == "crop", {"f64": "float64", "f32": "float32"}[prec],
+        row = full_run(case, int(b) if b else args.full_batch, mode, dom == "crop", {"f64": "float64", "f32": "float32"}[prec],
                        args.device, args.full_t_end, args.full_repeats)
         print(json.dumps(row), flush=True)
         res["full_run"].append(row)
