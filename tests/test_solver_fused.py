@@ -85,22 +85,46 @@ def test_fused_step_equals_the_torch_step_on_a_plane_off_the_grid_axes_and_setti
     _compare(dem, rel, params, SolverConfig(), t_end=20.0, dtype=torch.float32, rtol=1e-5)
 
 
-def test_fused_falls_back_to_the_torch_step_where_it_does_not_reach():
-    """Entrainment (a moving bed) is not in the fused step: kernel "fused" runs the torch step there."""
+@pytest.mark.parametrize("terms", [{"kappa": [0.002, 0.0, 0.004]}, {"deposition": [0.2, 0.0, 0.4]},
+                                   {"kappa": 0.002, "deposition": 0.3}])
+def test_fused_step_equals_the_torch_step_on_a_moving_bed(terms):
+    """Entrainment and deposition: the bed evolves, so the geometry is recomputed every stage."""
+    dem, rel, gauges = _channel()
+    erod = np.full(dem.shape, 0.5)
+    p = {"mu": [0.2, 0.25, 0.3], "xi": 800.0, **terms}
+    ref = simulate(dem, rel, Params.make(**p), t_end=60.0, gauges=gauges, erodible_depth=erod)
+    new = simulate(dem, rel, Params.make(**p), t_end=60.0, gauges=gauges, erodible_depth=erod,
+                   config=SolverConfig(kernel="fused"))
+    assert torch.equal(ref.steps, new.steps)
+    for k in FIELDS + ("entrained_volume", "bed_change"):
+        a, b = getattr(ref, k), getattr(new, k)
+        fin = torch.isfinite(a)
+        assert torch.equal(fin, torch.isfinite(b)), k
+        scale = max(float(a[fin].abs().max()), float(ref.release_volume.max()) if "volume" in k else 0.0, 1e-30)
+        assert float((a[fin] - b[fin]).abs().max()) <= 1e-12 * scale, k
+
+
+@pytest.mark.parametrize("nodata", ["outflow", "wall"])
+def test_fused_step_equals_the_torch_step_with_cells_outside_the_domain(nodata):
+    from torchslide.terrain.grid import DEM
+
+    dem, rel, gauges = _channel()
+    outside = np.zeros(dem.shape, dtype=bool)
+    outside[:, 35:38] = True                 # a band of nodata across the run-out path
+    outside[12:, 30:] = True
+    dem = DEM(dem.z, dem.cellsize, outside=outside)
+    _compare(dem, rel, {"mu": [0.15, 0.25], "xi": 1500.0}, SolverConfig(nodata=nodata), gauges)
+
+
+def test_the_fused_kernel_is_chosen_where_numba_runs():
     from torchslide.solver import fused_cpu
     from torchslide.solver.stepping import StepFlags
 
-    dem, rel, _ = _channel()
-    erod = np.full(dem.shape, 0.5)
-    p = Params.make(mu=0.25, xi=800.0, kappa=0.002)
-    a = simulate(dem, rel, p, t_end=30.0, erodible_depth=erod)
-    b = simulate(dem, rel, p, t_end=30.0, erodible_depth=erod, config=SolverConfig(kernel="fused"))
-    assert torch.equal(a.h_max, b.h_max)
     F = StepFlags(dx=40.0, g=9.81, cfl=0.45, theta=1.3, h_eps=1e-3, h_wet=1e-4, wb_ratio=0.25, dt_max=1.0,
                   stop_ke_fraction=1e-4, arrival_threshold=0.1, v_max_min_depth=0.05, entrain_h_min=0.01,
-                  no_creep=True, slope_correction=True, use_ep=False, use_curv=False, use_ent=True, use_dep=False,
-                  use_mu_i=False, use_mu_scale=False)
-    assert "use_ent" in fused_cpu.supported(F, "cpu")
-    assert fused_cpu.supported(dataclasses.replace(F, use_ent=False), "cpu") is None
+                  no_creep=True, slope_correction=True, use_ep=True, use_curv=True, use_ent=True, use_dep=True,
+                  use_mu_i=True, use_mu_scale=True, domain="wall")
+    assert fused_cpu.supported(F, "cpu") is None
+    assert "CPU" in fused_cpu.supported(F, "cuda")
     with pytest.raises(ValueError, match="kernel"):
         SolverConfig(kernel="triton").validate()

@@ -7,9 +7,10 @@ sums over the grid, mass, kinetic energy and outflow, add in another order). One
 each member's rows and columns replaces the hundreds of whole-array torch operations of a stage:
 the torch step's cost on small grids is per operation, not per cell.
 
-Covered (``supported``): Voellmy with the slope metric (or without), the no-creep rule, the yield
-stress, earth pressure, curvature, mu(I), a friction map (mu_scale), outflow and open boundaries. A
-moving bed (entrainment, deposition) and cells outside the DEM's domain (nodata) run on the torch step. Members run in parallel
+Every term and setting of the torch step is covered: Voellmy with the slope metric (or without), the
+no-creep rule, the yield stress, earth pressure, curvature, mu(I), a friction map (mu_scale), a moving
+bed (entrainment, deposition: the geometry recomputed per stage), outflow and open boundaries, cells
+outside the DEM's domain (outflow or wall). Members run in parallel
 (numba prange) on the threads numba is given (NUMBA_NUM_THREADS). The first call compiles (seconds)
 and caches the machine code next to this file; later processes load it.
 """
@@ -20,7 +21,7 @@ import math
 import numpy as np
 import torch
 
-from ..physics import MU_I_D, MU_I_I0
+from ..physics import FR_DEP, MU_I_D, MU_I_I0
 from .scheme import WAVE_SPEED_MIN
 
 try:
@@ -30,7 +31,7 @@ except ImportError:     # the fused kernel is optional: "eager" needs nothing bu
     numba = None
 
 SQRT2 = 2.0 ** 0.5
-PM = ("mu", "xi", "tau_y", "k_ap", "earth_pressure", "k_act", "k_pass", "curvature", "mu_i")
+PM = ("mu", "xi", "tau_y", "k_ap", "earth_pressure", "k_act", "k_pass", "curvature", "mu_i", "kappa", "deposition")
 """The per-member parameters the fused stage reads, in its order."""
 
 
@@ -44,9 +45,6 @@ def supported(F, device) -> str | None:
         return "numba is not installed (pip install numba)"
     if torch.device(device).type != "cpu":
         return "the fused CPU step runs on the CPU"
-    terms = [n for n in ("use_ent", "use_dep") if getattr(F, n)]
-    if terms or F.domain:
-        return f"not covered by the fused CPU step: {', '.join(terms + ([f'domain {F.domain}'] if F.domain else []))}"
     return None
 
 
@@ -97,6 +95,59 @@ if numba is not None:
                 L[c] = qc + 0.5 * s
             if c >= 1:
                 R[c - 1] = qc - 0.5 * s
+
+    @njit(cache=True, error_model="numpy")
+    def _bed_line(z, zp, zL, zR, Bf, bias):
+        """scheme.bed_terms along one line."""
+        n = z.shape[0]
+        _pad(z, zp, True, False)
+        for f in range(n + 1):
+            zL[f] = zp[f + 1]
+            zR[f] = zp[f + 2]
+            Bf[f] = 0.5 * (zL[f] + zR[f])
+        for c in range(n + 2):
+            bias[c] = abs(zp[c + 2] - 2.0 * zp[c + 1] + zp[c]) * 0.25
+
+    @njit(cache=True, error_model="numpy")
+    def _geometry(z, dx, slope, hessian, zx, zy, cs, zxx, zxy, zyy, bx, by):
+        """stepping.surface_geometry and the bed terms of both sweeps of one member's bed z (ny, nx)."""
+        ny, nx = z.shape
+        zpx = np.empty((ny, nx + 4))
+        for i in range(ny):
+            _pad(z[i], zpx[i], True, False)
+        zpy = np.empty((ny + 4, nx))
+        for j in range(nx):
+            _pad(z[:, j], zpy[:, j], True, False)
+        dx2 = dx ** 2
+        for i in range(ny):
+            for j in range(nx):
+                gx = (zpx[i, j + 3] - zpx[i, j + 1]) / (2 * dx)
+                gy = (zpy[i + 3, j] - zpy[i + 1, j]) / (2 * dx)
+                if slope:
+                    zx[i, j] = gx
+                    zy[i, j] = gy
+                    cs[i, j] = 1.0 / math.sqrt(1.0 + gx * gx + gy * gy)
+                else:
+                    zx[i, j] = 0.0
+                    zy[i, j] = 0.0
+                    cs[i, j] = 1.0
+        if slope or hessian:
+            zp2 = np.empty((ny + 4, nx + 4))
+            for c in range(nx + 4):
+                _pad(zpx[:, c], zp2[:, c], True, False)
+            for i in range(ny):
+                for j in range(nx):
+                    zxx[i, j] = (zpx[i, j + 3] - 2 * z[i, j] + zpx[i, j + 1]) / dx2
+                    zyy[i, j] = (zpy[i + 3, j] - 2 * z[i, j] + zpy[i + 1, j]) / dx2
+                    zxy[i, j] = (zp2[i + 3, j + 3] - zp2[i + 3, j + 1] - zp2[i + 1, j + 3] + zp2[i + 1, j + 1]) / (4 * dx2)
+        else:
+            zxx[:, :] = 0.0
+            zxy[:, :] = 0.0
+            zyy[:, :] = 0.0
+        for i in range(ny):
+            _bed_line(z[i], bx[0][i], bx[1][i], bx[2][i], bx[3][i], bx[4][i])
+        for j in range(nx):
+            _bed_line(z[:, j], by[0][:, j], by[1][:, j], by[2][:, j], by[3][:, j], by[4][:, j])
 
     @njit(cache=True, error_model="numpy")
     def _sweep_line(h, un, ut, kg, frozen, has_frozen, zp, zL, zR, Bf, bias, theta, h_wet, wb, g,
@@ -183,14 +234,22 @@ if numba is not None:
             out[f] = rest[a] and rest[b] and (drive2 <= lim * lim)
 
     @njit(cache=True, error_model="numpy")
-    def _stage(h, hu, hv, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, pm, dt_in, dt_cap, first,
-               g, dx, cfl, theta, h_eps, h_wet, wb, fl, out_h, out_hu, out_hv):
-        """stepping._stage for one member without a moving bed: the new state into out_*; returns (dt,
-        outflow). mus: (ny, nx) mu_scale (ones without it); pm: the member's mu, xi, tau_y, k_ap,
-        earth_pressure, k_act, k_pass, curvature, mu_i; fl: no_creep, slope_correction, use_ep, use_curv,
-        use_mu_i, inflow."""
+    def _stage(h, hu, hv, z, erod, dep, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside, pm, dt_in, dt_cap, first,
+               c, fl, out_h, out_hu, out_hv, out_z, out_erod, out_dep):
+        """stepping._stage for one member: the new state into out_*; returns (dt, outflow). With a moving
+        bed (use_ent or use_dep) the geometry (zx ... by) is computed here from z into the arrays given,
+        else they hold the static geometry. mus: (ny, nx) mu_scale (ones without it); inside: (ny, nx)
+        cells of the DEM's domain; pm: the member's parameters (PM); c, fl: the constants and flags of
+        fused_step."""
+        g, dx, cfl, theta, h_eps, h_wet, wb = c[0], c[1], c[2], c[3], c[4], c[5], c[6]
+        ent_hmin = c[11]
         no_creep, slope, use_ep, use_curv, use_mu_i, inflow = fl[0], fl[1], fl[2], fl[3], fl[4], fl[5]
+        use_ent, use_dep, walls, gone_out = fl[6], fl[7], fl[8], fl[9]
         mu0, xi, tau, k_ap, s_ep, k_act, k_pass, curv, mu_i = pm[0], pm[1], pm[2], pm[3], pm[4], pm[5], pm[6], pm[7], pm[8]
+        kappa, dep_rate = pm[9], pm[10]
+        moving = use_ent or use_dep
+        if moving:
+            _geometry(z, dx, slope, use_curv, zx, zy, cs, zxx, zxy, zyy, bx, by)
         ghost = 1.0 if inflow else 0.0
         ny, nx = h.shape
         h_eps4 = h_eps ** 4
@@ -235,15 +294,25 @@ if numba is not None:
             for j in range(nx):
                 _frozen_line(h[:, j], kg[:, j], rest[:, j], zx[:, j], zy[:, j], cs[:, j], muc[:, j], tauc[:, j],
                              zLy[:, j], zRy[:, j], g, dx, False, fzy[:, j], wk)
+        if walls:       # stepping._domain_walls: faces between a cell of the domain and one outside it
+            for i in range(ny):
+                for f in range(nx + 1):
+                    if inside[i, max(f - 1, 0)] != inside[i, min(f, nx - 1)]:
+                        fzx[i, f] = True
+            for f in range(ny + 1):
+                for j in range(nx):
+                    if inside[max(f - 1, 0), j] != inside[min(f, ny - 1), j]:
+                        fzy[f, j] = True
+        has_frozen = no_creep or walls
         ax = 0.0
         for i in range(ny):
-            a = _sweep_line(h[i], u[i], v[i], kg[i], fzx[i], no_creep, zpx[i], zLx[i], zRx[i], Bfx[i], biasx[i],
+            a = _sweep_line(h[i], u[i], v[i], kg[i], fzx[i], has_frozen, zpx[i], zLx[i], zRx[i], Bfx[i], biasx[i],
                             theta, h_wet, wb, g, Fhx[i], Fqnx[i], Fqtx[i], phix[i], hbarx[i], dBx[i], wk)
             if a > ax or a != a:
                 ax = a
         ay = 0.0
         for j in range(nx):
-            a = _sweep_line(h[:, j], v[:, j], u[:, j], kg[:, j], fzy[:, j], no_creep, zpy[:, j], zLy[:, j],
+            a = _sweep_line(h[:, j], v[:, j], u[:, j], kg[:, j], fzy[:, j], has_frozen, zpy[:, j], zLy[:, j],
                             zRy[:, j], Bfy[:, j], biasy[:, j], theta, h_wet, wb, g, Fhy[:, j], Fqny[:, j],
                             Fqty[:, j], phiy[:, j], hbary[:, j], dBy[:, j], wk)
             if a > ay or a != a:
@@ -289,6 +358,7 @@ if numba is not None:
         for j in range(nx):
             s1 += Fhy[0, j]
         outflow = dt * dx * ((bnd_x - s0) + (bnd_y - s1))
+        lost = 0.0
         for i in range(ny):
             for j in range(nx):
                 hn = h[i, j] - lam * ((Fhx[i, j + 1] - Fhx[i, j]) + (Fhy[i + 1, j] - Fhy[i, j]))
@@ -305,6 +375,36 @@ if numba is not None:
                     py = py - zy[i, j] * a2
                 qx = hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
                 qy = hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
+                if gone_out and not inside[i, j]:   # what entered a cell outside the domain has left it
+                    lost += hn
+                    hn, qx, qy = 0.0, 0.0, 0.0
+                zn = z[i, j]
+                if use_ent or use_dep:
+                    out_erod[i, j] = erod[i, j]
+                    out_dep[i, j] = dep[i, j]
+                if moving:      # mass sources, explicit in the stage-start state (stepping._stage)
+                    uu, vv = u[i, j], v[i, j]
+                    w0 = zx[i, j] * uu + zy[i, j] * vv
+                    speed0 = math.sqrt(uu * uu + vv * vv + w0 * w0)
+                    if use_ent:
+                        rate = kappa * speed0 / cs[i, j] * (1.0 if cs[i, j] * h[i, j] > ent_hmin else 0.0)
+                        de = min(dt * rate, erod[i, j])
+                        hn = hn + de
+                        out_erod[i, j] = erod[i, j] - de
+                        zn = zn - de
+                    if use_dep:
+                        hsd = max(cs[i, j] * h[i, j], h_eps)
+                        froude = speed0 / math.sqrt(max(gn, 1e-12) * hsd)
+                        rate = dep_rate * h[i, j] * max(1.0 - froude / FR_DEP, 0.0)
+                        hpos = max(hn, 0.0)
+                        dd = min(dt * rate, hpos)
+                        ratio = (hpos - dd) / hpos if hpos > 0 else 0.0
+                        qx = qx * ratio
+                        qy = qy * ratio
+                        hn = hn - dd
+                        out_dep[i, j] = dep[i, j] + dd
+                        zn = zn + dd
+                    out_z[i, j] = zn
                 # friction on the momentum along the surface (friction.apply_friction, with curvature_gn and
                 # mu_effective at the stage's new state)
                 hnp = max(hn, 0.0)
@@ -340,33 +440,78 @@ if numba is not None:
                 out_h[i, j] = max(hn, 0.0)
                 out_hu[i, j] = qx
                 out_hv[i, j] = qy
+        if gone_out:
+            outflow = outflow + lost * (dx * dx)
         return dt, outflow
 
     @njit(cache=True, error_model="numpy", parallel=True)
-    def _step_all(h, hu, hv, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, pm, active, t, t_next, t_end,
-                  rzx, rzy, rcs, h_max, v_max, arrival, ke_peak, outflow, steps, failed, stopped, c,
-                  fl, h_o, hu_o, hv_o, dt_o, scal_o, flags_o):
-        """stepping.make_step's step for every member (members in parallel). ``c``: the float constants
-        (g, dx, cfl, theta, h_eps, h_wet, wb, dt_max, v_max_min_depth, arrival_threshold, stop_ke_fraction);
-        scal_o: (B, 5) t, outflow, ke, mass, ke_peak; flags_o: (B, 5) hit, active, failed, stopped, steps + active."""
-        g, dx, cfl, theta, h_eps, h_wet, wb, dt_max, vmin, arr_th, stop_frac = (
-            c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7], c[8], c[9], c[10])
+    def _step_all(h, hu, hv, z, erod, dep, g6, gx, gy, mus, inside, pm, active, t, t_next, t_end, rzx, rzy, rcs,
+                  h_max, v_max, arrival, ke_peak, outflow, steps, failed, stopped, c, fl,
+                  h_o, hu_o, hv_o, z_o, erod_o, dep_o, dt_o, scal_o, flags_o):
+        """stepping.make_step's step for every member (members in parallel over numba's threads). g6: (6, ny,
+        nx) the static zx, zy, cs, zxx, zxy, zyy; gx, gy: the static bed terms of the x and y sweeps packed
+        (_unpack_bed) (all ignored with a moving bed); c: g, dx, cfl, theta, h_eps, h_wet, wb, dt_max,
+        v_max_min_depth, arrival_threshold, stop_ke_fraction, entrain_h_min; scal_o: (B, 5) t, outflow,
+        ke, mass, ke_peak; flags_o: (B, 5) hit, active, failed, stopped, steps + active."""
+        for b in prange(h.shape[0]):
+            _member(b, h, hu, hv, z, erod, dep, g6, gx, gy, mus, inside, pm, active, t, t_next, t_end, rzx, rzy,
+                    rcs, h_max, v_max, arrival, ke_peak, outflow, steps, failed, stopped, c, fl,
+                    h_o, hu_o, hv_o, z_o, erod_o, dep_o, dt_o, scal_o, flags_o)
+
+    @njit(cache=True, error_model="numpy")
+    def _unpack_bed(p, n_along, axis):
+        """The five bed-term arrays (zp, zL, zR, Bf, bias) of a sweep from their packed (5, ., .) form: along
+        x (axis 1) they have n + 4, n + 1, n + 1, n + 1, n + 2 columns, along y (axis 0) as many rows."""
+        lens = (n_along + 4, n_along + 1, n_along + 1, n_along + 1, n_along + 2)
+        if axis == 1:
+            return (np.ascontiguousarray(p[0, :, :lens[0]]), np.ascontiguousarray(p[1, :, :lens[1]]),
+                    np.ascontiguousarray(p[2, :, :lens[2]]), np.ascontiguousarray(p[3, :, :lens[3]]),
+                    np.ascontiguousarray(p[4, :, :lens[4]]))
+        return (np.ascontiguousarray(p[0, :lens[0], :]), np.ascontiguousarray(p[1, :lens[1], :]),
+                np.ascontiguousarray(p[2, :lens[2], :]), np.ascontiguousarray(p[3, :lens[3], :]),
+                np.ascontiguousarray(p[4, :lens[4], :]))
+
+    @njit(cache=True, error_model="numpy")
+    def _unpack_views(p, n_along, axis):
+        """As _unpack_bed, but views into ``p`` (for filling it)."""
+        lens = (n_along + 4, n_along + 1, n_along + 1, n_along + 1, n_along + 2)
+        if axis == 1:
+            return (p[0, :, :lens[0]], p[1, :, :lens[1]], p[2, :, :lens[2]], p[3, :, :lens[3]], p[4, :, :lens[4]])
+        return (p[0, :lens[0], :], p[1, :lens[1], :], p[2, :lens[2], :], p[3, :lens[3], :], p[4, :lens[4], :])
+
+    @njit(cache=True, error_model="numpy")
+    def _member(b, h, hu, hv, z, erod, dep, g6, gx, gy, mus, inside, pm, active, t, t_next, t_end, rzx, rzy, rcs,
+                h_max, v_max, arrival, ke_peak, outflow, steps, failed, stopped, c, fl,
+                h_o, hu_o, hv_o, z_o, erod_o, dep_o, dt_o, scal_o, flags_o):
+        """Member b of _step_all."""
+        dx, h_eps, dt_max, vmin, arr_th, stop_frac = c[1], c[4], c[7], c[8], c[9], c[10]
+        use_ent, use_dep = fl[6], fl[7]
+        moving = use_ent or use_dep
         h_eps4 = h_eps ** 4
         cell_area = dx * dx
         B, ny, nx = h.shape
-        for b in prange(B):
+        if True:
             rem = t_next[b] - t[b]
             dt_cap = min(rem, dt_max) if active[b] else 0.0
-            h1 = np.empty((ny, nx))
-            hu1 = np.empty((ny, nx))
-            hv1 = np.empty((ny, nx))
-            h2 = np.empty((ny, nx))
-            hu2 = np.empty((ny, nx))
-            hv2 = np.empty((ny, nx))
-            dt, o1 = _stage(h[b], hu[b], hv[b], zx, zy, cs, zxx, zxy, zyy, bx, by, mus, pm[b], 0.0, dt_cap, True,
-                            g, dx, cfl, theta, h_eps, h_wet, wb, fl, h1, hu1, hv1)
-            _, o2 = _stage(h1, hu1, hv1, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, pm[b], dt, dt_cap, False,
-                           g, dx, cfl, theta, h_eps, h_wet, wb, fl, h2, hu2, hv2)
+            h1, hu1, hv1 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+            h2, hu2, hv2 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+            z1, e1, d1 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+            z2, e2, d2 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+            zb = z[b] if moving else z[0]
+            eb = erod[b] if use_ent else e1
+            db = dep[b] if use_dep else d1
+            if moving:
+                g6 = np.empty((6, ny, nx))
+                bx = _unpack_bed(np.empty((5, ny, nx + 4)), nx, 1)
+                by = _unpack_bed(np.empty((5, ny + 4, nx)), ny, 0)
+            else:
+                bx = _unpack_bed(gx, nx, 1)
+                by = _unpack_bed(gy, ny, 0)
+            zx, zy, cs, zxx, zxy, zyy = g6[0], g6[1], g6[2], g6[3], g6[4], g6[5]
+            dt, o1 = _stage(h[b], hu[b], hv[b], zb, eb, db, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside, pm[b],
+                            0.0, dt_cap, True, c, fl, h1, hu1, hv1, z1, e1, d1)
+            _, o2 = _stage(h1, hu1, hv1, z1 if moving else zb, e1, d1, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside,
+                           pm[b], dt, dt_cap, False, c, fl, h2, hu2, hv2, z2, e2, d2)
             hit = active[b] and (dt >= rem)
             t_new = t_next[b] if hit else t[b] + dt
             ke_sum = 0.0
@@ -380,17 +525,26 @@ if numba is not None:
                     h_o[b, i, j] = hN
                     hu_o[b, i, j] = qx
                     hv_o[b, i, j] = qy
+                    if moving:
+                        z_o[b, i, j] = 0.5 * (zb[i, j] + z2[i, j])
+                    if use_ent:
+                        erod_o[b, i, j] = 0.5 * (eb[i, j] + e2[i, j])
+                    hfin = hN
+                    if use_dep:
+                        dN = 0.5 * (db[i, j] + d2[i, j])
+                        dep_o[b, i, j] = dN
+                        hfin = hN + dN
                     uN = _desing(hN, qx, h_eps4)
                     vN = _desing(hN, qy, h_eps4)
                     w = rzx[i, j] * uN + rzy[i, j] * vN
                     spd = math.sqrt(uN * uN + vN * vN + w * w)
                     hnorm = rcs[i, j] * hN
-                    h_max[b, i, j] = max(h_max[b, i, j], rcs[i, j] * hN)
+                    h_max[b, i, j] = max(h_max[b, i, j], rcs[i, j] * hfin)
                     v_max[b, i, j] = max(v_max[b, i, j], spd if hnorm >= vmin else 0.0)
                     if math.isinf(arrival[b, i, j]) and hnorm > arr_th:
                         arrival[b, i, j] = t_new
                     ke_sum += hN * (spd * spd)
-                    mass_sum += hN
+                    mass_sum += hfin
             ke = 0.5 * ke_sum * cell_area
             mass = mass_sum * cell_area
             peak = max(ke_peak[b], ke)
@@ -419,41 +573,58 @@ def _np(t: torch.Tensor) -> np.ndarray:
 def fused_step(F):
     """``step(S, P) -> S`` for the settings ``F`` (supported(F, "cpu") must be None): stepping.make_step's
     step on the fused CPU kernel (same inputs and outputs)."""
-    from .stepping import static_geometry
-
     consts = np.array([F.g, F.dx, F.cfl, F.theta, F.h_eps, F.h_wet, F.wb_ratio, F.dt_max, F.v_max_min_depth,
-                       F.arrival_threshold, F.stop_ke_fraction], dtype=np.float64)
-    fl = np.array([F.no_creep, F.slope_correction, F.use_ep, F.use_curv, F.use_mu_i, F.inflow], dtype=np.bool_)
+                       F.arrival_threshold, F.stop_ke_fraction, F.entrain_h_min], dtype=np.float64)
+    fl = np.array([F.no_creep, F.slope_correction, F.use_ep, F.use_curv, F.use_mu_i, F.inflow, F.use_ent,
+                   F.use_dep, F.domain == "wall", F.domain == "outflow"], dtype=np.bool_)
+    moving = F.use_ent or F.use_dep
+    held: list = [None, None]       # the static bed of the last call and its geometry
+
+    def static(z: torch.Tensor):
+        """(g6, gx, gy) of a bed that does not evolve (z (1, ny, nx)), computed by _geometry like a moving
+        bed's (so a member whose switch is 0 in a batch with a moving bed matches a run without it bitwise),
+        once per cropping box."""
+        if held[0] is not z:
+            ny, nx = z.shape[-2:]
+            g6 = np.empty((6, ny, nx))
+            gx, gy = np.zeros((5, ny, nx + 4)), np.zeros((5, ny + 4, nx))
+            _geometry(two(z), F.dx, F.slope_correction, F.use_curv, g6[0], g6[1], g6[2], g6[3], g6[4], g6[5],
+                      _unpack_views(gx, nx, 1), _unpack_views(gy, ny, 0))
+            held[0], held[1] = z, (g6, gx, gy)
+        return held[1]
+
+    def f64(t: torch.Tensor) -> np.ndarray:
+        return _np(t.to(torch.float64))
+
+    def two(a: torch.Tensor) -> np.ndarray:
+        return np.ascontiguousarray(f64(a).reshape(a.shape[-2], a.shape[-1]))
 
     def step(S: dict, P: dict) -> dict:
         h = S["h"]
         dtype = h.dtype
-        geo = P["geo"] if "geo" in P else static_geometry(S["z"], F)
-        zx, zy, cs, hess, (bx, by) = geo
-        if hess is None:
-            zeros = torch.zeros_like(zx)
-            hess = (zeros, zeros, zeros)
-        two = lambda a: _np(a.to(torch.float64)).reshape(a.shape[-2], a.shape[-1])
-        bxs = tuple(two(a) for a in bx)
-        bys = tuple(two(a) for a in by)
-        B = h.shape[0]
-        pm = np.stack([np.broadcast_to(_np(P[k].to(torch.float64)).reshape(-1), (B,)) for k in PM], axis=1)
-        ms = P.get("mu_scale") if F.use_mu_scale else None
-        mus = np.ones(h.shape[1:]) if ms is None else two(ms)
+        B, ny, nx = h.shape
+        if moving:
+            g6, gx, gy = np.zeros((6, 1, 1)), np.zeros((5, 1, 1)), np.zeros((5, 1, 1))
+        else:
+            g6, gx, gy = static(S["z"])
+        pm = np.ascontiguousarray(np.stack([np.broadcast_to(f64(P[k]).reshape(-1), (B,)) for k in PM], axis=1))
+        mus = two(P["mu_scale"]) if F.use_mu_scale else np.ones((ny, nx))
+        inside = (_np(P["inside"]).reshape(ny, nx) if F.domain else np.ones((ny, nx), dtype=np.bool_))
         rzx, rzy, rcs = (two(a) for a in P["rec"])
-        h_np, hu_np, hv_np = (_np(S[k].to(torch.float64)) for k in ("h", "hu", "hv"))
-        h_max = _np(S["h_max"].to(torch.float64)).copy()
-        v_max = _np(S["v_max"].to(torch.float64)).copy()
-        arrival = _np(S["arrival"].to(torch.float64)).copy()
-        h_o, hu_o, hv_o = np.empty_like(h_np), np.empty_like(h_np), np.empty_like(h_np)
-        dt_o = np.empty(B)
-        scal_o = np.empty((B, 5))
-        flags_o = np.empty((B, 5), dtype=np.int64)
-        f64 = lambda k: _np(S[k].to(torch.float64))
-        _step_all(h_np, hu_np, hv_np, two(zx), two(zy), two(cs), two(hess[0]), two(hess[1]), two(hess[2]), bxs, bys,
-                  mus, pm, _np(S["active"]), f64("t"), f64("t_next"), float(P["t_end"]), rzx, rzy, rcs,
-                  h_max, v_max, arrival, f64("ke_peak"), f64("outflow"), _np(S["steps"]), _np(S["failed"]),
-                  _np(S["stopped"]), consts, fl, h_o, hu_o, hv_o, dt_o, scal_o, flags_o)
+        z = f64(S["z"])
+        dummy = np.zeros((1, 1, 1))
+        erod = f64(S["erod"]) if F.use_ent else dummy
+        dep = f64(S["dep"]) if F.use_dep else dummy
+        h_max, v_max, arrival = (f64(S[k]).copy() for k in ("h_max", "v_max", "arrival"))
+        h_o, hu_o, hv_o = np.empty((B, ny, nx)), np.empty((B, ny, nx)), np.empty((B, ny, nx))
+        z_o = np.empty((B, ny, nx)) if moving else dummy
+        erod_o = np.empty((B, ny, nx)) if F.use_ent else dummy
+        dep_o = np.empty((B, ny, nx)) if F.use_dep else dummy
+        dt_o, scal_o, flags_o = np.empty(B), np.empty((B, 5)), np.empty((B, 5), dtype=np.int64)
+        _step_all(f64(h), f64(S["hu"]), f64(S["hv"]), z, erod, dep, g6, gx, gy, mus, inside, pm, _np(S["active"]),
+                  f64(S["t"]), f64(S["t_next"]), float(P["t_end"]), rzx, rzy, rcs, h_max, v_max, arrival,
+                  f64(S["ke_peak"]), f64(S["outflow"]), _np(S["steps"]), _np(S["failed"]), _np(S["stopped"]),
+                  consts, fl, h_o, hu_o, hv_o, z_o, erod_o, dep_o, dt_o, scal_o, flags_o)
         t = lambda a: torch.from_numpy(a).to(dtype)
         out = dict(S)
         out.update(h=t(h_o), hu=t(hu_o), hv=t(hv_o), h_max=t(h_max), v_max=t(v_max), arrival=t(arrival),
@@ -462,6 +633,12 @@ def fused_step(F):
                    hit=torch.from_numpy(flags_o[:, 0] != 0), active=torch.from_numpy(flags_o[:, 1] != 0),
                    failed=torch.from_numpy(flags_o[:, 2] != 0), stopped=torch.from_numpy(flags_o[:, 3] != 0),
                    steps=torch.from_numpy(flags_o[:, 4].copy()).to(S["steps"].dtype))
+        if moving:
+            out["z"] = t(z_o)
+        if F.use_ent:
+            out["erod"] = t(erod_o)
+        if F.use_dep:
+            out["dep"] = t(dep_o)
         return out
 
     return step
