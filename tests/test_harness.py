@@ -417,3 +417,10 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 6 of 7 |" in page
     assert "| 3/3 | - | partial run: 1 scenario, seeds 0-2 |" in page
     assert "--strengths 0.5,1" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()
+    # the ladder: per term and strength, named / another term / nothing missing; the null seeds' false naming
+    lad = {(r["term"], r["strength"]): r for r in make_page.ladder_rows(s["full"])}
+    assert lad[("entrainment", 0.5)] == {"term": "entrainment", "strength": 0.5, "n": 1, "ratio_median": None,
+                                         "named": 0, "strict": 0, "other_term": 0, "quiet": 1}
+    assert lad[("entrainment", 1.0)]["named"] == 5 and lad[("curvature", 1.0)]["quiet"] == 5
+    assert "| entrainment | 0.5 | - | 0/1 | 0/1 | 0/1 | 1/1 |" in page
+    assert "Null seeds (0, 1, 2, 3, 4): nothing missing in 4 of 5, a library term named (false naming) in 0" in page

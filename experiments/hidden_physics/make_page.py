@@ -148,6 +148,38 @@ def _plot_strength(summary: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
+def ladder_rows(summary: dict) -> list[dict]:
+    """Per library term and strength: seeds, the median of true switch / detectable switch, and how many
+    seeds named the term, named another library term, or said "nothing missing" / "unexplained"."""
+    out = []
+    rows = [r for r in summary["cases"] if r["true"] in LABELS and r["true"] not in ("none", "unexplained")]
+    for term in [l for l in LABELS if any(r["true"] == l for r in rows)]:
+        for x in sorted({r["strength"] for r in rows if r["true"] == term}):
+            rs = [r for r in rows if r["true"] == term and r["strength"] == x]
+            ratios = [r["true_switch"] / r["detectable_switch"] for r in rs
+                      if r.get("true_switch") is not None and r.get("detectable_switch")]
+            out.append({"term": term, "strength": x, "n": len(rs),
+                        "ratio_median": float(np.median(ratios)) if ratios else None,
+                        "named": sum(r["found"] == term for r in rs),
+                        "strict": sum(bool(r["strict_success"]) for r in rs),
+                        "other_term": sum(r["found"] not in (term, "none", "unexplained") for r in rs),
+                        "quiet": sum(r["found"] in ("none", "unexplained") for r in rs)})
+    return out
+
+
+def _ladder_section(summary: dict) -> list[str]:
+    L = ["Detection against detectability: each library term at several strengths (multiples of its nominal "
+         "switch); 'true / detectable' is the median over the seeds of the true switch over the smallest switch "
+         "the case's recordings can reveal (the screening's linearised detectable switch at the baseline).", "",
+         "| term | strength | true / detectable | named | strict successes | another term named | "
+         "nothing missing or unexplained |", "|---|---|---|---|---|---|---|"]
+    for r in ladder_rows(summary):
+        ratio = "-" if r["ratio_median"] is None else f"{r['ratio_median']:.2g}"
+        L.append(f"| {r['term']} | {r['strength']:g} | {ratio} | {r['named']}/{r['n']} | {r['strict']}/{r['n']} | "
+                 f"{r['other_term']}/{r['n']} | {r['quiet']}/{r['n']} |")
+    return L + [""]
+
+
 def _overview(runs: dict) -> list[str]:
     L = ["| run | " + " | ".join(SCENARIOS) + " | targets met |", "|---" * (len(SCENARIOS) + 2) + "|"]
     for name, s in runs.items():
@@ -192,9 +224,17 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
         f = figdir / f"confusion_{name}.png"
         _plot_confusion(rows, f, f"{name}: strength 1, seeds 0-{N_SEEDS - 1}")
         L += ["", f"![confusion matrix, {name}]({f.relative_to(out).as_posix()})", ""]
+    nulls = [r for r in s["cases"] if r["true"] == "none"]
+    if nulls:
+        seeds = sorted(r["seed"] for r in nulls)
+        named = sum(r["found"] not in ("none", "unexplained") for r in nulls)
+        L += [f"Null seeds ({', '.join(map(str, seeds))}): nothing missing in "
+              f"{sum(r['found'] == 'none' for r in nulls)} of {len(nulls)}, a library term named (false naming) "
+              f"in {named}, unexplained in {sum(r['found'] == 'unexplained' for r in nulls)}.", ""]
     if len(strengths) > 1:
         f = figdir / f"detection_vs_strength_{name}.png"
         _plot_strength(s, f, f"{name}: detection against strength")
+        L += _ladder_section(s)
         L += [f"![detection against strength, {name}]({f.relative_to(out).as_posix()})", ""]
     paths = Counter(r.get("inference", "emulator") for r in s["cases"])
     L += ["Inference (torchslide/diagnose/pipeline.py): " + ", ".join(
