@@ -450,7 +450,7 @@ if numba is not None:
                   h_o, hu_o, hv_o, z_o, erod_o, dep_o, dt_o, scal_o, flags_o):
         """stepping.make_step's step for every member (members in parallel over numba's threads). g6: (6, ny,
         nx) the static zx, zy, cs, zxx, zxy, zyy; gx, gy: the static bed terms of the x and y sweeps packed
-        (_unpack_bed) (all ignored with a moving bed); c: g, dx, cfl, theta, h_eps, h_wet, wb, dt_max,
+        (_unpack_views) (all ignored with a moving bed); c: g, dx, cfl, theta, h_eps, h_wet, wb, dt_max,
         v_max_min_depth, arrival_threshold, stop_ke_fraction, entrain_h_min; scal_o: (B, 5) t, outflow,
         ke, mass, ke_peak; flags_o: (B, 5) hit, active, failed, stopped, steps + active."""
         for b in prange(h.shape[0]):
@@ -459,21 +459,9 @@ if numba is not None:
                     h_o, hu_o, hv_o, z_o, erod_o, dep_o, dt_o, scal_o, flags_o)
 
     @njit(cache=True, error_model="numpy")
-    def _unpack_bed(p, n_along, axis):
-        """The five bed-term arrays (zp, zL, zR, Bf, bias) of a sweep from their packed (5, ., .) form: along
-        x (axis 1) they have n + 4, n + 1, n + 1, n + 1, n + 2 columns, along y (axis 0) as many rows."""
-        lens = (n_along + 4, n_along + 1, n_along + 1, n_along + 1, n_along + 2)
-        if axis == 1:
-            return (np.ascontiguousarray(p[0, :, :lens[0]]), np.ascontiguousarray(p[1, :, :lens[1]]),
-                    np.ascontiguousarray(p[2, :, :lens[2]]), np.ascontiguousarray(p[3, :, :lens[3]]),
-                    np.ascontiguousarray(p[4, :, :lens[4]]))
-        return (np.ascontiguousarray(p[0, :lens[0], :]), np.ascontiguousarray(p[1, :lens[1], :]),
-                np.ascontiguousarray(p[2, :lens[2], :]), np.ascontiguousarray(p[3, :lens[3], :]),
-                np.ascontiguousarray(p[4, :lens[4], :]))
-
-    @njit(cache=True, error_model="numpy")
     def _unpack_views(p, n_along, axis):
-        """As _unpack_bed, but views into ``p`` (for filling it)."""
+        """The five bed-term arrays (zp, zL, zR, Bf, bias) of a sweep as views of their packed (5, ., .) form:
+        along x (axis 1) they have n + 4, n + 1, n + 1, n + 1, n + 2 columns, along y (axis 0) as many rows."""
         lens = (n_along + 4, n_along + 1, n_along + 1, n_along + 1, n_along + 2)
         if axis == 1:
             return (p[0, :, :lens[0]], p[1, :, :lens[1]], p[2, :, :lens[2]], p[3, :, :lens[3]], p[4, :, :lens[4]])
@@ -489,81 +477,79 @@ if numba is not None:
         moving = use_ent or use_dep
         h_eps4 = h_eps ** 4
         cell_area = dx * dx
-        B, ny, nx = h.shape
-        if True:
-            rem = t_next[b] - t[b]
-            dt_cap = min(rem, dt_max) if active[b] else 0.0
-            h1, hu1, hv1 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
-            h2, hu2, hv2 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
-            z1, e1, d1 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
-            z2, e2, d2 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
-            zb = z[b] if moving else z[0]
-            eb = erod[b] if use_ent else e1
-            db = dep[b] if use_dep else d1
-            if moving:
-                g6 = np.empty((6, ny, nx))
-                bx = _unpack_bed(np.empty((5, ny, nx + 4)), nx, 1)
-                by = _unpack_bed(np.empty((5, ny + 4, nx)), ny, 0)
-            else:
-                bx = _unpack_bed(gx, nx, 1)
-                by = _unpack_bed(gy, ny, 0)
-            zx, zy, cs, zxx, zxy, zyy = g6[0], g6[1], g6[2], g6[3], g6[4], g6[5]
-            dt, o1 = _stage(h[b], hu[b], hv[b], zb, eb, db, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside, pm[b],
-                            0.0, dt_cap, True, c, fl, h1, hu1, hv1, z1, e1, d1)
-            _, o2 = _stage(h1, hu1, hv1, z1 if moving else zb, e1, d1, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside,
-                           pm[b], dt, dt_cap, False, c, fl, h2, hu2, hv2, z2, e2, d2)
-            hit = active[b] and (dt >= rem)
-            t_new = t_next[b] if hit else t[b] + dt
-            ke_sum = 0.0
-            mass_sum = 0.0
-            for i in range(ny):
-                for j in range(nx):
-                    hN = 0.5 * (h[b, i, j] + h2[i, j])
-                    stop = hu1[i, j] == 0 and hv1[i, j] == 0 and hu2[i, j] == 0 and hv2[i, j] == 0
-                    qx = 0.0 if stop else 0.5 * (hu[b, i, j] + hu2[i, j])
-                    qy = 0.0 if stop else 0.5 * (hv[b, i, j] + hv2[i, j])
-                    h_o[b, i, j] = hN
-                    hu_o[b, i, j] = qx
-                    hv_o[b, i, j] = qy
-                    if moving:
-                        z_o[b, i, j] = 0.5 * (zb[i, j] + z2[i, j])
-                    if use_ent:
-                        erod_o[b, i, j] = 0.5 * (eb[i, j] + e2[i, j])
-                    hfin = hN
-                    if use_dep:
-                        dN = 0.5 * (db[i, j] + d2[i, j])
-                        dep_o[b, i, j] = dN
-                        hfin = hN + dN
-                    uN = _desing(hN, qx, h_eps4)
-                    vN = _desing(hN, qy, h_eps4)
-                    w = rzx[i, j] * uN + rzy[i, j] * vN
-                    spd = math.sqrt(uN * uN + vN * vN + w * w)
-                    hnorm = rcs[i, j] * hN
-                    h_max[b, i, j] = max(h_max[b, i, j], rcs[i, j] * hfin)
-                    v_max[b, i, j] = max(v_max[b, i, j], spd if hnorm >= vmin else 0.0)
-                    if math.isinf(arrival[b, i, j]) and hnorm > arr_th:
-                        arrival[b, i, j] = t_new
-                    ke_sum += hN * (spd * spd)
-                    mass_sum += hfin
-            ke = 0.5 * ke_sum * cell_area
-            mass = mass_sum * cell_area
-            peak = max(ke_peak[b], ke)
-            finite = math.isfinite(ke) and math.isfinite(mass)
-            calm = (peak > 0) and (ke < stop_frac * peak)
-            if stop_frac > 0:
-                calm = calm or peak == 0
-            at_end = hit and (t_next[b] >= t_end)
-            dt_o[b] = dt
-            scal_o[b, 0] = t_new
-            scal_o[b, 1] = outflow[b] + 0.5 * (o1 + o2)
-            scal_o[b, 2] = ke
-            scal_o[b, 3] = mass
-            scal_o[b, 4] = peak
-            flags_o[b, 0] = hit
-            flags_o[b, 1] = active[b] and finite and not calm and not at_end
-            flags_o[b, 2] = failed[b] or (active[b] and not finite)
-            flags_o[b, 3] = stopped[b] or (active[b] and finite and calm and not at_end)
-            flags_o[b, 4] = steps[b] + (1 if active[b] else 0)
+        ny, nx = h.shape[1], h.shape[2]
+        rem = t_next[b] - t[b]
+        dt_cap = min(rem, dt_max) if active[b] else 0.0
+        h1, hu1, hv1 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+        h2, hu2, hv2 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+        z1, e1, d1 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+        z2, e2, d2 = np.empty((ny, nx)), np.empty((ny, nx)), np.empty((ny, nx))
+        zb = z[b] if moving else z[0]
+        eb = erod[b] if use_ent else e1
+        db = dep[b] if use_dep else d1
+        if moving:      # this member's geometry, computed per stage into these
+            g6 = np.empty((6, ny, nx))
+            gx = np.empty((5, ny, nx + 4))
+            gy = np.empty((5, ny + 4, nx))
+        bx = _unpack_views(gx, nx, 1)
+        by = _unpack_views(gy, ny, 0)
+        zx, zy, cs, zxx, zxy, zyy = g6[0], g6[1], g6[2], g6[3], g6[4], g6[5]
+        dt, o1 = _stage(h[b], hu[b], hv[b], zb, eb, db, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside, pm[b],
+                        0.0, dt_cap, True, c, fl, h1, hu1, hv1, z1, e1, d1)
+        _, o2 = _stage(h1, hu1, hv1, z1 if moving else zb, e1, d1, zx, zy, cs, zxx, zxy, zyy, bx, by, mus, inside,
+                       pm[b], dt, dt_cap, False, c, fl, h2, hu2, hv2, z2, e2, d2)
+        hit = active[b] and (dt >= rem)
+        t_new = t_next[b] if hit else t[b] + dt
+        ke_sum = 0.0
+        mass_sum = 0.0
+        for i in range(ny):
+            for j in range(nx):
+                hN = 0.5 * (h[b, i, j] + h2[i, j])
+                stop = hu1[i, j] == 0 and hv1[i, j] == 0 and hu2[i, j] == 0 and hv2[i, j] == 0
+                qx = 0.0 if stop else 0.5 * (hu[b, i, j] + hu2[i, j])
+                qy = 0.0 if stop else 0.5 * (hv[b, i, j] + hv2[i, j])
+                h_o[b, i, j] = hN
+                hu_o[b, i, j] = qx
+                hv_o[b, i, j] = qy
+                if moving:
+                    z_o[b, i, j] = 0.5 * (zb[i, j] + z2[i, j])
+                if use_ent:
+                    erod_o[b, i, j] = 0.5 * (eb[i, j] + e2[i, j])
+                hfin = hN
+                if use_dep:
+                    dN = 0.5 * (db[i, j] + d2[i, j])
+                    dep_o[b, i, j] = dN
+                    hfin = hN + dN
+                uN = _desing(hN, qx, h_eps4)
+                vN = _desing(hN, qy, h_eps4)
+                w = rzx[i, j] * uN + rzy[i, j] * vN
+                spd = math.sqrt(uN * uN + vN * vN + w * w)
+                hnorm = rcs[i, j] * hN
+                h_max[b, i, j] = max(h_max[b, i, j], rcs[i, j] * hfin)
+                v_max[b, i, j] = max(v_max[b, i, j], spd if hnorm >= vmin else 0.0)
+                if math.isinf(arrival[b, i, j]) and hnorm > arr_th:
+                    arrival[b, i, j] = t_new
+                ke_sum += hN * (spd * spd)
+                mass_sum += hfin
+        ke = 0.5 * ke_sum * cell_area
+        mass = mass_sum * cell_area
+        peak = max(ke_peak[b], ke)
+        finite = math.isfinite(ke) and math.isfinite(mass)
+        calm = (peak > 0) and (ke < stop_frac * peak)
+        if stop_frac > 0:
+            calm = calm or peak == 0
+        at_end = hit and (t_next[b] >= t_end)
+        dt_o[b] = dt
+        scal_o[b, 0] = t_new
+        scal_o[b, 1] = outflow[b] + 0.5 * (o1 + o2)
+        scal_o[b, 2] = ke
+        scal_o[b, 3] = mass
+        scal_o[b, 4] = peak
+        flags_o[b, 0] = hit
+        flags_o[b, 1] = active[b] and finite and not calm and not at_end
+        flags_o[b, 2] = failed[b] or (active[b] and not finite)
+        flags_o[b, 3] = stopped[b] or (active[b] and finite and calm and not at_end)
+        flags_o[b, 4] = steps[b] + (1 if active[b] else 0)
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
