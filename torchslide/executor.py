@@ -43,7 +43,7 @@ class DaskExecutor:
     """The chunks as tasks of a Dask distributed cluster (module doc).
 
     scheduler: address of a running scheduler; else a LocalCluster of ``workers`` processes (default:
-    the CPU count), one thread each, torch limited to ``threads_per_worker`` threads per worker."""
+    the CPU count), torch and the fused step limited to ``threads_per_worker`` threads per worker."""
 
     def __init__(self, scheduler: str | None = None, workers: int | None = None, threads_per_worker: int = 1,
                  retries: int = 1):
@@ -57,7 +57,7 @@ class DaskExecutor:
             self.client = Client(scheduler)
         else:
             n = int(workers or os.cpu_count() or 1)
-            env = {"OMP_NUM_THREADS": str(threads_per_worker), "MKL_NUM_THREADS": str(threads_per_worker)}
+            env = {k: str(threads_per_worker) for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
             self._cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
                                          env=env)
             self.client = Client(self._cluster)
