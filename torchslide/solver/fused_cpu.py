@@ -564,20 +564,22 @@ def fused_step(F):
     fl = np.array([F.no_creep, F.slope_correction, F.use_ep, F.use_curv, F.use_mu_i, F.inflow, F.use_ent,
                    F.use_dep, F.domain == "wall", F.domain == "outflow"], dtype=np.bool_)
     moving = F.use_ent or F.use_dep
-    held: list = [None, None]       # the static bed of the last call and its geometry
+    held: list = [None]       # (the static bed of the last call, its geometry), replaced whole
 
     def static(z: torch.Tensor):
         """(g6, gx, gy) of a bed that does not evolve (z (1, ny, nx)), computed by _geometry like a moving
         bed's (so a member whose switch is 0 in a batch with a moving bed matches a run without it bitwise),
-        once per cropping box."""
-        if held[0] is not z:
-            ny, nx = z.shape[-2:]
-            g6 = np.empty((6, ny, nx))
-            gx, gy = np.zeros((5, ny, nx + 4)), np.zeros((5, ny + 4, nx))
-            _geometry(two(z), F.dx, F.slope_correction, F.use_curv, g6[0], g6[1], g6[2], g6[3], g6[4], g6[5],
-                      _unpack_views(gx, nx, 1), _unpack_views(gy, ny, 0))
-            held[0], held[1] = z, (g6, gx, gy)
-        return held[1]
+        once per cropping box (the cache entry is one tuple, read and replaced whole: safe across threads)."""
+        last = held[0]
+        if last is not None and last[0] is z:
+            return last[1]
+        ny, nx = z.shape[-2:]
+        g6 = np.empty((6, ny, nx))
+        gx, gy = np.zeros((5, ny, nx + 4)), np.zeros((5, ny + 4, nx))
+        _geometry(two(z), F.dx, F.slope_correction, F.use_curv, g6[0], g6[1], g6[2], g6[3], g6[4], g6[5],
+                  _unpack_views(gx, nx, 1), _unpack_views(gy, ny, 0))
+        held[0] = (z, (g6, gx, gy))
+        return g6, gx, gy
 
     def f64(t: torch.Tensor) -> np.ndarray:
         return _np(t.to(torch.float64))
