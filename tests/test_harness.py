@@ -416,7 +416,7 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     page = make_page.build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
     assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 6 of 7 |" in page
     assert "| 3/3 | - | partial run: 1 scenario, seeds 0-2 |" in page
-    assert "--strengths 0.5,1" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()
+    assert "--strengths 0.5 --seed-list 0 --scenarios entrainment --out DIR" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()
     # the ladder: per term and strength, named / another term / nothing missing; the null seeds' false naming
     lad = {(r["term"], r["strength"]): r for r in make_page.ladder_rows(s["full"])}
     assert lad[("entrainment", 0.5)] == {"term": "entrainment", "strength": 0.5, "n": 1, "ratio_median": None,

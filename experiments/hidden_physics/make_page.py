@@ -80,23 +80,34 @@ def describe(settings: dict) -> str:
 
 
 def command(summary: dict) -> str:
-    """The harness command that makes the run of ``summary``."""
+    """The harness command(s) that make the run of ``summary``: one per group of cases that share their
+    strengths and seeds (e.g. the strength-1 seeds, extra null seeds, a ladder of strengths), joined by "; "."""
     settings = summary["settings"]
-    strengths = sorted({r["strength"] for r in summary["cases"]})
-    seeds = sorted({r["seed"] for r in summary["cases"]})
-    scenarios = [sc for sc in SCENARIOS if any(r["scenario"] == sc for r in summary["cases"])]
-    c = f"python -m experiments.hidden_physics.harness --terrain {settings['terrain']} --cellsize {settings['cellsize']:g}"
+    base = f"python -m experiments.hidden_physics.harness --terrain {settings['terrain']} --cellsize {settings['cellsize']:g}"
     if settings.get("sigmas", "harness") != "harness":
-        c += f" --sigmas {settings['sigmas']}"
+        base += f" --sigmas {settings['sigmas']}"
     for k, v in (settings.get("budgets") or {}).items():
-        c += f" --budget {k}={v}"
-    if strengths != [1.0]:
-        c += " --strengths " + ",".join(f"{s:g}" for s in strengths)
-    if seeds != list(range(N_SEEDS)):
-        c += " --seed-list " + ",".join(str(s) for s in seeds)
-    if scenarios != list(SCENARIOS):
-        c += " --scenarios " + ",".join(scenarios)
-    return c + " --out DIR"
+        base += f" --budget {k}={v}"
+    groups: dict = {}
+    for sc in SCENARIOS:
+        rs = [r for r in summary["cases"] if r["scenario"] == sc]
+        for x in sorted({r["strength"] for r in rs}):
+            seeds = tuple(sorted({r["seed"] for r in rs if r["strength"] == x}))
+            groups.setdefault((x, seeds), []).append(sc)
+    merged: dict = {}       # strengths that share seeds and scenarios go in one command
+    for (x, seeds), scs in groups.items():
+        merged.setdefault((seeds, tuple(scs)), []).append(x)
+    out = []
+    for (seeds, scs), xs in merged.items():
+        c = base
+        if xs != [1.0]:
+            c += " --strengths " + ",".join(f"{x:g}" for x in xs)
+        if list(seeds) != list(range(N_SEEDS)):
+            c += " --seed-list " + ",".join(str(v) for v in seeds)
+        if list(scs) != list(SCENARIOS):
+            c += " --scenarios " + ",".join(scs)
+        out.append(c + " --out DIR")
+    return "; ".join(out)
 
 
 def _plot_confusion(rows: list[dict], path: Path, title: str) -> None:
