@@ -205,10 +205,8 @@ def _screening_section(scr: dict) -> list[str]:
 
 def _candidates_section(candidates: list) -> list[str]:
     L = ["", "## Candidates", "",
-         "'refit check': the local search on the solver after the refit (a gain of more than the margin over every "
-         "refit run: the refit's runs had not sampled the peak, so it was refined with the search's runs) and whether the "
-         "verified evidence ended trustworthy and stable; on the local path, the likelihood ratio with its "
-         "boundary-corrected p-value and the profile at the ends of the switch's 90 % interval.", "",
+         "'refit check': on the local path, the likelihood ratio with its boundary-corrected p-value and the profile "
+         "at the ends of the switch's 90 % interval; on the emulator path, whether the verified evidence converged.", "",
          "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDI | refit check |",
          "|---|---|---|---|---|---|---|---|"]
     for c in candidates:
