@@ -161,3 +161,24 @@ def test_new_recording_interval_respects_the_observables_bound():
     assert free["interval90"][0] < -5.0
     assert bounded["interval90"][0] == 0.0 and bounded["interval90"][1] == pytest.approx(free["interval90"][1])
     assert bounded["inside"]
+
+
+def test_predictive_progress_counts_each_chunk_as_it_finishes(calibrated):
+    """run_predictive reports the runs done after every chunk of max_batch members, not only at the end."""
+    import dataclasses
+
+    from torchslide.calibration_config import load_calibration_config, make_evaluator
+    from torchslide.predict import run_predictive
+
+    _, cfg, _ = calibrated
+    ev = dataclasses.replace(make_evaluator(load_calibration_config(cfg)), max_batch=2)
+    calls, seen = [], []
+    chunk = ev.maps_chunk
+    ev.maps_chunk = lambda v: calls.append(1) or chunk(v)
+
+    def progress(n):
+        seen.append((n, len(calls)))    # the runs reported done, and the chunks run so far
+
+    pr = run_predictive(ev, np.array([[0.2, 1000.0], [0.25, 800.0], [0.3, 1200.0], [0.22, 900.0], [0.28, 700.0]]),
+                        0.1, progress=progress)
+    assert seen == [(2, 1), (4, 2), (5, 3)] and len(pr.x) == 5

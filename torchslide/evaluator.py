@@ -191,13 +191,21 @@ class LandslideEvaluator:
         return [{k: (np.asarray(v, dtype=np.float64).reshape(-1)[s:s + self.max_batch] if np.size(v) > 1 else v)
                  for k, v in allv.items()} for s in range(0, n, self.max_batch)]
 
-    def map_chunks(self, fn, chunks: list) -> list:
+    def map_chunks(self, fn, chunks: list, done=None) -> list:
         """[fn(chunk)] on the executor (here, one after another, when there is none); each result's last
-        item is the chunk's solver seconds, which a worker's runs add to ``solver_seconds`` here."""
+        item is the chunk's solver seconds, which a worker's runs add to ``solver_seconds`` here.
+        ``done``: an optional callable(i, result) for each chunk in order, as soon as its result is here."""
+        done = done or (lambda i, r: None)
         if self.executor is None:
-            return [fn(c) for c in chunks]
+            out = []
+            for i, c in enumerate(chunks):
+                out.append(fn(c))
+                done(i, out[-1])
+            return out
         out = self.executor.map(fn, chunks, progress=self.solver_progress)
         self.solver_seconds += sum(o[-1] for o in out)
+        for i, o in enumerate(out):
+            done(i, o)
         return out
 
     def values_chunk(self, values: dict) -> tuple:

@@ -74,7 +74,8 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
     chunks = evaluator.value_chunks({n: x[:, i].numpy() for i, n in enumerate(evaluator.names)})
     starts = list(range(0, x.shape[0], evaluator.max_batch))
     cell_area = None
-    for s, (preds, failed, why, maps, area, _) in zip(starts, evaluator.map_chunks(evaluator.maps_chunk, chunks)):
+    tick = None if progress is None else (lambda i, _: progress(min(starts[i] + evaluator.max_batch, x.shape[0])))
+    for s, (preds, failed, why, maps, area, _) in zip(starts, evaluator.map_chunks(evaluator.maps_chunk, chunks, tick)):
         xb = x[s:s + evaluator.max_batch]
         cell_area = np.broadcast_to(area, maps["h_max"].shape[1:])
         ok = ~failed.numpy()
@@ -83,8 +84,6 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
         preds_all.append(preds.numpy()[ok])
         for name in fields:  # float32 on the host: M maps of the grid fit in memory
             fields[name].append(maps[name][ok])
-        if progress is not None:
-            progress(min(s + evaluator.max_batch, x.shape[0]))
     maps = {k: np.concatenate(v) for k, v in fields.items()}
     if maps["h_max"].shape[0] == 0:
         raise RuntimeError(f"all {x.shape[0]} posterior-predictive runs failed; first: {failures[0]['reason']}")
