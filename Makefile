@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-inference bench-executor clean
+.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-solver-gpu bench-inference bench-executor clean
 
 venv: $(STAMP)
 
@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "$(TORCH)"
 	$(PY) -m pip install -q -e ".[dev]"
-	$(PY) -c "from torchslide.solver import fused_cpu; fused_cpu.warm()"   # the fused CPU step, compiled once
+	$(PY) -c "from torchslide.solver import fused_cpu, fused_triton; fused_cpu.warm(); fused_triton.warm()"   # the fused steps (CPU; CUDA where there is one), compiled once
 	touch $(STAMP)
 
 demo: $(STAMP)
@@ -45,6 +45,11 @@ bench-solver: $(STAMP)
 	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 \
 		--full-batch 8 --full-configs eager-f64-whole:1,eager-f64-crop,fused-f64-crop,fused-f32-crop,compiled-f64-crop,compiled-f32-crop,compiled-f32-crop:32
 	OMP_NUM_THREADS=1 $(PY) -m bench.stop_rule --out bench/results/stop_rule.json
+
+# on a CUDA machine: every kernel and precision at batch 1, 32 and 256, with the copy-bandwidth fraction
+bench-solver-gpu: $(STAMP)
+	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --batches 1,32,256 --repeats 3 \
+		--t-short 5 --full-batch 64 --full-configs eager-f64-crop,fused-f64-crop,fused-f32-crop,compiled-f32-crop
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"

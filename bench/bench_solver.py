@@ -7,7 +7,9 @@ same run only, since the machines are shared):
 
 1. Throughput (cell-updates per second, whole grid, active-region cropping off so that every step
    costs the same) of each kernel (SolverConfig.kernel: eager, compiled = torch.compile, fused = the
-   fused CPU step) at batch 1/8/32, float64 and float32. A cell-update is one cell of one member
+   fused CPU step or, on CUDA, the Triton step) at batch 1/8/32, float64 and float32. On CUDA each row
+   also gives its fraction of the bandwidth limit: the card's copy bandwidth, measured in the same run,
+   over BYTES_PER_CELL_UPDATE values per cell-update. A cell-update is one cell of one member
    advanced by one (two-stage) time step. first_call_s: the first call in this process (compilation,
    or for "fused" loading numba's on-disk cache; the very first call after an install compiles it).
 2. Full runs: the wall time per member of one Bondo-like run (mu 0.23, xi 1000, t_end 300 s; 20 m
@@ -46,6 +48,37 @@ def _timed(case, p, t_end, cfg, dtype, device):
     r = simulate(case.dem, case.release, p, t_end=t_end, config=cfg, dtype=dtype, device=device)
     _sync(device)
     return r, time.perf_counter() - t0
+
+
+BYTES_PER_CELL_UPDATE = 20
+"""Values of the state's dtype one cell-update must at least read and write through memory in a fused
+second-order step (about 80 bytes in float32): the bandwidth model of the "bandwidth_fraction" column."""
+
+
+def copy_bandwidth(device: str, n_bytes: int = 2 ** 30, repeats: int = 10) -> float | None:
+    """The device's measured copy bandwidth, bytes/s (read + write of a device-to-device copy of
+    ``n_bytes``; the median of ``repeats``); None on the CPU."""
+    if not device.startswith("cuda"):
+        return None
+    a = torch.empty(n_bytes, dtype=torch.uint8, device=device)
+    b = torch.empty_like(a)
+    rates = []
+    for _ in range(repeats + 1):
+        _sync(device)
+        t0 = time.perf_counter()
+        b.copy_(a)
+        _sync(device)
+        rates.append(2 * n_bytes / (time.perf_counter() - t0))
+    return statistics.median(rates[1:])
+
+
+def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
+    """Cell-updates/s of ``row`` as a fraction of the bandwidth limit copy_bw / (BYTES_PER_CELL_UPDATE
+    values of its dtype)."""
+    if copy_bw is None:
+        return None
+    size = torch.tensor([], dtype=DTYPES[row["dtype"]]).element_size()
+    return row["cell_updates_per_s_median"] * BYTES_PER_CELL_UPDATE * size / copy_bw
 
 
 def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int) -> dict:
@@ -117,7 +150,7 @@ def main(argv=None) -> None:
            "threads": torch.get_num_threads(), "numba_threads": os.environ.get("NUMBA_NUM_THREADS"), "cpu": platform.processor() or platform.machine(),
            "cpu_count": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
            "gpu": torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None,
-           "throughput": [], "full_run": []}
+           "copy_bandwidth_bytes_per_s": copy_bandwidth(args.device), "throughput": [], "full_run": []}
 
     def save():
         os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
@@ -129,6 +162,7 @@ def main(argv=None) -> None:
             for B in [int(b) for b in args.batches.split(",")]:
                 for kernel in args.kernels.split(","):
                     row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats)
+                    row["bandwidth_fraction"] = bandwidth_fraction(row, res["copy_bandwidth_bytes_per_s"])
                     print(json.dumps(row), flush=True)
                     res["throughput"].append(row)
                     save()

@@ -107,6 +107,46 @@ def test_compiled_solver_on_cuda_matches_eager(cpu_run):
         assert _rel(_fields(r)[name], ref) < 1e-6, name
 
 
+def _max_rel(a, b) -> float:
+    """max |a - b| over max |b| on the finite entries (both finite in the same places)."""
+    a, b = torch.as_tensor(a).double().cpu(), torch.as_tensor(b).double().cpu()
+    fin = torch.isfinite(b)
+    assert torch.equal(fin, torch.isfinite(a))
+    return float((a[fin] - b[fin]).abs().max() / b[fin].abs().max().clamp_min(1e-300)) if fin.any() else 0.0
+
+
+@pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_triton_step_on_cuda_equals_eager(dtype, rtol):
+    """The fused kernel on CUDA (the Triton step) against the torch step on the same device, every term on."""
+    from torchslide.solver import fused_triton
+
+    if not ON_CUDA:
+        pytest.skip("the Triton step runs on CUDA")
+    assert fused_triton.supported(None, DEVICE) is None
+    dem, rel, p, kw = _all_terms()
+    p = p.to(dtype=dtype)
+    runs = [simulate(dem, rel, p, t_end=T_END, config=SolverConfig(output_interval=5.0, kernel=k), device=DEVICE,
+                     dtype=dtype, **kw) for k in ("eager", "fused")]
+    assert torch.equal(runs[0].steps, runs[1].steps) and not bool(runs[1].failed.any())
+    for name, ref in _fields(runs[0]).items():
+        assert _max_rel(_fields(runs[1])[name], ref) <= rtol, name
+
+
+def test_triton_step_on_cuda_equals_eager_on_the_bondo_like_run():
+    """The 20 m Bondo-like valley (bench.bench_solver's case), cropped as a calibration runs it."""
+    from torchslide.terrain.synthetic import bondo_like
+
+    if not ON_CUDA:
+        pytest.skip("the Triton step runs on CUDA")
+    case = bondo_like(20.0)
+    p = Params.make(mu=[0.18, 0.23, 0.3], xi=[600.0, 1000.0, 2000.0])
+    runs = [simulate(case.dem, case.release, p, t_end=120.0, config=SolverConfig(kernel=k), device=DEVICE)
+            for k in ("eager", "fused")]
+    assert torch.equal(runs[0].steps, runs[1].steps)
+    for name in ("h_max", "v_max", "h_final", "final_volume", "outflow_volume"):
+        assert _max_rel(getattr(runs[1], name), getattr(runs[0], name)) <= 1e-12, name
+
+
 # ------------------------------------------------------------------ calibration and diagnosis on the GPU
 def _calibration_config(tmp_path, device: str):
     from .conftest import CALIBRATE_BASE as CBASE, CALIBRATE_CAL as CAL, CALIBRATE_OBS as OBS, CALIBRATE_PRIOR as PRIOR, write_config as write

@@ -31,18 +31,21 @@ def _channel():
 
 
 def _compare(dem, rel, params: dict, cfg: SolverConfig, gauges=None, t_end: float = 60.0, rtol: float = 1e-12,
-             dtype=torch.float64, mu_scale=None):
+             dtype=torch.float64, mu_scale=None, erodible_depth=None):
+    """Run ``cfg`` with kernel "eager" (the reference) and "fused"; every output must agree within ``rtol``
+    of its largest magnitude. Returns the reference result."""
     p = Params.make(dtype=dtype, **params)
-    ref = simulate(dem, rel, p, t_end=t_end, config=cfg, gauges=gauges, dtype=dtype, mu_scale=mu_scale)
-    new = simulate(dem, rel, p, t_end=t_end, config=dataclasses.replace(cfg, kernel="fused"), gauges=gauges,
-                   dtype=dtype, mu_scale=mu_scale)
+    kw = dict(t_end=t_end, gauges=gauges, dtype=dtype, mu_scale=mu_scale, erodible_depth=erodible_depth)
+    ref = simulate(dem, rel, p, config=dataclasses.replace(cfg, kernel="eager"), **kw)
+    new = simulate(dem, rel, p, config=dataclasses.replace(cfg, kernel="fused"), **kw)
     assert torch.equal(ref.steps, new.steps) and torch.equal(ref.stopped, new.stopped) and not new.failed.any()
-    for k in FIELDS:
+    fields = FIELDS + (("entrained_volume", "bed_change") if erodible_depth is not None else ())
+    for k in fields:
         a, b = getattr(ref, k), getattr(new, k)
         fin = torch.isfinite(a)
         assert torch.equal(fin, torch.isfinite(b)), k
         scale = float(a[fin].abs().max()) if fin.any() else 1.0
-        if k == "outflow_volume":       # measured against what there is to lose, not its own round-off
+        if "volume" in k:       # measured against what there is to lose or gain, not its own round-off
             scale = max(scale, float(ref.release_volume.max()))
         assert float((a[fin] - b[fin]).abs().max()) <= rtol * max(scale, 1e-30), k
     for g in (gauges or []):
@@ -90,18 +93,9 @@ def test_fused_step_equals_the_torch_step_on_a_plane_off_the_grid_axes_and_setti
 def test_fused_step_equals_the_torch_step_on_a_moving_bed(terms):
     """Entrainment and deposition: the bed evolves, so the geometry is recomputed every stage."""
     dem, rel, gauges = _channel()
-    erod = np.full(dem.shape, 0.5)
     p = {"mu": [0.2, 0.25, 0.3], "xi": 800.0, **terms}
-    ref = simulate(dem, rel, Params.make(**p), t_end=60.0, gauges=gauges, erodible_depth=erod)
-    new = simulate(dem, rel, Params.make(**p), t_end=60.0, gauges=gauges, erodible_depth=erod,
-                   config=SolverConfig(kernel="fused"))
-    assert torch.equal(ref.steps, new.steps)
-    for k in FIELDS + ("entrained_volume", "bed_change"):
-        a, b = getattr(ref, k), getattr(new, k)
-        fin = torch.isfinite(a)
-        assert torch.equal(fin, torch.isfinite(b)), k
-        scale = max(float(a[fin].abs().max()), float(ref.release_volume.max()) if "volume" in k else 0.0, 1e-30)
-        assert float((a[fin] - b[fin]).abs().max()) <= 1e-12 * scale, k
+    ref = _compare(dem, rel, p, SolverConfig(), gauges, erodible_depth=np.full(dem.shape, 0.5))
+    assert float(ref.entrained_volume.max() if "kappa" in terms else ref.h_final.max()) > 0
 
 
 @pytest.mark.parametrize("nodata", ["outflow", "wall"])

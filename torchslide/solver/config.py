@@ -37,9 +37,10 @@ class SolverConfig:
         max_steps: a member still running after this many steps is marked failed.
         compile: run the step through torch.compile (first call pays compilation); the same as
             kernel = "compiled", whatever ``kernel`` says.
-        kernel: the step's implementation: "fused" (default: one compiled loop nest per stage on the
-            CPU, torchslide.solver.fused_cpu, equal to eager to round-off; on a GPU, or without numba,
-            eager runs), "eager" (torch operations: the reference), "compiled" (torch.compile of eager).
+        kernel: the step's implementation: "fused" (default: on the CPU one compiled loop nest per
+            stage, torchslide.solver.fused_cpu (numba); on CUDA five Triton kernels per stage,
+            torchslide.solver.fused_triton; both equal to eager to round-off; eager runs where neither
+            is installed), "eager" (torch operations: the reference), "compiled" (torch.compile of eager).
         crop: compute only on the bounding box of the cells the flow has touched (all members), grown
             as the flow spreads. Exact: a dry cell receives mass only from a wet neighbour, so the
             wetted support grows by at most one cell per stage, and the box keeps a margin of

@@ -58,15 +58,19 @@ def _check_raster(t: Tensor, name: str, shape: tuple[int, int], allow_batch: boo
 def _get_step(F: StepFlags, kernel: str, device="cpu"):
     """``advance(S, P, out_times, gidx, gin)``: one time step and its output record (_record): the torch
     step (stepping.make_step), compiled with its record when ``kernel`` is "compiled" (one compiled call
-    per step), or the fused CPU step (fused_cpu) when ``kernel`` is "fused" and it covers ``F``."""
-    from . import fused_cpu
+    per step), or when ``kernel`` is "fused" the Triton step (fused_triton: CUDA, or any device under
+    TRITON_INTERPRET=1) or else the fused CPU step (fused_cpu), where they run."""
+    from . import fused_cpu, fused_triton
 
-    fused = kernel == "fused" and fused_cpu.supported(F, device) is None
+    fused = ""
+    if kernel == "fused":
+        fused = "triton" if fused_triton.supported(F, device) is None else \
+            "cpu" if fused_cpu.supported(F, device) is None else ""
     compile_ = kernel == "compiled"
     key = (F, compile_, fused)
     fn = _STEP_CACHE.get(key)
     if fn is None:
-        step = fused_cpu.fused_step(F) if fused else make_step(F)
+        step = {"triton": fused_triton.triton_step, "cpu": fused_cpu.fused_step}.get(fused, make_step)(F)
 
         def advance(S: dict, P: dict, out_times: Tensor, gidx: Tensor, gin: Tensor) -> dict:
             return _record(step(S, P), out_times, gidx, F.h_eps, out_times.shape[0], P["rec"], gin)

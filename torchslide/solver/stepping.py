@@ -280,23 +280,29 @@ def make_step(F: StepFlags):
         cell_area = F.dx * F.dx
         ke = 0.5 * (hN * spd2).sum(dim=(1, 2)) * cell_area
         mass = hfin.sum(dim=(1, 2)) * cell_area
-        out["ke"] = ke
-        out["mass"] = mass
-        peak = torch.maximum(S["ke_peak"], ke)
-        out["ke_peak"] = peak
-        finite = torch.isfinite(ke) & torch.isfinite(mass)
-        # calm: motion fell below a fraction of its peak, or nothing has moved at all (a release that
-        # friction holds at rest ends at once instead of idling to t_end)
-        # (stop_ke_fraction = 0 switches stopping off altogether)
-        calm = (peak > 0) & (ke < F.stop_ke_fraction * peak)
-        if F.stop_ke_fraction > 0:
-            calm = calm | (peak == 0)
-        at_end = hit & (t_next >= P["t_end"])
-        newly_failed = active & ~finite
-        newly_stopped = active & finite & calm & ~at_end
-        out["failed"] = S["failed"] | newly_failed
-        out["stopped"] = S["stopped"] | newly_stopped
-        out["active"] = active & finite & ~calm & ~at_end
-        return out
+        return end_of_step(S, out, P, F, ke, mass)
 
     return step
+
+
+def end_of_step(S: dict, out: dict, P: dict, F: StepFlags, ke: Tensor, mass: Tensor) -> dict:
+    """The per-member end test of a step: ``out`` (the new state, with "hit") gets the kinetic energy
+    ``ke`` and mass ``mass`` (B,) of its records, the peak kinetic energy, and which members failed
+    (non-finite), stopped (calm) or stay active; ``S`` is the state the step started from."""
+    out["ke"] = ke
+    out["mass"] = mass
+    peak = torch.maximum(S["ke_peak"], ke)
+    out["ke_peak"] = peak
+    finite = torch.isfinite(ke) & torch.isfinite(mass)
+    # calm: motion fell below a fraction of its peak, or nothing has moved at all (a release that
+    # friction holds at rest ends at once instead of idling to t_end)
+    # (stop_ke_fraction = 0 switches stopping off altogether)
+    calm = (peak > 0) & (ke < F.stop_ke_fraction * peak)
+    if F.stop_ke_fraction > 0:
+        calm = calm | (peak == 0)
+    active = S["active"]
+    at_end = out["hit"] & (S["t_next"] >= P["t_end"])
+    out["failed"] = S["failed"] | (active & ~finite)
+    out["stopped"] = S["stopped"] | (active & finite & calm & ~at_end)
+    out["active"] = active & finite & ~calm & ~at_end
+    return out

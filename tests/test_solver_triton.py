@@ -1,0 +1,75 @@
+"""The Triton step against the torch step under Triton's interpreter (tests/triton_interpret.py: one case
+per process, since the interpreter is chosen when triton is imported); every output of short whole runs
+equal to round-off in float64 and within 1e-5 in float32. On a GPU, tests/test_gpu.py runs the compiled
+kernels against eager on the verification cases."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from . import triton_interpret
+
+pytest.importorskip("triton")
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("case", sorted(triton_interpret.CASES))
+def test_triton_step_equals_the_torch_step(case):
+    env = dict(os.environ, TRITON_INTERPRET="1", OMP_NUM_THREADS="1")
+    run = subprocess.run([sys.executable, "-m", "tests.triton_interpret", case], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+    assert "equals the torch step" in run.stdout
+
+
+def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch):
+    from torchslide.solver import fused_triton
+    from torchslide.solver.stepping import StepFlags
+
+    F = StepFlags(dx=40.0, g=9.81, cfl=0.45, theta=1.3, h_eps=1e-3, h_wet=1e-4, wb_ratio=0.25, dt_max=1.0,
+                  stop_ke_fraction=1e-4, arrival_threshold=0.1, v_max_min_depth=0.05, entrain_h_min=0.01,
+                  no_creep=True, slope_correction=True, use_ep=True, use_curv=True, use_ent=True, use_dep=True,
+                  use_mu_i=True, use_mu_scale=True, domain="wall")
+    monkeypatch.delenv("TRITON_INTERPRET", raising=False)
+    assert fused_triton.supported(F, "cuda") is None
+    assert "CUDA" in fused_triton.supported(F, "cpu")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    assert fused_triton.supported(F, "cpu") is None
+
+
+SWITCHES = {"_cells": ("USE_EP",), "_faces": ("NO_CREEP", "WALLS", "USE_MUS"), "_drain": (),
+            "_update": ("SLOPE", "USE_CURV", "USE_MU_I", "USE_ENT", "USE_DEP", "USE_MUS", "GONE_OUT", "INFLOW"),
+            "_combine": ("MOVING", "USE_ENT", "USE_DEP")}
+
+
+@pytest.mark.parametrize("dtype", ["fp64", "fp32"])
+@pytest.mark.parametrize("on", [True, False])
+def test_the_triton_kernels_compile_for_an_h100(dtype, on):
+    """Every kernel compiles ahead of time for sm_90 (triton's own ptxas; no GPU needed), with every switch
+    on or off: what the interpreter does not check (types, constexpr globals, the lowering)."""
+    import inspect
+
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from torchslide.solver import fused_triton
+
+    for name, switches in SWITCHES.items():
+        for axis in ((0, 1) if name == "_faces" else (None,)):
+            fn = getattr(fused_triton, name)
+            params = list(inspect.signature(fn.fn).parameters)
+            consts = {"BLOCK": fused_triton.BLOCK, **{s: on for s in switches}}
+            if axis is not None:
+                consts["AXIS"] = axis
+            sig = {p: "constexpr" if p in consts else ("*i1" if p == "inside_ptr" else f"*{dtype}")
+                   if p.endswith("_ptr") else "i32" for p in params}
+            src = ASTSource(fn=fn, signature=sig, constexprs={(params.index(k),): v for k, v in consts.items()})
+            kernel = triton.compile(src, target=GPUTarget("cuda", 90, 32),
+                                    options={"enable_fp_fusion": dtype != "fp64"})
+            assert len(kernel.asm["cubin"]) > 0, name

@@ -1,0 +1,91 @@
+"""The Triton step (torchslide.solver.fused_triton) against the torch step, run by Triton's interpreter on
+the CPU: ``TRITON_INTERPRET=1 python -m tests.triton_interpret CASE``, one case of CASES per process (the
+interpreter is chosen when triton is imported). tests/test_solver_triton.py runs each case; the cases are
+short runs (a few steps: the interpreter takes about a second per step) that switch on every term."""
+from __future__ import annotations
+
+import os
+import sys
+
+import numpy as np
+import torch
+
+from torchslide.solver import SolverConfig
+from torchslide.terrain.grid import DEM
+
+from .conftest import cap_release, tilted_plane
+from .test_solver_fused import _channel, _compare
+
+
+def channel():
+    dem, rel, gauges = _channel()
+    _compare(dem, rel, {"mu": [0.2, 0.3], "xi": [500.0, 2000.0]}, SolverConfig(), gauges, t_end=6.0)
+
+
+def terms():
+    """Every friction- and pressure-side term on in one member, off in the other (switch 0)."""
+    dem, rel, gauges = _channel()
+    params = {"mu": [0.2, 0.25], "xi": 800.0, "tau_y": [2.0, 0.0], "earth_pressure": [1.0, 0.0], "phi_int": 35.0,
+              "curvature": [1.0, 0.0], "mu_i": [0.3, 0.0]}
+    _compare(dem, rel, params, SolverConfig(), gauges, t_end=6.0)
+
+
+def moving_bed():
+    """Entrainment and deposition: the bed and its metric change every stage."""
+    dem, rel, gauges = _channel()
+    erod = np.full(dem.shape, 0.5)
+    params = {"mu": [0.2, 0.25], "xi": 800.0, "kappa": [0.004, 0.0], "deposition": [0.3, 0.0]}
+    ref = _compare(dem, rel, params, SolverConfig(), gauges, t_end=6.0, erodible_depth=erod)
+    assert float(ref.entrained_volume[0]) > 0
+
+
+def nodata():
+    dem, rel, gauges = _channel()
+    outside = np.zeros(dem.shape, dtype=bool)
+    outside[:, 10:12] = True                 # a band of nodata across the path, beside the release
+    outside[:8, 4:10] = True
+    dem = DEM(dem.z, dem.cellsize, outside=outside)
+    lost = {rule: _compare(dem, rel, {"mu": [0.15, 0.25], "xi": 1500.0}, SolverConfig(nodata=rule),
+                           t_end=6.0).outflow_volume for rule in ("outflow", "wall")}
+    assert float(lost["outflow"].min()) > 0 and float(lost["wall"].max()) == 0    # the flow reached the band
+
+
+def plane():
+    """A plane dipping 30 degrees off the grid axes: an open boundary, no slope metric and no no-creep
+    rule, a friction map, no turbulent friction (xi = inf) with k_ap 1.5."""
+    dem = tilted_plane(12, 20.0, 35.0, plan_deg=30.0)[0]
+    rel = cap_release(dem, -20.0, -10.0, 50.0, 4.0)
+    params = {"mu": [0.3, 0.4], "xi": [400.0, 1500.0]}
+    _compare(dem, rel, params, SolverConfig(boundary="open"), t_end=1.5)
+    _compare(dem, rel, params, SolverConfig(slope_correction=False, no_creep=False), t_end=1.5)
+    ms = np.ones(dem.shape)
+    ms[:, : dem.shape[1] // 2] = 0.8
+    _compare(dem, rel, params, SolverConfig(), t_end=1.5, mu_scale=ms)
+    _compare(dem, rel, {"mu": 0.3, "xi": float("inf"), "k_ap": 1.5}, SolverConfig(), t_end=1.5)
+
+
+def float32():
+    dem, rel, gauges = _channel()
+    _compare(dem, rel, {"mu": [0.2, 0.3], "xi": [500.0, 2000.0]}, SolverConfig(), gauges, t_end=6.0,
+             dtype=torch.float32, rtol=1e-5)
+
+
+CASES = {f.__name__: f for f in (channel, terms, moving_bed, nodata, plane, float32)}
+
+
+def main(name: str) -> None:
+    if os.environ.get("TRITON_INTERPRET") != "1":
+        raise SystemExit("run with TRITON_INTERPRET=1")
+    from torchslide.solver import fused_triton
+
+    calls = []
+    make = fused_triton.triton_step
+    fused_triton.triton_step = lambda F: calls.append(F) or make(F)
+    CASES[name]()
+    if not calls:
+        raise SystemExit(f"{name}: the Triton step was not used")
+    print(f"{name}: the Triton step equals the torch step ({len(calls)} configurations)")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

@@ -1,0 +1,660 @@
+"""The solver step as Triton kernels (CUDA; on the CPU under TRITON_INTERPRET=1, for the tests).
+
+``triton_step(F)`` returns a drop-in for ``stepping.make_step(F)``: the same SSP-RK2 step with the same
+arithmetic in the same order per cell and per face (stepping._stage, scheme.sweep, scheme.frozen_faces,
+scheme.draining_factors, friction.apply_friction), so it equals the torch step to round-off; the sums
+over the grid (mass, kinetic energy, outflow) add in another order. A stage is five kernels, each one
+pass over the grid of every member (grid axis 1 = member):
+
+    _cells     u, v (KP07 Eq. 2.17) and the pressure coefficient k g_n cos (earth pressure per cell)
+    _faces     x or y faces: reconstruction, central-upwind fluxes (KP07 Eq. 3.11), the no-creep rule,
+               domain walls, the largest one-sided speed per block (for the CFL step)
+    _drain     the draining-flux factor per cell (Bollermann et al. 2013)
+    _update    fluxes, bed source and pressure along the surface (Eq. 2-3), entrainment / deposition,
+               friction (Eq. 4), outflow per block
+
+and one more per step, ``_combine`` (the Heun average, h_max, v_max, arrival, mass and kinetic energy
+per block). Nothing in a step waits for the host: the CFL time step, the end times and the stop test
+are per-member tensors on the device. Constants travel in a tensor of the state's dtype (Triton takes
+a Python float as float32), switches as compile-time constants (one specialisation per set of terms,
+cached on disk by Triton). A bed that evolves has its metric recomputed per stage by
+stepping.static_geometry.
+"""
+from __future__ import annotations
+
+import math
+import os
+
+import torch
+
+from ..physics import FR_DEP, MU_I_D, MU_I_I0
+from .scheme import WAVE_SPEED_MIN
+from .stepping import end_of_step, static_geometry
+
+try:
+    import triton
+    import triton.language as tl
+except ImportError:     # the Triton step is optional: without triton a GPU runs the torch step
+    triton = None
+
+PM = ("mu", "xi", "tau_y", "k_ap", "earth_pressure", "k_act", "k_pass", "curvature", "mu_i", "kappa", "deposition")
+"""The per-member parameters the kernels read, in their order (columns of the (B, 11) table)."""
+
+BLOCK = 512
+"""Cells (or faces) per program."""
+
+
+def interpreted() -> bool:
+    return os.environ.get("TRITON_INTERPRET", "0") == "1"
+
+
+def supported(F, device) -> str | None:
+    """None when the Triton step runs the call's settings ``F`` on ``device``, else why not: it needs
+    triton and a CUDA device (or any device under TRITON_INTERPRET=1)."""
+    if triton is None:
+        return "triton is not installed"
+    if torch.device(device).type != "cuda" and not interpreted():
+        return "the Triton step runs on CUDA (or under TRITON_INTERPRET=1)"
+    return None
+
+
+if triton is not None:
+    # indices into the kernels' constant table (_constants; compile-time constants: Triton reads no other globals)
+    C_G, C_DX, C_THETA, C_HEPS4, C_HWET, C_WB, C_SQRT2, C_WSMIN, C_HEPS, C_ENTMIN, C_FRDEP, C_MUI, C_I0, C_TINY, \
+        C_VMIN, C_ARR, C_INF = (tl.constexpr(k) for k in range(17))
+
+    @triton.jit
+    def _max(a, b):
+        return tl.maximum(a, b, propagate_nan=tl.PropagateNan.ALL)
+
+    @triton.jit
+    def _min(a, b):
+        return tl.minimum(a, b, propagate_nan=tl.PropagateNan.ALL)
+
+    @triton.jit
+    def _desing(h, q, sqrt2, heps4):
+        """friction.desingularised_velocity."""
+        h4 = h * h * h * h
+        return sqrt2 * h * q / tl.sqrt(h4 + _max(h4, heps4))
+
+    @triton.jit
+    def _minmod3(a, b, c):
+        mn = _min(_min(a, b), c)
+        mx = _max(_max(a, b), c)
+        return tl.where(mn > 0, mn, tl.where(mx < 0, mx, 0.0))
+
+    @triton.jit
+    def _lin(ptr, base, c, n, stride, m):
+        """The field at cell c (in [-2, n + 1]) of a line of n cells, ghost cells by linear extrapolation
+        (scheme.pad_linear)."""
+        q = tl.load(ptr + base + tl.minimum(tl.maximum(c, 0), n - 1) * stride, mask=m, other=0.0)
+        lo, hi = m & (c < 0), m & (c >= n)
+        l0 = tl.load(ptr + base, mask=lo, other=0.0)
+        l1 = tl.load(ptr + base + stride, mask=lo, other=0.0)
+        r0 = tl.load(ptr + base + (n - 1) * stride, mask=hi, other=0.0)
+        r1 = tl.load(ptr + base + (n - 2) * stride, mask=hi, other=0.0)
+        q = tl.where(c == -1, 2 * l0 - l1, q)
+        q = tl.where(c == -2, 3 * l0 - 2 * l1, q)
+        q = tl.where(c == n, 2 * r0 - r1, q)
+        return tl.where(c == n + 1, 3 * r0 - 2 * r1, q)
+
+    @triton.jit
+    def _rep(ptr, base, c, n, stride, m):
+        """The field at cell c of a line of n cells, ghost cells holding the edge value (scheme.pad_replicate)."""
+        return tl.load(ptr + base + tl.minimum(tl.maximum(c, 0), n - 1) * stride, mask=m, other=0.0)
+
+    @triton.jit
+    def _cells(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, c_ptr, u_ptr, v_ptr, kg_ptr, ny, nx, s_geo,
+               USE_EP: tl.constexpr, BLOCK: tl.constexpr):
+        """u, v and kg = k g cos^2 per cell (stepping._stage's first lines, stepping._earth_pressure)."""
+        b = tl.program_id(1)
+        idx = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = idx < ny * nx
+        i, j = idx // nx, idx % nx
+        cb = b * ny * nx
+        g, sqrt2, heps4 = tl.load(c_ptr + C_G), tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
+        h = tl.load(h_ptr + cb + idx, mask=m, other=0.0)
+        u = _desing(h, tl.load(hu_ptr + cb + idx, mask=m, other=0.0), sqrt2, heps4)
+        v = _desing(h, tl.load(hv_ptr + cb + idx, mask=m, other=0.0), sqrt2, heps4)
+        cs = tl.load(cs_ptr + b * s_geo + idx, mask=m, other=1.0)
+        k = tl.load(pm_ptr + b * 11 + 3)
+        if USE_EP:      # active where the flow spreads (div u >= 0), passive where it converges
+            je, jw = tl.minimum(j + 1, nx - 1), tl.maximum(j - 1, 0)
+            i_n, i_s = tl.minimum(i + 1, ny - 1), tl.maximum(i - 1, 0)
+            ue = _desing(tl.load(h_ptr + cb + i * nx + je, mask=m, other=0.0),
+                         tl.load(hu_ptr + cb + i * nx + je, mask=m, other=0.0), sqrt2, heps4)
+            uw = _desing(tl.load(h_ptr + cb + i * nx + jw, mask=m, other=0.0),
+                         tl.load(hu_ptr + cb + i * nx + jw, mask=m, other=0.0), sqrt2, heps4)
+            vn = _desing(tl.load(h_ptr + cb + i_n * nx + j, mask=m, other=0.0),
+                         tl.load(hv_ptr + cb + i_n * nx + j, mask=m, other=0.0), sqrt2, heps4)
+            vs = _desing(tl.load(h_ptr + cb + i_s * nx + j, mask=m, other=0.0),
+                         tl.load(hv_ptr + cb + i_s * nx + j, mask=m, other=0.0), sqrt2, heps4)
+            div = (ue - uw) + (vn - vs)
+            s = tl.load(pm_ptr + b * 11 + 4)
+            ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
+            k = (1.0 - s) * k + s * ksh
+        tl.store(u_ptr + cb + idx, u, mask=m)
+        tl.store(v_ptr + cb + idx, v, mask=m)
+        tl.store(kg_ptr + cb + idx, k * (g * cs) * cs, mask=m)
+
+    @triton.jit
+    def _fo(b, ny, nx, AXIS: tl.constexpr):
+        """Offset of member b's faces: (ny, nx + 1) x faces or (ny + 1, nx) y faces per member."""
+        if AXIS == 0:
+            return b * ny * (nx + 1)
+        else:
+            return b * (ny + 1) * nx
+
+    @triton.jit
+    def _faces(h_ptr, un_ptr, ut_ptr, kg_ptr, hu_ptr, hv_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr,
+               pm_ptr, c_ptr, fh_ptr, fqn_ptr, fqt_ptr, phi_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zp, s_geo,
+               AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr,
+               BLOCK: tl.constexpr):
+        """scheme.sweep (and scheme.frozen_faces, stepping._domain_walls) at the x faces (AXIS 0: (ny, nx + 1)
+        per member) or the y faces (AXIS 1: (ny + 1, nx)); face f of a line lies between cells f - 1 and f.
+        zp: the bed padded along the axis (scheme.bed_terms' zp)."""
+        b = tl.program_id(1)
+        pid = tl.program_id(0)
+        idx = pid * BLOCK + tl.arange(0, BLOCK)
+        if AXIS == 0:
+            n = nx
+            m = idx < ny * (nx + 1)
+            line, f = idx // (nx + 1), idx % (nx + 1)
+            base, st = line * nx, 1
+            zbase, zst = line * (nx + 4), 1
+        else:
+            n = ny
+            m = idx < (ny + 1) * nx
+            f, line = idx // nx, idx % nx
+            base, st = line, nx
+            zbase, zst = line, nx
+        cb = b * ny * nx
+        gb = b * s_geo
+        g, dx, theta = tl.load(c_ptr + C_G), tl.load(c_ptr + C_DX), tl.load(c_ptr + C_THETA)
+        h_wet, wb, wsmin = tl.load(c_ptr + C_HWET), tl.load(c_ptr + C_WB), tl.load(c_ptr + C_WSMIN)
+        # thickness (clipped at 0) and bed at the four cells f - 2 .. f + 1 (padded indices f .. f + 3)
+        h0 = _max(_lin(h_ptr, cb + base, f - 2, n, st, m), 0.0)
+        h1 = _max(_lin(h_ptr, cb + base, f - 1, n, st, m), 0.0)
+        h2 = _max(_lin(h_ptr, cb + base, f, n, st, m), 0.0)
+        h3 = _max(_lin(h_ptr, cb + base, f + 1, n, st, m), 0.0)
+        zb = zp_ptr + b * s_zp + zbase
+        z0 = tl.load(zb + f * zst, mask=m, other=0.0)
+        z1 = tl.load(zb + (f + 1) * zst, mask=m, other=0.0)
+        z2 = tl.load(zb + (f + 2) * zst, mask=m, other=0.0)
+        z3 = tl.load(zb + (f + 3) * zst, mask=m, other=0.0)
+        bf = 0.5 * (z1 + z2)
+        # surface w = h + z where wet, thickness h at wet/dry fronts (scheme.sweep)
+        w0, w1, w2, w3 = h0 + z0, h1 + z1, h2 + z2, h3 + z3
+        wl = w1 + 0.5 * _minmod3(theta * (w1 - w0), 0.5 * (w2 - w0), theta * (w2 - w1))
+        wr = w2 - 0.5 * _minmod3(theta * (w2 - w1), 0.5 * (w3 - w1), theta * (w3 - w2))
+        hlh = h1 + 0.5 * _minmod3(theta * (h1 - h0), 0.5 * (h2 - h0), theta * (h2 - h1))
+        hrh = h2 - 0.5 * _minmod3(theta * (h2 - h1), 0.5 * (h3 - h1), theta * (h3 - h2))
+        bias_l = tl.abs(z2 - 2.0 * z1 + z0) * 0.25
+        bias_r = tl.abs(z3 - 2.0 * z2 + z1) * 0.25
+        wet_l = (_min(_min(h0, h1), h2) > h_wet) & (bias_l <= wb * h1)
+        wet_r = (_min(_min(h1, h2), h3) > h_wet) & (bias_r <= wb * h2)
+        hl = tl.where(wet_l, _max(wl - bf, 0.0), hlh)
+        hr = tl.where(wet_r, _max(wr - bf, 0.0), hrh)
+        # velocities normal (un) and tangential (ut) to the face, replicated at the edges
+        u0, u1 = _rep(un_ptr, cb + base, f - 2, n, st, m), _rep(un_ptr, cb + base, f - 1, n, st, m)
+        u2, u3 = _rep(un_ptr, cb + base, f, n, st, m), _rep(un_ptr, cb + base, f + 1, n, st, m)
+        ul = u1 + 0.5 * _minmod3(theta * (u1 - u0), 0.5 * (u2 - u0), theta * (u2 - u1))
+        ur = u2 - 0.5 * _minmod3(theta * (u2 - u1), 0.5 * (u3 - u1), theta * (u3 - u2))
+        t0, t1 = _rep(ut_ptr, cb + base, f - 2, n, st, m), _rep(ut_ptr, cb + base, f - 1, n, st, m)
+        t2, t3 = _rep(ut_ptr, cb + base, f, n, st, m), _rep(ut_ptr, cb + base, f + 1, n, st, m)
+        tlf = t1 + 0.5 * _minmod3(theta * (t1 - t0), 0.5 * (t2 - t0), theta * (t2 - t1))
+        trf = t2 - 0.5 * _minmod3(theta * (t2 - t1), 0.5 * (t3 - t1), theta * (t3 - t2))
+        kgl, kgr = _rep(kg_ptr, cb + base, f - 1, n, st, m), _rep(kg_ptr, cb + base, f, n, st, m)
+        # central-upwind fluxes (KP07 Eq. 3.11)
+        cl = tl.sqrt(kgl * hl)
+        cr = tl.sqrt(kgr * hr)
+        ap = _max(_max(ur + cr, ul + cl), 0.0)
+        am = _min(_min(ur - cr, ul - cl), 0.0)
+        den = ap - am
+        pos = den > wsmin
+        inv = tl.where(pos, 1.0 / tl.where(pos, den, 1.0), 0.0)
+        apam = ap * am * inv
+        ql, qr = hl * ul, hr * ur
+        fh = (ap * ql - am * qr) * inv + apam * (hr - hl)
+        fqn = (ap * ql * ul - am * qr * ur) * inv + apam * (qr - ql)
+        fqt = (ap * ql * tlf - am * qr * trf) * inv + apam * (hr * trf - hl * tlf)
+        phi = 0.5 * (ap * hl * hl - am * hr * hr) * inv
+        if NO_CREEP or WALLS:
+            frozen = tl.zeros([BLOCK], dtype=tl.int1)
+            a = tl.minimum(tl.maximum(f - 1, 0), n - 1)
+            c = tl.minimum(f, n - 1)
+            if NO_CREEP:    # scheme.frozen_faces: both cells at rest and friction holds the face's drive
+                hf = 0.5 * (h1 + h2)
+                f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf / dx
+                zxf = 0.5 * (tl.load(zx_ptr + gb + base + a * st, mask=m, other=0.0)
+                             + tl.load(zx_ptr + gb + base + c * st, mask=m, other=0.0))
+                zyf = 0.5 * (tl.load(zy_ptr + gb + base + a * st, mask=m, other=0.0)
+                             + tl.load(zy_ptr + gb + base + c * st, mask=m, other=0.0))
+                csa = tl.load(cs_ptr + gb + base + a * st, mask=m, other=1.0)
+                csc = tl.load(cs_ptr + gb + base + c * st, mask=m, other=1.0)
+                csf = 0.5 * (csa + csc)
+                mu = tl.load(pm_ptr + b * 11)
+                tau = tl.load(pm_ptr + b * 11 + 2)
+                if USE_MUS:
+                    mua = mu * tl.load(mus_ptr + base + a * st, mask=m, other=1.0)
+                    muc = mu * tl.load(mus_ptr + base + c * st, mask=m, other=1.0)
+                else:
+                    mua = mu
+                    muc = mu
+                muf = 0.5 * (mua * (g * csa) + muc * (g * csc))
+                tauf = 0.5 * (tau / csa + tau / csc)
+                if AXIS == 0:
+                    f_t = -g * zyf * hf
+                    ax, ay = f_n, f_t
+                else:
+                    f_t = -g * zxf * hf
+                    ax, ay = f_t, f_n
+                along = zxf * ax + zyf * ay
+                drive2 = ax * ax + ay * ay - csf * csf * along * along
+                lim = muf * hf + tauf
+                rest_a = (tl.load(hu_ptr + cb + base + a * st, mask=m, other=1.0) == 0) \
+                    & (tl.load(hv_ptr + cb + base + a * st, mask=m, other=1.0) == 0)
+                rest_c = (tl.load(hu_ptr + cb + base + c * st, mask=m, other=1.0) == 0) \
+                    & (tl.load(hv_ptr + cb + base + c * st, mask=m, other=1.0) == 0)
+                frozen = rest_a & rest_c & (drive2 <= lim * lim)
+            if WALLS:       # faces between a cell of the domain and one outside it
+                ins_a = tl.load(inside_ptr + base + a * st, mask=m, other=0)
+                ins_c = tl.load(inside_ptr + base + c * st, mask=m, other=0)
+                frozen = frozen | (ins_a != ins_c)
+            fh = tl.where(frozen, 0.0, fh)
+            fqn = tl.where(frozen, 0.0, fqn)
+            fqt = tl.where(frozen, 0.0, fqt)
+        fo = _fo(b, ny, nx, AXIS)
+        tl.store(fh_ptr + fo + idx, fh, mask=m)
+        tl.store(fqn_ptr + fo + idx, fqn, mask=m)
+        tl.store(fqt_ptr + fo + idx, fqt, mask=m)
+        tl.store(phi_ptr + fo + idx, phi, mask=m)
+        tl.store(hl_ptr + fo + idx, hl, mask=m)
+        tl.store(hr_ptr + fo + idx, hr, mask=m)
+        tl.store(amax_ptr + b * tl.num_programs(0) + pid, tl.max(tl.where(m, _max(ap, -am), 0.0), axis=0))
+
+    @triton.jit
+    def _drain(h_ptr, fhx_ptr, fhy_ptr, dt_ptr, c_ptr, fac_ptr, ny, nx, BLOCK: tl.constexpr):
+        """scheme.draining_factors' factor per cell: content / outgoing mass where that is below 1."""
+        b = tl.program_id(1)
+        idx = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = idx < ny * nx
+        i, j = idx // nx, idx % nx
+        xw = b * ny * (nx + 1) + i * (nx + 1) + j
+        ys = b * (ny + 1) * nx + idx
+        out = (_max(tl.load(fhx_ptr + xw + 1, mask=m, other=0.0), 0.0) + _max(-tl.load(fhx_ptr + xw, mask=m, other=0.0), 0.0)) \
+            + (_max(tl.load(fhy_ptr + ys + nx, mask=m, other=0.0), 0.0) + _max(-tl.load(fhy_ptr + ys, mask=m, other=0.0), 0.0))
+        out = out * (tl.load(dt_ptr + b) / tl.load(c_ptr + C_DX))
+        h = tl.load(h_ptr + b * ny * nx + idx, mask=m, other=0.0)
+        over = out > h
+        tl.store(fac_ptr + b * ny * nx + idx, tl.where(over, h / tl.where(over, out, 1.0), 1.0), mask=m)
+
+    @triton.jit
+    def _face_factor(flux, fac_ptr, up, down, has_up, has_down, ghost, m):
+        """The draining factor of a face: its upwind cell's (``up`` for flux > 0, else ``down``; ``ghost``
+        outside the grid)."""
+        f_up = tl.where(has_up, tl.load(fac_ptr + up, mask=m & has_up, other=1.0), ghost)
+        f_down = tl.where(has_down, tl.load(fac_ptr + down, mask=m & has_down, other=1.0), ghost)
+        return tl.where(flux > 0, f_up, f_down)
+
+    @triton.jit
+    def _hform(zxx, zxy, zyy, u, v):
+        """stepping._hessian_form: u^T H u."""
+        return zxx * u * u + 2.0 * zxy * u * v + zyy * v * v
+
+    @triton.jit
+    def _update(h_ptr, hu_ptr, hv_ptr, z_ptr, erod_ptr, dep_ptr, u_ptr, v_ptr, kg_ptr, fac_ptr,
+                fhx_ptr, fqnx_ptr, fqtx_ptr, phix_ptr, hlx_ptr, hrx_ptr,
+                fhy_ptr, fqny_ptr, fqty_ptr, phiy_ptr, hly_ptr, hry_ptr,
+                zpx_ptr, zpy_ptr, zx_ptr, zy_ptr, cs_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr,
+                pm_ptr, c_ptr, dt_ptr, ho_ptr, huo_ptr, hvo_ptr, zo_ptr, erodo_ptr, depo_ptr, part_ptr,
+                ny, nx, s_geo, s_zpx, s_zpy,
+                SLOPE: tl.constexpr, USE_CURV: tl.constexpr, USE_MU_I: tl.constexpr, USE_ENT: tl.constexpr,
+                USE_DEP: tl.constexpr, USE_MUS: tl.constexpr, GONE_OUT: tl.constexpr, INFLOW: tl.constexpr,
+                BLOCK: tl.constexpr):
+        """The rest of stepping._stage for each cell: draining-limited fluxes, gravity and pressure along
+        the surface (Eq. 2-3), entrainment and deposition, friction (Eq. 4, friction.apply_friction). part:
+        (B, programs, 2) the block's boundary flux (outward, m^2/s) and the thickness lost outside the domain."""
+        b = tl.program_id(1)
+        pid = tl.program_id(0)
+        idx = pid * BLOCK + tl.arange(0, BLOCK)
+        m = idx < ny * nx
+        i, j = idx // nx, idx % nx
+        cb = b * ny * nx
+        gb = b * s_geo
+        g, dx = tl.load(c_ptr + C_G), tl.load(c_ptr + C_DX)
+        sqrt2, heps4, h_eps = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4), tl.load(c_ptr + C_HEPS)
+        if INFLOW:
+            ghost = 1.0
+        else:
+            ghost = 0.0
+        dt = tl.load(dt_ptr + b)
+        # draining-limited fluxes at the four faces of the cell
+        xw = b * ny * (nx + 1) + i * (nx + 1) + j
+        ys = b * (ny + 1) * nx + idx
+        fc = fac_ptr + cb
+        fhxw, fhxe = tl.load(fhx_ptr + xw, mask=m, other=0.0), tl.load(fhx_ptr + xw + 1, mask=m, other=0.0)
+        fhys, fhyn = tl.load(fhy_ptr + ys, mask=m, other=0.0), tl.load(fhy_ptr + ys + nx, mask=m, other=0.0)
+        k_w = _face_factor(fhxw, fc, idx - 1, idx, j >= 1, j >= 0, ghost, m)
+        k_e = _face_factor(fhxe, fc, idx, idx + 1, j >= 0, j + 1 < nx, ghost, m)
+        k_s = _face_factor(fhys, fc, idx - nx, idx, i >= 1, i >= 0, ghost, m)
+        k_n = _face_factor(fhyn, fc, idx, idx + nx, i >= 0, i + 1 < ny, ghost, m)
+        fhxw, fhxe, fhys, fhyn = fhxw * k_w, fhxe * k_e, fhys * k_s, fhyn * k_n
+        fqnxw = tl.load(fqnx_ptr + xw, mask=m, other=0.0) * k_w
+        fqnxe = tl.load(fqnx_ptr + xw + 1, mask=m, other=0.0) * k_e
+        fqtxw = tl.load(fqtx_ptr + xw, mask=m, other=0.0) * k_w
+        fqtxe = tl.load(fqtx_ptr + xw + 1, mask=m, other=0.0) * k_e
+        fqnys = tl.load(fqny_ptr + ys, mask=m, other=0.0) * k_s
+        fqnyn = tl.load(fqny_ptr + ys + nx, mask=m, other=0.0) * k_n
+        fqtys = tl.load(fqty_ptr + ys, mask=m, other=0.0) * k_s
+        fqtyn = tl.load(fqty_ptr + ys + nx, mask=m, other=0.0) * k_n
+        bnd = tl.where(j == nx - 1, fhxe, 0.0) - tl.where(j == 0, fhxw, 0.0) \
+            + (tl.where(i == ny - 1, fhyn, 0.0) - tl.where(i == 0, fhys, 0.0))
+        h = tl.load(h_ptr + cb + idx, mask=m, other=0.0)
+        lam = dt / dx
+        hn = h - lam * ((fhxe - fhxw) + (fhyn - fhys))
+        # gravity and pressure as horizontal gradients (times dx), well-balanced bed source (KP07 Eq. 3.13)
+        kg = tl.load(kg_ptr + cb + idx, mask=m, other=0.0)
+        zpx = zpx_ptr + b * s_zpx + i * (nx + 4) + j
+        zpy = zpy_ptr + b * s_zpy + idx
+        dbx = 0.5 * (tl.load(zpx + 2, mask=m, other=0.0) + tl.load(zpx + 3, mask=m, other=0.0)) \
+            - 0.5 * (tl.load(zpx + 1, mask=m, other=0.0) + tl.load(zpx + 2, mask=m, other=0.0))
+        dby = 0.5 * (tl.load(zpy + 2 * nx, mask=m, other=0.0) + tl.load(zpy + 3 * nx, mask=m, other=0.0)) \
+            - 0.5 * (tl.load(zpy + nx, mask=m, other=0.0) + tl.load(zpy + 2 * nx, mask=m, other=0.0))
+        hbarx = 0.5 * (tl.load(hrx_ptr + xw, mask=m, other=0.0) + tl.load(hlx_ptr + xw + 1, mask=m, other=0.0))
+        hbary = 0.5 * (tl.load(hry_ptr + ys, mask=m, other=0.0) + tl.load(hly_ptr + ys + nx, mask=m, other=0.0))
+        px = kg * (tl.load(phix_ptr + xw + 1, mask=m, other=0.0) - tl.load(phix_ptr + xw, mask=m, other=0.0)) \
+            + g * hbarx * dbx
+        py = kg * (tl.load(phiy_ptr + ys + nx, mask=m, other=0.0) - tl.load(phiy_ptr + ys, mask=m, other=0.0)) \
+            + g * hbary * dby
+        zx = tl.load(zx_ptr + gb + idx, mask=m, other=0.0)
+        zy = tl.load(zy_ptr + gb + idx, mask=m, other=0.0)
+        cs = tl.load(cs_ptr + gb + idx, mask=m, other=1.0)
+        u = tl.load(u_ptr + cb + idx, mask=m, other=0.0)
+        v = tl.load(v_ptr + cb + idx, mask=m, other=0.0)
+        if SLOPE or USE_CURV:
+            zxx = tl.load(zxx_ptr + gb + idx, mask=m, other=0.0)
+            zxy = tl.load(zxy_ptr + gb + idx, mask=m, other=0.0)
+            zyy = tl.load(zyy_ptr + gb + idx, mask=m, other=0.0)
+        if SLOPE:   # the bed's reaction on a curved surface, then the projection along it (inverse_metric)
+            cent = h * _hform(zxx, zxy, zyy, u, v) * dx
+            px = px + cent * zx
+            py = py + cent * zy
+            a = cs * cs * (zx * px + zy * py)
+            px = px - zx * a
+            py = py - zy * a
+        qx = tl.load(hu_ptr + cb + idx, mask=m, other=0.0) - lam * (((fqnxe - fqnxw) + (fqtyn - fqtys)) + px)
+        qy = tl.load(hv_ptr + cb + idx, mask=m, other=0.0) - lam * (((fqtxe - fqtxw) + (fqnyn - fqnys)) + py)
+        lost = tl.zeros([BLOCK], dtype=h.dtype)
+        if GONE_OUT:    # what entered a cell outside the domain has left it
+            gone = tl.load(inside_ptr + idx, mask=m, other=1) == 0
+            lost = tl.where(gone & m, hn, 0.0)
+            hn = tl.where(gone, 0.0, hn)
+            qx = tl.where(gone, 0.0, qx)
+            qy = tl.where(gone, 0.0, qy)
+        gn = g * cs
+        if USE_ENT or USE_DEP:      # mass sources, explicit in the stage-start state
+            w0 = zx * u + zy * v
+            speed0 = tl.sqrt(u * u + v * v + w0 * w0)
+            zn = tl.load(z_ptr + cb + idx, mask=m, other=0.0)
+            if USE_ENT:
+                erod = tl.load(erod_ptr + cb + idx, mask=m, other=0.0)
+                rate = tl.load(pm_ptr + b * 11 + 9) * speed0 / cs \
+                    * (cs * h > tl.load(c_ptr + C_ENTMIN)).to(h.dtype)
+                de = _min(dt * rate, erod)
+                hn = hn + de
+                tl.store(erodo_ptr + cb + idx, erod - de, mask=m)
+                zn = zn - de
+            if USE_DEP:
+                hs0 = _max(cs * h, h_eps)
+                froude = speed0 / tl.sqrt(_max(gn, tl.load(c_ptr + C_TINY)) * hs0)
+                rate = tl.load(pm_ptr + b * 11 + 10) * h * _max(1.0 - froude / tl.load(c_ptr + C_FRDEP), 0.0)
+                hpos = _max(hn, 0.0)
+                dd = _min(dt * rate, hpos)
+                left = hpos > 0
+                ratio = tl.where(left, (hpos - dd) / tl.where(left, hpos, 1.0), 0.0)
+                qx = qx * ratio
+                qy = qy * ratio
+                hn = hn - dd
+                tl.store(depo_ptr + cb + idx, tl.load(dep_ptr + cb + idx, mask=m, other=0.0) + dd, mask=m)
+                zn = zn + dd
+            tl.store(zo_ptr + cb + idx, zn, mask=m)
+        # friction on the momentum along the surface (Eq. 4)
+        mu = tl.load(pm_ptr + b * 11)
+        if USE_MUS:
+            mu = mu * tl.load(mus_ptr + idx, mask=m, other=1.0)
+        gne = gn
+        hnp = _max(hn, 0.0)
+        if USE_CURV or USE_MU_I:
+            un = _desing(hn, qx, sqrt2, heps4)
+            vn = _desing(hn, qy, sqrt2, heps4)
+            if USE_CURV:
+                gne = _max(gn + tl.load(pm_ptr + b * 11 + 7) * (cs * _hform(zxx, zxy, zyy, un, vn)), 0.0)
+            if USE_MU_I:
+                wn = zx * un + zy * vn
+                spd = tl.sqrt(un * un + vn * vn + wn * wn)
+                hs_ = _max(cs * hnp, h_eps)
+                inertial = tl.load(c_ptr + C_MUI) * spd / (hs_ * tl.sqrt(_max(gne, tl.load(c_ptr + C_TINY)) * hs_))
+                mu = mu + tl.load(pm_ptr + b * 11 + 8) * inertial / (tl.load(c_ptr + C_I0) + inertial)
+        coul = mu * gne * hnp + tl.load(pm_ptr + b * 11 + 2) / cs
+        xi_c = tl.load(pm_ptr + b * 11 + 1) * cs
+        w = zx * qx + zy * qy
+        qn = tl.sqrt(qx * qx + qy * qy + w * w)
+        moving = qn > 0
+        keep = tl.where(moving, _max(1.0 - dt * coul / tl.where(moving, qn, 1.0), 0.0), 0.0)
+        hs = _max(hn, h_eps)
+        a4 = 4.0 * dt * (g / xi_c) / (hs * hs)
+        factor = keep * 2.0 / (1.0 + tl.sqrt(1.0 + a4 * (keep * qn)))
+        qx = qx * factor
+        qy = qy * factor
+        thin = hn < h_eps
+        qx = tl.where(thin, hn * _desing(hn, qx, sqrt2, heps4), qx)
+        qy = tl.where(thin, hn * _desing(hn, qy, sqrt2, heps4), qy)
+        tl.store(ho_ptr + cb + idx, _max(hn, 0.0), mask=m)
+        tl.store(huo_ptr + cb + idx, qx, mask=m)
+        tl.store(hvo_ptr + cb + idx, qy, mask=m)
+        pp = part_ptr + (b * tl.num_programs(0) + pid) * 2
+        tl.store(pp, tl.sum(tl.where(m, bnd, 0.0), axis=0))
+        tl.store(pp + 1, tl.sum(lost, axis=0))
+
+    @triton.jit
+    def _combine(h_ptr, hu_ptr, hv_ptr, hu1_ptr, hv1_ptr, h2_ptr, hu2_ptr, hv2_ptr, z_ptr, z2_ptr, e_ptr, e2_ptr,
+                 d_ptr, d2_ptr, rzx_ptr, rzy_ptr, rcs_ptr, hmax_ptr, vmax_ptr, arr_ptr, tnew_ptr, c_ptr,
+                 ho_ptr, huo_ptr, hvo_ptr, zo_ptr, eo_ptr, do_ptr, hmaxo_ptr, vmaxo_ptr, arro_ptr, part_ptr, ny, nx,
+                 MOVING: tl.constexpr, USE_ENT: tl.constexpr, USE_DEP: tl.constexpr, BLOCK: tl.constexpr):
+        """The Heun average of the two stages and the per-step records of stepping.make_step (h_max of the
+        normal thickness, v_max of the speed along the surface, arrival time); part: (B, programs, 2) the
+        block's sums of h |V|^2 and of the thickness per map area."""
+        b = tl.program_id(1)
+        pid = tl.program_id(0)
+        idx = pid * BLOCK + tl.arange(0, BLOCK)
+        m = idx < ny * nx
+        cb = b * ny * nx + idx
+        hn = 0.5 * (tl.load(h_ptr + cb, mask=m, other=0.0) + tl.load(h2_ptr + cb, mask=m, other=0.0))
+        hu2, hv2 = tl.load(hu2_ptr + cb, mask=m, other=0.0), tl.load(hv2_ptr + cb, mask=m, other=0.0)
+        stop = (tl.load(hu1_ptr + cb, mask=m, other=0.0) == 0) & (tl.load(hv1_ptr + cb, mask=m, other=0.0) == 0) \
+            & (hu2 == 0) & (hv2 == 0)
+        qx = tl.where(stop, 0.0, 0.5 * (tl.load(hu_ptr + cb, mask=m, other=0.0) + hu2))
+        qy = tl.where(stop, 0.0, 0.5 * (tl.load(hv_ptr + cb, mask=m, other=0.0) + hv2))
+        tl.store(ho_ptr + cb, hn, mask=m)
+        tl.store(huo_ptr + cb, qx, mask=m)
+        tl.store(hvo_ptr + cb, qy, mask=m)
+        if MOVING:
+            tl.store(zo_ptr + cb, 0.5 * (tl.load(z_ptr + cb, mask=m, other=0.0) + tl.load(z2_ptr + cb, mask=m, other=0.0)),
+                     mask=m)
+        if USE_ENT:
+            tl.store(eo_ptr + cb, 0.5 * (tl.load(e_ptr + cb, mask=m, other=0.0) + tl.load(e2_ptr + cb, mask=m, other=0.0)),
+                     mask=m)
+        hfin = hn
+        if USE_DEP:
+            dn = 0.5 * (tl.load(d_ptr + cb, mask=m, other=0.0) + tl.load(d2_ptr + cb, mask=m, other=0.0))
+            tl.store(do_ptr + cb, dn, mask=m)
+            hfin = hn + dn
+        sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
+        un = _desing(hn, qx, sqrt2, heps4)
+        vn = _desing(hn, qy, sqrt2, heps4)
+        rzx = tl.load(rzx_ptr + idx, mask=m, other=0.0)
+        rzy = tl.load(rzy_ptr + idx, mask=m, other=0.0)
+        rcs = tl.load(rcs_ptr + idx, mask=m, other=1.0)
+        w = rzx * un + rzy * vn
+        spd = tl.sqrt(un * un + vn * vn + w * w)
+        hnorm = rcs * hn
+        tl.store(hmaxo_ptr + cb, _max(tl.load(hmax_ptr + cb, mask=m, other=0.0), rcs * hfin), mask=m)
+        vmax = _max(tl.load(vmax_ptr + cb, mask=m, other=0.0), tl.where(hnorm >= tl.load(c_ptr + C_VMIN), spd, 0.0))
+        tl.store(vmaxo_ptr + cb, vmax, mask=m)
+        arr = tl.load(arr_ptr + cb, mask=m, other=0.0)
+        arrived = (arr == tl.load(c_ptr + C_INF)) & (hnorm > tl.load(c_ptr + C_ARR))
+        tl.store(arro_ptr + cb, tl.where(arrived, tl.load(tnew_ptr + b), arr), mask=m)
+        pp = part_ptr + (b * tl.num_programs(0) + pid) * 2
+        tl.store(pp, tl.sum(tl.where(m, hn * (spd * spd), 0.0), axis=0))
+        tl.store(pp + 1, tl.sum(tl.where(m, hfin, 0.0), axis=0))
+
+
+def _constants(F, dtype, device) -> torch.Tensor:
+    """The kernels' constant table (C_* indices) in the state's dtype."""
+    vals = [F.g, F.dx, F.theta, F.h_eps ** 4, F.h_wet, F.wb_ratio, 2.0 ** 0.5, WAVE_SPEED_MIN, F.h_eps,
+            F.entrain_h_min, FR_DEP, 2.5 * MU_I_D, MU_I_I0, 1e-12, F.v_max_min_depth, F.arrival_threshold, math.inf]
+    return torch.tensor(vals, dtype=dtype, device=device)
+
+
+def _launch(dtype) -> dict:
+    """Launch options: in float64 no fused multiply-add, so that every operation rounds as in the torch
+    step (round-off equality); float32 lets the compiler fuse."""
+    return {"BLOCK": BLOCK, "enable_fp_fusion": dtype != torch.float64}
+
+
+def _stride(t: torch.Tensor) -> int:
+    """Member stride of a (1 or B, ...) field: 0 when one field serves every member."""
+    return 0 if t.shape[0] == 1 else t[0].numel()
+
+
+def triton_step(F):
+    """``step(S, P) -> S`` for the settings ``F`` (StepFlags; supported(F, device) must be None):
+    stepping.make_step's step on the Triton kernels (same inputs and outputs)."""
+    moving = F.use_ent or F.use_dep
+    tables: dict = {}
+
+    def consts(dtype, device):
+        key = (dtype, str(device))
+        if key not in tables:
+            tables[key] = _constants(F, dtype, device)
+        return tables[key]
+
+    def stage(h, hu, hv, z, erod, dep, dt, dt_cap, pm, c, P, geo):
+        """stepping._stage on the kernels: the new (h, hu, hv, z, erod, dep), the outflow (B,) m^3, dt (B,)."""
+        B, ny, nx = h.shape
+        if geo is None:
+            geo = static_geometry(z, F)
+        zx, zy, cs, hess, (bx, by) = geo
+        zx, zy, cs = (a.contiguous() for a in (zx, zy, cs))
+        zxx, zxy, zyy = (a.contiguous() for a in hess) if hess is not None else (zx, zx, zx)
+        zpx, zpy = bx[0].contiguous(), by[0].contiguous()
+        s_geo = _stride(cs)
+        mus = P["mu_scale"].contiguous() if F.use_mu_scale else cs
+        inside = P["inside"].contiguous() if F.domain else cs
+        cells = (triton.cdiv(ny * nx, BLOCK), B)
+        u, v, kg = torch.empty_like(h), torch.empty_like(h), torch.empty_like(h)
+        _cells[cells](h, hu, hv, cs, pm, c, u, v, kg, ny, nx, s_geo, USE_EP=F.use_ep, **_launch(h.dtype))
+        sweeps = []
+        for axis, (un, ut, zp, nf) in enumerate(((u, v, zpx, (ny, nx + 1)), (v, u, zpy, (ny + 1, nx)))):
+            out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
+            grid = (triton.cdiv(nf[0] * nf[1], BLOCK), B)
+            amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
+            _faces[grid](h, un, ut, kg, hu, hv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
+                         _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
+                         USE_MUS=F.use_mu_scale, **_launch(h.dtype))
+            sweeps.append((out, amax.amax(dim=1)))
+        (fx, ax), (fy, ay) = sweeps
+        if dt is None:
+            dt = torch.minimum(F.cfl * F.dx / (ax + ay), dt_cap)
+            dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
+        dt = dt.contiguous()
+        fac = torch.empty_like(h)
+        _drain[cells](h, fx[0], fy[0], dt, c, fac, ny, nx, **_launch(h.dtype))
+        h_o, hu_o, hv_o = torch.empty_like(h), torch.empty_like(h), torch.empty_like(h)
+        z_o = torch.empty_like(h) if moving else z
+        e_o = torch.empty_like(h) if F.use_ent else erod
+        d_o = torch.empty_like(h) if F.use_dep else dep
+        part = torch.empty((B, cells[0], 2), dtype=h.dtype, device=h.device)
+        dummy = h
+        _update[cells](h, hu, hv, z if moving else dummy, erod if F.use_ent else dummy, dep if F.use_dep else dummy,
+                       u, v, kg, fac, *fx, *fy, zpx, zpy, zx, zy, cs, zxx, zxy, zyy, mus, inside, pm, c, dt,
+                       h_o, hu_o, hv_o, z_o if moving else dummy, e_o if F.use_ent else dummy,
+                       d_o if F.use_dep else dummy, part, ny, nx, s_geo, _stride(zpx), _stride(zpy),
+                       SLOPE=F.slope_correction, USE_CURV=F.use_curv, USE_MU_I=F.use_mu_i, USE_ENT=F.use_ent,
+                       USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale, GONE_OUT=F.domain == "outflow",
+                       INFLOW=F.inflow, **_launch(h.dtype))
+        sums = part.sum(dim=1)
+        outflow = dt * F.dx * sums[:, 0] + sums[:, 1] * (F.dx * F.dx)
+        return h_o, hu_o, hv_o, z_o, e_o, d_o, outflow, dt
+
+    def step(S: dict, P: dict) -> dict:
+        h, hu, hv, z, erod, dep = (S[k] if S[k] is None else S[k].contiguous()
+                                   for k in ("h", "hu", "hv", "z", "erod", "dep"))
+        B, ny, nx = h.shape
+        c = consts(h.dtype, h.device)
+        pm = torch.stack([P[k].reshape(-1).expand(B) for k in PM], dim=1).contiguous()
+        active, t, t_next = S["active"], S["t"], S["t_next"]
+        rem = t_next - t
+        dt_cap = torch.where(active, torch.clamp(rem, max=F.dt_max), torch.zeros_like(rem))
+        geo = None if moving else (P["geo"] if "geo" in P else static_geometry(z, F))
+        h1, hu1, hv1, z1, e1, d1, o1, dt = stage(h, hu, hv, z, erod, dep, None, dt_cap, pm, c, P, geo)
+        h2, hu2, hv2, z2, e2, d2, o2, _ = stage(h1, hu1, hv1, z1, e1, d1, dt, dt_cap, pm, c, P, geo)
+        hit = active & (dt >= rem)
+        t_new = torch.where(hit, t_next, t + dt)
+        rzx, rzy, rcs = (a.contiguous() for a in P["rec"])
+        new = [torch.empty_like(h) for _ in range(3)]
+        z_o = torch.empty_like(h) if moving else z
+        e_o = torch.empty_like(h) if F.use_ent else erod
+        d_o = torch.empty_like(h) if F.use_dep else dep
+        rec = [torch.empty_like(h) for _ in range(3)]
+        cells = (triton.cdiv(ny * nx, BLOCK), B)
+        part = torch.empty((B, cells[0], 2), dtype=h.dtype, device=h.device)
+        some = lambda a: h if a is None else a
+        _combine[cells](h, hu, hv, hu1, hv1, h2, hu2, hv2, some(z), some(z2), some(erod), some(e2), some(dep),
+                        some(d2), rzx, rzy, rcs, S["h_max"].contiguous(), S["v_max"].contiguous(),
+                        S["arrival"].contiguous(), t_new.contiguous(), c, *new, some(z_o) if moving else h,
+                        some(e_o) if F.use_ent else h, some(d_o) if F.use_dep else h, *rec, part, ny, nx,
+                        MOVING=moving, USE_ENT=F.use_ent, USE_DEP=F.use_dep, **_launch(h.dtype))
+        sums = part.sum(dim=1)
+        cell_area = F.dx * F.dx
+        ke = 0.5 * sums[:, 0] * cell_area
+        mass = sums[:, 1] * cell_area
+        out = dict(S)
+        out.update(h=new[0], hu=new[1], hv=new[2], h_max=rec[0], v_max=rec[1], arrival=rec[2])
+        if moving:
+            out["z"] = z_o
+        if F.use_ent:
+            out["erod"] = e_o
+        if F.use_dep:
+            out["dep"] = d_o
+        out["outflow"] = S["outflow"] + 0.5 * (o1 + o2)
+        out["t"] = t_new
+        out["dt"] = dt
+        out["hit"] = hit
+        out["steps"] = S["steps"] + active.to(S["steps"].dtype)
+        return end_of_step(S, out, P, F, ke, mass)
+
+    return step
+
+
+def warm() -> bool:
+    """Compile the Triton step of a plain Voellmy run into Triton's on-disk cache, in float32 and
+    float64, where a CUDA device and triton are there (what ``make`` does at install); False elsewhere."""
+    if triton is None or not torch.cuda.is_available():
+        return False
+    import numpy as np
+
+    from ..physics import Params
+    from ..terrain.grid import DEM
+    from .config import SolverConfig
+    from .simulate import simulate
+
+    x = np.arange(12) * 10.0
+    dem = DEM(z=np.tile(-0.5 * x, (8, 1)), cellsize=10.0)
+    rel = np.zeros(dem.shape)
+    rel[3:5, 2:4] = 2.0
+    for dtype in (torch.float32, torch.float64):
+        simulate(dem, rel, Params.make(mu=[0.2, 0.3], xi=500.0), t_end=2.0, config=SolverConfig(kernel="fused"),
+                 dtype=dtype, device="cuda")
+    return True
