@@ -42,8 +42,9 @@ def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch)
     assert fused_triton.supported(F, "cpu") is None
 
 
-SWITCHES = {"_cells": ("USE_EP",), "_faces": ("NO_CREEP", "WALLS", "USE_MUS"), "_drain": (),
-            "_update": ("SLOPE", "USE_CURV", "USE_MU_I", "USE_ENT", "USE_DEP", "USE_MUS", "GONE_OUT", "INFLOW"),
+SWITCHES = {"_faces": ("NO_CREEP", "WALLS", "USE_MUS", "USE_EP"), "_drain": (),
+            "_update": ("SLOPE", "USE_CURV", "USE_MU_I", "USE_ENT", "USE_DEP", "USE_MUS", "GONE_OUT", "INFLOW",
+                        "USE_EP"),
             "_combine": ("MOVING", "USE_ENT", "USE_DEP")}
 
 

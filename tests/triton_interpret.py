@@ -10,11 +10,17 @@ import sys
 import numpy as np
 import torch
 
-from torchslide.solver import SolverConfig
+from torchslide.solver import SolverConfig as _Config
 from torchslide.terrain.grid import DEM
 
 from .conftest import cap_release, tilted_plane
 from .test_solver_fused import _channel, _compare
+
+
+def SolverConfig(**kw) -> _Config:
+    """The run's settings, the host checking every 4 steps (a step call costs the interpreter about a second
+    even where every member has ended)."""
+    return _Config(check_every=4, **kw)
 
 
 def channel():

@@ -38,7 +38,7 @@ class SolverConfig:
         compile: run the step through torch.compile (first call pays compilation); the same as
             kernel = "compiled", whatever ``kernel`` says.
         kernel: the step's implementation: "fused" (default: on the CPU one compiled loop nest per
-            stage, torchslide.solver.fused_cpu (numba); on CUDA five Triton kernels per stage,
+            stage, torchslide.solver.fused_cpu (numba); on CUDA four Triton kernels per stage,
             torchslide.solver.fused_triton; both equal to eager to round-off; eager runs where neither
             is installed), "eager" (torch operations: the reference), "compiled" (torch.compile of eager).
         crop: compute only on the bounding box of the cells the flow has touched (all members), grown

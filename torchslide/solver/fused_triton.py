@@ -3,10 +3,10 @@
 ``triton_step(F)`` returns a drop-in for ``stepping.make_step(F)``: the same SSP-RK2 step with the same
 arithmetic in the same order per cell and per face (stepping._stage, scheme.sweep, scheme.frozen_faces,
 scheme.draining_factors, friction.apply_friction), so it equals the torch step to round-off; the sums
-over the grid (mass, kinetic energy, outflow) add in another order. A stage is five kernels, each one
-pass over the grid of every member (grid axis 1 = member):
+over the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels, each one
+pass over the grid of every member (grid axis 1 = member); the velocities (KP07 Eq. 2.17) and the
+pressure coefficient k g cos^2 are recomputed from the state where they are needed, not stored:
 
-    _cells     u, v (KP07 Eq. 2.17) and the pressure coefficient k g_n cos (earth pressure per cell)
     _faces     x or y faces: reconstruction, central-upwind fluxes (KP07 Eq. 3.11), the no-creep rule,
                domain walls, the largest one-sided speed per block (for the CFL step)
     _drain     the draining-flux factor per cell (Bollermann et al. 2013)
@@ -99,43 +99,29 @@ if triton is not None:
         return tl.where(c == n + 1, 3 * r0 - 2 * r1, q)
 
     @triton.jit
-    def _rep(ptr, base, c, n, stride, m):
-        """The field at cell c of a line of n cells, ghost cells holding the edge value (scheme.pad_replicate)."""
-        return tl.load(ptr + base + tl.minimum(tl.maximum(c, 0), n - 1) * stride, mask=m, other=0.0)
+    def _vel(h_ptr, q_ptr, at, sqrt2, heps4, m):
+        """The desingularised velocity of the momentum component q at the flat cell offsets ``at``."""
+        return _desing(tl.load(h_ptr + at, mask=m, other=0.0), tl.load(q_ptr + at, mask=m, other=0.0), sqrt2, heps4)
 
     @triton.jit
-    def _cells(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, c_ptr, u_ptr, v_ptr, kg_ptr, ny, nx, s_geo,
-               USE_EP: tl.constexpr, BLOCK: tl.constexpr):
-        """u, v and kg = k g cos^2 per cell (stepping._stage's first lines, stepping._earth_pressure)."""
-        b = tl.program_id(1)
-        idx = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
-        m = idx < ny * nx
-        i, j = idx // nx, idx % nx
-        cb = b * ny * nx
-        g, sqrt2, heps4 = tl.load(c_ptr + C_G), tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
-        h = tl.load(h_ptr + cb + idx, mask=m, other=0.0)
-        u = _desing(h, tl.load(hu_ptr + cb + idx, mask=m, other=0.0), sqrt2, heps4)
-        v = _desing(h, tl.load(hv_ptr + cb + idx, mask=m, other=0.0), sqrt2, heps4)
-        cs = tl.load(cs_ptr + b * s_geo + idx, mask=m, other=1.0)
+    def _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m, USE_EP: tl.constexpr):
+        """The pressure coefficient k g cos^2 at cells (i, j) (stepping._stage with stepping._earth_pressure:
+        with earth pressure, k is active where the flow spreads (div u >= 0), passive where it converges;
+        the velocities of the four neighbours replicated at the edges). cb, gb: the member's offsets of the
+        state and of the geometry."""
+        cs = tl.load(cs_ptr + gb + i * nx + j, mask=m, other=1.0)
         k = tl.load(pm_ptr + b * 11 + 3)
-        if USE_EP:      # active where the flow spreads (div u >= 0), passive where it converges
-            je, jw = tl.minimum(j + 1, nx - 1), tl.maximum(j - 1, 0)
-            i_n, i_s = tl.minimum(i + 1, ny - 1), tl.maximum(i - 1, 0)
-            ue = _desing(tl.load(h_ptr + cb + i * nx + je, mask=m, other=0.0),
-                         tl.load(hu_ptr + cb + i * nx + je, mask=m, other=0.0), sqrt2, heps4)
-            uw = _desing(tl.load(h_ptr + cb + i * nx + jw, mask=m, other=0.0),
-                         tl.load(hu_ptr + cb + i * nx + jw, mask=m, other=0.0), sqrt2, heps4)
-            vn = _desing(tl.load(h_ptr + cb + i_n * nx + j, mask=m, other=0.0),
-                         tl.load(hv_ptr + cb + i_n * nx + j, mask=m, other=0.0), sqrt2, heps4)
-            vs = _desing(tl.load(h_ptr + cb + i_s * nx + j, mask=m, other=0.0),
-                         tl.load(hv_ptr + cb + i_s * nx + j, mask=m, other=0.0), sqrt2, heps4)
+        if USE_EP:
+            row, col = cb + i * nx, cb + j
+            ue = _vel(h_ptr, hu_ptr, row + tl.minimum(j + 1, nx - 1), sqrt2, heps4, m)
+            uw = _vel(h_ptr, hu_ptr, row + tl.maximum(j - 1, 0), sqrt2, heps4, m)
+            vn = _vel(h_ptr, hv_ptr, col + tl.minimum(i + 1, ny - 1) * nx, sqrt2, heps4, m)
+            vs = _vel(h_ptr, hv_ptr, col + tl.maximum(i - 1, 0) * nx, sqrt2, heps4, m)
             div = (ue - uw) + (vn - vs)
             s = tl.load(pm_ptr + b * 11 + 4)
             ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
             k = (1.0 - s) * k + s * ksh
-        tl.store(u_ptr + cb + idx, u, mask=m)
-        tl.store(v_ptr + cb + idx, v, mask=m)
-        tl.store(kg_ptr + cb + idx, k * (g * cs) * cs, mask=m)
+        return k * (g * cs) * cs
 
     @triton.jit
     def _fo(b, ny, nx, AXIS: tl.constexpr):
@@ -146,10 +132,10 @@ if triton is not None:
             return b * (ny + 1) * nx
 
     @triton.jit
-    def _faces(h_ptr, un_ptr, ut_ptr, kg_ptr, hu_ptr, hv_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr,
+    def _faces(h_ptr, hu_ptr, hv_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr,
                pm_ptr, c_ptr, fh_ptr, fqn_ptr, fqt_ptr, phi_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zp, s_geo,
                AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr,
-               BLOCK: tl.constexpr):
+               USE_EP: tl.constexpr, BLOCK: tl.constexpr):
         """scheme.sweep (and scheme.frozen_faces, stepping._domain_walls) at the x faces (AXIS 0: (ny, nx + 1)
         per member) or the y faces (AXIS 1: (ny + 1, nx)); face f of a line lies between cells f - 1 and f.
         zp: the bed padded along the axis (scheme.bed_terms' zp)."""
@@ -196,15 +182,31 @@ if triton is not None:
         hl = tl.where(wet_l, _max(wl - bf, 0.0), hlh)
         hr = tl.where(wet_r, _max(wr - bf, 0.0), hrh)
         # velocities normal (un) and tangential (ut) to the face, replicated at the edges
-        u0, u1 = _rep(un_ptr, cb + base, f - 2, n, st, m), _rep(un_ptr, cb + base, f - 1, n, st, m)
-        u2, u3 = _rep(un_ptr, cb + base, f, n, st, m), _rep(un_ptr, cb + base, f + 1, n, st, m)
+        if AXIS == 0:
+            qn_ptr, qt_ptr = hu_ptr, hv_ptr
+        else:
+            qn_ptr, qt_ptr = hv_ptr, hu_ptr
+        sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
+        c0 = cb + base + tl.minimum(tl.maximum(f - 2, 0), n - 1) * st
+        c1 = cb + base + tl.minimum(tl.maximum(f - 1, 0), n - 1) * st
+        c2 = cb + base + tl.minimum(f, n - 1) * st
+        c3 = cb + base + tl.minimum(f + 1, n - 1) * st
+        u0, u1 = _vel(h_ptr, qn_ptr, c0, sqrt2, heps4, m), _vel(h_ptr, qn_ptr, c1, sqrt2, heps4, m)
+        u2, u3 = _vel(h_ptr, qn_ptr, c2, sqrt2, heps4, m), _vel(h_ptr, qn_ptr, c3, sqrt2, heps4, m)
         ul = u1 + 0.5 * _minmod3(theta * (u1 - u0), 0.5 * (u2 - u0), theta * (u2 - u1))
         ur = u2 - 0.5 * _minmod3(theta * (u2 - u1), 0.5 * (u3 - u1), theta * (u3 - u2))
-        t0, t1 = _rep(ut_ptr, cb + base, f - 2, n, st, m), _rep(ut_ptr, cb + base, f - 1, n, st, m)
-        t2, t3 = _rep(ut_ptr, cb + base, f, n, st, m), _rep(ut_ptr, cb + base, f + 1, n, st, m)
+        t0, t1 = _vel(h_ptr, qt_ptr, c0, sqrt2, heps4, m), _vel(h_ptr, qt_ptr, c1, sqrt2, heps4, m)
+        t2, t3 = _vel(h_ptr, qt_ptr, c2, sqrt2, heps4, m), _vel(h_ptr, qt_ptr, c3, sqrt2, heps4, m)
         tlf = t1 + 0.5 * _minmod3(theta * (t1 - t0), 0.5 * (t2 - t0), theta * (t2 - t1))
         trf = t2 - 0.5 * _minmod3(theta * (t2 - t1), 0.5 * (t3 - t1), theta * (t3 - t2))
-        kgl, kgr = _rep(kg_ptr, cb + base, f - 1, n, st, m), _rep(kg_ptr, cb + base, f, n, st, m)
+        a = tl.minimum(tl.maximum(f - 1, 0), n - 1)      # the cells left and right of the face
+        c = tl.minimum(f, n - 1)
+        if AXIS == 0:
+            kgl = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, line, a, ny, nx, g, sqrt2, heps4, m, USE_EP)
+            kgr = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, line, c, ny, nx, g, sqrt2, heps4, m, USE_EP)
+        else:
+            kgl = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, a, line, ny, nx, g, sqrt2, heps4, m, USE_EP)
+            kgr = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, c, line, ny, nx, g, sqrt2, heps4, m, USE_EP)
         # central-upwind fluxes (KP07 Eq. 3.11)
         cl = tl.sqrt(kgl * hl)
         cr = tl.sqrt(kgr * hr)
@@ -221,8 +223,6 @@ if triton is not None:
         phi = 0.5 * (ap * hl * hl - am * hr * hr) * inv
         if NO_CREEP or WALLS:
             frozen = tl.zeros([BLOCK], dtype=tl.int1)
-            a = tl.minimum(tl.maximum(f - 1, 0), n - 1)
-            c = tl.minimum(f, n - 1)
             if NO_CREEP:    # scheme.frozen_faces: both cells at rest and friction holds the face's drive
                 hf = 0.5 * (h1 + h2)
                 f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf / dx
@@ -303,7 +303,7 @@ if triton is not None:
         return zxx * u * u + 2.0 * zxy * u * v + zyy * v * v
 
     @triton.jit
-    def _update(h_ptr, hu_ptr, hv_ptr, z_ptr, erod_ptr, dep_ptr, u_ptr, v_ptr, kg_ptr, fac_ptr,
+    def _update(h_ptr, hu_ptr, hv_ptr, z_ptr, erod_ptr, dep_ptr, fac_ptr,
                 fhx_ptr, fqnx_ptr, fqtx_ptr, phix_ptr, hlx_ptr, hrx_ptr,
                 fhy_ptr, fqny_ptr, fqty_ptr, phiy_ptr, hly_ptr, hry_ptr,
                 zpx_ptr, zpy_ptr, zx_ptr, zy_ptr, cs_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr,
@@ -311,7 +311,7 @@ if triton is not None:
                 ny, nx, s_geo, s_zpx, s_zpy,
                 SLOPE: tl.constexpr, USE_CURV: tl.constexpr, USE_MU_I: tl.constexpr, USE_ENT: tl.constexpr,
                 USE_DEP: tl.constexpr, USE_MUS: tl.constexpr, GONE_OUT: tl.constexpr, INFLOW: tl.constexpr,
-                BLOCK: tl.constexpr):
+                USE_EP: tl.constexpr, BLOCK: tl.constexpr):
         """The rest of stepping._stage for each cell: draining-limited fluxes, gravity and pressure along
         the surface (Eq. 2-3), entrainment and deposition, friction (Eq. 4, friction.apply_friction). part:
         (B, programs, 2) the block's boundary flux (outward, m^2/s) and the thickness lost outside the domain."""
@@ -354,7 +354,7 @@ if triton is not None:
         lam = dt / dx
         hn = h - lam * ((fhxe - fhxw) + (fhyn - fhys))
         # gravity and pressure as horizontal gradients (times dx), well-balanced bed source (KP07 Eq. 3.13)
-        kg = tl.load(kg_ptr + cb + idx, mask=m, other=0.0)
+        kg = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m, USE_EP)
         zpx = zpx_ptr + b * s_zpx + i * (nx + 4) + j
         zpy = zpy_ptr + b * s_zpy + idx
         dbx = 0.5 * (tl.load(zpx + 2, mask=m, other=0.0) + tl.load(zpx + 3, mask=m, other=0.0)) \
@@ -370,8 +370,10 @@ if triton is not None:
         zx = tl.load(zx_ptr + gb + idx, mask=m, other=0.0)
         zy = tl.load(zy_ptr + gb + idx, mask=m, other=0.0)
         cs = tl.load(cs_ptr + gb + idx, mask=m, other=1.0)
-        u = tl.load(u_ptr + cb + idx, mask=m, other=0.0)
-        v = tl.load(v_ptr + cb + idx, mask=m, other=0.0)
+        hu = tl.load(hu_ptr + cb + idx, mask=m, other=0.0)
+        hv = tl.load(hv_ptr + cb + idx, mask=m, other=0.0)
+        u = _desing(h, hu, sqrt2, heps4)
+        v = _desing(h, hv, sqrt2, heps4)
         if SLOPE or USE_CURV:
             zxx = tl.load(zxx_ptr + gb + idx, mask=m, other=0.0)
             zxy = tl.load(zxy_ptr + gb + idx, mask=m, other=0.0)
@@ -383,8 +385,8 @@ if triton is not None:
             a = cs * cs * (zx * px + zy * py)
             px = px - zx * a
             py = py - zy * a
-        qx = tl.load(hu_ptr + cb + idx, mask=m, other=0.0) - lam * (((fqnxe - fqnxw) + (fqtyn - fqtys)) + px)
-        qy = tl.load(hv_ptr + cb + idx, mask=m, other=0.0) - lam * (((fqtxe - fqtxw) + (fqnyn - fqnys)) + py)
+        qx = hu - lam * (((fqnxe - fqnxw) + (fqtyn - fqtys)) + px)
+        qy = hv - lam * (((fqtxe - fqtxw) + (fqnyn - fqnys)) + py)
         lost = tl.zeros([BLOCK], dtype=h.dtype)
         if GONE_OUT:    # what entered a cell outside the domain has left it
             gone = tl.load(inside_ptr + idx, mask=m, other=1) == 0
@@ -553,16 +555,14 @@ def triton_step(F):
         mus = P["mu_scale"].contiguous() if F.use_mu_scale else cs
         inside = P["inside"].contiguous() if F.domain else cs
         cells = (triton.cdiv(ny * nx, BLOCK), B)
-        u, v, kg = torch.empty_like(h), torch.empty_like(h), torch.empty_like(h)
-        _cells[cells](h, hu, hv, cs, pm, c, u, v, kg, ny, nx, s_geo, USE_EP=F.use_ep, **_launch(h.dtype))
         sweeps = []
-        for axis, (un, ut, zp, nf) in enumerate(((u, v, zpx, (ny, nx + 1)), (v, u, zpy, (ny + 1, nx)))):
+        for axis, (zp, nf) in enumerate(((zpx, (ny, nx + 1)), (zpy, (ny + 1, nx)))):
             out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
             grid = (triton.cdiv(nf[0] * nf[1], BLOCK), B)
             amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
-            _faces[grid](h, un, ut, kg, hu, hv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
+            _faces[grid](h, hu, hv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
                          _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
-                         USE_MUS=F.use_mu_scale, **_launch(h.dtype))
+                         USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, **_launch(h.dtype))
             sweeps.append((out, amax.amax(dim=1)))
         (fx, ax), (fy, ay) = sweeps
         if dt is None:
@@ -578,12 +578,12 @@ def triton_step(F):
         part = torch.empty((B, cells[0], 2), dtype=h.dtype, device=h.device)
         dummy = h
         _update[cells](h, hu, hv, z if moving else dummy, erod if F.use_ent else dummy, dep if F.use_dep else dummy,
-                       u, v, kg, fac, *fx, *fy, zpx, zpy, zx, zy, cs, zxx, zxy, zyy, mus, inside, pm, c, dt,
+                       fac, *fx, *fy, zpx, zpy, zx, zy, cs, zxx, zxy, zyy, mus, inside, pm, c, dt,
                        h_o, hu_o, hv_o, z_o if moving else dummy, e_o if F.use_ent else dummy,
                        d_o if F.use_dep else dummy, part, ny, nx, s_geo, _stride(zpx), _stride(zpy),
                        SLOPE=F.slope_correction, USE_CURV=F.use_curv, USE_MU_I=F.use_mu_i, USE_ENT=F.use_ent,
                        USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale, GONE_OUT=F.domain == "outflow",
-                       INFLOW=F.inflow, **_launch(h.dtype))
+                       INFLOW=F.inflow, USE_EP=F.use_ep, **_launch(h.dtype))
         sums = part.sum(dim=1)
         outflow = dt * F.dx * sums[:, 0] + sums[:, 1] * (F.dx * F.dx)
         return h_o, hu_o, hv_o, z_o, e_o, d_o, outflow, dt
