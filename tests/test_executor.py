@@ -69,11 +69,13 @@ def test_calibrate_spreads_each_iteration_over_the_workers(case, cluster):
 
 
 def _die_once(marker: str, fn, chunk):
-    """fn(chunk), except that the first call anywhere kills its worker process mid-chunk."""
-    if not os.path.exists(marker):
-        Path(marker).write_text("killed")
-        os._exit(1)
-    return fn(chunk)
+    """fn(chunk), except that the first call anywhere kills its worker process mid-chunk (the marker is
+    created atomically, so that two workers starting at once do not both die)."""
+    try:
+        os.close(os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return fn(chunk)
+    os._exit(1)
 
 
 def test_a_worker_killed_mid_chunk_loses_only_that_chunk(case, cluster, tmp_path):
