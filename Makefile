@@ -46,10 +46,13 @@ bench-solver: $(STAMP)
 		--full-batch 8 --full-configs eager-f64-whole:1,eager-f64-crop,fused-f64-crop,fused-f32-crop,compiled-f64-crop,compiled-f32-crop,compiled-f32-crop:32
 	OMP_NUM_THREADS=1 $(PY) -m bench.stop_rule --out bench/results/stop_rule.json
 
-# on a CUDA machine: every kernel and precision at batch 1, 32 and 256, with the copy-bandwidth fraction
+# on a CUDA machine: eager and fused, float32 and float64, batch 1, 32 and 256, with and without CUDA graphs,
+# each row with its fraction of the card's copy bandwidth (add compiled with KERNELS=eager,compiled,fused:
+# its first call compiles for minutes)
+KERNELS ?= eager,fused
 bench-solver-gpu: $(STAMP)
-	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --batches 1,32,256 --repeats 3 \
-		--t-short 5 --full-batch 64 --full-configs eager-f64-crop,fused-f64-crop,fused-f32-crop,compiled-f32-crop
+	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --kernels $(KERNELS) \
+		--batches 1,32,256 --graphs on,off --repeats 2 --t-short 10 --full-configs ""
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"

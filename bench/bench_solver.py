@@ -12,6 +12,8 @@ same run only, since the machines are shared):
    over BYTES_PER_CELL_UPDATE values per cell-update. A cell-update is one cell of one member
    advanced by one (two-stage) time step. first_call_s: the first call in this process (compilation,
    or for "fused" loading numba's on-disk cache; the very first call after an install compiles it).
+   On CUDA, ``--graphs on,off`` measures each kernel with and without CUDA graphs
+   (SolverConfig.cuda_graphs; "compiled" runs without).
 2. Full runs: the wall time per member of one Bondo-like run (mu 0.23, xi 1000, t_end 300 s; 20 m
    cells by default) for the configurations a calibration can use: eager float64 on the whole grid
    (the reference), with cropping, per kernel and precision. Compiled and fused rows are warmed up
@@ -81,8 +83,10 @@ def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
     return row["cell_updates_per_s_median"] * BYTES_PER_CELL_UPDATE * size / copy_bw
 
 
-def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int) -> dict:
-    cfg = SolverConfig(kernel=kernel, crop=False, stop_ke_fraction=0.0, output_interval=t_end, check_every=20)
+def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
+               graphs: bool = False) -> dict:
+    cfg = SolverConfig(kernel=kernel, crop=False, stop_ke_fraction=0.0, output_interval=t_end, check_every=20,
+                       cuda_graphs=graphs)
     p = Params.make(mu=np.linspace(0.15, 0.3, B), xi=1000.0)
     ny, nx = case.dem.shape
     _, warm = _timed(case, p, t_end, cfg, DTYPES[dtype], device)  # warm-up / compilation
@@ -91,7 +95,8 @@ def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float,
         r, w = _timed(case, p, t_end, cfg, DTYPES[dtype], device)
         walls.append(w)
         rates.append(float(r.steps.sum()) * ny * nx / w)
-    return {"B": B, "kernel": kernel, "dtype": dtype, "cell_updates_per_s_median": statistics.median(rates),
+    return {"B": B, "kernel": kernel, "dtype": dtype, "cuda_graphs": graphs and device.startswith("cuda"),
+            "cell_updates_per_s_median": statistics.median(rates),
             "wall_s_median": statistics.median(walls), "first_call_s": warm,
             "steps_per_member": float(r.steps.float().mean())}
 
@@ -142,6 +147,7 @@ def main(argv=None) -> None:
                          "'' skips the full runs")
     ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
     ap.add_argument("--skip-throughput", action="store_true")
+    ap.add_argument("--graphs", default="off", help="on CUDA: 'on', 'off' or 'on,off' (SolverConfig.cuda_graphs)")
     args = ap.parse_args(argv)
     case = bondo_like(args.cellsize)
     ny, nx = case.dem.shape
@@ -161,19 +167,24 @@ def main(argv=None) -> None:
         for dtype in args.dtypes.split(","):
             for B in [int(b) for b in args.batches.split(",")]:
                 for kernel in args.kernels.split(","):
-                    row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats)
-                    row["bandwidth_fraction"] = bandwidth_fraction(row, res["copy_bandwidth_bytes_per_s"])
-                    print(json.dumps(row), flush=True)
-                    res["throughput"].append(row)
-                    save()
+                    for graphs in ([g == "on" for g in args.graphs.split(",")] if args.device.startswith("cuda")
+                                   else [False]):
+                        if kernel == "compiled" and graphs:
+                            continue
+                        row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats, graphs)
+                        row["bandwidth_fraction"] = bandwidth_fraction(row, res["copy_bandwidth_bytes_per_s"])
+                        print(json.dumps(row), flush=True)
+                        res["throughput"].append(row)
+                        save()
         ratios = {}
         for row in res["throughput"]:
             if row["kernel"] != "eager":
                 e = [r for r in res["throughput"] if r["B"] == row["B"] and r["dtype"] == row["dtype"]
-                     and r["kernel"] == "eager"]
+                     and r["kernel"] == "eager" and r["cuda_graphs"] == row["cuda_graphs"]]
                 if e:
-                    ratios[f"{row['kernel']}_{row['dtype']}_B{row['B']}"] = (row["cell_updates_per_s_median"]
-                                                                          / e[0]["cell_updates_per_s_median"])
+                    tag = "" if row["cuda_graphs"] or not args.device.startswith("cuda") else "_nographs"
+                    ratios[f"{row['kernel']}{tag}_{row['dtype']}_B{row['B']}"] = (row["cell_updates_per_s_median"]
+                                                                               / e[0]["cell_updates_per_s_median"])
         res["speedup_vs_eager"] = ratios
     for spec in filter(None, args.full_configs.split(",")):   # "" skips the full runs
         spec, _, b = spec.partition(":")

@@ -63,6 +63,71 @@ TERMS_BASE = dict(mu=0.25, xi=600.0)
 TERMS_ON = {"kappa": 0.004, "curvature": 1.0, "earth_pressure": 1.0, "tau_y": 60.0, "mu_i": 0.3, "deposition": 0.3}
 
 
+def all_terms_case():
+    """(dem, release, params, kwargs) of the chute with every candidate term: member 0 plain Voellmy, then one
+    member per candidate (torchslide.diagnose.candidates) switched on at TERMS_ON (B = 1 + candidates);
+    kwargs: an erodible bed 1 m deep and a gauge at the grid's centre."""
+    from torchslide.diagnose.candidates import CANDIDATES
+    from torchslide.physics import Params
+
+    dem, rel = chute_case()
+    names = sorted(CANDIDATES)
+    vals: dict[str, list[float]] = {}
+    fixed: dict[str, float] = {}
+    for i, name in enumerate(names):
+        c = CANDIDATES[name]
+        fixed.update(dict(c.fixed))
+        vals.setdefault(c.param, [c.baseline] * (len(names) + 1))[i + 1] = TERMS_ON[c.param]
+    p = Params.make(**TERMS_BASE, **fixed, **vals)
+    ny, nx = dem.shape
+    gauges = [("G", float(dem.x_centres()[nx // 2]), float(dem.y_centres()[ny // 2]))]
+    return dem, rel, p, dict(erodible_depth=np.full(dem.shape, 1.0), gauges=gauges)
+
+
+def step_state(n: int, device="cpu", dtype=None):
+    """(S, P, F) of the all-terms chute run (all_terms_case, torch step, no cropping) just before its n-th
+    step: the state and parameter dicts and the StepFlags that a step function takes."""
+    import importlib
+
+    import torch
+
+    from torchslide.solver import SolverConfig
+
+    sim = importlib.import_module("torchslide.solver.simulate")
+    get_step, taken = sim._get_step, {}
+
+    def capture(F, kernel, device="cpu"):
+        advance, calls = get_step(F, kernel, device), []
+
+        def call(S, P, *args):
+            calls.append(1)
+            if len(calls) == n:
+                taken.update(S={k: v.clone() if torch.is_tensor(v) else v for k, v in S.items()}, P=P, F=F)
+            return advance(S, P, *args)
+        return call
+
+    dem, rel, p, kw = all_terms_case()
+    dtype = dtype or torch.float64
+    sim._get_step = capture
+    try:
+        sim.simulate(dem, rel, p.to(dtype=dtype), t_end=2.0, dtype=dtype, device=device,
+                     config=SolverConfig(kernel="eager", crop=False), **kw)
+    finally:
+        sim._get_step = get_step
+    return taken["S"], taken["P"], taken["F"]
+
+
+def assert_steps_equal(ref: dict, new: dict) -> None:
+    """Every field of two step results equal to the last bit, except the per-member sums (kinetic energy,
+    mass, boundary outflow), whose order of summation may differ."""
+    import torch
+
+    for k, a in ref.items():
+        if torch.is_tensor(a) and k not in ("ke", "ke_peak", "mass", "outflow"):
+            assert torch.equal(a, new[k]), (k, float((a.double() - new[k].double()).abs().max()))
+    assert float(ref["hu"].abs().max()) > 0
+
+
 
 # --------------------------------------------------------------------------- config files (simulate)
 def write_case(d, *, cellsize=20.0, release_dem=None, nan_dem=False, neg_release=False):

@@ -14,11 +14,10 @@ import numpy as np
 import pytest
 import torch
 
-from torchslide.diagnose.candidates import CANDIDATES
 from torchslide.physics import Params
 from torchslide.solver import SolverConfig, simulate
 
-from .conftest import TERMS_BASE as BASE, TERMS_ON as ON, TERMS_T_END as T_END, chute_case
+from .conftest import TERMS_T_END as T_END, all_terms_case as _all_terms
 
 DEVICE = os.environ.get("TORCHSLIDE_TEST_DEVICE", "cuda")
 ON_CUDA = DEVICE.startswith("cuda")
@@ -41,23 +40,6 @@ CFG = SolverConfig(output_interval=5.0)
 def _rel(a, b) -> float:
     a, b = torch.as_tensor(a).double().cpu(), torch.as_tensor(b).double().cpu()
     return float((a - b).norm() / b.norm().clamp_min(1e-300))
-
-
-def _all_terms():
-    """(dem, release, params, kwargs): member 0 plain Voellmy, then one member per candidate term on
-    at the strength of tests/test_solver_terms.py (B = 1 + number of candidates)."""
-    dem, rel = chute_case()
-    names = sorted(CANDIDATES)
-    vals: dict[str, list[float]] = {}
-    fixed: dict[str, float] = {}
-    for i, name in enumerate(names):
-        c = CANDIDATES[name]
-        fixed.update(dict(c.fixed))
-        vals.setdefault(c.param, [c.baseline] * (len(names) + 1))[i + 1] = ON[c.param]
-    p = Params.make(**BASE, **fixed, **vals)
-    ny, nx = dem.shape
-    gauges = [("G", float(dem.x_centres()[nx // 2]), float(dem.y_centres()[ny // 2]))]
-    return dem, rel, p, dict(erodible_depth=np.full(dem.shape, 1.0), gauges=gauges)
 
 
 def _fields(r):
@@ -130,6 +112,39 @@ def test_triton_step_on_cuda_equals_eager(dtype, rtol):
     assert torch.equal(runs[0].steps, runs[1].steps) and not bool(runs[1].failed.any())
     for name, ref in _fields(runs[0]).items():
         assert _max_rel(_fields(runs[1])[name], ref) <= rtol, name
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_one_triton_step_on_cuda_is_the_torch_step_to_the_last_bit(dtype):
+    """One step of every term from a state 5 steps into the all-terms chute run: the same arithmetic
+    (IEEE division and sqrt, no fused multiply-add) gives the same bits."""
+    from torchslide.solver import fused_triton, stepping
+
+    from .conftest import assert_steps_equal, step_state
+
+    if not ON_CUDA:
+        pytest.skip("the Triton step runs on CUDA")
+    S, P, F = step_state(5, DEVICE, dtype)
+    assert_steps_equal(stepping.make_step(F)(dict(S), P), fused_triton.triton_step(F)(dict(S), P))
+
+
+@pytest.mark.parametrize("kernel,crop", [("fused", True), ("fused", False), ("eager", True)])
+def test_cuda_graphs_replay_the_same_steps(kernel, crop, monkeypatch):
+    """Steps replayed as CUDA graphs give the same bits as steps launched one by one, cropped or not."""
+    from torchslide.solver import graphs
+
+    if not ON_CUDA:
+        pytest.skip("CUDA graphs")
+    recorded = []
+    record = graphs.StepGraphs._record
+    monkeypatch.setattr(graphs.StepGraphs, "_record", lambda self, S, n: recorded.append(n) or record(self, S, n))
+    dem, rel, p, kw = _all_terms()
+    runs = [simulate(dem, rel, p, t_end=T_END, device=DEVICE, **kw,
+                     config=SolverConfig(output_interval=5.0, kernel=kernel, crop=crop, cuda_graphs=on))
+            for on in (False, True)]
+    assert recorded and torch.equal(runs[0].steps, runs[1].steps)
+    for name, ref in _fields(runs[0]).items():
+        assert torch.equal(_fields(runs[1])[name], ref), name
 
 
 def test_triton_step_on_cuda_equals_eager_on_the_bondo_like_run():

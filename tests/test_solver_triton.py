@@ -72,5 +72,5 @@ def test_the_triton_kernels_compile_for_an_h100(dtype, on):
                    if p.endswith("_ptr") else "i32" for p in params}
             src = ASTSource(fn=fn, signature=sig, constexprs={(params.index(k),): v for k, v in consts.items()})
             kernel = triton.compile(src, target=GPUTarget("cuda", 90, 32),
-                                    options={"enable_fp_fusion": dtype != "fp64"})
+                                    options={"enable_fp_fusion": False})
             assert len(kernel.asm["cubin"]) > 0, name

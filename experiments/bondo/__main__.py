@@ -31,7 +31,10 @@ def main(argv=None) -> int:
     ap.add_argument("--no-report", action="store_true", help="do not regenerate figures / README")
     ap.add_argument("--no-tensorboard", action="store_true")
     ap.add_argument("--dtype", choices=["float32", "float64"], default=None, help="solver precision")
-    ap.add_argument("--no-compile", action="store_true", help="run the solver eagerly (no torch.compile)")
+    ap.add_argument("--kernel", choices=["fused", "eager", "compiled"], default=None,
+                    help="solver step (default: fused)")
+    ap.add_argument("--device", default=None, help="solver device, e.g. cuda (default: cpu)")
+    ap.add_argument("--max-batch", type=int, default=None, help="most solver members per call (default: 25)")
     a = ap.parse_args(argv)
     cfg = BondoConfig.quick(a.work_dir) if a.quick else BondoConfig()
     kw = {k: v for k, v in {"cellsize": a.cellsize, "t_end": a.t_end, "n_initial": a.n_initial,
@@ -47,8 +50,8 @@ def main(argv=None) -> int:
         kw["work_dir"] = a.work_dir
     if a.dtype is not None:
         kw["dtype"] = a.dtype
-    if a.no_compile:
-        kw["compile"] = False
+    kw.update({k: v for k, v in {"kernel": a.kernel, "device": a.device, "max_batch": a.max_batch}.items()
+               if v is not None})
     if a.no_tensorboard:
         kw["tensorboard"] = False
     if a.n_adaptive is not None and "snapshots" not in kw:

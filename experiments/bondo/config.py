@@ -62,8 +62,8 @@ class BondoConfig:
         max_batch: most solver members per call (points are sorted by mu first, so that one call's
             members have similar run-outs and share a small cropped window).
         dtype: "float64" or "float32" (the solver's precision; the GP is always float64).
-        compile: run the solver step through torch.compile (worth its ~1-2 min compilation for a
-            study of hundreds of runs; the quick configuration runs eagerly).
+        kernel: the solver step (SolverConfig.kernel: "fused" default, "eager", "compiled").
+        device: where the solver runs ("cpu", "cuda"); the GP and acquisition stay on the CPU.
         work_dir: caches, checkpoints, results (git-ignored); figures_dir: PNG output.
         tensorboard: write TensorBoard logs per case under work_dir/tb/case_N.
         num_restarts, raw_samples: acquisition optimiser settings.
@@ -85,7 +85,8 @@ class BondoConfig:
     cases: tuple = tuple(CASES)
     max_batch: int = 25
     dtype: str = "float32"
-    compile: bool = True
+    kernel: str = "fused"
+    device: str = "cpu"
     work_dir: str = str(HERE / "_work")
     figures_dir: str = str(HERE / "figures")
     tensorboard: bool = True
@@ -128,12 +129,20 @@ class BondoConfig:
         """A few-minute (or less) configuration of the whole pipeline: coarse terrain, few runs."""
         base = dict(cellsize=120.0, t_end=300.0, n_initial=8, n_adaptive=4, batch_size=2, snapshots=(0, 2, 4),
                     grid_size=30, sweep_n=6, cases=(1, 10), num_restarts=2, raw_samples=32, tv_lag=2,
-                    name="quick", lhs_only_seed=1, dtype="float64", compile=False)
+                    name="quick", lhs_only_seed=1, dtype="float64")
         if work_dir is not None:
             base["work_dir"] = work_dir
             base["figures_dir"] = str(Path(work_dir) / "figures")
         base.update(kw)
         return cls(**base)
+
+    @classmethod
+    def from_saved(cls, d: dict) -> "BondoConfig":
+        """The config of a saved results.json (a run saved with ``compile`` ran kernel "compiled" or "eager")."""
+        d = dict(d)
+        if "compile" in d:
+            d.setdefault("kernel", "compiled" if d.pop("compile") else "eager")
+        return cls(**{k: (tuple(v) if k in ("snapshots", "cases") else v) for k, v in d.items()})
 
     def with_(self, **kw) -> "BondoConfig":
         return replace(self, **kw)

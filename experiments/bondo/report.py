@@ -27,7 +27,7 @@ Commands:
     python -m experiments.bondo                 # full study (all 10 cases, sweep, figures, this page)
     python -m experiments.bondo --case 1        # one case
     python -m experiments.bondo --quick         # a small configuration of the whole pipeline (minutes)
-    python -m experiments.bondo --cellsize 20   # the study at the 20 m cell size
+    python -m experiments.bondo --cellsize 20 --device cuda --max-batch 100   # 20 m cells, solver on a GPU
     python -m experiments.sweep [--n 30]        # the brute-force sweep alone (resumable)
     python -m experiments.bondo.report          # regenerate this page from saved results
 
@@ -55,7 +55,7 @@ def make_figures(run_dir: Path, res: dict, fig_dir: Path) -> dict:
     from experiments.bondo.config import BondoConfig
     from . import plots
 
-    cfg = BondoConfig(**{k: (tuple(v) if k in ("snapshots", "cases") else v) for k, v in res["config"].items()})
+    cfg = BondoConfig.from_saved(res["config"])
     fig_dir.mkdir(parents=True, exist_ok=True)
     truth = (cfg.truth["mu"], cfg.truth["xi"])
     out = {}
@@ -117,6 +117,14 @@ def make_figures(run_dir: Path, res: dict, fig_dir: Path) -> dict:
     return out
 
 
+def _solver_mode(cfg: dict, machine: dict | None) -> str:
+    """'fused step on cuda (NVIDIA H200), active-region cropping, float32' from a saved config."""
+    kernel = cfg.get("kernel") or ("compiled" if cfg.get("compile") else "eager")
+    device = cfg.get("device", "cpu")
+    gpu = f" ({machine['gpu']})" if machine and machine.get("gpu") else ""
+    return f"{kernel} step on {device}{gpu}, active-region cropping, {cfg['dtype']}"
+
+
 def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = True) -> Path:
     res = json.loads((run_dir / "results.json").read_text())
     cfg = res["config"]
@@ -127,6 +135,7 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append("## Run shown on this page\n")
     L.append(f"- run directory: `{run_dir.name}`; cell size **{cfg['cellsize']:g} m**, t_end {cfg['t_end']:g} s, "
              f"{cfg['dtype']}; cases {cfg['cases']}")
+    L.append(f"- solver: {_solver_mode(cfg, t.get('machine'))}")
     L.append(f"- {cfg['n_initial']} shared initial maximin-LHS runs, {cfg['n_adaptive']} adaptive runs per case "
              f"in batches of q = {cfg['batch_size']} per case (the points of all cases run in one solver call), "
              f"grid {cfg['grid_size']} x {cfg['grid_size']}")
@@ -140,7 +149,8 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
              f"the brute-force sweep ({cfg['sweep_n']}^2 runs) used {_fmt(t.get('sweep_solver_s'))} s of solver "
              f"time; {t.get('n_simulations_cached')} distinct simulations in the study cache."
              + (" Machine: {cpu_count} CPU cores, {torch_threads} torch threads, load average {load:.1f} at the "
-                "start.".format(load=t["machine"]["load_average_start"], **t["machine"]) if t.get("machine") else ""))
+                "start.".format(load=t["machine"]["load_average_start"], **t["machine"]) if t.get("machine") else "")
+             + (f" GPU: {t['machine']['gpu']}." if (t.get("machine") or {}).get("gpu") else ""))
     sweeps = []
     for f in sorted(run_dir.parent.glob(f"sweep_{run_dir.name.split('_', 1)[1]}_*x*.npz")):
         try:
@@ -160,13 +170,13 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append("")
     L.append("### How this run differs from the paper\n")
     if float(cfg["cellsize"]) > 20.0:
-        solver_mode = ("torch.compile, active-region cropping" if cfg.get("compile") else "eager PyTorch") + \
-            f", {cfg['dtype']}"
+        solver_mode = _solver_mode(cfg, t.get("machine"))
         L.append(f"- **Cell size {cfg['cellsize']:g} m** (the terrain's default is 20 m). With this solver "
                  f"({solver_mode}) the ~1500 runs of the study plus the sweep take hours on a 2-core CPU at 20 m (per "
                  "run the cost grows roughly with the cube of 1/cell size: 4x the cells and 2x the time steps per "
                  "halving; the 20 m cost per run is in bench/results/solver_full_runs_idle_*.json). The 20 m study is "
-                 "`python -m experiments.bondo --cellsize 20`; it was not run here.")
+                 "`python -m experiments.bondo --cellsize 20 --device cuda --max-batch 100` (solver on a GPU); it "
+                 "was not run here.")
     L.append("- Terrain: the analytic Bondo-like valley of `torchslide.terrain.synthetic.bondo_like` "
              "(3e6 m^3 release), not the real DEM; solver: torchslide, not r.avaflow. Table 1 values therefore differ "
              "from the paper's.")

@@ -145,6 +145,8 @@ def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
     t_start = time.perf_counter()
     machine = {"cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
                "load_average_start": os.getloadavg()[0]}
+    if torch.device(cfg.device).type == "cuda":
+        machine["gpu"] = torch.cuda.get_device_name(torch.device(cfg.device))
     rd = cfg.run_dir
     rd.mkdir(parents=True, exist_ok=True)
     (rd / "config.json").write_text(json.dumps(cfg.to_dict(), indent=2))

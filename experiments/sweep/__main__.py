@@ -23,7 +23,9 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk", type=int, default=None, help="runs per solver call (default: config max_batch)")
     ap.add_argument("--work-dir", default=None)
     ap.add_argument("--dtype", choices=["float32", "float64"], default=None, help="solver precision")
-    ap.add_argument("--no-compile", action="store_true", help="run the solver eagerly (no torch.compile)")
+    ap.add_argument("--kernel", choices=["fused", "eager", "compiled"], default=None,
+                    help="solver step (default: fused)")
+    ap.add_argument("--device", default=None, help="solver device, e.g. cuda (default: cpu)")
     a = ap.parse_args(argv)
     cfg = BondoConfig.quick(a.work_dir) if a.quick else BondoConfig()
     kw = {}
@@ -35,8 +37,8 @@ def main(argv=None) -> int:
         kw["work_dir"] = a.work_dir
     if a.dtype is not None:
         kw["dtype"] = a.dtype
-    if a.no_compile:
-        kw["compile"] = False
+    kw.update({k: v for k, v in {"kernel": a.kernel, "device": a.device}.items()
+               if v is not None})
     cfg = cfg.with_(**kw)
     res = run_sweep(cfg, a.n, chunk=a.chunk)
     print(json.dumps({"path": res.path, "n": [len(x) for x in res.axes], "failed": res.n_failed,

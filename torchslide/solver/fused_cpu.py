@@ -121,8 +121,8 @@ if numba is not None:
         dx2 = dx ** 2
         for i in range(ny):
             for j in range(nx):
-                gx = (zpx[i, j + 3] - zpx[i, j + 1]) / (2 * dx)
-                gy = (zpy[i + 3, j] - zpy[i + 1, j]) / (2 * dx)
+                gx = (zpx[i, j + 3] - zpx[i, j + 1]) * (1.0 / (2 * dx))
+                gy = (zpy[i + 3, j] - zpy[i + 1, j]) * (1.0 / (2 * dx))
                 if slope:
                     zx[i, j] = gx
                     zy[i, j] = gy
@@ -137,9 +137,9 @@ if numba is not None:
                 _pad(zpx[:, c], zp2[:, c], True, False)
             for i in range(ny):
                 for j in range(nx):
-                    zxx[i, j] = (zpx[i, j + 3] - 2 * z[i, j] + zpx[i, j + 1]) / dx2
-                    zyy[i, j] = (zpy[i + 3, j] - 2 * z[i, j] + zpy[i + 1, j]) / dx2
-                    zxy[i, j] = (zp2[i + 3, j + 3] - zp2[i + 3, j + 1] - zp2[i + 1, j + 3] + zp2[i + 1, j + 1]) / (4 * dx2)
+                    zxx[i, j] = (zpx[i, j + 3] - 2 * z[i, j] + zpx[i, j + 1]) * (1.0 / dx2)
+                    zyy[i, j] = (zpy[i + 3, j] - 2 * z[i, j] + zpy[i + 1, j]) * (1.0 / dx2)
+                    zxy[i, j] = (zp2[i + 3, j + 3] - zp2[i + 3, j + 1] - zp2[i + 1, j + 3] + zp2[i + 1, j + 1]) * (1.0 / (4 * dx2))
         else:
             zxx[:, :] = 0.0
             zxy[:, :] = 0.0
@@ -216,7 +216,7 @@ if numba is not None:
             a, b = max(f - 1, 0), min(f, n - 1)
             hcL, hcR = hp[f + 1], hp[f + 2]
             hf = 0.5 * (hcL + hcR)
-            f_n = -(0.5 * (kgp[f + 1] + kgp[f + 2]) * (hcR - hcL) + g * (zR[f] - zL[f])) * hf / dx
+            f_n = -(0.5 * (kgp[f + 1] + kgp[f + 2]) * (hcR - hcL) + g * (zR[f] - zL[f])) * hf * (1.0 / dx)
             zxf = 0.5 * (zx[a] + zx[b])
             zyf = 0.5 * (zy[a] + zy[b])
             csf = 0.5 * (cs[a] + cs[b])
@@ -328,7 +328,7 @@ if numba is not None:
         for i in range(ny):
             for j in range(nx):
                 o = (max(Fhx[i, j + 1], 0.0) + max(-Fhx[i, j], 0.0)) + (max(Fhy[i + 1, j], 0.0) + max(-Fhy[i, j], 0.0))
-                o = o * (dt / dx)
+                o = o * (dt * (1.0 / dx))
                 fac[i, j] = h[i, j] / o if o > h[i, j] else 1.0
         for i in range(ny):
             for f in range(nx + 1):
@@ -344,7 +344,7 @@ if numba is not None:
                 Fhy[f, j] = F * c
                 Fqny[f, j] = Fqny[f, j] * c
                 Fqty[f, j] = Fqty[f, j] * c
-        lam = dt / dx
+        lam = dt * (1.0 / dx)
         bnd_x = 0.0
         bnd_y = 0.0
         for i in range(ny):
@@ -430,7 +430,7 @@ if numba is not None:
                 else:
                     keep = 0.0
                 hs = max(hn, h_eps)
-                a4 = 4.0 * dt * (g / (xi * cs[i, j])) / (hs * hs)
+                a4 = 4.0 * dt * ((1.0 / (xi * cs[i, j])) * g) / (hs * hs)
                 factor = keep * 2.0 / (1.0 + math.sqrt(1.0 + a4 * (keep * qn)))
                 qx = qx * factor
                 qy = qy * factor

@@ -2,8 +2,9 @@
 
 ``triton_step(F)`` returns a drop-in for ``stepping.make_step(F)``: the same SSP-RK2 step with the same
 arithmetic in the same order per cell and per face (stepping._stage, scheme.sweep, scheme.frozen_faces,
-scheme.draining_factors, friction.apply_friction), so it equals the torch step to round-off; the sums
-over the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels, each one
+scheme.draining_factors, friction.apply_friction), every division and square root rounded exactly and
+no fused multiply-add, so on CUDA one step equals the torch step's to the last bit; only the sums over
+the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels, each one
 pass over the grid of every member (grid axis 1 = member); the velocities (KP07 Eq. 2.17) and the
 pressure coefficient k g cos^2 are recomputed from the state where they are needed, not stored:
 
@@ -61,7 +62,7 @@ def supported(F, device) -> str | None:
 if triton is not None:
     # indices into the kernels' constant table (_constants; compile-time constants: Triton reads no other globals)
     C_G, C_DX, C_THETA, C_HEPS4, C_HWET, C_WB, C_SQRT2, C_WSMIN, C_HEPS, C_ENTMIN, C_FRDEP, C_MUI, C_I0, C_TINY, \
-        C_VMIN, C_ARR, C_INF = (tl.constexpr(k) for k in range(17))
+        C_VMIN, C_ARR, C_INF, C_INVDX = (tl.constexpr(k) for k in range(18))
 
     @triton.jit
     def _max(a, b):
@@ -72,10 +73,28 @@ if triton is not None:
         return tl.minimum(a, b, propagate_nan=tl.PropagateNan.ALL)
 
     @triton.jit
+    def _div(a, b):
+        """a / b rounded as IEEE division (torch's, in float32 too; Triton's float32 ``/`` is approximate)."""
+        if b.dtype == tl.float32:
+            r = tl.div_rn(a, b)
+        else:
+            r = a / b
+        return r
+
+    @triton.jit
+    def _sqrt(x):
+        """sqrt(x) rounded as IEEE (torch's; Triton's float32 tl.sqrt is approximate)."""
+        if x.dtype == tl.float32:
+            r = tl.sqrt_rn(x)
+        else:
+            r = tl.sqrt(x)
+        return r
+
+    @triton.jit
     def _desing(h, q, sqrt2, heps4):
         """friction.desingularised_velocity."""
         h4 = h * h * h * h
-        return sqrt2 * h * q / tl.sqrt(h4 + _max(h4, heps4))
+        return _div(sqrt2 * h * q, _sqrt(h4 + _max(h4, heps4)))
 
     @triton.jit
     def _minmod3(a, b, c):
@@ -208,13 +227,13 @@ if triton is not None:
             kgl = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, a, line, ny, nx, g, sqrt2, heps4, m, USE_EP)
             kgr = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, c, line, ny, nx, g, sqrt2, heps4, m, USE_EP)
         # central-upwind fluxes (KP07 Eq. 3.11)
-        cl = tl.sqrt(kgl * hl)
-        cr = tl.sqrt(kgr * hr)
+        cl = _sqrt(kgl * hl)
+        cr = _sqrt(kgr * hr)
         ap = _max(_max(ur + cr, ul + cl), 0.0)
         am = _min(_min(ur - cr, ul - cl), 0.0)
         den = ap - am
         pos = den > wsmin
-        inv = tl.where(pos, 1.0 / tl.where(pos, den, 1.0), 0.0)
+        inv = tl.where(pos, _div(1.0, tl.where(pos, den, 1.0)), 0.0)
         apam = ap * am * inv
         ql, qr = hl * ul, hr * ur
         fh = (ap * ql - am * qr) * inv + apam * (hr - hl)
@@ -225,7 +244,7 @@ if triton is not None:
             frozen = tl.zeros([BLOCK], dtype=tl.int1)
             if NO_CREEP:    # scheme.frozen_faces: both cells at rest and friction holds the face's drive
                 hf = 0.5 * (h1 + h2)
-                f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf / dx
+                f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf * tl.load(c_ptr + C_INVDX)
                 zxf = 0.5 * (tl.load(zx_ptr + gb + base + a * st, mask=m, other=0.0)
                              + tl.load(zx_ptr + gb + base + c * st, mask=m, other=0.0))
                 zyf = 0.5 * (tl.load(zy_ptr + gb + base + a * st, mask=m, other=0.0)
@@ -242,7 +261,7 @@ if triton is not None:
                     mua = mu
                     muc = mu
                 muf = 0.5 * (mua * (g * csa) + muc * (g * csc))
-                tauf = 0.5 * (tau / csa + tau / csc)
+                tauf = 0.5 * (_div(tau, csa) + _div(tau, csc))
                 if AXIS == 0:
                     f_t = -g * zyf * hf
                     ax, ay = f_n, f_t
@@ -284,10 +303,10 @@ if triton is not None:
         ys = b * (ny + 1) * nx + idx
         out = (_max(tl.load(fhx_ptr + xw + 1, mask=m, other=0.0), 0.0) + _max(-tl.load(fhx_ptr + xw, mask=m, other=0.0), 0.0)) \
             + (_max(tl.load(fhy_ptr + ys + nx, mask=m, other=0.0), 0.0) + _max(-tl.load(fhy_ptr + ys, mask=m, other=0.0), 0.0))
-        out = out * (tl.load(dt_ptr + b) / tl.load(c_ptr + C_DX))
+        out = out * (tl.load(dt_ptr + b) * tl.load(c_ptr + C_INVDX))
         h = tl.load(h_ptr + b * ny * nx + idx, mask=m, other=0.0)
         over = out > h
-        tl.store(fac_ptr + b * ny * nx + idx, tl.where(over, h / tl.where(over, out, 1.0), 1.0), mask=m)
+        tl.store(fac_ptr + b * ny * nx + idx, tl.where(over, _div(h, tl.where(over, out, 1.0)), 1.0), mask=m)
 
     @triton.jit
     def _face_factor(flux, fac_ptr, up, down, has_up, has_down, ghost, m):
@@ -351,7 +370,7 @@ if triton is not None:
         bnd = tl.where(j == nx - 1, fhxe, 0.0) - tl.where(j == 0, fhxw, 0.0) \
             + (tl.where(i == ny - 1, fhyn, 0.0) - tl.where(i == 0, fhys, 0.0))
         h = tl.load(h_ptr + cb + idx, mask=m, other=0.0)
-        lam = dt / dx
+        lam = dt * tl.load(c_ptr + C_INVDX)
         hn = h - lam * ((fhxe - fhxw) + (fhyn - fhys))
         # gravity and pressure as horizontal gradients (times dx), well-balanced bed source (KP07 Eq. 3.13)
         kg = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m, USE_EP)
@@ -397,11 +416,11 @@ if triton is not None:
         gn = g * cs
         if USE_ENT or USE_DEP:      # mass sources, explicit in the stage-start state
             w0 = zx * u + zy * v
-            speed0 = tl.sqrt(u * u + v * v + w0 * w0)
+            speed0 = _sqrt(u * u + v * v + w0 * w0)
             zn = tl.load(z_ptr + cb + idx, mask=m, other=0.0)
             if USE_ENT:
                 erod = tl.load(erod_ptr + cb + idx, mask=m, other=0.0)
-                rate = tl.load(pm_ptr + b * 11 + 9) * speed0 / cs \
+                rate = _div(tl.load(pm_ptr + b * 11 + 9) * speed0, cs) \
                     * (cs * h > tl.load(c_ptr + C_ENTMIN)).to(h.dtype)
                 de = _min(dt * rate, erod)
                 hn = hn + de
@@ -409,12 +428,12 @@ if triton is not None:
                 zn = zn - de
             if USE_DEP:
                 hs0 = _max(cs * h, h_eps)
-                froude = speed0 / tl.sqrt(_max(gn, tl.load(c_ptr + C_TINY)) * hs0)
-                rate = tl.load(pm_ptr + b * 11 + 10) * h * _max(1.0 - froude / tl.load(c_ptr + C_FRDEP), 0.0)
+                froude = _div(speed0, _sqrt(_max(gn, tl.load(c_ptr + C_TINY)) * hs0))
+                rate = tl.load(pm_ptr + b * 11 + 10) * h * _max(1.0 - _div(froude, tl.load(c_ptr + C_FRDEP)), 0.0)
                 hpos = _max(hn, 0.0)
                 dd = _min(dt * rate, hpos)
                 left = hpos > 0
-                ratio = tl.where(left, (hpos - dd) / tl.where(left, hpos, 1.0), 0.0)
+                ratio = tl.where(left, _div(hpos - dd, tl.where(left, hpos, 1.0)), 0.0)
                 qx = qx * ratio
                 qy = qy * ratio
                 hn = hn - dd
@@ -434,19 +453,19 @@ if triton is not None:
                 gne = _max(gn + tl.load(pm_ptr + b * 11 + 7) * (cs * _hform(zxx, zxy, zyy, un, vn)), 0.0)
             if USE_MU_I:
                 wn = zx * un + zy * vn
-                spd = tl.sqrt(un * un + vn * vn + wn * wn)
+                spd = _sqrt(un * un + vn * vn + wn * wn)
                 hs_ = _max(cs * hnp, h_eps)
-                inertial = tl.load(c_ptr + C_MUI) * spd / (hs_ * tl.sqrt(_max(gne, tl.load(c_ptr + C_TINY)) * hs_))
-                mu = mu + tl.load(pm_ptr + b * 11 + 8) * inertial / (tl.load(c_ptr + C_I0) + inertial)
-        coul = mu * gne * hnp + tl.load(pm_ptr + b * 11 + 2) / cs
+                inertial = _div(tl.load(c_ptr + C_MUI) * spd, hs_ * _sqrt(_max(gne, tl.load(c_ptr + C_TINY)) * hs_))
+                mu = mu + _div(tl.load(pm_ptr + b * 11 + 8) * inertial, tl.load(c_ptr + C_I0) + inertial)
+        coul = mu * gne * hnp + _div(tl.load(pm_ptr + b * 11 + 2), cs)
         xi_c = tl.load(pm_ptr + b * 11 + 1) * cs
         w = zx * qx + zy * qy
-        qn = tl.sqrt(qx * qx + qy * qy + w * w)
+        qn = _sqrt(qx * qx + qy * qy + w * w)
         moving = qn > 0
-        keep = tl.where(moving, _max(1.0 - dt * coul / tl.where(moving, qn, 1.0), 0.0), 0.0)
+        keep = tl.where(moving, _max(1.0 - _div(dt * coul, tl.where(moving, qn, 1.0)), 0.0), 0.0)
         hs = _max(hn, h_eps)
-        a4 = 4.0 * dt * (g / xi_c) / (hs * hs)
-        factor = keep * 2.0 / (1.0 + tl.sqrt(1.0 + a4 * (keep * qn)))
+        a4 = _div(4.0 * dt * (_div(1.0, xi_c) * g), hs * hs)   # torch's g / xi is xi.reciprocal() * g
+        factor = _div(keep * 2.0, 1.0 + _sqrt(1.0 + a4 * (keep * qn)))
         qx = qx * factor
         qy = qy * factor
         thin = hn < h_eps
@@ -499,7 +518,7 @@ if triton is not None:
         rzy = tl.load(rzy_ptr + idx, mask=m, other=0.0)
         rcs = tl.load(rcs_ptr + idx, mask=m, other=1.0)
         w = rzx * un + rzy * vn
-        spd = tl.sqrt(un * un + vn * vn + w * w)
+        spd = _sqrt(un * un + vn * vn + w * w)
         hnorm = rcs * hn
         tl.store(hmaxo_ptr + cb, _max(tl.load(hmax_ptr + cb, mask=m, other=0.0), rcs * hfin), mask=m)
         vmax = _max(tl.load(vmax_ptr + cb, mask=m, other=0.0), tl.where(hnorm >= tl.load(c_ptr + C_VMIN), spd, 0.0))
@@ -515,14 +534,14 @@ if triton is not None:
 def _constants(F, dtype, device) -> torch.Tensor:
     """The kernels' constant table (C_* indices) in the state's dtype."""
     vals = [F.g, F.dx, F.theta, F.h_eps ** 4, F.h_wet, F.wb_ratio, 2.0 ** 0.5, WAVE_SPEED_MIN, F.h_eps,
-            F.entrain_h_min, FR_DEP, 2.5 * MU_I_D, MU_I_I0, 1e-12, F.v_max_min_depth, F.arrival_threshold, math.inf]
+            F.entrain_h_min, FR_DEP, 2.5 * MU_I_D, MU_I_I0, 1e-12, F.v_max_min_depth, F.arrival_threshold, math.inf,
+            1.0 / F.dx]
     return torch.tensor(vals, dtype=dtype, device=device)
 
 
 def _launch(dtype) -> dict:
-    """Launch options: in float64 no fused multiply-add, so that every operation rounds as in the torch
-    step (round-off equality); float32 lets the compiler fuse."""
-    return {"BLOCK": BLOCK, "enable_fp_fusion": dtype != torch.float64}
+    """Launch options: no fused multiply-add, so that every operation rounds as in the torch step."""
+    return {"BLOCK": BLOCK, "enable_fp_fusion": False}
 
 
 def _stride(t: torch.Tensor) -> int:

@@ -162,7 +162,7 @@ def _face_drive(h: Tensor, kg: Tensor, bed, g: float, d: int, dx: float) -> tupl
     kgL, kgR = faces_of(pad_replicate(kg.expand_as(h) if kg.shape != h.shape else kg, d), d, n)
     _, zL, zR, _, _ = bed
     hbf = 0.5 * (hcL + hcR)
-    return -(0.5 * (kgL + kgR) * (hcR - hcL) + g * (zR - zL)) * hbf / dx, hbf
+    return -(0.5 * (kgL + kgR) * (hcR - hcL) + g * (zR - zL)) * hbf * (1.0 / dx), hbf
 
 
 def _face_mean(q: Tensor, d: int) -> Tensor:
@@ -226,7 +226,7 @@ def draining_factors(h: Tensor, Fx: Tensor, Fy: Tensor, dt: Tensor, dx: float,
     nx, ny = h.shape[2], h.shape[1]
     outx = torch.relu(Fx.narrow(2, 1, nx)) + torch.relu(-Fx.narrow(2, 0, nx))
     outy = torch.relu(Fy.narrow(1, 1, ny)) + torch.relu(-Fy.narrow(1, 0, ny))
-    out = (outx + outy) * (dt / dx)
+    out = (outx + outy) * (dt * (1.0 / dx))
     over = out > h
     fac = torch.where(over, h / torch.where(over, out, torch.ones_like(out)), torch.ones_like(out))
     fx = pad_const(fac, 2, ghost)

@@ -15,6 +15,7 @@ from ..terrain.grid import DEM
 from . import crop as _crop
 from .config import SolverConfig
 from .friction import desingularised_velocity
+from .graphs import StepGraphs
 from .stepping import StepFlags, make_step, static_geometry, surface_geometry
 
 Tensor = torch.Tensor
@@ -376,6 +377,16 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
         gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
         return sub_, P_, gi_, gin_
 
+    graphs = cfg.cuda_graphs and device.type == "cuda" and not cfg.compile and cfg.kernel != "compiled"
+
+    def advance(state: dict, n: int) -> dict:
+        """n steps of the working set (replayed as a CUDA graph where ``graphs``)."""
+        if chunks is not None:
+            return chunks.run(state, n)
+        for _ in range(n):
+            state = step(state, Psub, out_times, gsub, gin)
+        return state
+
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -383,15 +394,21 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
                    bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s simulated [{elapsed}{postfix}]")
     box = _crop.grow(work["h"], None, ny, nx, margin) if cfg.crop else _crop.full_box(ny, nx)
     sub, Psub, gsub, gin = enter(work, box)
+    chunks = StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
     while True:
-        for s_ in range(cfg.check_every):
-            if cfg.crop and s_ % cfg.crop_every == 0 and not box.covers(ny, nx):
+        s_ = 0
+        while s_ < cfg.check_every:     # chunks of steps between the host's looks at the box
+            n = cfg.check_every - s_
+            if cfg.crop and not box.covers(ny, nx):
+                n = min(n, cfg.crop_every)
                 nbox = _crop.grow(sub["h"], box, ny, nx, margin)
                 if nbox != box:
                     _crop.write_back(work, sub, box, ny, nx, member_keys)
                     box = nbox
                     sub, Psub, gsub, gin = enter(work, box)
-            sub = step(sub, Psub, out_times, gsub, gin)
+                    chunks = StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
+            sub = advance(sub, n)
+            s_ += n
         # the checks below need only the per-member scalars; rasters go back at compaction / the end
         work.update({k: v for k, v in sub.items() if k not in _crop.SPATIAL})
         act = work["active"]
@@ -416,6 +433,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = dict({k: v[idx] for k, v in Pm.items()}, **shared)
             sub, Psub, gsub, gin = enter(work, box)
+            chunks = StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
     _scatter(full, work, idx, member_keys)
     if bar is not None:
         bar.n = float(t_end)

@@ -4,6 +4,10 @@
 data-dependent Python branching (all switches are Python constants fixed per call), so that
 torch.compile can fuse it. Each member b has its own dt_b (a (B, 1, 1) tensor); an ended member
 gets dt_b = 0, which leaves its state bitwise unchanged.
+
+A division by a Python number (the cell size) is written as a multiplication by its reciprocal:
+torch on CUDA computes tensor / number that way and on the CPU it divides, so writing it out keeps
+the step the same on both devices, and the fused kernels (fused_cpu, fused_triton) do the same.
 """
 from __future__ import annotations
 
@@ -56,15 +60,15 @@ def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool
     ny, nx = z.shape[1], z.shape[2]
     zpx = pad_linear(z, 2)
     zpy = pad_linear(z, 1)
-    zx = (zpx.narrow(2, 3, nx) - zpx.narrow(2, 1, nx)) / (2 * dx)
-    zy = (zpy.narrow(1, 3, ny) - zpy.narrow(1, 1, ny)) / (2 * dx)
+    zx = (zpx.narrow(2, 3, nx) - zpx.narrow(2, 1, nx)) * (1.0 / (2 * dx))
+    zy = (zpy.narrow(1, 3, ny) - zpy.narrow(1, 1, ny)) * (1.0 / (2 * dx))
     hess = None
     if slope_correction or hessian:
-        zxx = (zpx.narrow(2, 3, nx) - 2 * z + zpx.narrow(2, 1, nx)) / dx**2
-        zyy = (zpy.narrow(1, 3, ny) - 2 * z + zpy.narrow(1, 1, ny)) / dx**2
+        zxx = (zpx.narrow(2, 3, nx) - 2 * z + zpx.narrow(2, 1, nx)) * (1.0 / dx**2)
+        zyy = (zpy.narrow(1, 3, ny) - 2 * z + zpy.narrow(1, 1, ny)) * (1.0 / dx**2)
         zp2 = pad_linear(zpx, 1)  # (.., ny+4, nx+4)
         zxy = (zp2[:, 3:ny + 3, 3:nx + 3] - zp2[:, 3:ny + 3, 1:nx + 1]
-               - zp2[:, 1:ny + 1, 3:nx + 3] + zp2[:, 1:ny + 1, 1:nx + 1]) / (4 * dx**2)
+               - zp2[:, 1:ny + 1, 3:nx + 3] + zp2[:, 1:ny + 1, 1:nx + 1]) * (1.0 / (4 * dx**2))
         hess = (zxx, zxy, zyy)
     if not slope_correction:
         return torch.zeros_like(z), torch.zeros_like(z), torch.ones_like(z), hess
@@ -146,7 +150,7 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     facx, facy = draining_factors(h, Fhx, Fhy, dtb, dx, ghost=1.0 if F.inflow else 0.0)
     Fhx, Fqnx, Fqtx = Fhx * facx, Fqnx * facx, Fqtx * facx
     Fhy, Fqny, Fqty = Fhy * facy, Fqny * facy, Fqty * facy
-    lam = dtb / dx
+    lam = dtb * (1.0 / dx)
     hn = h - lam * (diff(Fhx, 2) + diff(Fhy, 1))
     # gravity + pressure as horizontal gradients (times dx), then projected along the surface (Eq. 2-3)
     px = kg * diff(phix, 2) + g * hbarx * dBx
