@@ -52,7 +52,7 @@ bench-solver: $(STAMP)
 KERNELS ?= eager,fused
 bench-solver-gpu: $(STAMP)
 	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --kernels $(KERNELS) \
-		--batches 1,32,256 --graphs on,off --repeats 2 --t-short 10 --full-configs ""
+		--batches 1,32,256 --graphs on,off --launch 256x4,128x4,512x8 --repeats 2 --t-short 10 --full-configs ""
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"

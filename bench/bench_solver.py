@@ -84,7 +84,23 @@ def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
 
 
 def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
-               graphs: bool = False) -> dict:
+               graphs: bool = False, launch: tuple[int, int] | None = None) -> dict:
+    """One row; ``launch``: (BLOCK, NUM_WARPS) of the Triton step (fused on CUDA; None: its defaults)."""
+    from torchslide.solver import fused_triton
+
+    default = (fused_triton.BLOCK, fused_triton.NUM_WARPS)
+    fused_triton.BLOCK, fused_triton.NUM_WARPS = launch or default
+    try:
+        row = _throughput(case, B, kernel, dtype, device, t_end, repeats, graphs)
+    finally:
+        fused_triton.BLOCK, fused_triton.NUM_WARPS = default
+    if launch is not None:
+        row["block"], row["num_warps"] = launch
+    return row
+
+
+def _throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
+                graphs: bool) -> dict:
     cfg = SolverConfig(kernel=kernel, crop=False, stop_ke_fraction=0.0, output_interval=t_end, check_every=20,
                        cuda_graphs=graphs)
     p = Params.make(mu=np.linspace(0.15, 0.3, B), xi=1000.0)
@@ -148,6 +164,8 @@ def main(argv=None) -> None:
     ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--graphs", default="off", help="on CUDA: 'on', 'off' or 'on,off' (SolverConfig.cuda_graphs)")
+    ap.add_argument("--launch", default="", help="on CUDA: extra fused rows at these Triton launch settings, "
+                                                   "BLOCKxNUM_WARPS comma list (e.g. 256x4,128x4,512x8)")
     args = ap.parse_args(argv)
     case = bondo_like(args.cellsize)
     ny, nx = case.dem.shape
@@ -171,14 +189,19 @@ def main(argv=None) -> None:
                                    else [False]):
                         if kernel == "compiled" and graphs:
                             continue
-                        row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats, graphs)
-                        row["bandwidth_fraction"] = bandwidth_fraction(row, res["copy_bandwidth_bytes_per_s"])
-                        print(json.dumps(row), flush=True)
-                        res["throughput"].append(row)
-                        save()
+                        launches = [None]
+                        if kernel == "fused" and args.device.startswith("cuda") and not graphs:
+                            launches += [tuple(int(v) for v in x.split("x")) for x in filter(None, args.launch.split(","))]
+                        for launch in launches:
+                            row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats, graphs,
+                                             launch)
+                            row["bandwidth_fraction"] = bandwidth_fraction(row, res["copy_bandwidth_bytes_per_s"])
+                            print(json.dumps(row), flush=True)
+                            res["throughput"].append(row)
+                            save()
         ratios = {}
         for row in res["throughput"]:
-            if row["kernel"] != "eager":
+            if row["kernel"] != "eager" and "block" not in row:
                 e = [r for r in res["throughput"] if r["B"] == row["B"] and r["dtype"] == row["dtype"]
                      and r["kernel"] == "eager" and r["cuda_graphs"] == row["cuda_graphs"]]
                 if e:

@@ -44,6 +44,9 @@ PM = ("mu", "xi", "tau_y", "k_ap", "earth_pressure", "k_act", "k_pass", "curvatu
 BLOCK = 512
 """Cells (or faces) per program."""
 
+NUM_WARPS = 4
+"""Warps per program (bench.bench_solver --launch measures other BLOCK x NUM_WARPS)."""
+
 
 def interpreted() -> bool:
     return os.environ.get("TRITON_INTERPRET", "0") == "1"
@@ -541,7 +544,7 @@ def _constants(F, dtype, device) -> torch.Tensor:
 
 def _launch(dtype) -> dict:
     """Launch options: no fused multiply-add, so that every operation rounds as in the torch step."""
-    return {"BLOCK": BLOCK, "enable_fp_fusion": False}
+    return {"BLOCK": BLOCK, "num_warps": NUM_WARPS, "enable_fp_fusion": False}
 
 
 def _stride(t: torch.Tensor) -> int:
