@@ -379,6 +379,10 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
 
     graphs = cfg.cuda_graphs and device.type == "cuda" and not cfg.compile and cfg.kernel != "compiled"
 
+    def new_chunks():
+        """CUDA graphs for the current working set (None: steps launched one by one)."""
+        return StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
+
     def advance(state: dict, n: int) -> dict:
         """n steps of the working set (replayed as a CUDA graph where ``graphs``)."""
         if chunks is not None:
@@ -394,7 +398,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
                    bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s simulated [{elapsed}{postfix}]")
     box = _crop.grow(work["h"], None, ny, nx, margin) if cfg.crop else _crop.full_box(ny, nx)
     sub, Psub, gsub, gin = enter(work, box)
-    chunks = StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
+    chunks = new_chunks()
     while True:
         s_ = 0
         while s_ < cfg.check_every:     # chunks of steps between the host's looks at the box
@@ -406,7 +410,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
                     _crop.write_back(work, sub, box, ny, nx, member_keys)
                     box = nbox
                     sub, Psub, gsub, gin = enter(work, box)
-                    chunks = StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
+                    chunks = new_chunks()
             sub = advance(sub, n)
             s_ += n
         # the checks below need only the per-member scalars; rasters go back at compaction / the end
@@ -433,7 +437,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = dict({k: v[idx] for k, v in Pm.items()}, **shared)
             sub, Psub, gsub, gin = enter(work, box)
-            chunks = StepGraphs(step, (Psub, out_times, gsub, gin)) if graphs else None
+            chunks = new_chunks()
     _scatter(full, work, idx, member_keys)
     if bar is not None:
         bar.n = float(t_end)
