@@ -14,7 +14,7 @@ from torchslide.solver import SolverConfig as _Config
 from torchslide.terrain.grid import DEM
 
 from .conftest import cap_release, tilted_plane
-from .test_solver_fused import _channel, _compare
+from .test_solver_fused import _channel, _compare, compare_plane_settings
 
 
 def SolverConfig(**kw) -> _Config:
@@ -61,12 +61,7 @@ def plane():
     rule, a friction map, no turbulent friction (xi = inf) with k_ap 1.5."""
     dem = tilted_plane(12, 20.0, 35.0, plan_deg=30.0)[0]
     rel = cap_release(dem, -20.0, -10.0, 50.0, 4.0)
-    params = {"mu": [0.3, 0.4], "xi": [400.0, 1500.0]}
-    _compare(dem, rel, params, SolverConfig(boundary="open"), t_end=1.5)
-    _compare(dem, rel, params, SolverConfig(slope_correction=False, no_creep=False), t_end=1.5)
-    ms = np.ones(dem.shape)
-    ms[:, : dem.shape[1] // 2] = 0.8
-    _compare(dem, rel, params, SolverConfig(), t_end=1.5, mu_scale=ms)
+    compare_plane_settings(dem, rel, t_end=1.5, config=SolverConfig)
     _compare(dem, rel, {"mu": 0.3, "xi": float("inf"), "k_ap": 1.5}, SolverConfig(), t_end=1.5)
 
 
