@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-solver-gpu bench-inference bench-executor clean
+.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-solver-gpu bench-triton-profile bench-inference bench-executor clean
 
 venv: $(STAMP)
 
@@ -39,7 +39,7 @@ test-all: $(STAMP)
 test-gpu: $(STAMP)
 	$(PY) -m pytest -q tests/test_gpu.py -m "" --timeout=1800 --durations=10
 
-bench: bench-solver bench-inference bench-executor
+bench: bench-solver bench-triton-profile bench-inference bench-executor
 
 bench-solver: $(STAMP)
 	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 \
@@ -47,12 +47,17 @@ bench-solver: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m bench.stop_rule --out bench/results/stop_rule.json
 
 # on a CUDA machine: eager and fused, float32 and float64, batch 1, 32 and 256, with and without CUDA graphs,
-# each row with its fraction of the card's copy bandwidth (add compiled with KERNELS=eager,compiled,fused:
-# its first call compiles for minutes)
+# fused rows at other Triton launch settings (BLOCKxWARPS[:velocities recomputed|stored]), each row with its
+# fraction of the card's copy bandwidth (add compiled with KERNELS=eager,compiled,fused: its first call
+# compiles for minutes)
 KERNELS ?= eager,fused
 bench-solver-gpu: $(STAMP)
 	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --kernels $(KERNELS) \
-		--batches 1,32,256 --graphs on,off --launch 256x4,128x4,512x8 --repeats 2 --t-short 10 --full-configs ""
+		--batches 1,32,256 --graphs on,off --launch 512x4:stored,256x4,256x4:stored,128x4:stored --repeats 2 --t-short 10 --full-configs ""
+
+# registers, spills and SASS instructions per cell of every Triton kernel, compiled for an H100/H200 on the CPU
+bench-triton-profile: $(STAMP)
+	$(PY) -m bench.triton_profile --arch 90 --out bench/results/triton_profile.json
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"

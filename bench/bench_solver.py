@@ -83,19 +83,33 @@ def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
     return row["cell_updates_per_s_median"] * BYTES_PER_CELL_UPDATE * size / copy_bw
 
 
-def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
-               graphs: bool = False, launch: tuple[int, int] | None = None) -> dict:
-    """One row; ``launch``: (BLOCK, NUM_WARPS) of the Triton step (fused on CUDA; None: its defaults)."""
+def parse_launch(spec: str) -> tuple[int, int, str]:
+    """'BLOCKxNUM_WARPS[:VELOCITIES]' (e.g. '512x4:stored') -> (BLOCK, NUM_WARPS, VELOCITIES) of the
+    Triton step; VELOCITIES defaults to fused_triton's."""
     from torchslide.solver import fused_triton
 
-    default = (fused_triton.BLOCK, fused_triton.NUM_WARPS)
-    fused_triton.BLOCK, fused_triton.NUM_WARPS = launch or default
+    sizes, _, velocities = spec.partition(":")
+    block, _, warps = sizes.partition("x")
+    velocities = velocities or fused_triton.VELOCITIES
+    if not (block.isdigit() and warps.isdigit()) or velocities not in ("recomputed", "stored"):
+        raise SystemExit(f"--launch: {spec!r} is not BLOCKxNUM_WARPS[:recomputed|stored]")
+    return int(block), int(warps), velocities
+
+
+def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
+               graphs: bool = False, launch: tuple[int, int, str] | None = None) -> dict:
+    """One row; ``launch``: (BLOCK, NUM_WARPS, VELOCITIES) of the Triton step (fused on CUDA; None: its
+    defaults)."""
+    from torchslide.solver import fused_triton
+
+    default = (fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES)
+    fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES = launch or default
     try:
         row = _throughput(case, B, kernel, dtype, device, t_end, repeats, graphs)
     finally:
-        fused_triton.BLOCK, fused_triton.NUM_WARPS = default
+        fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES = default
     if launch is not None:
-        row["block"], row["num_warps"] = launch
+        row["block"], row["num_warps"], row["velocities"] = launch
     return row
 
 
@@ -165,7 +179,8 @@ def main(argv=None) -> None:
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--graphs", default="off", help="on CUDA: 'on', 'off' or 'on,off' (SolverConfig.cuda_graphs)")
     ap.add_argument("--launch", default="", help="on CUDA: extra fused rows at these Triton launch settings, "
-                                                   "BLOCKxNUM_WARPS comma list (e.g. 256x4,128x4,512x8)")
+                                                   "BLOCKxNUM_WARPS[:recomputed|stored] comma list "
+                                                   "(e.g. 256x4,128x4,512x4:stored; fused_triton.VELOCITIES)")
     args = ap.parse_args(argv)
     case = bondo_like(args.cellsize)
     ny, nx = case.dem.shape
@@ -191,7 +206,7 @@ def main(argv=None) -> None:
                             continue
                         launches = [None]
                         if kernel == "fused" and args.device.startswith("cuda") and not graphs:
-                            launches += [tuple(int(v) for v in x.split("x")) for x in filter(None, args.launch.split(","))]
+                            launches += [parse_launch(x) for x in filter(None, args.launch.split(","))]
                         for launch in launches:
                             row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats, graphs,
                                              launch)

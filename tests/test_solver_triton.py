@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from bench import triton_profile
+
 from . import triton_interpret
 
 pytest.importorskip("triton")
@@ -42,35 +44,26 @@ def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch)
     assert fused_triton.supported(F, "cpu") is None
 
 
-SWITCHES = {"_faces": ("NO_CREEP", "WALLS", "USE_MUS", "USE_EP"), "_drain": (),
-            "_update": ("SLOPE", "USE_CURV", "USE_MU_I", "USE_ENT", "USE_DEP", "USE_MUS", "GONE_OUT", "INFLOW",
-                        "USE_EP"),
-            "_combine": ("MOVING", "USE_ENT", "USE_DEP")}
-
-
 @pytest.mark.parametrize("dtype", ["fp64", "fp32"])
 @pytest.mark.parametrize("on", [True, False])
 def test_the_triton_kernels_compile_for_an_h100(dtype, on):
     """Every kernel compiles ahead of time for sm_90 (triton's own ptxas; no GPU needed), with every switch
     on or off: what the interpreter does not check (types, constexpr globals, the lowering)."""
-    import inspect
-
-    import triton
-    from triton.backends.compiler import GPUTarget
-    from triton.compiler import ASTSource
-
-    from torchslide.solver import fused_triton
-
-    for name, switches in SWITCHES.items():
+    for name in triton_profile.KERNELS:
         for axis in ((0, 1) if name == "_faces" else (None,)):
-            fn = getattr(fused_triton, name)
-            params = list(inspect.signature(fn.fn).parameters)
-            consts = {"BLOCK": fused_triton.BLOCK, **{s: on for s in switches}}
-            if axis is not None:
-                consts["AXIS"] = axis
-            sig = {p: "constexpr" if p in consts else ("*i1" if p == "inside_ptr" else f"*{dtype}")
-                   if p.endswith("_ptr") else "i32" for p in params}
-            src = ASTSource(fn=fn, signature=sig, constexprs={(params.index(k),): v for k, v in consts.items()})
-            kernel = triton.compile(src, target=GPUTarget("cuda", 90, 32),
-                                    options={"enable_fp_fusion": False})
+            kernel = triton_profile.compile_kernel(name, dtype, dict.fromkeys(triton_profile.switches(name), on), axis)
             assert len(kernel.asm["cubin"]) > 0, name
+
+
+def test_stored_velocities_take_the_divisions_and_square_roots_out_of_the_faces():
+    """With VELOCITIES = "stored" an x face reads its 8 velocities instead of dividing for each (and taking
+    a square root): at least 8 fewer MUFU instructions per face in the compiled kernel, no spills."""
+    pytest.importorskip("triton.backends.nvidia")
+    prof = {}
+    for stored in (False, True):
+        kernel = triton_profile.compile_kernel("_faces", "fp32", {"STORED": stored}, axis=0, block=128, num_warps=4)
+        prof[stored] = triton_profile.sass_profile(kernel, cells_per_thread=1)
+    assert prof[True]["mufu_per_cell"] >= 2                     # the face's wave speeds: two sqrt, one division
+    assert prof[True]["mufu_per_cell"] <= prof[False]["mufu_per_cell"] - 8, prof
+    assert prof[True]["instructions_per_cell"] < prof[False]["instructions_per_cell"], prof
+    assert prof[True]["local_bytes"] == prof[False]["local_bytes"] == 0, prof

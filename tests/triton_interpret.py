@@ -4,6 +4,7 @@ interpreter is chosen when triton is imported). tests/test_solver_triton.py runs
 short runs (a few steps: the interpreter takes about a second per step) that switch on every term."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 
@@ -85,9 +86,10 @@ def _exact_sqrt() -> None:
 
 
 def bitwise():
-    """One step of every term from a state of the all-terms chute run 5 steps in: every field of the Triton
-    step equals the torch step's to the last bit, with both rounding sqrt exactly (as on CUDA). Only the
-    per-member sums (kinetic energy, mass, boundary outflow) may differ, by their order of summation."""
+    """One step from a state of the all-terms chute run 5 steps in, with every term and with plain Voellmy,
+    the velocities recomputed and stored (fused_triton.VELOCITIES): every field of the Triton step equals
+    the torch step's to the last bit, with both rounding sqrt exactly (as on CUDA). Only the per-member
+    sums (kinetic energy, mass, boundary outflow) may differ, by their order of summation."""
     from torchslide.solver import fused_triton, stepping
 
     from .conftest import assert_steps_equal, step_state
@@ -95,7 +97,11 @@ def bitwise():
     _exact_sqrt()
     S, P, F = step_state(5)
     assert F.use_ep and F.use_curv and F.use_ent and F.use_dep and F.use_mu_i and F.no_creep
-    assert_steps_equal(stepping.make_step(F)(dict(S), P), fused_triton.triton_step(F)(dict(S), P))
+    plain = dataclasses.replace(F, use_ep=False, use_curv=False, use_ent=False, use_dep=False, use_mu_i=False,
+                                slope_correction=False)
+    for fused_triton.VELOCITIES in ("recomputed", "stored"):
+        for flags in (F, plain):
+            assert_steps_equal(stepping.make_step(flags)(dict(S), P), fused_triton.triton_step(flags)(dict(S), P))
 
 
 CASES = {f.__name__: f for f in (channel, terms, moving_bed, nodata, plane, float32, bitwise)}

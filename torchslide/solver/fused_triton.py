@@ -5,8 +5,9 @@ arithmetic in the same order per cell and per face (stepping._stage, scheme.swee
 scheme.draining_factors, friction.apply_friction), every division and square root rounded exactly and
 no fused multiply-add, so on CUDA one step equals the torch step's to the last bit; only the sums over
 the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels, each one
-pass over the grid of every member (grid axis 1 = member); the velocities (KP07 Eq. 2.17) and the
-pressure coefficient k g cos^2 are recomputed from the state where they are needed, not stored:
+pass over the grid of every member (grid axis 1 = member); the pressure coefficient k g cos^2 is
+recomputed from the state where it is needed, the velocities (KP07 Eq. 2.17) too or, with
+VELOCITIES = "stored", once per stage by a fifth kernel (_velocities):
 
     _faces     x or y faces: reconstruction, central-upwind fluxes (KP07 Eq. 3.11), the no-creep rule,
                domain walls, the largest one-sided speed per block (for the CFL step)
@@ -46,6 +47,12 @@ BLOCK = 512
 
 NUM_WARPS = 4
 """Warps per program (bench.bench_solver --launch measures other BLOCK x NUM_WARPS)."""
+
+VELOCITIES = "recomputed"
+"""Where the faces and the cell update take the desingularised velocities u, v (KP07 Eq. 2.17) from:
+"recomputed" from h, hu, hv at each use (16 exactly rounded divisions and square roots per cell and
+stage in the faces alone), or "stored" once per stage by one more kernel (_velocities; two more fields
+written and read). The same bits either way; bench.bench_solver --launch BLOCKxWARPS:stored measures it."""
 
 
 def interpreted() -> bool:
@@ -121,12 +128,28 @@ if triton is not None:
         return tl.where(c == n + 1, 3 * r0 - 2 * r1, q)
 
     @triton.jit
-    def _vel(h_ptr, q_ptr, at, sqrt2, heps4, m):
-        """The desingularised velocity of the momentum component q at the flat cell offsets ``at``."""
-        return _desing(tl.load(h_ptr + at, mask=m, other=0.0), tl.load(q_ptr + at, mask=m, other=0.0), sqrt2, heps4)
+    def _vel(h_ptr, q_ptr, w_ptr, at, sqrt2, heps4, m, STORED: tl.constexpr):
+        """The desingularised velocity of the momentum component q at the flat cell offsets ``at``: read
+        from w (its stored values, _velocities) or computed from h and q."""
+        if STORED:
+            w = tl.load(w_ptr + at, mask=m, other=0.0)
+        else:
+            w = _desing(tl.load(h_ptr + at, mask=m, other=0.0), tl.load(q_ptr + at, mask=m, other=0.0), sqrt2, heps4)
+        return w
 
     @triton.jit
-    def _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m, USE_EP: tl.constexpr):
+    def _velocities(h_ptr, hu_ptr, hv_ptr, c_ptr, u_ptr, v_ptr, n, BLOCK: tl.constexpr):
+        """u, v of the n cells of every member (VELOCITIES = "stored")."""
+        idx = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = idx < n
+        sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
+        h = tl.load(h_ptr + idx, mask=m, other=0.0)
+        tl.store(u_ptr + idx, _desing(h, tl.load(hu_ptr + idx, mask=m, other=0.0), sqrt2, heps4), mask=m)
+        tl.store(v_ptr + idx, _desing(h, tl.load(hv_ptr + idx, mask=m, other=0.0), sqrt2, heps4), mask=m)
+
+    @triton.jit
+    def _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m,
+            USE_EP: tl.constexpr, STORED: tl.constexpr):
         """The pressure coefficient k g cos^2 at cells (i, j) (stepping._stage with stepping._earth_pressure:
         with earth pressure, k is active where the flow spreads (div u >= 0), passive where it converges;
         the velocities of the four neighbours replicated at the edges). cb, gb: the member's offsets of the
@@ -135,10 +158,10 @@ if triton is not None:
         k = tl.load(pm_ptr + b * 11 + 3)
         if USE_EP:
             row, col = cb + i * nx, cb + j
-            ue = _vel(h_ptr, hu_ptr, row + tl.minimum(j + 1, nx - 1), sqrt2, heps4, m)
-            uw = _vel(h_ptr, hu_ptr, row + tl.maximum(j - 1, 0), sqrt2, heps4, m)
-            vn = _vel(h_ptr, hv_ptr, col + tl.minimum(i + 1, ny - 1) * nx, sqrt2, heps4, m)
-            vs = _vel(h_ptr, hv_ptr, col + tl.maximum(i - 1, 0) * nx, sqrt2, heps4, m)
+            ue = _vel(h_ptr, hu_ptr, u_ptr, row + tl.minimum(j + 1, nx - 1), sqrt2, heps4, m, STORED)
+            uw = _vel(h_ptr, hu_ptr, u_ptr, row + tl.maximum(j - 1, 0), sqrt2, heps4, m, STORED)
+            vn = _vel(h_ptr, hv_ptr, v_ptr, col + tl.minimum(i + 1, ny - 1) * nx, sqrt2, heps4, m, STORED)
+            vs = _vel(h_ptr, hv_ptr, v_ptr, col + tl.maximum(i - 1, 0) * nx, sqrt2, heps4, m, STORED)
             div = (ue - uw) + (vn - vs)
             s = tl.load(pm_ptr + b * 11 + 4)
             ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
@@ -154,13 +177,13 @@ if triton is not None:
             return b * (ny + 1) * nx
 
     @triton.jit
-    def _faces(h_ptr, hu_ptr, hv_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr,
+    def _faces(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr,
                pm_ptr, c_ptr, fh_ptr, fqn_ptr, fqt_ptr, phi_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zp, s_geo,
                AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr,
-               USE_EP: tl.constexpr, BLOCK: tl.constexpr):
+               USE_EP: tl.constexpr, STORED: tl.constexpr, BLOCK: tl.constexpr):
         """scheme.sweep (and scheme.frozen_faces, stepping._domain_walls) at the x faces (AXIS 0: (ny, nx + 1)
         per member) or the y faces (AXIS 1: (ny + 1, nx)); face f of a line lies between cells f - 1 and f.
-        zp: the bed padded along the axis (scheme.bed_terms' zp)."""
+        zp: the bed padded along the axis (scheme.bed_terms' zp); u, v: the stored velocities (STORED)."""
         b = tl.program_id(1)
         pid = tl.program_id(0)
         idx = pid * BLOCK + tl.arange(0, BLOCK)
@@ -205,30 +228,38 @@ if triton is not None:
         hr = tl.where(wet_r, _max(wr - bf, 0.0), hrh)
         # velocities normal (un) and tangential (ut) to the face, replicated at the edges
         if AXIS == 0:
-            qn_ptr, qt_ptr = hu_ptr, hv_ptr
+            qn_ptr, qt_ptr, wn_ptr, wt_ptr = hu_ptr, hv_ptr, u_ptr, v_ptr
         else:
-            qn_ptr, qt_ptr = hv_ptr, hu_ptr
+            qn_ptr, qt_ptr, wn_ptr, wt_ptr = hv_ptr, hu_ptr, v_ptr, u_ptr
         sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
         c0 = cb + base + tl.minimum(tl.maximum(f - 2, 0), n - 1) * st
         c1 = cb + base + tl.minimum(tl.maximum(f - 1, 0), n - 1) * st
         c2 = cb + base + tl.minimum(f, n - 1) * st
         c3 = cb + base + tl.minimum(f + 1, n - 1) * st
-        u0, u1 = _vel(h_ptr, qn_ptr, c0, sqrt2, heps4, m), _vel(h_ptr, qn_ptr, c1, sqrt2, heps4, m)
-        u2, u3 = _vel(h_ptr, qn_ptr, c2, sqrt2, heps4, m), _vel(h_ptr, qn_ptr, c3, sqrt2, heps4, m)
+        u0 = _vel(h_ptr, qn_ptr, wn_ptr, c0, sqrt2, heps4, m, STORED)
+        u1 = _vel(h_ptr, qn_ptr, wn_ptr, c1, sqrt2, heps4, m, STORED)
+        u2 = _vel(h_ptr, qn_ptr, wn_ptr, c2, sqrt2, heps4, m, STORED)
+        u3 = _vel(h_ptr, qn_ptr, wn_ptr, c3, sqrt2, heps4, m, STORED)
         ul = u1 + 0.5 * _minmod3(theta * (u1 - u0), 0.5 * (u2 - u0), theta * (u2 - u1))
         ur = u2 - 0.5 * _minmod3(theta * (u2 - u1), 0.5 * (u3 - u1), theta * (u3 - u2))
-        t0, t1 = _vel(h_ptr, qt_ptr, c0, sqrt2, heps4, m), _vel(h_ptr, qt_ptr, c1, sqrt2, heps4, m)
-        t2, t3 = _vel(h_ptr, qt_ptr, c2, sqrt2, heps4, m), _vel(h_ptr, qt_ptr, c3, sqrt2, heps4, m)
+        t0 = _vel(h_ptr, qt_ptr, wt_ptr, c0, sqrt2, heps4, m, STORED)
+        t1 = _vel(h_ptr, qt_ptr, wt_ptr, c1, sqrt2, heps4, m, STORED)
+        t2 = _vel(h_ptr, qt_ptr, wt_ptr, c2, sqrt2, heps4, m, STORED)
+        t3 = _vel(h_ptr, qt_ptr, wt_ptr, c3, sqrt2, heps4, m, STORED)
         tlf = t1 + 0.5 * _minmod3(theta * (t1 - t0), 0.5 * (t2 - t0), theta * (t2 - t1))
         trf = t2 - 0.5 * _minmod3(theta * (t2 - t1), 0.5 * (t3 - t1), theta * (t3 - t2))
         a = tl.minimum(tl.maximum(f - 1, 0), n - 1)      # the cells left and right of the face
         c = tl.minimum(f, n - 1)
         if AXIS == 0:
-            kgl = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, line, a, ny, nx, g, sqrt2, heps4, m, USE_EP)
-            kgr = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, line, c, ny, nx, g, sqrt2, heps4, m, USE_EP)
+            kgl = _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, line, a, ny, nx, g, sqrt2, heps4,
+                      m, USE_EP, STORED)
+            kgr = _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, line, c, ny, nx, g, sqrt2, heps4,
+                      m, USE_EP, STORED)
         else:
-            kgl = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, a, line, ny, nx, g, sqrt2, heps4, m, USE_EP)
-            kgr = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, c, line, ny, nx, g, sqrt2, heps4, m, USE_EP)
+            kgl = _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, a, line, ny, nx, g, sqrt2, heps4,
+                      m, USE_EP, STORED)
+            kgr = _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, c, line, ny, nx, g, sqrt2, heps4,
+                      m, USE_EP, STORED)
         # central-upwind fluxes (KP07 Eq. 3.11)
         cl = _sqrt(kgl * hl)
         cr = _sqrt(kgr * hr)
@@ -325,7 +356,7 @@ if triton is not None:
         return zxx * u * u + 2.0 * zxy * u * v + zyy * v * v
 
     @triton.jit
-    def _update(h_ptr, hu_ptr, hv_ptr, z_ptr, erod_ptr, dep_ptr, fac_ptr,
+    def _update(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, z_ptr, erod_ptr, dep_ptr, fac_ptr,
                 fhx_ptr, fqnx_ptr, fqtx_ptr, phix_ptr, hlx_ptr, hrx_ptr,
                 fhy_ptr, fqny_ptr, fqty_ptr, phiy_ptr, hly_ptr, hry_ptr,
                 zpx_ptr, zpy_ptr, zx_ptr, zy_ptr, cs_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr,
@@ -333,7 +364,7 @@ if triton is not None:
                 ny, nx, s_geo, s_zpx, s_zpy,
                 SLOPE: tl.constexpr, USE_CURV: tl.constexpr, USE_MU_I: tl.constexpr, USE_ENT: tl.constexpr,
                 USE_DEP: tl.constexpr, USE_MUS: tl.constexpr, GONE_OUT: tl.constexpr, INFLOW: tl.constexpr,
-                USE_EP: tl.constexpr, BLOCK: tl.constexpr):
+                USE_EP: tl.constexpr, STORED: tl.constexpr, BLOCK: tl.constexpr):
         """The rest of stepping._stage for each cell: draining-limited fluxes, gravity and pressure along
         the surface (Eq. 2-3), entrainment and deposition, friction (Eq. 4, friction.apply_friction). part:
         (B, programs, 2) the block's boundary flux (outward, m^2/s) and the thickness lost outside the domain."""
@@ -376,7 +407,8 @@ if triton is not None:
         lam = dt * tl.load(c_ptr + C_INVDX)
         hn = h - lam * ((fhxe - fhxw) + (fhyn - fhys))
         # gravity and pressure as horizontal gradients (times dx), well-balanced bed source (KP07 Eq. 3.13)
-        kg = _kg(h_ptr, hu_ptr, hv_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m, USE_EP)
+        kg = _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m,
+                 USE_EP, STORED)
         zpx = zpx_ptr + b * s_zpx + i * (nx + 4) + j
         zpy = zpy_ptr + b * s_zpy + idx
         dbx = 0.5 * (tl.load(zpx + 2, mask=m, other=0.0) + tl.load(zpx + 3, mask=m, other=0.0)) \
@@ -394,8 +426,8 @@ if triton is not None:
         cs = tl.load(cs_ptr + gb + idx, mask=m, other=1.0)
         hu = tl.load(hu_ptr + cb + idx, mask=m, other=0.0)
         hv = tl.load(hv_ptr + cb + idx, mask=m, other=0.0)
-        u = _desing(h, hu, sqrt2, heps4)
-        v = _desing(h, hv, sqrt2, heps4)
+        u = _vel(h_ptr, hu_ptr, u_ptr, cb + idx, sqrt2, heps4, m, STORED)
+        v = _vel(h_ptr, hv_ptr, v_ptr, cb + idx, sqrt2, heps4, m, STORED)
         if SLOPE or USE_CURV:
             zxx = tl.load(zxx_ptr + gb + idx, mask=m, other=0.0)
             zxy = tl.load(zxy_ptr + gb + idx, mask=m, other=0.0)
@@ -577,14 +609,18 @@ def triton_step(F):
         mus = P["mu_scale"].contiguous() if F.use_mu_scale else cs
         inside = P["inside"].contiguous() if F.domain else cs
         cells = (triton.cdiv(ny * nx, BLOCK), B)
+        stored = VELOCITIES == "stored"
+        u, v = (torch.empty_like(h), torch.empty_like(h)) if stored else (h, h)
+        if stored:
+            _velocities[(triton.cdiv(h.numel(), BLOCK),)](h, hu, hv, c, u, v, h.numel(), **_launch(h.dtype))
         sweeps = []
         for axis, (zp, nf) in enumerate(((zpx, (ny, nx + 1)), (zpy, (ny + 1, nx)))):
             out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
             grid = (triton.cdiv(nf[0] * nf[1], BLOCK), B)
             amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
-            _faces[grid](h, hu, hv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
+            _faces[grid](h, hu, hv, u, v, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
                          _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
-                         USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, **_launch(h.dtype))
+                         USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, STORED=stored, **_launch(h.dtype))
             sweeps.append((out, amax.amax(dim=1)))
         (fx, ax), (fy, ay) = sweeps
         if dt is None:
@@ -599,13 +635,13 @@ def triton_step(F):
         d_o = torch.empty_like(h) if F.use_dep else dep
         part = torch.empty((B, cells[0], 2), dtype=h.dtype, device=h.device)
         dummy = h
-        _update[cells](h, hu, hv, z if moving else dummy, erod if F.use_ent else dummy, dep if F.use_dep else dummy,
+        _update[cells](h, hu, hv, u, v, z if moving else dummy, erod if F.use_ent else dummy, dep if F.use_dep else dummy,
                        fac, *fx, *fy, zpx, zpy, zx, zy, cs, zxx, zxy, zyy, mus, inside, pm, c, dt,
                        h_o, hu_o, hv_o, z_o if moving else dummy, e_o if F.use_ent else dummy,
                        d_o if F.use_dep else dummy, part, ny, nx, s_geo, _stride(zpx), _stride(zpy),
                        SLOPE=F.slope_correction, USE_CURV=F.use_curv, USE_MU_I=F.use_mu_i, USE_ENT=F.use_ent,
                        USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale, GONE_OUT=F.domain == "outflow",
-                       INFLOW=F.inflow, USE_EP=F.use_ep, **_launch(h.dtype))
+                       INFLOW=F.inflow, USE_EP=F.use_ep, STORED=stored, **_launch(h.dtype))
         sums = part.sum(dim=1)
         outflow = dt * F.dx * sums[:, 0] + sums[:, 1] * (F.dx * F.dx)
         return h_o, hu_o, hv_o, z_o, e_o, d_o, outflow, dt
