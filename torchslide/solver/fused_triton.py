@@ -138,6 +138,18 @@ if triton is not None:
         return w
 
     @triton.jit
+    def _face_vel(h_ptr, q_ptr, w_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, STORED: tl.constexpr):
+        """The velocity of component q reconstructed at a face from the cells c0 .. c3 around it (two left,
+        two right): its left and right values (scheme.reconstruct)."""
+        v0 = _vel(h_ptr, q_ptr, w_ptr, c0, sqrt2, heps4, m, STORED)
+        v1 = _vel(h_ptr, q_ptr, w_ptr, c1, sqrt2, heps4, m, STORED)
+        v2 = _vel(h_ptr, q_ptr, w_ptr, c2, sqrt2, heps4, m, STORED)
+        v3 = _vel(h_ptr, q_ptr, w_ptr, c3, sqrt2, heps4, m, STORED)
+        left = v1 + 0.5 * _minmod3(theta * (v1 - v0), 0.5 * (v2 - v0), theta * (v2 - v1))
+        right = v2 - 0.5 * _minmod3(theta * (v2 - v1), 0.5 * (v3 - v1), theta * (v3 - v2))
+        return left, right
+
+    @triton.jit
     def _velocities(h_ptr, hu_ptr, hv_ptr, c_ptr, u_ptr, v_ptr, n, BLOCK: tl.constexpr):
         """u, v of the n cells of every member (VELOCITIES = "stored")."""
         idx = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
@@ -236,18 +248,8 @@ if triton is not None:
         c1 = cb + base + tl.minimum(tl.maximum(f - 1, 0), n - 1) * st
         c2 = cb + base + tl.minimum(f, n - 1) * st
         c3 = cb + base + tl.minimum(f + 1, n - 1) * st
-        u0 = _vel(h_ptr, qn_ptr, wn_ptr, c0, sqrt2, heps4, m, STORED)
-        u1 = _vel(h_ptr, qn_ptr, wn_ptr, c1, sqrt2, heps4, m, STORED)
-        u2 = _vel(h_ptr, qn_ptr, wn_ptr, c2, sqrt2, heps4, m, STORED)
-        u3 = _vel(h_ptr, qn_ptr, wn_ptr, c3, sqrt2, heps4, m, STORED)
-        ul = u1 + 0.5 * _minmod3(theta * (u1 - u0), 0.5 * (u2 - u0), theta * (u2 - u1))
-        ur = u2 - 0.5 * _minmod3(theta * (u2 - u1), 0.5 * (u3 - u1), theta * (u3 - u2))
-        t0 = _vel(h_ptr, qt_ptr, wt_ptr, c0, sqrt2, heps4, m, STORED)
-        t1 = _vel(h_ptr, qt_ptr, wt_ptr, c1, sqrt2, heps4, m, STORED)
-        t2 = _vel(h_ptr, qt_ptr, wt_ptr, c2, sqrt2, heps4, m, STORED)
-        t3 = _vel(h_ptr, qt_ptr, wt_ptr, c3, sqrt2, heps4, m, STORED)
-        tlf = t1 + 0.5 * _minmod3(theta * (t1 - t0), 0.5 * (t2 - t0), theta * (t2 - t1))
-        trf = t2 - 0.5 * _minmod3(theta * (t2 - t1), 0.5 * (t3 - t1), theta * (t3 - t2))
+        ul, ur = _face_vel(h_ptr, qn_ptr, wn_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, STORED)
+        tlf, trf = _face_vel(h_ptr, qt_ptr, wt_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, STORED)
         a = tl.minimum(tl.maximum(f - 1, 0), n - 1)      # the cells left and right of the face
         c = tl.minimum(f, n - 1)
         if AXIS == 0:
