@@ -160,3 +160,28 @@ def test_the_torch_step_divides_by_no_python_number():
         r = simulate(dem, rel, p, t_end=2.0, config=SolverConfig(kernel="eager"), **kw)
     assert float(r.v_max.max()) > 0.0
     assert not found, found
+
+
+def test_the_kernel_that_ran_is_reported_and_a_missing_numba_is_named(monkeypatch):
+    """result.kernel says which step ran; asked for "fused" without numba, the torch step runs with one
+    warning naming it and how to get the fast one."""
+    import importlib
+    import warnings
+
+    from torchslide.solver import fused_cpu
+
+    sim = importlib.import_module("torchslide.solver.simulate")
+
+    dem, rel, _ = _channel()
+    r = simulate(dem, rel, Params.make(mu=0.2, xi=800.0), t_end=1.0)
+    assert r.kernel == "fused-cpu"
+    assert simulate(dem, rel, Params.make(mu=0.2, xi=800.0), t_end=1.0,
+                    config=SolverConfig(kernel="eager")).kernel == "eager"
+    monkeypatch.setattr(fused_cpu, "numba", None)
+    monkeypatch.setattr(sim, "_WARNED", set())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = simulate(dem, rel, Params.make(mu=0.2, xi=800.0), t_end=1.0)
+    assert r.kernel == "eager"
+    msgs = [str(w.message) for w in caught if "fused CPU step" in str(w.message)]
+    assert len(msgs) == 1 and "pip install numba" in msgs[0] and "torch step" in msgs[0]

@@ -184,8 +184,7 @@ def test_energy_line_parabola():
     at x0 stops at x0 + z0 / mu on the flat (the energy line, s the horizontal distance). A small, thin
     release (1 m, radius 60 m) is nearly a point mass: its deposit's centre of mass lies before the line
     (a depth-averaged flow also loses energy in its spreading and its shocks) and within 10 % of the
-    travel distance of it. (Without the bed's reaction on the curved surface, (u^T H u) h grad z in the
-    momentum equations, the same deposit stops about a quarter of the way short.)"""
+    travel distance of it."""
     Cz, mu, dx = 1000.0, 0.4, 25.0
     Lp = Cz / math.tan(math.radians(34))
     nx, ny = 130, 24

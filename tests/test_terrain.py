@@ -303,3 +303,23 @@ def test_config_cellsize_resamples_a_dem_file_and_keeps_the_release_volume(tmp_p
     (tmp_path / "rel.prj").write_text("EPSG:21781\n")
     with pytest.raises(Exception, match=r"rel.asc: release CRS differs from the DEM's"):
         load_config(tmp_path / "c.toml")
+
+
+def test_a_non_finite_nodata_value_marks_nodata_cells(tmp_path):
+    """NODATA_value nan (as com1DFA writes its remeshed DEMs) or -inf marks those cells as nodata; a NaN in
+    a grid whose NODATA_value is a number is still refused, naming the cell."""
+    from torchslide.terrain.io import read_asc, read_asc_array
+
+    def grid(name, nodata, first):
+        p = tmp_path / name
+        p.write_text(f"ncols 3\nnrows 3\nxllcorner 0\nyllcorner 0\ncellsize 10\nNODATA_value {nodata}\n"
+                     f"{first} 9 8\n7 6 5\n4 3 2\n")
+        return p
+
+    for nodata in ("nan", "NaN", "-inf"):
+        z = read_asc_array(grid("a.asc", nodata, nodata))[0]
+        assert np.isnan(z[2, 0]) and np.isfinite(np.delete(z.ravel(), 6)).all()
+        dem = read_asc(grid("a.asc", nodata, nodata), nodata="outside")
+        assert dem.outside[2, 0] and dem.outside.sum() == 1
+    with pytest.raises(TerrainError, match="non-finite values, first nan at row 2 from the south, col 0"):
+        read_asc_array(grid("b.asc", "-9999", "nan"))

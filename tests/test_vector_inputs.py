@@ -173,3 +173,17 @@ def test_paths_give_run_out_in_the_summary_and_as_an_observation(tmp_path, capsy
     (tmp_path / "cal.toml").write_text(cal.replace('path = "down"', 'path = "river"'))
     with pytest.raises(ConfigError, match=r"observation 1: path 'river' is not a \[\[paths\]\] name \(known: \['across', 'down'\]\)"):
         load_calibration_config(tmp_path / "cal.toml")
+
+
+def test_a_dem_without_a_crs_takes_the_release_files(tmp_path):
+    """dem.asc without a .prj and a release shapefile in EPSG:2056: the terrain, and so every output
+    raster's .prj, carries the shapefile's CRS."""
+    from torchslide.terrain.grid import same_crs
+
+    _plane(tmp_path)
+    assert not (tmp_path / "dem.prj").exists()
+    write_shp(tmp_path / "rel.shp", [_box(X0 + 20, Y0 + 20, X0 + 60, Y0 + 60)], [2.0], crs=CRS)
+    (tmp_path / "c.toml").write_text('[terrain]\ndem = "dem.asc"\nrelease = "rel.shp"\n'
+                                     '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
+    dem = load_config(tmp_path / "c.toml").terrain.dem
+    assert dem.crs and same_crs(dem.crs, CRS) and not same_crs(dem.crs, "EPSG:21781")

@@ -64,6 +64,7 @@ class SimulationResult:
         gauges: name -> GaugeSeries.
         bed_change: (B, ny, nx) bed elevation change from entrainment, m (None without entrainment).
         runtime_s: wall-clock seconds of the call.
+        kernel: the step implementation that ran ("fused-cpu", "fused-triton", "compiled" or "eager").
         params: the per-member parameters the run used, name -> (B,) tensor.
         failed: (B,) bool, True where the run produced non-finite values; failure_reason lists why.
     """
@@ -91,6 +92,7 @@ class SimulationResult:
     params: dict[str, torch.Tensor] = field(default_factory=dict)
     failed: torch.Tensor | None = None
     failure_reason: list[str | None] = field(default_factory=list)
+    kernel: str = ""
 
     def peak_pressure(self, density: float) -> torch.Tensor:
         """(B, ny, nx) peak pressure density * v_max^2, kPa (``density`` in kg/m^3)."""
@@ -118,4 +120,5 @@ class SimulationResult:
             params={k: v[sl] for k, v in self.params.items()},
             failed=None if self.failed is None else self.failed[sl],
             failure_reason=self.failure_reason[sl] if self.failure_reason else [],
+            kernel=self.kernel,
         )

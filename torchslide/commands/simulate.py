@@ -19,8 +19,9 @@ with a "folder" key], "runtime_s", ...}``.
 Member summary.json keys: params {name: value}, release_volume, final_volume, outflow_volume,
 entrained_volume (m^3), impact_area, deposit_area (m^2; h > threshold), deposit_volume (m^3; h_final
 over cells with h_final > threshold), threshold_m, max_h_max (m), max_v_max (m/s), max_p_max (kPa),
-runout {path name: m} (the run-out along each [[paths]] polyline, and a synthetic case's "thalweg"), steps, t_final (s), stopped, runtime_s (the whole
-batched call), failed, failure_reason, gauges {name: {x, y, h_max, v_max, h_final}} (m, m/s, m; from the
+runout {path name: m} (the run-out along each [[paths]] polyline, and a synthetic case's "thalweg"), steps,
+t_final (s), stopped, runtime_s (the whole batched call), kernel (the step that ran: fused-cpu,
+fused-triton, compiled or eager), failed, failure_reason, gauges {name: {x, y, h_max, v_max, h_final}} (m, m/s, m; from the
 gauge series), conventions (torchslide.config.CONVENTIONS, with the input thickness and the density).
 
 Nothing is half-written: the config is validated before running, results go to a temporary folder next
@@ -85,6 +86,7 @@ def member_summary(result, b: int, threshold: float, paths=(), density: float = 
         "t_final": _f(r.t_final[0]),
         "stopped": bool(r.stopped[0]),
         "runtime_s": float(result.runtime_s),
+        "kernel": result.kernel,
         "failed": bool(r.failed[0]) if r.failed is not None else False,
         "failure_reason": (r.failure_reason[0] if r.failure_reason else None),
         "gauges": {
@@ -140,6 +142,7 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
             "terrain": cfg.terrain.source,
             "t_end": cfg.run.t_end,
             "runtime_s": float(result.runtime_s),
+            "kernel": result.kernel,
             "threshold_m": threshold,
             "conventions": cfg.conventions(),
             "members": summaries,

@@ -12,16 +12,23 @@ m; volume = sum h cellsize^2), and (hu, hv), the horizontal momentum (m^2/s) of 
 u = (u, v), the map projection of the velocity V = (u, v, z_x u + z_y v) along the surface. The flow
 thickness normal to the slope is h_n = cos h; its speed |V| = sqrt(|u|^2 + (grad z . u)^2).
 
-    d_t h  + div(h u)                 = Q                                              (mass)
-    d_t(hu) + div(h u (x) u)          = -G^-1 [ g h grad z + grad(k g_n h_n^2 / 2) / cos
-                                                 + (u^T H u) h grad z ] - S / cos          (momentum)
+    d_t h + div(h u)              = Q                                                  (mass)
+    d_t Q + div(Q (x) u)          = F(A) - S / cos,   Q = sigma q,   sigma = |V| / |u|      (momentum)
+    A = -G^-1 [ g h grad z + grad(k g_n h_n^2 / 2) / cos ]
     S = V/|V| (mu_eff g_n h_n + tau_y + g |V|^2 / xi)  projected on the map,  g_n = g cos(theta)
 
-H is the DEM Hessian: (u^T H u) h grad z is the bed's reaction that keeps the flow on a curved surface
-(a point mass then conserves g z + |V|^2 / 2). The pressure is the hydrostatic one of the normal
-thickness, k g_n h_n^2 / 2 per unit bed width. Friction (friction.py) acts along the surface on
-Q = h V and so stops but never reverses. Entrainment erodes kappa |V| normal to the bed per unit bed
-area; the candidate terms use h_n, |V| and g_n (torchslide.physics).
+The momentum that the fluxes carry is the surface momentum Q = h |V| e (e the map direction of motion):
+material passing from one cell to the next keeps its speed along the surface while its horizontal
+velocity takes the new cell's slope (q = Q / sigma there), as a point mass keeps its speed where the
+bed bends. F turns the force A (the horizontal projection of gravity and pressure along the surface)
+into the change of Q: along e its component along the surface, e^T G A / sigma; across e sigma times
+A's, which turns the flow without changing its speed (stepping.surface_momentum_change). The bed's
+curvature thus needs no Hessian: on a stepped or rough DEM a curvature reaction u^T H u from the cell
+Hessian would do work of either sign at every step and put peak speeds far above the energy line
+(tests/test_solver_energy.py). The pressure is the hydrostatic one of the normal thickness,
+k g_n h_n^2 / 2 per unit bed width. Friction (friction.py) acts along the surface on Q and so stops but
+never reverses. Entrainment erodes kappa |V| normal to the bed per unit bed area; the candidate terms
+use h_n, |V| and g_n (torchslide.physics).
 
 On a plane of slope theta this gives, for a uniform layer, the horizontal acceleration
 g cos(theta) (sin(theta) - mu cos(theta)) along the dip, i.e. g (sin - mu cos) along the surface, in any
@@ -46,8 +53,7 @@ written per cell,
     -(k g_n cos)_j (Phi_{j+1/2} - Phi_{j-1/2}) / dx  -  g hbar_j (B_{j+1/2} - B_{j-1/2}) / dx,
 
 with Phi the central-upwind average of h^2/2 at a face and hbar the mean face thickness of the cell;
-this horizontal gradient (plus the curvature reaction) is then turned along the surface by G^-1 per
-cell. Without the metric it balances a lake at rest exactly, and with it it drives a uniform layer on a
+this horizontal gradient is then turned along the surface by G^-1 per cell and into the change of Q. Without the metric it balances a lake at rest exactly, and with it it drives a uniform layer on a
 plane exactly (docs/verification.md, cases 1-2). Positivity for any dt: draining-flux limiter (Bollermann
 et al. 2013), so the mass update is conservative to round-off (outflow through the boundaries is
 counted). The DEM edge is an outflow boundary by default (zero-gradient ghost cells; a face whose flux

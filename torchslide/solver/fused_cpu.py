@@ -55,6 +55,19 @@ if numba is not None:
         return SQRT2 * h * q / math.sqrt(h4 + max(h4, h_eps4))
 
     @njit(cache=True, error_model="numpy", inline="always")
+    def _unit(px, py):
+        """stepping.unit_direction."""
+        n2 = px * px + py * py
+        inv = 1.0 / math.sqrt(n2) if n2 > 0 else 0.0
+        return px * inv, py * inv
+
+    @njit(cache=True, error_model="numpy", inline="always")
+    def _stretch(ex, ey, zx, zy):
+        """stepping.stretch."""
+        se = zx * ex + zy * ey
+        return math.sqrt(1.0 + se * se)
+
+    @njit(cache=True, error_model="numpy", inline="always")
     def _minmod3(a, b, c):
         mn = min(min(a, b), c)
         mx = max(max(a, b), c)
@@ -131,7 +144,7 @@ if numba is not None:
                     zx[i, j] = 0.0
                     zy[i, j] = 0.0
                     cs[i, j] = 1.0
-        if slope or hessian:
+        if hessian:
             zp2 = np.empty((ny + 4, nx + 4))
             for c in range(nx + 4):
                 _pad(zpx[:, c], zp2[:, c], True, False)
@@ -150,23 +163,25 @@ if numba is not None:
             _bed_line(z[:, j], by[0][:, j], by[1][:, j], by[2][:, j], by[3][:, j], by[4][:, j])
 
     @njit(cache=True, error_model="numpy")
-    def _sweep_line(h, un, ut, kg, frozen, has_frozen, zp, zL, zR, Bf, bias, theta, h_wet, wb, g,
+    def _sweep_line(h, un, cn, ct, kg, frozen, has_frozen, zp, zL, zR, Bf, bias, theta, h_wet, wb, g,
                     Fh, Fqn, Fqt, phi, hbar, dB, w):
-        """scheme.sweep along one line of n cells; returns the line's largest one-sided speed.
-        ``w``: (14, n + 4) scratch."""
+        """scheme.sweep along one line of n cells, transported by un, carrying (cn, ct) (normal,
+        tangential); returns the line's largest one-sided speed. ``w``: (17, n + 4) scratch."""
         n = h.shape[0]
         hp, wp, up, tp, kgp = w[0], w[1], w[2], w[3], w[4]
         wL, wR, hLh, hRh, uL, uR, tL, tR = w[5], w[6], w[7], w[8], w[9], w[10], w[11], w[12]
-        hLR = w[13]
+        hLR, cp, UL, UR = w[13], w[14], w[15], w[16]
         _pad(h, hp, True, True)
         for i in range(n + 4):
             wp[i] = hp[i] + zp[i]
         _recon(wp, n, theta, wL, wR)
         _recon(hp, n, theta, hLh, hRh)
         _pad(un, up, False, False)
-        _pad(ut, tp, False, False)
+        _pad(cn, cp, False, False)
+        _pad(ct, tp, False, False)
         _pad(kg, kgp, False, False)
         _recon(up, n, theta, uL, uR)
+        _recon(cp, n, theta, UL, UR)
         _recon(tp, n, theta, tL, tR)
         amax = 0.0
         for f in range(n + 1):
@@ -193,7 +208,7 @@ if numba is not None:
                 Fqt[f] = 0.0
             else:
                 Fh[f] = (ap * qL - am * qR) * inv + apam * (hR - hL)
-                Fqn[f] = (ap * qL * uL[f] - am * qR * uR[f]) * inv + apam * (qR - qL)
+                Fqn[f] = (ap * qL * UL[f] - am * qR * UR[f]) * inv + apam * (hR * UR[f] - hL * UL[f])
                 Fqt[f] = (ap * qL * tL[f] - am * qR * tR[f]) * inv + apam * (hR * tR[f] - hL * tL[f])
             hLR[f] = hL
             wp[f] = hR          # (wp no longer needed) the right state of face f
@@ -262,6 +277,22 @@ if numba is not None:
             for j in range(nx):
                 u[i, j] = _desing(h[i, j], hu[i, j], h_eps4)
                 v[i, j] = _desing(h[i, j], hv[i, j], h_eps4)
+        if slope:       # the carried surface velocity sigma u (stepping._stage)
+            ex = np.empty((ny, nx))
+            ey = np.empty((ny, nx))
+            sg = np.empty((ny, nx))
+            cu = np.empty((ny, nx))
+            cv = np.empty((ny, nx))
+            for i in range(ny):
+                for j in range(nx):
+                    e1, e2 = _unit(u[i, j], v[i, j])
+                    ex[i, j] = e1
+                    ey[i, j] = e2
+                    sg[i, j] = _stretch(e1, e2, zx[i, j], zy[i, j])
+                    cu[i, j] = sg[i, j] * u[i, j]
+                    cv[i, j] = sg[i, j] * v[i, j]
+        else:
+            ex, ey, sg, cu, cv = u, v, u, u, v
         for i in range(ny):
             for j in range(nx):
                 k = k_ap
@@ -278,7 +309,7 @@ if numba is not None:
         fzx = np.zeros((ny, nx + 1), dtype=np.bool_)
         fzy = np.zeros((ny + 1, nx), dtype=np.bool_)
         m = max(nx, ny) + 4
-        wk = np.empty((14, m))
+        wk = np.empty((17, m))
         if no_creep:
             rest = np.empty((ny, nx), dtype=np.bool_)
             muc = np.empty((ny, nx))
@@ -306,13 +337,13 @@ if numba is not None:
         has_frozen = no_creep or walls
         ax = 0.0
         for i in range(ny):
-            a = _sweep_line(h[i], u[i], v[i], kg[i], fzx[i], has_frozen, zpx[i], zLx[i], zRx[i], Bfx[i], biasx[i],
+            a = _sweep_line(h[i], u[i], cu[i], cv[i], kg[i], fzx[i], has_frozen, zpx[i], zLx[i], zRx[i], Bfx[i], biasx[i],
                             theta, h_wet, wb, g, Fhx[i], Fqnx[i], Fqtx[i], phix[i], hbarx[i], dBx[i], wk)
             if a > ax or a != a:
                 ax = a
         ay = 0.0
         for j in range(nx):
-            a = _sweep_line(h[:, j], v[:, j], u[:, j], kg[:, j], fzy[:, j], has_frozen, zpy[:, j], zLy[:, j],
+            a = _sweep_line(h[:, j], v[:, j], cv[:, j], cu[:, j], kg[:, j], fzy[:, j], has_frozen, zpy[:, j], zLy[:, j],
                             zRy[:, j], Bfy[:, j], biasy[:, j], theta, h_wet, wb, g, Fhy[:, j], Fqny[:, j],
                             Fqty[:, j], phiy[:, j], hbary[:, j], dBy[:, j], wk)
             if a > ay or a != a:
@@ -365,16 +396,26 @@ if numba is not None:
                 gn = g * cs[i, j]
                 px = kg[i, j] * (phix[i, j + 1] - phix[i, j]) + g * hbarx[i, j] * dBx[i, j]
                 py = kg[i, j] * (phiy[i + 1, j] - phiy[i, j]) + g * hbary[i, j] * dBy[i, j]
-                if slope:
-                    uu, vv = u[i, j], v[i, j]
-                    cent = h[i, j] * (zxx[i, j] * uu * uu + 2.0 * zxy[i, j] * uu * vv + zyy[i, j] * vv * vv) * dx
-                    px = px + cent * zx[i, j]
-                    py = py + cent * zy[i, j]
+                if slope:   # the surface momentum Q = sigma q, updated and turned back (stepping._stage)
                     a2 = cs[i, j] * cs[i, j] * (zx[i, j] * px + zy[i, j] * py)
                     px = px - zx[i, j] * a2
                     py = py - zy[i, j] * a2
-                qx = hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
-                qy = hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
+                    e1, e2, sf = ex[i, j], ey[i, j], sg[i, j]
+                    if e1 == 0 and e2 == 0:
+                        e1, e2 = _unit(px, py)
+                        sf = _stretch(e1, e2, zx[i, j], zy[i, j])
+                    along = e1 * px + e2 * py
+                    tang = (along + (zx[i, j] * e1 + zy[i, j] * e2) * (zx[i, j] * px + zy[i, j] * py)) / sf
+                    px, py = tang * e1 + sf * (px - e1 * along), tang * e2 + sf * (py - e2 * along)
+                    qx = sg[i, j] * hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
+                    qy = sg[i, j] * hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
+                    e1, e2 = _unit(qx, qy)
+                    sf = _stretch(e1, e2, zx[i, j], zy[i, j])
+                    qx = qx / sf
+                    qy = qy / sf
+                else:
+                    qx = hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
+                    qy = hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
                 if gone_out and not inside[i, j]:   # what entered a cell outside the domain has left it
                     lost += hn
                     hn, qx, qy = 0.0, 0.0, 0.0

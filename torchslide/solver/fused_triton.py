@@ -107,6 +107,20 @@ if triton is not None:
         return _div(sqrt2 * h * q, _sqrt(h4 + _max(h4, heps4)))
 
     @triton.jit
+    def _unit(px, py):
+        """stepping.unit_direction."""
+        n2 = px * px + py * py
+        ok = n2 > 0
+        inv = tl.where(ok, _div(1.0, _sqrt(tl.where(ok, n2, 1.0))), 0.0)
+        return px * inv, py * inv
+
+    @triton.jit
+    def _stretch(ex, ey, zx, zy):
+        """stepping.stretch."""
+        se = zx * ex + zy * ey
+        return _sqrt(1.0 + se * se)
+
+    @triton.jit
     def _minmod3(a, b, c):
         mn = _min(_min(a, b), c)
         mx = _max(_max(a, b), c)
@@ -160,6 +174,24 @@ if triton is not None:
         tl.store(v_ptr + idx, _desing(h, tl.load(hv_ptr + idx, mask=m, other=0.0), sqrt2, heps4), mask=m)
 
     @triton.jit
+    def _carried(h_ptr, hu_ptr, hv_ptr, zx_ptr, zy_ptr, c_ptr, cu_ptr, cv_ptr, ny, nx, s_geo, BLOCK: tl.constexpr):
+        """The velocity the momentum flux carries with the slope metric, sigma u and sigma v (stepping._stage:
+        the surface speed in the map direction of motion), of every cell of every member."""
+        b = tl.program_id(1)
+        idx = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        m = idx < ny * nx
+        sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
+        cb = b * ny * nx + idx
+        h = tl.load(h_ptr + cb, mask=m, other=0.0)
+        u = _desing(h, tl.load(hu_ptr + cb, mask=m, other=0.0), sqrt2, heps4)
+        v = _desing(h, tl.load(hv_ptr + cb, mask=m, other=0.0), sqrt2, heps4)
+        ex, ey = _unit(u, v)
+        sg = _stretch(ex, ey, tl.load(zx_ptr + b * s_geo + idx, mask=m, other=0.0),
+                      tl.load(zy_ptr + b * s_geo + idx, mask=m, other=0.0))
+        tl.store(cu_ptr + cb, sg * u, mask=m)
+        tl.store(cv_ptr + cb, sg * v, mask=m)
+
+    @triton.jit
     def _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, i, j, ny, nx, g, sqrt2, heps4, m,
             USE_EP: tl.constexpr, STORED: tl.constexpr):
         """The pressure coefficient k g cos^2 at cells (i, j) (stepping._stage with stepping._earth_pressure:
@@ -189,13 +221,14 @@ if triton is not None:
             return b * (ny + 1) * nx
 
     @triton.jit
-    def _faces(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr,
-               pm_ptr, c_ptr, fh_ptr, fqn_ptr, fqt_ptr, phi_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zp, s_geo,
-               AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr,
-               USE_EP: tl.constexpr, STORED: tl.constexpr, BLOCK: tl.constexpr):
+    def _faces(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, zp_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr,
+               inside_ptr, pm_ptr, c_ptr, fh_ptr, fqn_ptr, fqt_ptr, phi_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zp,
+               s_geo, AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr,
+               USE_EP: tl.constexpr, STORED: tl.constexpr, SLOPE: tl.constexpr, BLOCK: tl.constexpr):
         """scheme.sweep (and scheme.frozen_faces, stepping._domain_walls) at the x faces (AXIS 0: (ny, nx + 1)
         per member) or the y faces (AXIS 1: (ny + 1, nx)); face f of a line lies between cells f - 1 and f.
-        zp: the bed padded along the axis (scheme.bed_terms' zp); u, v: the stored velocities (STORED)."""
+        zp: the bed padded along the axis (scheme.bed_terms' zp); u, v: the stored velocities (STORED);
+        cu, cv: the carried velocities (SLOPE, _carried)."""
         b = tl.program_id(1)
         pid = tl.program_id(0)
         idx = pid * BLOCK + tl.arange(0, BLOCK)
@@ -240,16 +273,21 @@ if triton is not None:
         hr = tl.where(wet_r, _max(wr - bf, 0.0), hrh)
         # velocities normal (un) and tangential (ut) to the face, replicated at the edges
         if AXIS == 0:
-            qn_ptr, qt_ptr, wn_ptr, wt_ptr = hu_ptr, hv_ptr, u_ptr, v_ptr
+            qn_ptr, qt_ptr, wn_ptr, wt_ptr, cn_ptr, ct_ptr = hu_ptr, hv_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr
         else:
-            qn_ptr, qt_ptr, wn_ptr, wt_ptr = hv_ptr, hu_ptr, v_ptr, u_ptr
+            qn_ptr, qt_ptr, wn_ptr, wt_ptr, cn_ptr, ct_ptr = hv_ptr, hu_ptr, v_ptr, u_ptr, cv_ptr, cu_ptr
         sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
         c0 = cb + base + tl.minimum(tl.maximum(f - 2, 0), n - 1) * st
         c1 = cb + base + tl.minimum(tl.maximum(f - 1, 0), n - 1) * st
         c2 = cb + base + tl.minimum(f, n - 1) * st
         c3 = cb + base + tl.minimum(f + 1, n - 1) * st
         ul, ur = _face_vel(h_ptr, qn_ptr, wn_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, STORED)
-        tlf, trf = _face_vel(h_ptr, qt_ptr, wt_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, STORED)
+        if SLOPE:       # the carried velocities (stored by _carried)
+            cnl, cnr = _face_vel(h_ptr, qn_ptr, cn_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, True)
+            tlf, trf = _face_vel(h_ptr, qt_ptr, ct_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, True)
+        else:
+            cnl, cnr = ul, ur
+            tlf, trf = _face_vel(h_ptr, qt_ptr, wt_ptr, c0, c1, c2, c3, theta, sqrt2, heps4, m, STORED)
         a = tl.minimum(tl.maximum(f - 1, 0), n - 1)      # the cells left and right of the face
         c = tl.minimum(f, n - 1)
         if AXIS == 0:
@@ -273,7 +311,7 @@ if triton is not None:
         apam = ap * am * inv
         ql, qr = hl * ul, hr * ur
         fh = (ap * ql - am * qr) * inv + apam * (hr - hl)
-        fqn = (ap * ql * ul - am * qr * ur) * inv + apam * (qr - ql)
+        fqn = (ap * ql * cnl - am * qr * cnr) * inv + apam * (hr * cnr - hl * cnl)
         fqt = (ap * ql * tlf - am * qr * trf) * inv + apam * (hr * trf - hl * tlf)
         phi = 0.5 * (ap * hl * hl - am * hr * hr) * inv
         if NO_CREEP or WALLS:
@@ -430,19 +468,33 @@ if triton is not None:
         hv = tl.load(hv_ptr + cb + idx, mask=m, other=0.0)
         u = _vel(h_ptr, hu_ptr, u_ptr, cb + idx, sqrt2, heps4, m, STORED)
         v = _vel(h_ptr, hv_ptr, v_ptr, cb + idx, sqrt2, heps4, m, STORED)
-        if SLOPE or USE_CURV:
+        if USE_CURV:
             zxx = tl.load(zxx_ptr + gb + idx, mask=m, other=0.0)
             zxy = tl.load(zxy_ptr + gb + idx, mask=m, other=0.0)
             zyy = tl.load(zyy_ptr + gb + idx, mask=m, other=0.0)
-        if SLOPE:   # the bed's reaction on a curved surface, then the projection along it (inverse_metric)
-            cent = h * _hform(zxx, zxy, zyy, u, v) * dx
-            px = px + cent * zx
-            py = py + cent * zy
+        if SLOPE:   # along the surface (inverse_metric); the surface momentum Q = sigma q updated and turned back
             a = cs * cs * (zx * px + zy * py)
             px = px - zx * a
             py = py - zy * a
-        qx = hu - lam * (((fqnxe - fqnxw) + (fqtyn - fqtys)) + px)
-        qy = hv - lam * (((fqtxe - fqtxw) + (fqnyn - fqnys)) + py)
+            e1, e2 = _unit(u, v)
+            sg = _stretch(e1, e2, zx, zy)
+            rest = (e1 == 0) & (e2 == 0)
+            f1, f2 = _unit(px, py)
+            e1 = tl.where(rest, f1, e1)
+            e2 = tl.where(rest, f2, e2)
+            sf = tl.where(rest, _stretch(e1, e2, zx, zy), sg)
+            along = e1 * px + e2 * py
+            tang = _div(along + (zx * e1 + zy * e2) * (zx * px + zy * py), sf)
+            px, py = tang * e1 + sf * (px - e1 * along), tang * e2 + sf * (py - e2 * along)
+            qx = sg * hu - lam * (((fqnxe - fqnxw) + (fqtyn - fqtys)) + px)
+            qy = sg * hv - lam * (((fqtxe - fqtxw) + (fqnyn - fqnys)) + py)
+            e1, e2 = _unit(qx, qy)
+            sq = _stretch(e1, e2, zx, zy)
+            qx = _div(qx, sq)
+            qy = _div(qy, sq)
+        else:
+            qx = hu - lam * (((fqnxe - fqnxw) + (fqtyn - fqtys)) + px)
+            qy = hv - lam * (((fqtxe - fqtxw) + (fqnyn - fqnys)) + py)
         lost = tl.zeros([BLOCK], dtype=h.dtype)
         if GONE_OUT:    # what entered a cell outside the domain has left it
             gone = tl.load(inside_ptr + idx, mask=m, other=1) == 0
@@ -615,14 +667,18 @@ def triton_step(F):
         u, v = (torch.empty_like(h), torch.empty_like(h)) if stored else (h, h)
         if stored:
             _velocities[(triton.cdiv(h.numel(), BLOCK),)](h, hu, hv, c, u, v, h.numel(), **_launch(h.dtype))
+        cu, cv = (torch.empty_like(h), torch.empty_like(h)) if F.slope_correction else (h, h)
+        if F.slope_correction:
+            _carried[cells](h, hu, hv, zx, zy, c, cu, cv, ny, nx, s_geo, **_launch(h.dtype))
         sweeps = []
         for axis, (zp, nf) in enumerate(((zpx, (ny, nx + 1)), (zpy, (ny + 1, nx)))):
             out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
             grid = (triton.cdiv(nf[0] * nf[1], BLOCK), B)
             amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
-            _faces[grid](h, hu, hv, u, v, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
+            _faces[grid](h, hu, hv, u, v, cu, cv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
                          _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
-                         USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, STORED=stored, **_launch(h.dtype))
+                         USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, STORED=stored, SLOPE=F.slope_correction,
+                         **_launch(h.dtype))
             sweeps.append((out, amax.amax(dim=1)))
         (fx, ax), (fy, ay) = sweeps
         if dt is None:

@@ -95,14 +95,16 @@ def bed_terms(z: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor
 
 
 def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tensor | None, d: int,
-          theta: float, h_wet: float, wb_ratio: float = 0.25, bed=None):
+          theta: float, h_wet: float, wb_ratio: float = 0.25, bed=None, carried=None):
     """Central-upwind fluxes along direction ``d``.
 
     Args:
         h: (B, ny, nx) thickness per unit horizontal area, m; un, ut: horizontal velocity normal /
-        tangential to the faces, m/s. z: (B or 1, ny, nx) bed, m. kg: pressure coefficient per cell,
-        m/s^2 (the pressure is kg h^2 / 2). frozen: (B, ...) bool at the n + 1 faces (no flux), or None.
-        bed: ``bed_terms(z, d)`` when the caller has it (None: computed here).
+        tangential to the faces, m/s (it transports). z: (B or 1, ny, nx) bed, m. kg: pressure coefficient
+        per cell, m/s^2 (the pressure is kg h^2 / 2). frozen: (B, ...) bool at the n + 1 faces (no flux),
+        or None. bed: ``bed_terms(z, d)`` when the caller has it (None: computed here). carried: the
+        velocity the momentum flux carries, (normal, tangential) per cell (None: (un, ut), the classic
+        flux of h u; the solver passes the surface velocity in map directions, stepping._stage).
     Returns:
         Fh, Fqn, Fqt: mass and momentum fluxes (normal, tangential) at the n + 1 faces (per unit width);
         phi: the face pressure potential (a+ h-^2/2 - a- h+^2/2)/(a+ - a-) (times kg of the cell it
@@ -126,7 +128,12 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tens
     hL = torch.where(wetL, torch.clamp(wL - Bf, min=0.0), hLh)
     hR = torch.where(wetR, torch.clamp(wR - Bf, min=0.0), hRh)
     uL, uR = reconstruct(pad_replicate(un, d), d, n, theta)
-    tL, tR = reconstruct(pad_replicate(ut, d), d, n, theta)
+    if carried is None:
+        UL, UR = uL, uR
+        tL, tR = reconstruct(pad_replicate(ut, d), d, n, theta)
+    else:
+        UL, UR = reconstruct(pad_replicate(carried[0], d), d, n, theta)
+        tL, tR = reconstruct(pad_replicate(carried[1], d), d, n, theta)
     kgp = pad_replicate(kg.expand_as(h) if kg.shape != h.shape else kg, d)
     kgL, kgR = faces_of(kgp, d, n)
     cL = torch.sqrt(kgL * hL)
@@ -140,7 +147,7 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tens
     apam = ap * am * inv
     qL, qR = hL * uL, hR * uR
     Fh = (ap * qL - am * qR) * inv + apam * (hR - hL)
-    Fqn = (ap * qL * uL - am * qR * uR) * inv + apam * (qR - qL)
+    Fqn = (ap * qL * UL - am * qR * UR) * inv + apam * (hR * UR - hL * UL)
     Fqt = (ap * qL * tL - am * qR * tR) * inv + apam * (hR * tR - hL * tL)
     phi = 0.5 * (ap * hL * hL - am * hR * hR) * inv
     if frozen is not None:

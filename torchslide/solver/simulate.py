@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -56,6 +57,29 @@ def _check_raster(t: Tensor, name: str, shape: tuple[int, int], allow_batch: boo
         raise ValueError(f"{name} must be {rule} everywhere, got {float(t[idx])} at index {idx}")
 
 
+def kernel_that_runs(F: StepFlags, kernel: str, device="cpu") -> str:
+    """The step implementation a call with ``kernel`` (SolverConfig.kernel) runs on ``device``: "fused-cpu"
+    (numba), "fused-triton", "compiled" or "eager". Asked for "fused" where neither fused step runs, it
+    warns once per process, naming the slower step and how to get the fast one."""
+    from . import fused_cpu, fused_triton
+
+    if kernel != "fused":
+        return kernel
+    if fused_triton.supported(F, device) is None:
+        return "fused-triton"
+    why = fused_cpu.supported(F, device)
+    if why is None:
+        return "fused-cpu"
+    if torch.device(device).type == "cpu" and why not in _WARNED:
+        _WARNED.add(why)
+        warnings.warn(f"torchslide: the fused CPU step is not available ({why}); running the torch step, "
+                      "about 3 times slower (pip install numba)", RuntimeWarning, stacklevel=3)
+    return "eager"
+
+
+_WARNED: set = set()
+
+
 def _get_step(F: StepFlags, kernel: str, device="cpu"):
     """``advance(S, P, out_times, gidx, gin)``: one time step and its output record (_record): the torch
     step (stepping.make_step), compiled with its record when ``kernel`` is "compiled" (one compiled call
@@ -63,10 +87,7 @@ def _get_step(F: StepFlags, kernel: str, device="cpu"):
     TRITON_INTERPRET=1) or else the fused CPU step (fused_cpu), where they run."""
     from . import fused_cpu, fused_triton
 
-    fused = ""
-    if kernel == "fused":
-        fused = "triton" if fused_triton.supported(F, device) is None else \
-            "cpu" if fused_cpu.supported(F, device) is None else ""
+    fused = {"fused-triton": "triton", "fused-cpu": "cpu"}.get(kernel_that_runs(F, kernel, device), "")
     compile_ = kernel == "compiled"
     key = (F, compile_, fused)
     fn = _STEP_CACHE.get(key)
@@ -173,7 +194,9 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     S = _initial_state(inp, P0.B, dem, out_times, cfg, dtype, device)
     release_volume = S["mass"].clone()
     S, exceeded = _run(S, P0, inp, F, cfg, out_times, t_end, progress)
-    return _result(S, exceeded, P0, inp, dem, out_times, release_volume, cfg, time.perf_counter() - t0_wall)
+    res = _result(S, exceeded, P0, inp, dem, out_times, release_volume, cfg, time.perf_counter() - t0_wall)
+    res.kernel = kernel_that_runs(F, "compiled" if cfg.compile else cfg.kernel, device)
+    return res
 
 
 def _check_call(dem: DEM, params: Params, dtype: torch.dtype, t_end: float, thickness: str) -> None:

@@ -53,9 +53,9 @@ class StepFlags:
 def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool):
     """Metric fields of the bed surface z (B or 1, ny, nx), central differences (linear ghost cells).
 
-    Returns (z_x, z_y, cos theta, Hessian (z_xx, z_xy, z_yy) or None). cos theta = 1 / sqrt(1 + |grad z|^2).
-    Without ``slope_correction`` the metric is that of a horizontal plane (z_x = z_y = 0, cos = 1: the
-    classic shallow-water equations); the Hessian is then only computed when ``hessian`` is asked.
+    Returns (z_x, z_y, cos theta, Hessian (z_xx, z_xy, z_yy) when ``hessian`` is asked, else None).
+    cos theta = 1 / sqrt(1 + |grad z|^2). Without ``slope_correction`` the metric is that of a
+    horizontal plane (z_x = z_y = 0, cos = 1: the classic shallow-water equations).
     """
     ny, nx = z.shape[1], z.shape[2]
     zpx = pad_linear(z, 2)
@@ -63,7 +63,7 @@ def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool
     zx = (zpx.narrow(2, 3, nx) - zpx.narrow(2, 1, nx)) * (1.0 / (2 * dx))
     zy = (zpy.narrow(1, 3, ny) - zpy.narrow(1, 1, ny)) * (1.0 / (2 * dx))
     hess = None
-    if slope_correction or hessian:
+    if hessian:
         zxx = (zpx.narrow(2, 3, nx) - 2 * z + zpx.narrow(2, 1, nx)) * (1.0 / dx**2)
         zyy = (zpy.narrow(1, 3, ny) - 2 * z + zpy.narrow(1, 1, ny)) * (1.0 / dx**2)
         zp2 = pad_linear(zpx, 1)  # (.., ny+4, nx+4)
@@ -101,6 +101,41 @@ def inverse_metric(px: Tensor, py: Tensor, zx: Tensor, zy: Tensor, cs: Tensor) -
     return px - zx * a, py - zy * a
 
 
+def unit_direction(px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
+    """The unit vector of the map vector (px, py); (0, 0) where it is zero."""
+    n2 = px * px + py * py
+    ok = n2 > 0
+    inv = torch.where(ok, 1.0 / torch.sqrt(torch.where(ok, n2, torch.ones_like(n2))), torch.zeros_like(n2))
+    return px * inv, py * inv
+
+
+def stretch(ex: Tensor, ey: Tensor, zx: Tensor, zy: Tensor) -> Tensor:
+    """sigma = sqrt(1 + (grad z . e)^2) for the unit map direction e: the length along the surface of a
+    unit map step in direction e, so |V| = sigma |u| for a horizontal velocity u along e (1 for e = 0)."""
+    se = zx * ex + zy * ey
+    return torch.sqrt(1.0 + se * se)
+
+
+def surface_momentum_change(ax: Tensor, ay: Tensor, ex: Tensor, ey: Tensor, sg: Tensor, zx: Tensor,
+                            zy: Tensor) -> tuple[Tensor, Tensor]:
+    """The change of the surface momentum Q = sigma q (m^2/s per unit time, times dx) that the force
+    whose horizontal projection along the surface is A = (ax, ay) makes, for a flow moving in the unit
+    map direction e with stretch sigma = ``sg``: along e its component along the surface,
+    e^T G A / sigma (G = I + grad z grad z^T), across e sigma times A's (which turns the flow without
+    changing its speed). Where the flow is at rest, e is A's own direction: the change is sigma_A A."""
+    along = ex * ax + ey * ay
+    tang = (along + (zx * ex + zy * ey) * (zx * ax + zy * ay)) / sg
+    return tang * ex + sg * (ax - ex * along), tang * ey + sg * (ay - ey * along)
+
+
+def horizontal_momentum(QX: Tensor, QY: Tensor, zx: Tensor, zy: Tensor) -> tuple[Tensor, Tensor]:
+    """q = Q / sigma(Q): the horizontal momentum of the surface momentum Q (map direction, |Q| = h |V|)
+    in a cell of slope grad z."""
+    ex, ey = unit_direction(QX, QY)
+    sg = stretch(ex, ey, zx, zy)
+    return QX / sg, QY / sg
+
+
 def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
     """k per cell: (1 - s) k_ap + s k_SH, k_SH active where div(u) >= 0, passive where < 0."""
     if not F.use_ep:
@@ -131,6 +166,14 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     gn = g * cs
     u = desingularised_velocity(h, hu, F.h_eps)
     v = desingularised_velocity(h, hv, F.h_eps)
+    if F.slope_correction:
+        # the momentum crosses faces as the surface momentum Q = sigma q (speed along the surface, map
+        # direction), so a flow passing between cells of different slope keeps its speed (module docstring)
+        ex, ey = unit_direction(u, v)
+        sg = stretch(ex, ey, zx, zy)
+        carried_x, carried_y = (sg * u, sg * v), (sg * v, sg * u)
+    else:
+        carried_x = carried_y = None
     k = _earth_pressure(u, v, P, F)
     kg = k * gn * cs          # pressure k g_n hn^2 / 2 of the normal thickness hn = cos h, per horizontal length
     mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
@@ -141,8 +184,8 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     if F.domain == "wall":
         wx, wy = _domain_walls(P["inside"])
         fx, fy = (wx, wy) if fx is None else (fx | wx, fy | wy)
-    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, fx, 2, F.theta, F.h_wet, F.wb_ratio, bx)
-    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, fy, 1, F.theta, F.h_wet, F.wb_ratio, by)
+    Fhx, Fqnx, Fqtx, phix, hbarx, dBx, ax = sweep(h, u, v, z, kg, fx, 2, F.theta, F.h_wet, F.wb_ratio, bx, carried_x)
+    Fhy, Fqny, Fqty, phiy, hbary, dBy, ay = sweep(h, v, u, z, kg, fy, 1, F.theta, F.h_wet, F.wb_ratio, by, carried_y)
     if dt is None:
         dt = torch.minimum(F.cfl * dx / (ax + ay), dt_cap)
         dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
@@ -156,11 +199,18 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     px = kg * diff(phix, 2) + g * hbarx * dBx
     py = kg * diff(phiy, 1) + g * hbary * dBy
     if F.slope_correction:
-        # the bed's reaction that keeps the flow on a curved surface: (u^T H u) h grad z
-        cent = h * _hessian_form(hess, u, v) * dx
-        px, py = inverse_metric(px + cent * zx, py + cent * zy, zx, zy, cs)
-    qx = hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px)
-    qy = hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py)
+        # the surface momentum Q = sigma q is updated and turned back into q with the cell's own metric
+        px, py = inverse_metric(px, py, zx, zy, cs)
+        rest = (ex == 0) & (ey == 0)       # a flow at rest starts along the force
+        fx_, fy_ = unit_direction(px, py)
+        ex, ey = torch.where(rest, fx_, ex), torch.where(rest, fy_, ey)
+        sg_f = torch.where(rest, stretch(ex, ey, zx, zy), sg)
+        px, py = surface_momentum_change(px, py, ex, ey, sg_f, zx, zy)
+        qx, qy = horizontal_momentum(sg * hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px),
+                                     sg * hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py), zx, zy)
+    else:
+        qx = hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px)
+        qy = hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py)
     nx, ny = h.shape[2], h.shape[1]
     bnd = ((Fhx.narrow(2, nx, 1).sum(dim=(1, 2)) - Fhx.narrow(2, 0, 1).sum(dim=(1, 2)))
            + (Fhy.narrow(1, ny, 1).sum(dim=(1, 2)) - Fhy.narrow(1, 0, 1).sum(dim=(1, 2))))

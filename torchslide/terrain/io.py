@@ -198,9 +198,10 @@ def read_asc_array(path) -> tuple[np.ndarray, float, float, float]:
     if len(rows) != nrows:
         raise TerrainError(f"{path}: expected {nrows} data rows (nrows), found {len(rows)}")
     z = np.asarray(rows, dtype=np.float64)[::-1].copy()  # file is north first -> row 0 south
-    _refuse_non_finite(z, path, allow_nan=False)
-    if nodata is not None:
-        z[z == nodata] = np.nan
+    # NODATA_value may be any number, nan or +-inf (com1DFA writes nan); other non-finite values are errors
+    missing = np.zeros(z.shape, dtype=bool) if nodata is None else (np.isnan(z) if np.isnan(nodata) else z == nodata)
+    _refuse_non_finite(np.where(missing, 0.0, z), path, allow_nan=False)
+    z[missing] = np.nan
     return z, float(cs), float(xll), float(yll)
 
 

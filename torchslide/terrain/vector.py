@@ -5,7 +5,8 @@ shapely (``pip install torchslide[geo]``) and burnt onto a DEM's grid with raste
 belongs to a polygon when its centre lies inside it. Where polygons overlap, the later feature wins.
 
 The CRS of a vector file must be the DEM's when both are known (a GeoJSON file without a "crs" member
-is WGS 84 by its standard); torchslide does not reproject (use ``ogr2ogr -t_srs`` or QGIS).
+is WGS 84 by its standard); a DEM without a CRS takes the vector file's. torchslide does not reproject
+(use ``ogr2ogr -t_srs`` or QGIS).
 """
 from __future__ import annotations
 
@@ -77,6 +78,9 @@ def read_features(path, geometry: str = "polygon") -> tuple[list[Feature], str |
 
 
 def _check_crs(path, crs, dem: DEM) -> None:
+    """A CRS unlike the DEM's is an error; a DEM without one takes the file's (so the outputs carry it)."""
+    if crs and not dem.crs:
+        dem.crs = crs
     if not same_crs(crs, dem.crs):
         raise TerrainError(f"{path}: its CRS ({_short(crs)}) differs from the DEM's ({_short(dem.crs)}); "
                            f"reproject the file to the DEM's CRS (e.g. ogr2ogr -t_srs)")
