@@ -70,11 +70,11 @@ def test_resume_refuses_corrupt_checkpoints_and_other_cases(case, capsys):
     assert {n: (out / n).read_bytes() for n in before} == before
     # another recorded value: the resumed calibration would mix two likelihoods (also when it has finished)
     changed = case / "changed.toml"
-    changed.write_text(cfg.read_text().replace("value = 70.5", "value = 50.0"))
+    changed.write_text(cfg.read_text().replace("value = 63.4", "value = 50.0"))
     assert main(["calibrate", str(changed), "--out", str(out), "--quiet", "--resume"]) == 2
     assert "was calibrated with other observations" in capsys.readouterr().err
     other = case / "other.toml"
-    other.write_text(cfg.read_text().replace("value = 70.5", "value = 50.0").replace("n_total = 6", "n_total = 8"))
+    other.write_text(cfg.read_text().replace("value = 63.4", "value = 50.0").replace("n_total = 6", "n_total = 8"))
     assert main(["calibrate", str(other), "--out", str(out), "--quiet", "--resume"]) == 2
     assert "was calibrated with other observations" in capsys.readouterr().err
     # a truncated checkpoint

@@ -8,7 +8,7 @@ Writes the files a user brings, for the built-in Bondo-like valley (torchslide.t
                          valley's thalweg as a run-out path
     DIR/calibrate.toml   a prior over (mu, xi) and one recording: the maximum speed at L1
 
-The recording is a synthetic one (mu = 0.23, xi = 1000 m/s^2 with 10 % noise, on 60 m cells): 70.5 m/s.
+The recording is a synthetic one (mu = 0.23, xi = 1000 m/s^2 with 10 % noise, on 60 m cells): 63.4 m/s.
 The README's tour runs ``simulate``, ``calibrate``, ``predict`` and ``sweep`` on these files.
 """
 from __future__ import annotations
@@ -65,8 +65,8 @@ kind = "max_velocity"
 name = "v_L1"
 x = {x:.1f}
 y = {y:.1f}
-value = 70.5
-sigma = 7.05
+value = 63.4
+sigma = 6.34
 
 [calibration]
 n_initial = 30
