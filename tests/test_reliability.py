@@ -177,3 +177,58 @@ def test_a_corrupt_calibration_folder_is_named(case, capsys):
                      str(case.parent / "p"), "--n", "2", "--quiet"]) == 2
         err = capsys.readouterr().err
         assert str(bad / name) in err and len(err.strip().splitlines()) == 1, err
+
+
+KILL_CASES = {
+    "calibrate": ([], {"posterior.json", "posterior.npz", "runs.csv", "posterior.png", "tv.png"},
+                  {"posterior.json": ("timings", "solver_seconds_this_invocation"), "posterior.npz": (), "runs.csv": ()},
+                  5),     # this budget is too short for a TV history: no tv.png
+    "sweep": (["--n", "3"], {"sweep.csv", "sweep.npz", "sweep.json", "posterior.png"},
+              {"sweep.json": ("solver_seconds",), "sweep.npz": (), "sweep.csv": ()}, 4),
+}
+
+
+@pytest.mark.parametrize("command", list(KILL_CASES))
+def test_a_command_killed_after_each_final_write_resumes_to_every_file(case, monkeypatch, command):
+    """Killed right after each of its final writes (for calibrate: posterior.json, .npz, the rewritten
+    posterior.json, runs.csv, the figures), a calibration or sweep resumes to every result file, equal to an
+    uninterrupted run's; a calibration says there is nothing to resume only once finished.json, written
+    last, is there. (predict writes its folder whole or not at all, diagnose has no resume.)"""
+    import torchslide.files as files
+
+    extra, finals, compare, n_writes = KILL_CASES[command]
+    cmd = [command, str(case / "calibrate.toml"), *extra, "--quiet"]
+    ref = case.parent / "ref"
+    assert main([*cmd, "--out", str(ref)]) in (0, 1)
+    real_replace = files.os.replace
+
+    class Killed(BaseException):
+        pass
+
+    k = 0
+    while True:
+        k += 1
+        count = [0]
+
+        def replace(src, dst, _k=k):
+            real_replace(src, dst)
+            if Path(dst).name in finals:
+                count[0] += 1
+                if count[0] == _k:
+                    raise Killed
+
+        out = case.parent / f"killed_{k}"
+        monkeypatch.setattr(files.os, "replace", replace)
+        try:
+            main([*cmd, "--out", str(out)])
+            killed = False
+        except Killed:
+            killed = True
+        monkeypatch.setattr(files.os, "replace", real_replace)
+        if not killed:
+            break
+        assert not (out / "finished.json").exists()
+        assert main([*cmd, "--out", str(out), "--resume"]) in (0, 1)
+        assert _outputs(out, compare) == _outputs(ref, compare), k
+        assert all((out / f).is_file() for f in finals if (ref / f).is_file()), k
+    assert k == n_writes + 1       # every final write was a kill point

@@ -12,6 +12,7 @@ import numpy as np  # noqa: E402
 
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
+from .files import save_figure  # noqa: E402
 from .physics import label  # noqa: E402
 from .posterior import hdr_mask  # noqa: E402
 
@@ -48,7 +49,7 @@ def plot_posterior(result, path, truth=None, names=None, level: float = 0.9, tit
         ax.legend(loc="upper right", fontsize=7)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return Path(path)
 
@@ -119,7 +120,7 @@ def plot_posterior_any(result, path, truth=None, names=None, level: float = 0.9,
                      "dotted, runs as white dots", fontsize=9)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return Path(path)
 
@@ -141,7 +142,7 @@ def plot_tv(tv_histories: dict, path, n_initial: int | None = None, threshold: f
     ax.grid(alpha=0.3)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return Path(path)
 
@@ -169,6 +170,6 @@ def plot_predictive_check(checks: list, path):
     ax.grid(alpha=0.3, axis="x")
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, 120)
     plt.close(fig)
     return Path(path)

@@ -2,7 +2,7 @@
 
 * :func:`atomic_path` / :func:`write_text_atomic`: write to a temporary file in the same folder, fsync,
   then rename over the target, so that a kill at any moment leaves the old file or the new one, never
-  a truncated one (checkpoints, result JSON, tables).
+  a truncated one (checkpoints, result JSON, tables); :func:`save_figure` does the same for figures.
 * :func:`folder_lock`: one process at a time writes an output folder; a second is refused with the
   owner's pid, a lock left by a process that died is taken over.
 * :class:`FileStateError`: a file or folder in a state the command cannot use (a corrupt or truncated
@@ -50,6 +50,13 @@ def write_text_atomic(path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (:func:`atomic_path`)."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def save_figure(fig, path, dpi: int) -> None:
+    """``fig.savefig`` to ``path`` atomically (:func:`atomic_path`): a kill leaves the old figure or the new."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format=path.suffix.lstrip(".") or "png")
 
 
 def _alive(pid: int) -> bool:

@@ -5,6 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .files import save_figure
 from .terrain.fields import hillshade
 from .terrain.grid import DEM
 
@@ -51,7 +52,7 @@ def plot_field_map(dem: DEM, field: np.ndarray, path, *, points: dict | None = N
     ax.set_title(title, fontsize=10)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=dpi)
+    save_figure(fig, path, dpi)
     plt.close(fig)
     return path
 

@@ -6,7 +6,8 @@ The config is the ``simulate`` config plus [prior], [[observations]] and [calibr
 [model] gives the values of the parameters that are not calibrated (mu and xi in [model] are
 ignored when they are in [prior]). Writes posterior.json, posterior.npz, posterior.png, tv.png,
 runs.csv, a checkpoint (so ``--resume`` continues an interrupted run without repeating a finished
-run) and TensorBoard logs under DIR/tensorboard. posterior.json's ``best_run_fit`` gives each
+run), TensorBoard logs under DIR/tensorboard and, last, finished.json (a resume of a calibration killed
+before it writes whatever result file is missing). posterior.json's ``best_run_fit`` gives each
 observation's standardised residual on the best run, and calibrate warns (stderr) about every
 observation that even the best run misses by more than 3 sigma. A posterior too sharp for the emulator
 (``[calibration] inference``, diagnose.local_path.local_calibration) is fitted on the solver and described
@@ -85,10 +86,16 @@ def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
     return out
 
 
+FINISHED = "finished.json"
+"""Written last, when every result file of a calibration is in place: {"n_runs", "files"}."""
+
+
 def _finished(out: Path, n_total: int) -> bool:
-    """Whether ``out`` holds a calibration that ended with at least ``n_total`` runs."""
+    """Whether ``out`` holds a calibration that ended with at least ``n_total`` runs and wrote every result
+    file (a calibration killed during its final writes is not finished: its resume writes them again)."""
     try:
-        return int(json.loads((out / "posterior.json").read_text())["n_runs"]) >= n_total
+        done = json.loads((out / FINISHED).read_text())
+        return int(done["n_runs"]) >= n_total and all((out / f).is_file() for f in done["files"])
     except (OSError, ValueError, KeyError, TypeError):
         return False
 
@@ -179,8 +186,11 @@ def _run(args: argparse.Namespace) -> int:
     for w in unreached_warnings(ev) + (misfit_warnings(fit) if fit is not None else []):
         print(f"torchslide: warning: {w}", file=sys.stderr)
     plot_posterior_any(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
+    files = ["posterior.json", "posterior.npz", "runs.csv", "posterior.png"]
     if res.tv_history:
         plot_tv({Path(args.config).stem: res.tv_history}, out / "tv.png")
+        files.append("tv.png")
+    write_text_atomic(out / FINISHED, json.dumps({"n_runs": int(res.n_runs), "files": files}))
     s = res.summary
     for n in prior.names:
         print(f"{n}: mean {s['mean'][n]:.4g}  sd {s['sd'][n]:.3g}  MAP {s['map'][n]:.4g}  "

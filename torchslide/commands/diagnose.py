@@ -449,6 +449,8 @@ def _design(ev, candidates, bud, th, args, cfg: Config, out: Path, log) -> int:
 def _design_figure(d, ev, path: Path) -> None:
     import matplotlib
 
+    from ..files import save_figure
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
@@ -467,5 +469,5 @@ def _design_figure(d, ev, path: Path) -> None:
         ax.set_title(f"{c}: now {d.now[c]:.3g}", fontsize=9)
         fig.colorbar(im, ax=ax, label="detectable switch with a new gauge / now")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, 110)
     plt.close(fig)
