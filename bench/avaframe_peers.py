@@ -3,7 +3,8 @@ avaHelix), set up as a user of both does: com1DFA's DEM remeshed to 10 m (its re
 marks nodata with NaN), the case's release polygons 1 m thick normal to the slope, Voellmy mu 0.155,
 xi 4000 m/s^2 (com1DFA's defaults), no entrainment, density 200 kg/m^3. Both models' peak fields are
 compared cell by cell on that grid: v_max (peak, 99th percentile over cells with h_max > 0.5 m), p_max,
-the footprint h_max > 0.5 m (area, Jaccard), the run-out along the case's AIMEC path, the cells above the
+the footprint h_max > 0.5 m (area, Jaccard), the areas reached by 1 mm to 1 m (the lateral spread of thin
+layers), the run-out along the case's AIMEC path, the cells above the
 energy line from the release (docs/verification.md, case 7; outside the release and the cells beside
 it) and above free fall, and each run's simulated time and wall time.
 
@@ -44,6 +45,7 @@ def _figures(dem, release_v, h, v, path_xy, mu) -> dict:
     return {"v_max_peak": float(v.max()), "v_max_p99_h>0.5": float(np.percentile(v[foot], 99)),
             "p_max_peak_kpa": float(DENSITY * v.max() ** 2 / 1000.0),
             "impact_area_m2_h>0.5": float(foot.sum() * dem.cellsize ** 2),
+            "area_m2_by_h_max": {f"{t:g}": float((h > t).sum() * dem.cellsize ** 2) for t in (0.001, 0.01, 0.1, 0.5, 1.0)},
             "runout_m_along_path": float(s[foot].max()),
             "cells_above_energy_line": int((outside & (v > eb)).sum()),
             "largest_v_over_energy_line": float((v[outside] / np.maximum(eb[outside], 1e-12)).max()),
@@ -80,6 +82,8 @@ def run_case(peers: Path, case: str) -> dict:
         out["com1DFA"] = _figures(dem, release_v, h_c, v_c, path, MU)
         a, b = r.h_max[0].numpy() > THRESHOLD, h_c > THRESHOLD
         out["footprint_jaccard_h>0.5"] = float((a & b).sum() / (a | b).sum())
+        out["area_ratio_by_h_max"] = {t: ts["area_m2_by_h_max"][t] / out["com1DFA"]["area_m2_by_h_max"][t]
+                                      for t in ts["area_m2_by_h_max"]}
         out["ratio_torchslide_to_com1DFA"] = {k: ts[k] / out["com1DFA"][k] for k in
                                              ("v_max_peak", "v_max_p99_h>0.5", "p_max_peak_kpa",
                                               "impact_area_m2_h>0.5", "runout_m_along_path")}

@@ -187,3 +187,21 @@ def test_a_dem_without_a_crs_takes_the_release_files(tmp_path):
                                      '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
     dem = load_config(tmp_path / "c.toml").terrain.dem
     assert dem.crs and same_crs(dem.crs, CRS) and not same_crs(dem.crs, "EPSG:21781")
+
+
+def test_a_dem_without_a_crs_takes_a_release_rasters_also_when_resampled(tmp_path):
+    """release.asc with a .prj beside it, dem.asc without: the terrain carries the release's CRS, on the
+    DEM's own grid and on a resampled one."""
+    from torchslide.terrain.grid import same_crs
+    from torchslide.terrain.io import write_asc
+
+    dem = _plane(tmp_path)
+    rel = np.zeros(dem.shape)
+    rel[5:9, 3:7] = 2.0
+    write_asc(tmp_path / "release.asc", rel, DEM(dem.z, dem.cellsize, dem.xll, dem.yll, crs=CRS))
+    assert (tmp_path / "release.prj").exists() and not (tmp_path / "dem.prj").exists()
+    for extra in ("", "cellsize = 20.0\n"):
+        (tmp_path / "c.toml").write_text('[terrain]\ndem = "dem.asc"\nrelease = "release.asc"\n' + extra +
+                                         '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
+        crs = load_config(tmp_path / "c.toml").terrain.dem.crs
+        assert crs and same_crs(crs, CRS), extra

@@ -462,6 +462,8 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
             erod = case.erodible_depth
     except TerrainError as e:
         raise ConfigError(f"{path}: [terrain] {e}") from None
+    if src is not None and src is not dem and src.crs and not dem.crs:    # a raster read on the DEM file's grid
+        dem.crs = src.crs                                                   # gave the CRS (terrain.io)
     return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
                          source=source, case=case, thickness=convention, nodata=nodata)
 

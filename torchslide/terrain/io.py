@@ -391,7 +391,7 @@ def read_raster_on_grid(path, dem: DEM, what: str = "map") -> np.ndarray:
     """A raster (.asc or .tif) that must lie on ``dem``'s grid: its (ny, nx) array, row 0 south, nodata as NaN.
 
     Raises :class:`TerrainError` naming the file, ``what`` it is, and both grids when shape, cell size
-    or origin differ.
+    or origin differ, or the CRSs when both are known and differ; a DEM without a CRS takes the raster's.
     """
     if _kind(path) == "asc":
         z, cs, xll, yll = read_asc_array(path)
@@ -400,6 +400,8 @@ def read_raster_on_grid(path, dem: DEM, what: str = "map") -> np.ndarray:
         z, cs, xll, yll, crs = _geotiff(path)
     if not same_crs(crs, dem.crs):
         raise TerrainError(f"{path}: {what} CRS differs from the DEM's; reproject it onto the DEM's grid and CRS")
+    if crs and not dem.crs:     # a DEM without a CRS takes the first one its inputs carry
+        dem.crs = crs
     ny, nx = z.shape
     same = (
         (ny, nx) == dem.shape
