@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q "$(TORCH)"
 	$(PY) -m pip install -q -e ".[dev]"
-	$(PY) -c "from torchslide.solver import fused_cpu, fused_triton; fused_cpu.warm(); fused_triton.warm()"   # the fused steps (CPU; CUDA where there is one), compiled once
+	$(PY) -m torchslide.solver.warm   # the fused steps (CPU; CUDA where there is one), compiled once into their caches
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -671,21 +671,3 @@ def fused_step(F):
         return out
 
     return step
-
-
-def warm() -> bool:
-    """Compile the fused step into numba's on-disk cache (one small run; what ``make`` does at install), so
-    that a user's first call loads it in about a second. False when numba is not installed."""
-    if numba is None:
-        return False
-    from ..physics import Params
-    from ..terrain.grid import DEM
-    from .config import SolverConfig
-    from .simulate import simulate
-
-    x = np.arange(12) * 10.0
-    dem = DEM(z=np.tile(-0.5 * x, (8, 1)), cellsize=10.0)
-    rel = np.zeros(dem.shape)
-    rel[3:5, 2:4] = 2.0
-    simulate(dem, rel, Params.make(mu=[0.2, 0.3], xi=500.0), t_end=2.0, config=SolverConfig(kernel="fused"))
-    return True
