@@ -49,6 +49,7 @@ EDITS = [
     (CAL, ("sigma = 6.34", "sigma = 0.0"), "sigma"),
     (CAL, ('kind = "max_velocity"', 'kind = "max_speed"'), "max_speed"),
     (CAL, ("y = 1086.6\n", ""), "x, y"),
+    (CAL, ('name = "v_L1"\nx = 1700.0\ny = 1086.6\n', "x = 1700.0\n"), "x, y"),     # no y and no name
     (CAL, ("n_initial = 30", "n_initial = 1"), "n_initial"),
     (CAL, ("n_total = 70", "n_total = 10"), "n_total"),
     (CAL, ("batch_size = 10", "batch_size = 0"), "batch_size"),

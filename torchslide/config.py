@@ -132,6 +132,7 @@ class TerrainConfig:
     case: Any = None  # SyntheticCase for synthetic terrains (has points, thalweg)
     thickness: str = "normal"
     nodata: str = "outflow"
+    release_note: str = ""   # how the release was made when torchslide converted it (a failure depth)
 
     def cell_volume_area(self) -> np.ndarray:
         """(ny, nx) m^2 that turns an input thickness into a volume: the surface area of each cell for
@@ -244,7 +245,10 @@ class Config:
 
     def conventions(self) -> dict[str, Any]:
         """CONVENTIONS plus this run's: the input thickness convention and the density, kg/m^3."""
-        return dict(CONVENTIONS, input_thickness=self.terrain.thickness, density_kg_m3=self.model.density)
+        out = dict(CONVENTIONS, input_thickness=self.terrain.thickness, density_kg_m3=self.model.density)
+        if self.terrain.release_note:
+            out["release"] = self.terrain.release_note
+        return out
 
     def make_params(self):
         """Params on the run's dtype and device."""
@@ -384,6 +388,14 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
             if "options" in t:
                 raise ConfigError(f"{path}: [terrain] options is only used with 'synthetic', not with 'dem'")
             src = io.read_raster(file("dem"), nodata="fill" if t.get("fill_nodata", False) else "outside")
+            failure = None
+            if isinstance(t.get("release"), dict) and "failure_depth" in t["release"]:
+                check_keys(t["release"], {"failure_depth"}, "[terrain] release", path)
+                v = t["release"]["failure_depth"]
+                fp = Path(v) if isinstance(v, str) and Path(v).is_absolute() else base / str(v)
+                if not isinstance(v, str) or not fp.is_file():
+                    raise ConfigError(f"{path}: [terrain] release failure_depth file not found: {v!r}")
+                src, failure = _failure_surface(src, fp)
             dem = src
             if "cellsize" in t:
                 from .terrain.resample import resample_dem
@@ -417,9 +429,18 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
             raise ConfigError(f"{path}: [terrain] DEM has NaN cells")
 
         # release
+        release_note = ""
         if "release" in t:
             r = t["release"]
-            if _is_polygons(r):
+            if has_dem and failure is not None:
+                release_v, release_note = failure
+                area = src.surface_area() if convention == "normal" else np.full(src.shape, src.cellsize ** 2)
+                # a vertical depth d over a map cell is the volume d cellsize^2, as a normal thickness d cos
+                h = release_v * (src.cellsize ** 2 / src.surface_area()) if convention == "normal" else release_v
+                release = _on_grid(h, src, dem, convention)
+                release_note += (f"; as normal thickness (x cos theta of the failure surface), {float((h * area).sum()):,.0f} m^3"
+                                 if convention == "normal" else "")
+            elif _is_polygons(r):
                 release = _polygon_thickness(r, "release", dem, base, path)
             elif isinstance(r, dict):
                 r = check_keys(r, _RELEASE_TABLE_KEYS, "[terrain] release", path)
@@ -465,7 +486,28 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
     if src is not None and src is not dem and src.crs and not dem.crs:    # a raster read on the DEM file's grid
         dem.crs = src.crs                                                   # gave the CRS (terrain.io)
     return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
-                         source=source, case=case, thickness=convention, nodata=nodata)
+                         source=source, case=case, thickness=convention, nodata=nodata, release_note=release_note)
+
+
+def _failure_surface(src: DEM, path: Path) -> tuple[DEM, tuple[np.ndarray, str]]:
+    """A failure-depth raster (post- minus pre-event elevation in the source, <= 0, vertical m; a DEM of
+    difference's erosion, on the DEM file's grid) as a release: the bed lowered to the failure surface and
+    the vertical thickness -d of the material above it. Returns (the DEM of the failure surface, (the
+    (ny, nx) vertical release thickness, m, a note saying what was done))."""
+    from .terrain import io
+
+    d = io.read_raster_like(path, src, what="failure depth")
+    if (d > 0).any():
+        i, j = np.argwhere(d > 0)[0]
+        raise TerrainError(f"{path}: a failure depth is <= 0 (post- minus pre-event elevation); {int((d > 0).sum())} "
+                           f"cells are positive, first {d[i, j]:g} m at row {i} from the south, col {j}")
+    if not (d < 0).any():
+        raise TerrainError(f"{path}: the failure depth has no negative value: nothing is released")
+    bed = DEM(src.z + d, src.cellsize, src.xll, src.yll, crs=src.crs, outside=src.outside)
+    vol = float(-d.sum()) * src.cellsize ** 2
+    note = (f"release from the failure depths of {path.name}: {int((d < 0).sum())} cells, {vol:,.0f} m^3 "
+            "(vertical), the bed lowered to the failure surface")
+    return bed, (-d, note)
 
 
 def _cellsize(t: dict, path: Path) -> float:

@@ -250,6 +250,10 @@ register_kind("runout_length",
 
 
 # ---------------------------------------------------------------------------------------- Observation
+def _numbers(*vals) -> bool:
+    return all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals)
+
+
 @dataclass
 class Observation:
     """One measured quantity with its Gaussian standard deviation.
@@ -279,7 +283,8 @@ class Observation:
 
     def __post_init__(self) -> None:
         if self.name is None:
-            self.name = self.kind if self.x is None else f"{self.kind}@({self.x:g},{self.y:g})"
+            point = self.x is not None and self.y is not None
+            self.name = f"{self.kind}@({self.x:g},{self.y:g})" if point and _numbers(self.x, self.y) else self.kind
 
     @property
     def spec(self) -> ObservationKind:

@@ -15,6 +15,10 @@ returns (B, m), which is why they are listed in :data:`VECTOR_KINDS` and must be
   an empty (or NA) h or speed cell is a gap in that recording, left out of its series.
 * ``deposit_map``: final thickness h_final (m) on every cell of the DEM grid with a finite value in the
   raster (nodata cells are left out).
+* ``elevation_change``: a DEM of difference (post- minus pre-event surface, vertical m: + deposition,
+  - erosion; nodata where not surveyed) per mapped cell, against the simulated change of the surface
+  (SimulationResult.elevation_change: the bed's change plus the flow's thickness per map area minus the
+  release's).
 * ``impact_map``: 1 where h_max > threshold, else 0, per cell (the indicator of ``impact_area``).
   With a Gaussian error model on a 0/1 quantity, sigma ~ 0.3-0.5 is sensible. The recording is a 0/1
   raster (nodata where not mapped) or an observed outline as a polygon file (1 inside, 0 outside).
@@ -51,7 +55,8 @@ from .terrain.grid import DEM, TerrainError
 __all__ = ["SeriesObservation", "VECTOR_KINDS", "read_gauge_csv", "read_map", "interp_series",
            "GaugeSeriesError", "effective_factor", "exponential_field"]
 
-VECTOR_KINDS = ("gauge_series", "deposit_map", "impact_map")
+VECTOR_KINDS = ("gauge_series", "deposit_map", "impact_map", "elevation_change")
+MAP_KINDS = ("deposit_map", "impact_map", "elevation_change")
 
 
 class GaugeSeriesError(ValueError):
@@ -91,6 +96,12 @@ def _deposit_map_fn(result, obs):
     return _cells(result, obs, result.h_final)
 
 
+def _elevation_change_fn(result, obs):
+    if result.elevation_change is None:
+        raise ValueError(f"observation {obs.name!r}: the result holds no elevation change (not a solver result)")
+    return _cells(result, obs, result.elevation_change)
+
+
 def _impact_map_fn(result, obs):
     return _cells(result, obs, (result.h_max > obs.threshold).to(result.h_max))
 
@@ -100,6 +111,9 @@ register_kind("gauge_series", _gauge_fn, unit="m or m/s",
               overwrite=True)
 register_kind("deposit_map", _deposit_map_fn, unit="m",
               description="vector (B, m): h_final per mapped cell (use SeriesObservation)", overwrite=True)
+register_kind("elevation_change", _elevation_change_fn, unit="m",
+              description="vector (B, m): the surface's vertical change per surveyed cell (use SeriesObservation)",
+              overwrite=True)
 register_kind("impact_map", _impact_map_fn, unit="-", uses_threshold=True,
               description="vector (B, m): 1 where h_max > threshold per mapped cell (use SeriesObservation)",
               overwrite=True)
@@ -202,7 +216,7 @@ class SeriesObservation:
     """A vector-valued observation (m values) with its error model.
 
     Attributes:
-        kind: "gauge_series", "deposit_map" or "impact_map".
+        kind: "gauge_series", "deposit_map", "impact_map" or "elevation_change".
         values: (m,) observed values (for maps: the mapped cells in row-major order of ``cell_index``).
         sigma: standard deviation (scalar or (m,)), > 0.
         name: label.
@@ -301,7 +315,7 @@ class SeriesObservation:
 
     @property
     def is_map(self) -> bool:
-        return self.kind in ("deposit_map", "impact_map")
+        return self.kind in MAP_KINDS
 
     def sigma_vector(self) -> np.ndarray:
         s = np.asarray(self.sigma, dtype=np.float64)

@@ -65,6 +65,10 @@ class SimulationResult:
         bed_change: (B, ny, nx) bed elevation change from entrainment, m (None without entrainment).
         runtime_s: wall-clock seconds of the call.
         kernel: the step implementation that ran ("fused-cpu", "fused-triton", "compiled" or "eager").
+        elevation_change: (B, ny, nx) the change of the surface's elevation from the release to the end,
+            vertical m, as a DEM of difference measures it: + deposition, - erosion (the release's source and an
+            eroded bed); the bed's change plus the flow's thickness per map area minus the release's. None in
+            results that were not made by the solver.
         params: the per-member parameters the run used, name -> (B,) tensor.
         failed: (B,) bool, True where the run produced non-finite values; failure_reason lists why.
     """
@@ -93,6 +97,7 @@ class SimulationResult:
     failed: torch.Tensor | None = None
     failure_reason: list[str | None] = field(default_factory=list)
     kernel: str = ""
+    elevation_change: torch.Tensor | None = None
 
     def peak_pressure(self, density: float) -> torch.Tensor:
         """(B, ny, nx) peak pressure density * v_max^2, kPa (``density`` in kg/m^3)."""
@@ -121,4 +126,5 @@ class SimulationResult:
             failed=None if self.failed is None else self.failed[sl],
             failure_reason=self.failure_reason[sl] if self.failure_reason else [],
             kernel=self.kernel,
+            elevation_change=None if self.elevation_change is None else self.elevation_change[sl],
         )

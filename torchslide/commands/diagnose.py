@@ -110,11 +110,13 @@ def diagnose_defaults() -> dict:
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 _VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
              "deposit_map": {"kind", "file", "sigma", "corr_length", "name"},
-             "impact_map": {"kind", "file", "sigma", "corr_length", "name", "threshold"}}
+             "impact_map": {"kind", "file", "sigma", "corr_length", "name", "threshold"},
+             "elevation_change": {"kind", "file", "sigma", "corr_length", "name"}}
 
 
 def parse_observations(table: Any, cfg: Config) -> list:
-    """[[observations]]: scalar kinds as in calibrate, plus gauge_series / deposit_map / impact_map."""
+    """[[observations]]: scalar kinds as in calibrate, plus gauge_series / deposit_map / impact_map /
+    elevation_change."""
     from ..observe_series import GaugeSeriesError, SeriesObservation
 
     path = cfg.path

@@ -1,4 +1,4 @@
-"""``torchslide example bondo --out DIR [--cellsize M]``: a complete case to start from.
+"""``torchslide example bondo|msh2021 --out DIR [--cellsize M]``: a complete case to start from.
 
 Writes the files a user brings, for the built-in Bondo-like valley (torchslide.terrain.synthetic.bondo_like):
 
@@ -10,6 +10,19 @@ Writes the files a user brings, for the built-in Bondo-like valley (torchslide.t
 
 The recording is a synthetic one (mu = 0.23, xi = 1000 m/s^2 with 10 % noise, on 60 m cells): 63.4 m/s.
 The README's tour runs ``simulate``, ``calibrate``, ``predict`` and ``sweep`` on these files.
+
+``msh2021`` writes a real event, the December 2021 landslide near Mount St. Helens (landlab's
+MassWastingRunout tutorial data, MIT licence; SOURCE.md and LICENSE.md beside the files):
+
+    DIR/dem.asc            the pre-event terrain, 10 m cells (one column of nodata)
+    DIR/failure_depth.asc  the failure depths of the 30 source cells, negative, vertical m: the release,
+                           ``release = { failure_depth = "failure_depth.asc" }`` (the bed is lowered by them
+                           and the thickness converted to normal by torchslide)
+    DIR/dod.asc            the surveyed DEM of difference of the runout (+ deposition, - erosion, vertical m;
+                           nodata off the 224 mapped cells): an ``elevation_change`` observation
+    DIR/source.asc         the mapped source (1 at the 30 cells)
+    DIR/hillshade.asc      a 2 m hillshade for figures
+    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas), diagnose.toml (with the DoD)
 """
 from __future__ import annotations
 
@@ -21,7 +34,62 @@ from ..config import ConfigError
 
 HELP = "write an example case (DEM, release, configs) to start from"
 
-EXAMPLES = ("bondo",)
+EXAMPLES = ("bondo", "msh2021")
+
+MSH_FILES = {"dem.asc": "pre_runout_DEM.asc", "failure_depth.asc": "landslide_depth.asc",
+             "dod.asc": "DEM_of_Difference.asc", "source.asc": "landslide_polygon.asc",
+             "hillshade.asc": "pre_runout_DEM_hillshade.asc", "SOURCE.md": "SOURCE.md", "LICENSE.md": "LICENSE.md"}
+"""Files of the msh2021 example and the shipped files they copy (torchslide/data/msh2021)."""
+
+MSH_TERRAIN = """[terrain]
+dem = "dem.asc"
+release = { failure_depth = "failure_depth.asc" }   # negative vertical depths: the bed is lowered by them
+thickness = "normal"
+
+[model]
+rheology = "voellmy"
+mu = 0.3
+xi = 1000.0
+
+[run]
+t_end = 300.0
+"""
+
+MSH_CALIBRATE = """
+[prior]
+mu = [0.05, 0.6]
+xi = [100.0, 3000.0]
+
+[[observations]]
+kind = "impact_area"       # the mapped runout, source included: 224 cells of 100 m^2
+name = "impact"
+value = 22400.0
+sigma = 2240.0
+threshold = 0.1
+
+[[observations]]
+kind = "deposit_area"      # cells where the survey found deposition
+name = "deposit"
+value = 13000.0
+sigma = 1300.0
+threshold = 0.1
+
+[calibration]
+n_initial = 20
+n_total = 40
+batch_size = 10
+"""
+
+MSH_DIAGNOSE = """
+[[observations]]
+kind = "elevation_change"  # the surveyed DEM of difference, vertical m (+ deposition, - erosion)
+file = "dod.asc"
+sigma = 0.5
+corr_length = 20.0
+
+[diagnose]
+candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
+"""
 
 TERRAIN = """[terrain]
 dem = "dem.asc"
@@ -78,7 +146,7 @@ batch_size = 10
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("name", choices=EXAMPLES, help="which example")
     p.add_argument("--out", "-o", required=True, metavar="DIR", help="output folder (must not exist or be empty)")
-    p.add_argument("--cellsize", type=float, default=60.0, help="DEM cell size, m (default 60)")
+    p.add_argument("--cellsize", type=float, default=None, help="bondo: DEM cell size, m (default 60)")
 
 
 def gauge_tables(points: dict) -> str:
@@ -92,10 +160,43 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
+    if args.name == "msh2021":
+        return _msh2021(args)
+    return _bondo(args)
+
+
+def _msh2021(args: argparse.Namespace) -> int:
+    import shutil
+    from importlib import resources
+
+    from ..output_folder import check_output, staged_output
+
+    if args.cellsize is not None:
+        raise ConfigError("--cellsize is for the bondo example; msh2021 is the survey's 10 m grid "
+                          "(resample with [terrain] cellsize)")
+    out = Path(args.out)
+    anc = check_output(out, overwrite=False)
+    data = resources.files("torchslide") / "data" / "msh2021"
+    with staged_output(out, anc, "example") as tmp:
+        for name, shipped in MSH_FILES.items():
+            with resources.as_file(data / shipped) as f:
+                shutil.copyfile(f, tmp / name)
+        (tmp / "simulate.toml").write_text(MSH_TERRAIN)
+        (tmp / "calibrate.toml").write_text(MSH_TERRAIN + MSH_CALIBRATE)
+        (tmp / "diagnose.toml").write_text(MSH_TERRAIN + MSH_CALIBRATE.replace("[calibration]", MSH_DIAGNOSE
+                                                                              + "\n[calibration]"))
+    print(f"wrote {out}: the 2021 Mount St. Helens landslide ({', '.join(MSH_FILES)}), simulate.toml, "
+          "calibrate.toml, diagnose.toml; data from the landlab project, MIT licence (SOURCE.md, LICENSE.md)")
+    return 0
+
+
+def _bondo(args: argparse.Namespace) -> int:
     from ..output_folder import check_output, staged_output
     from ..terrain.io import write_asc
     from ..terrain.synthetic import bondo_like
 
+    if args.cellsize is None:
+        args.cellsize = 60.0
     if not (math.isfinite(args.cellsize) and 5.0 <= args.cellsize <= 500.0):
         raise ConfigError(f"--cellsize must be between 5 and 500 m, got {args.cellsize}")
     out = Path(args.out)

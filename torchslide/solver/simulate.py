@@ -193,8 +193,10 @@ def simulate(dem: DEM, release, params: Params, *, t_end: float,
     out_times = _output_times(t_end, cfg.output_interval, dtype, device)
     S = _initial_state(inp, P0.B, dem, out_times, cfg, dtype, device)
     release_volume = S["mass"].clone()
+    h_release = inp.h0.clone()      # the steps may reuse the initial state's storage
     S, exceeded = _run(S, P0, inp, F, cfg, out_times, t_end, progress)
-    res = _result(S, exceeded, P0, inp, dem, out_times, release_volume, cfg, time.perf_counter() - t0_wall)
+    res = _result(S, exceeded, P0, inp, dem, out_times, release_volume, cfg, time.perf_counter() - t0_wall,
+                  h_release)
     res.kernel = kernel_that_runs(F, "compiled" if cfg.compile else cfg.kernel, device)
     return res
 
@@ -476,7 +478,7 @@ def _scatter(full: dict, work: dict, idx: Tensor, member_keys: list) -> None:
 
 
 def _result(S: dict, exceeded: Tensor, P0: Params, inp: _Inputs, dem: DEM, out_times: Tensor,
-            release_volume: Tensor, cfg: SolverConfig, runtime_s: float) -> SimulationResult:
+            release_volume: Tensor, cfg: SolverConfig, runtime_s: float, h_release: Tensor) -> SimulationResult:
     """The SimulationResult of the final state: samples after a member ended repeat its final state."""
     B, ny, nx = S["h"].shape
     K = out_times.shape[0]
@@ -509,7 +511,8 @@ def _result(S: dict, exceeded: Tensor, P0: Params, inp: _Inputs, dem: DEM, out_t
         entrained_volume=entrained, steps=S["steps"], t_final=S["t"], stopped=S["stopped"],
         history_t=out_times, mass_history=S["mass_hist"], ke_history=S["ke_hist"], gauges=gauges_out,
         bed_change=bed_change, runtime_s=runtime_s, params=P0.as_dict(),
-        failed=S["failed"] | exceeded, failure_reason=_failure_reasons(S, exceeded, P0, cfg))
+        failed=S["failed"] | exceeded, failure_reason=_failure_reasons(S, exceeded, P0, cfg),
+        elevation_change=(S["z"] - z0 if inp.evolve else 0.0) + S["h"] - h_release)
 
 
 def _failure_reasons(S: dict, exceeded: Tensor, P0: Params, cfg: SolverConfig) -> list:

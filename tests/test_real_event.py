@@ -1,0 +1,107 @@
+"""The real event of the msh2021 example (landlab's Mount St. Helens 2021 data): its files reproduce the
+survey's figures, a failure-depth raster is a release (the bed lowered, the thickness converted), and the
+surveyed DEM of difference is an elevation_change observation against the run's change of the surface."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchslide.cli import main
+from torchslide.config import ConfigError, load_config
+from torchslide.observe_series import SeriesObservation
+from torchslide.physics import Params
+from torchslide.solver import simulate
+from torchslide.terrain.grid import DEM
+from torchslide.terrain.io import read_asc_array, write_asc
+
+
+@pytest.fixture(scope="module")
+def msh(tmp_path_factory):
+    out = tmp_path_factory.mktemp("msh") / "case"
+    assert main(["example", "msh2021", "--out", str(out)]) == 0
+    return out
+
+
+def test_the_example_files_reproduce_the_surveys_figures(msh):
+    """Release 22,481 m^3 on 30 cells (vertical); DoD deposition 22,543 m^3 on 130 cells and erosion
+    26,407 m^3 on 94 (cell area 100 m^2); the licence and the source beside them."""
+    depth = np.nan_to_num(read_asc_array(msh / "failure_depth.asc")[0])
+    dod = read_asc_array(msh / "dod.asc")[0]
+    assert (depth < 0).sum() == 30 and -depth.sum() * 100 == pytest.approx(22480.7, abs=0.5)
+    assert (dod > 0).sum() == 130 and dod[dod > 0].sum() * 100 == pytest.approx(22542.8, abs=0.5)
+    assert (dod < 0).sum() == 94 and -dod[dod < 0].sum() * 100 == pytest.approx(26406.6, abs=0.5)
+    assert "MIT" in (msh / "LICENSE.md").read_text() and "landlab" in (msh / "SOURCE.md").read_text()
+    cfg = load_config(msh / "simulate.toml")
+    assert cfg.terrain.release_volume == pytest.approx(22480.7, abs=0.5)
+    assert "30 cells, 22,481 m^3 (vertical)" in cfg.conventions()["release"]
+
+
+def _tilted(tmp_path, theta_deg=30.0, n=12, dx=10.0):
+    x = (np.arange(n) + 0.5) * dx
+    dem = DEM(np.tile(-x * np.tan(np.radians(theta_deg)), (n, 1)) + 500.0, dx)
+    write_asc(tmp_path / "dem.asc", dem.z, dem, fmt="%.17g")
+    return dem
+
+
+def test_a_failure_depth_is_a_release_with_the_bed_lowered_and_the_thickness_made_normal(tmp_path):
+    """On a 30 degree plane, failure depths of -2 m (vertical) on 4 cells: the bed there is 2 m lower, the
+    normal thickness is 2 m x cos theta of the failure surface and the volume 2 m x the map area, in
+    either thickness convention."""
+    dem = _tilted(tmp_path)
+    d = np.zeros(dem.shape)
+    d[5:7, 3:5] = -2.0
+    write_asc(tmp_path / "depth.asc", d, dem, fmt="%.17g")
+    for conv in ("normal", "vertical"):
+        (tmp_path / "s.toml").write_text(f'[terrain]\ndem = "dem.asc"\nrelease = {{ failure_depth = "depth.asc" }}\n'
+                                         f'thickness = "{conv}"\n[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
+        t = load_config(tmp_path / "s.toml").terrain
+        thick = 2.0 * (100.0 / t.dem.surface_area()[d < 0]) if conv == "normal" else 2.0
+        assert conv == "vertical" or (thick < 2.0).all()
+        assert np.allclose(t.dem.z - dem.z, d) and np.allclose(t.release[d < 0], thick) and (t.release[d == 0] == 0).all()
+        assert t.release_volume == pytest.approx(4 * 2.0 * 100.0, rel=1e-9)
+
+
+@pytest.mark.parametrize("values, match", [(2.0, "positive"), (0.0, "no negative value")])
+def test_a_failure_depth_without_a_failure_is_refused(tmp_path, values, match):
+    dem = _tilted(tmp_path)
+    d = np.zeros(dem.shape)
+    d[5, 5] = values
+    write_asc(tmp_path / "depth.asc", d, dem)
+    (tmp_path / "s.toml").write_text('[terrain]\ndem = "dem.asc"\nrelease = { failure_depth = "depth.asc" }\n'
+                                     '[model]\nmu = 0.3\nxi = 500.0\n[run]\nt_end = 1.0\n')
+    with pytest.raises(ConfigError, match=match):
+        load_config(tmp_path / "s.toml")
+
+
+def test_the_elevation_change_is_the_surfaces_and_balances_the_outflow(tmp_path):
+    """A release that friction holds changes nothing; one that flows leaves its source lower (negative
+    change) and the change over the grid sums to minus the volume that left it, with entrainment too (the
+    bed lowered where the flow gained it)."""
+    dem = _tilted(tmp_path, theta_deg=20.0, n=16)
+    rel = np.zeros(dem.shape)
+    rel[6:10, 2:5] = 2.0
+    held = simulate(dem, rel, Params.make(mu=1.0, xi=500.0), t_end=5.0)
+    assert torch.equal(held.elevation_change, torch.zeros_like(held.elevation_change))
+    erod = np.full(dem.shape, 0.3)
+    for kappa in (0.0, 0.005):
+        r = simulate(dem, rel, Params.make(mu=0.1, xi=500.0, kappa=kappa), t_end=20.0, erodible_depth=erod)
+        dz = r.elevation_change[0].numpy()
+        assert dz[rel > 0].mean() < -0.5
+        assert dz.sum() * 100.0 == pytest.approx(-float(r.outflow_volume[0]), abs=1e-9 * float(r.release_volume[0]))
+        if kappa:
+            assert float(r.entrained_volume[0]) > 1.0 and (r.bed_change[0].numpy() < 0).any()
+
+
+def test_the_dod_is_an_elevation_change_observation_of_its_surveyed_cells(msh):
+    """The DoD's 224 mapped cells become the observation with their signs; unmapped cells are left out; a
+    run predicts one value per mapped cell; the diagnose config reads it."""
+    cfg = load_config(msh / "simulate.toml")
+    obs = SeriesObservation.from_raster(msh / "dod.asc", "elevation_change", cfg.terrain.dem, 0.5).validate(cfg.terrain.dem)
+    assert obs.m == 224 and (obs.values < 0).sum() == 94 and (obs.values > 0).sum() == 130
+    r = simulate(cfg.terrain.dem, cfg.terrain.release, Params.make(mu=0.3, xi=1000.0), t_end=5.0)
+    assert obs.predict(r).shape == (1, 224)
+    from torchslide.commands.diagnose import load_diagnose_config
+
+    dcfg = load_diagnose_config(msh / "diagnose.toml")
+    assert any(getattr(o, "kind", "") == "elevation_change" for o in dcfg.extra["observations"])
