@@ -105,3 +105,52 @@ def test_the_dod_is_an_elevation_change_observation_of_its_surveyed_cells(msh):
 
     dcfg = load_diagnose_config(msh / "diagnose.toml")
     assert any(getattr(o, "kind", "") == "elevation_change" for o in dcfg.extra["observations"])
+
+
+def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
+    """The example's calibrate.toml (impact and deposit areas and the DoD as an elevation_change map) runs
+    through calibrate, predict and sweep on a small budget: the map's 224 values are in runs.csv, the
+    best run's fit reports the map as a whole, predict reports the share of its values inside their
+    intervals."""
+    import json
+    import re
+
+    cfg = (msh / "calibrate.toml").read_text().replace("t_end = 300.0", "t_end = 60.0")
+    for k, v in {"n_initial": "4", "n_total": "6", "batch_size": "2"}.items():
+        cfg = re.sub(rf"^{k} = .*$", f"{k} = {v}", cfg, flags=re.M)
+    (msh / "small.toml").write_text(cfg)
+    cal, pred, sw = tmp_path / "cal", tmp_path / "pred", tmp_path / "sweep"
+    assert main(["calibrate", str(msh / "small.toml"), "--out", str(cal), "--quiet"]) == 0
+    header = (cal / "runs.csv").read_text().splitlines()[0].split(",")
+    assert sum(h.startswith("dod[") for h in header) == 224 and "impact" in header
+    post = json.loads((cal / "posterior.json").read_text())
+    dod = next(o for o in post["best_run_fit"]["observations"] if o["name"] == "dod")
+    assert dod["n"] == 224 and dod["rms_standardised_residual"] > 0
+    assert next(o for o in post["observations"] if o["name"] == "dod")["n"] == 224
+    assert main(["predict", str(msh / "small.toml"), "--calibration", str(cal), "--out", str(pred), "--n", "3",
+                 "--quiet"]) in (0, 1)
+    info = json.loads((pred / "predictive.json").read_text())
+    assert info["maps_and_series"]["dod"]["n"] == 224 and len(info["values"]) == 226
+    assert [o["name"] for o in info["observations"]] == ["impact", "deposit"]
+    assert main(["sweep", str(msh / "small.toml"), "--out", str(sw), "--n", "2", "--quiet"]) in (0, 1)
+    assert sum(h.startswith("dod[") for h in (sw / "sweep.csv").read_text().splitlines()[0].split(",")) == 224
+
+
+def test_the_survey_figures_of_a_run():
+    """Footprint Jaccard, reached shares and volumes against a hand-made survey of 4 cells."""
+    from experiments.msh2021.__main__ import survey_figures
+
+    dod = np.full((3, 3), np.nan)
+    dod[0, :2], dod[1, :2] = [-2.0, 1.0], [0.5, np.nan]
+    dod[1, 1] = 0.0
+    dz = np.zeros((3, 3))
+    dz[0, 0], dz[0, 1], dz[2, 2] = -1.0, 2.0, 0.5
+    h_max = np.where(np.abs(dz) > 0, 1.0, 0.0)
+    p = np.zeros((3, 3))
+    p[0, :2] = 0.7
+    f = survey_figures(dod, dz, h_max, p, cell=100.0)
+    assert f["footprint_jaccard"] == pytest.approx(2 / 5) and f["share_of_mapped_cells_reached"] == pytest.approx(0.5)
+    assert f["share_of_reached_cells_unmapped"] == pytest.approx(1 / 3)
+    assert f["share_of_mapped_cells_with_p_impact_ge_0.5"] == pytest.approx(0.5)
+    assert f["deposition_m3"] == {"survey": pytest.approx(150.0), "model": pytest.approx(250.0)}
+    assert f["erosion_m3"] == {"survey": pytest.approx(200.0), "model": pytest.approx(100.0)}

@@ -10,10 +10,14 @@ once per chunk of at most ``max_batch`` members, applies the observation operato
 as a :class:`torchslide.bayes.EvaluationResult`. A member whose run failed or whose observables are
 not finite is flagged with its reason, never turned into a number. Every evaluated point and its
 predicted observables are kept in ``records`` (used by sweeps and the diagnosis).
+
+Observations are scalar (:class:`torchslide.observe.Observation`, a block of one value) or vector-valued
+(:class:`torchslide.observe_series.SeriesObservation`: a gauge series or a map, a block of m values):
+predictions are the flattened (B, k) values (k = sum of the block sizes), against the data vector d (k,)
+with the effective standard deviations (k,) (sigma sqrt(f) for correlated maps and series).
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -23,6 +27,7 @@ import torch
 
 from .bayes import EvaluationResult, GaussianLikelihood, Prior
 from .observe import Observation
+from .observe_series import SeriesObservation
 from .physics import Params, check_range
 from .result import SimulationResult
 from .terrain.grid import DEM
@@ -73,6 +78,25 @@ def unique_records(records: list) -> list:
             seen.add(key)
             out.append(r)
     return out
+
+
+@dataclass
+class Block:
+    """One observation's slice of the flat data vector."""
+
+    name: str
+    kind: str
+    start: int
+    stop: int
+    obs: object
+
+    @property
+    def slice(self) -> slice:
+        return slice(self.start, self.stop)
+
+    @property
+    def is_vector(self) -> bool:
+        return isinstance(self.obs, SeriesObservation)
 
 
 @dataclass
@@ -128,17 +152,53 @@ class LandslideEvaluator:
     def __post_init__(self) -> None:
         if not self.observations:
             raise ValueError("at least one observation is needed to calibrate")
+        gauge_names = [g[0] for g in self.gauges]
         for o in self.observations:
-            o.validate(self.dem)
+            if isinstance(o, SeriesObservation):
+                o.validate(self.dem, gauge_names)
+                if o.kind == "gauge_series" and float(o.times[-1]) > self.t_end:
+                    raise ValueError(f"observation {o.name!r}" + (f" ({o.source})" if o.source else "")
+                                     + f": recorded until t = {float(o.times[-1]):g} s, after the simulated time "
+                                     f"t_end = {self.t_end:g} s; raise t_end ([run] t_end) to cover the recording "
+                                     f"(a run still stops early once the flow has stopped)")
+            else:
+                o.validate(self.dem)
         self.check_parameters()
         if self.max_batch < 1:
             raise ValueError(f"max_batch must be >= 1, got {self.max_batch}")
-        values = torch.tensor([float(o.value) for o in self.observations], dtype=torch.float64)
+        self.blocks: list[Block] = []
+        d, s, s_raw = [], [], []
+        for o in self.observations:
+            start = sum(b.stop - b.start for b in self.blocks)
+            if isinstance(o, SeriesObservation):
+                d.append(np.asarray(o.values, dtype=np.float64))
+                s.append(o.sigma_eff())
+                s_raw.append(o.sigma_vector())
+            else:
+                d.append(np.array([float(o.value)]))
+                s.append(np.array([float(o.sigma)]))
+                s_raw.append(np.array([float(o.sigma)]))
+            self.blocks.append(Block(str(o.name), o.kind, start, start + d[-1].size, o))
+        self.data = np.concatenate(d)
+        self.data_recorded = self.data
+        self.sigma = np.concatenate(s)          # effective (what the likelihood uses)
+        self.sigma_raw = np.concatenate(s_raw)  # per-value measurement sigma
+        values = torch.as_tensor(self.data)
         if self.covariance is not None:
             self.likelihood = GaussianLikelihood(values, covariance=self.covariance)
         else:
-            sigma = torch.tensor([float(o.sigma) for o in self.observations], dtype=torch.float64)
-            self.likelihood = GaussianLikelihood(values, sigma=sigma)
+            self.likelihood = GaussianLikelihood(values, sigma=torch.as_tensor(self.sigma))
+
+    @property
+    def k(self) -> int:
+        """Number of recorded values (the length of the data vector)."""
+        return int(self.data.size)
+
+    def block(self, name: str) -> Block:
+        for b in self.blocks:
+            if b.name == name:
+                return b
+        raise KeyError(name)
 
     def check_parameters(self) -> None:
         """Calibrated and fixed names must be Params fields, disjoint, and give mu."""
@@ -160,7 +220,9 @@ class LandslideEvaluator:
 
     @property
     def observation_names(self) -> list[str]:
-        return [str(o.name) for o in self.observations]
+        """(k,) labels of the data vector: an observation's name, or its name and element for a vector one."""
+        return [lab for o in self.observations
+                for lab in (o.labels() if isinstance(o, SeriesObservation) else [str(o.name)])]
 
     def params(self, x: torch.Tensor) -> Params:
         """Params for the (n, p) points x (calibrated names from x, the rest from ``fixed``)."""
@@ -243,16 +305,18 @@ class LandslideEvaluator:
     def predict(self, result: SimulationResult) -> tuple[torch.Tensor, torch.Tensor, list[str]]:
         """Observables (B, k) float64 of a result, a failed mask (B,) and reasons."""
         B = result.batch_size
-        preds = torch.stack([o.predict(result).to(torch.float64).cpu() for o in self.observations], dim=1)
+        preds = torch.cat([o.predict(result).to(torch.float64).cpu().reshape(B, -1) for o in self.observations], dim=1)
         failed = torch.zeros(B, dtype=torch.bool) if result.failed is None else result.failed.cpu().clone()
         reasons = [(result.failure_reason[b] or "") if result.failure_reason else "" for b in range(B)]
+        finite = torch.isfinite(preds)
         for b in range(B):
             if failed[b] and not reasons[b]:
                 reasons[b] = "solver reported failure"
-            bad = [self.observation_names[k] for k in range(preds.shape[1]) if not math.isfinite(float(preds[b, k]))]
-            if bad and not failed[b]:
+            if not bool(finite[b].all()) and not failed[b]:
+                names = self.observation_names
+                bad = [names[k] for k in torch.nonzero(~finite[b]).flatten().tolist()]
                 failed[b] = True
-                reasons[b] = f"non-finite observable(s) {bad}"
+                reasons[b] = f"non-finite observable(s) {bad[:5]}" + (f" and {len(bad) - 5} more" if len(bad) > 5 else "")
         return preds, failed, reasons
 
     def evaluate(self, x: torch.Tensor) -> tuple[EvaluationResult, torch.Tensor]:
@@ -293,9 +357,16 @@ class LandslideEvaluator:
             return None
         best = max(ok, key=lambda r: r.z)
         sd = self.observation_sd()
-        obs = [{"name": str(o.name), "kind": o.kind, "value": float(o.value), "sigma": float(sd[k]),
-                "predicted": float(best.predictions[k]),
-                "standardised_residual": float((best.predictions[k] - float(o.value)) / sd[k])}
-               for k, o in enumerate(self.observations)]
+        obs = []
+        for b in self.blocks:
+            k = b.slice
+            r = (best.predictions[k] - self.data[k]) / sd[k]
+            if b.is_vector:     # a map or series: how its values are missed as a whole
+                obs.append({"name": b.name, "kind": b.kind, "n": int(r.size), "sigma_median": float(np.median(sd[k])),
+                            "mean_residual": float(np.mean(best.predictions[k] - self.data[k])),
+                            "rms_standardised_residual": float(np.sqrt(np.mean(r * r)))})
+            else:
+                obs.append({"name": b.name, "kind": b.kind, "value": float(self.data[k][0]), "sigma": float(sd[k][0]),
+                            "predicted": float(best.predictions[k][0]), "standardised_residual": float(r[0])})
         return {"x": {n: float(v) for n, v in zip(self.names, best.x)}, "z": float(best.z), "n_runs": len(ok),
                 "observations": obs}

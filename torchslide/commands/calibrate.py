@@ -63,8 +63,9 @@ def unreached_warnings(ev, tol: float = REACH_MIN) -> list[str]:
         return []
     P = np.asarray(runs, dtype=float)
     out = []
-    for k, o in enumerate(ev.observations):
-        if o.spec.needs_point and np.all(np.abs(P[:, k]) <= tol):
+    for b in ev.blocks:
+        o, k = b.obs, b.start
+        if not b.is_vector and o.spec.needs_point and np.all(np.abs(P[:, k]) <= tol):
             out.append(f"no run reaches observation {o.name} at ({o.x:g}, {o.y:g}): its {o.kind} is <= {tol:g} "
                        f"{o.spec.unit} in all {len(runs)} runs, so it cannot inform the posterior; check that the "
                        f"point lies on the flow path and that t_end is long enough")
@@ -76,6 +77,13 @@ def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
     ``z_max`` sigma: the calibration cannot have learnt from it, and the user should know why."""
     out = []
     for o in fit["observations"]:
+        if "rms_standardised_residual" in o:       # a map or series
+            if o["rms_standardised_residual"] > z_max:
+                out.append(f"the best of {fit['n_runs']} runs misses the {o['n']} values of {o['name']} by "
+                           f"{o['rms_standardised_residual']:.1f} sigma rms (mean residual {o['mean_residual']:+.3g}): "
+                           "no parameter set tried reproduces them; check the recording and its sigma, or run "
+                           "`torchslide diagnose` for missing physics.")
+            continue
         r = o["standardised_residual"]
         if abs(r) > z_max:
             out.append(f"the best of {fit['n_runs']} runs misses {o['name']} by {r:+.1f} sigma (predicted "
@@ -171,8 +179,10 @@ def _run(args: argparse.Namespace) -> int:
     res.save(out)
     info = json.loads((out / "posterior.json").read_text())
     info["inference"] = inference
-    info["observations"] = [{"name": o.name, "kind": o.kind, "value": float(o.value), "sigma": float(o.sigma),
-                             "x": o.x, "y": o.y} for o in ev.observations]
+    info["observations"] = [{"name": o.name, "kind": o.kind, "n": int(o.m), "file": o.source}
+                            if b.is_vector else {"name": o.name, "kind": o.kind, "value": float(o.value),
+                                                 "sigma": float(o.sigma), "x": o.x, "y": o.y}
+                            for b in ev.blocks for o in [b.obs]]
     info["solver_seconds_this_invocation"] = ev.solver_seconds
     info["conventions"] = cfg.conventions()
     fit = ev.best_fit()

@@ -83,8 +83,7 @@ from pathlib import Path
 from typing import Any
 
 from ..config import Config, ConfigError, check_keys, load_config
-from ..observe import Observation
-from ..calibration_config import check_unique_names, parse_calibration, parse_prior, with_path
+from ..calibration_config import parse_calibration, parse_observations, parse_prior
 from . import add_executor_arguments, executor_for
 
 HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, compare evidence"
@@ -108,67 +107,6 @@ def diagnose_defaults() -> dict:
             "inference": b.inference, "local_max_fraction": b.local_max_fraction,
             **{k: getattr(b, k) for k in _INT_KEYS},
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
-_VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
-             "deposit_map": {"kind", "file", "sigma", "corr_length", "name"},
-             "impact_map": {"kind", "file", "sigma", "corr_length", "name", "threshold"},
-             "elevation_change": {"kind", "file", "sigma", "corr_length", "name"}}
-
-
-def parse_observations(table: Any, cfg: Config) -> list:
-    """[[observations]]: scalar kinds as in calibrate, plus gauge_series / deposit_map / impact_map /
-    elevation_change."""
-    from ..observe_series import GaugeSeriesError, SeriesObservation
-
-    path = cfg.path
-    if not isinstance(table, list) or not table:
-        raise ConfigError(f"{path}: [[observations]] must list at least one observation")
-    out = []
-    gauges = {g.name for g in cfg.gauges}
-    dem = cfg.terrain.dem
-    for i, d in enumerate(table):
-        if not isinstance(d, dict):
-            raise ConfigError(f"{path}: observation {i + 1} must be a table")
-        kind = d.get("kind")
-        where = f"observation {i + 1} ({kind})"
-        if kind in _VEC_KEYS:
-            check_keys(d, _VEC_KEYS[kind], where, path)
-            if "file" not in d or "sigma" not in d:
-                raise ConfigError(f"{path}: {where}: 'file' and 'sigma' are required")
-            f = cfg.resolve(d["file"])
-            try:
-                if kind == "gauge_series":
-                    if d.get("gauge") not in gauges:
-                        raise ConfigError(f"{path}: {where}: gauge {d.get('gauge')!r} is not a [[gauges]] name "
-                                          f"(known: {sorted(gauges)})")
-                    obs = SeriesObservation.from_gauge_csv(f, d["gauge"], d["sigma"], quantities=d.get("quantities"),
-                                                           corr_time=d.get("corr_time"), name=d.get("name"))
-                    for o in obs:
-                        o.validate(dem, sorted(gauges))
-                    out += obs
-                else:
-                    o = SeriesObservation.from_raster(f, kind, dem, float(d["sigma"]), name=d.get("name", kind),
-                                                      corr_length=d.get("corr_length"),
-                                                      threshold=float(d.get("threshold", 0.5)))
-                    out.append(o.validate(dem))
-            except ConfigError:
-                raise
-            except GaugeSeriesError as e:
-                raise ConfigError(f"{path}: {where}: {e}") from None
-            except (TypeError, ValueError) as e:
-                if type(e).__name__ == "TerrainError":
-                    raise
-                raise ConfigError(f"{path}: {where}: {e}") from None
-            continue
-        try:
-            o = Observation.from_dict(with_path(dict(d), cfg))
-            o.validate(dem).check_recorded()
-        except ValueError as e:
-            raise ConfigError(f"{path}: observation {i + 1}: {e}") from None
-        out.append(o)
-    check_unique_names(out, path)
-    return out
-
-
 def parse_diagnose(table: Any, cfg: Config) -> dict:
     from ..diagnose.candidates import CANDIDATES
 

@@ -22,7 +22,7 @@ MassWastingRunout tutorial data, MIT licence; SOURCE.md and LICENSE.md beside th
                            nodata off the 224 mapped cells): an ``elevation_change`` observation
     DIR/source.asc         the mapped source (1 at the 30 cells)
     DIR/hillshade.asc      a 2 m hillshade for figures
-    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas), diagnose.toml (with the DoD)
+    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas and the DoD), diagnose.toml
 """
 from __future__ import annotations
 
@@ -74,6 +74,13 @@ value = 13000.0
 sigma = 1300.0
 threshold = 0.1
 
+[[observations]]
+kind = "elevation_change"  # the surveyed DEM of difference, vertical m (+ deposition, - erosion)
+name = "dod"
+file = "dod.asc"
+sigma = 0.5
+corr_length = 20.0
+
 [calibration]
 n_initial = 20
 n_total = 40
@@ -81,12 +88,6 @@ batch_size = 10
 """
 
 MSH_DIAGNOSE = """
-[[observations]]
-kind = "elevation_change"  # the surveyed DEM of difference, vertical m (+ deposition, - erosion)
-file = "dod.asc"
-sigma = 0.5
-corr_length = 20.0
-
 [diagnose]
 candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
 """

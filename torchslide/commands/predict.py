@@ -12,12 +12,13 @@ settings, and writes (all rasters on the DEM grid; ESRI ASCII, or GeoTIFF with `
     DIR/predictive.json          the draws' summary and each observation's posterior-predictive check
     DIR/draws.csv                one line per successful draw: parameters and predicted observables
     DIR/impact_probability.png   the impact probability over the hillshaded terrain, observations marked
-    DIR/observations.png         each observation: the 90 % interval of a new recording against the value
+    DIR/observations.png         each scalar observation: the 90 % interval of a new recording against the value
 
-predictive.json ``observations``: per observation the model's mean, sd and 5/50/95 % quantiles over the
-draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
+predictive.json ``observations``: per scalar observation the model's mean, sd and 5/50/95 % quantiles over
+the draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
 percentile in it, and ``inside``. A value outside is one the calibrated model does not reproduce (see also
-posterior.json's ``best_run_fit``).
+posterior.json's ``best_run_fit``). Maps and gauge series: ``maps_and_series`` gives the share of each
+one's values inside their 90 % intervals, ``values`` the check of every value.
 
 The config must be the one the calibration ran with (same calibrated parameters and prior box); nothing is
 half-written (a temporary folder next to DIR is moved into place at the end). Exit code 0; 1 when some draws
@@ -35,7 +36,7 @@ import numpy as np
 
 from ..config import ConfigError
 from . import add_executor_arguments, executor_for
-from ..observe import DEFAULT_THRESHOLD
+from ..observe import DEFAULT_THRESHOLD, KINDS
 
 HELP = "posterior-predictive runs of a calibration: impact probability and quantile maps, data checks"
 
@@ -116,12 +117,15 @@ def _run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
 
-    values = np.array([float(o.value) for o in ev.observations])
-    lower = np.array([0.0 if o.spec.nonnegative else -np.inf for o in ev.observations])
-    checks = observation_check(pr.predictions, values, ev.observation_sd(), ev.observation_names, seed=args.seed,
-                               lower=lower)
+    lower = np.concatenate([np.full(b.stop - b.start, 0.0 if KINDS[b.kind].nonnegative else -np.inf) for b in ev.blocks])
+    checks = observation_check(pr.predictions, ev.data_recorded, ev.observation_sd(), ev.observation_names,
+                               seed=args.seed, lower=lower)
+    scalar = [checks[b.start] for b in ev.blocks if not b.is_vector]
+    series = {b.name: {"kind": b.kind, "n": b.stop - b.start,
+                       "share_inside_90": float(np.mean([c["inside"] for c in checks[b.slice]]))}
+              for b in ev.blocks if b.is_vector}
     dem = cfg.terrain.dem
-    points = {o.name: (o.x, o.y) for o in ev.observations if o.x is not None and o.y is not None}
+    points = {o.name: (o.x, o.y) for o in ev.observations if getattr(o, "x", None) is not None and o.y is not None}
     with staged_output(out, anc, "predict") as tmp:
         fmt = cfg.output_format
         write_named_raster(tmp, "impact_probability", pr.impact_probability, dem, fmt)
@@ -138,22 +142,27 @@ def _run(args: argparse.Namespace) -> int:
             "fixed": {k: float(v) for k, v in ev.fixed.items()},
             "impact_area_m2": {"mean": float((pr.impact_probability * pr.cell_area).sum()),
                                "p50_map": float(pr.cell_area[pr.impact_probability >= 0.5].sum())},
-            "observations": checks,
-            "n_inside_90": int(sum(c["inside"] for c in checks)),
+            "observations": scalar,
+            "n_inside_90": int(sum(c["inside"] for c in scalar)),
+            "maps_and_series": series,
+            "values": checks if series else None,
             "conventions": cfg.conventions(),
         }
         (tmp / "predictive.json").write_text(json.dumps(info, indent=2))
         plot_field_map(dem, pr.impact_probability, tmp / "impact_probability.png", points=points,
                        label=f"P(h_max > {args.threshold:g} m)", cmap="YlOrRd", vmin=0.0, vmax=1.0,
                        title=f"Impact probability over {len(pr.x)} posterior draws", release=ev.release)
-        plot_predictive_check(checks, tmp / "observations.png")
+        if scalar:
+            plot_predictive_check(scalar, tmp / "observations.png")
     if not args.quiet:
-        for c in checks:
+        for name, m in series.items():
+            print(f"{name}: {100 * m['share_inside_90']:.0f} % of its {m['n']} values inside their 90 % intervals")
+        for c in scalar:
             lo, hi = c["interval90"]
             print(f"{c['name']}: recorded {c['value']:.4g}, predicted {c['model_quantiles']['0.5']:.4g} "
                   f"(90 % of a new recording: [{lo:.4g}, {hi:.4g}]){'' if c['inside'] else '  <- outside'}")
         print(f"impact area (mean over the draws) {info['impact_area_m2']['mean']:.4g} m^2; wrote {out}")
-    for c in checks:
+    for c in scalar:
         if not c["inside"]:
             print(f"torchslide: warning: {c['name']} = {c['value']:.4g} lies outside the 90 % posterior-predictive "
                   f"interval [{c['interval90'][0]:.4g}, {c['interval90'][1]:.4g}] (percentile "

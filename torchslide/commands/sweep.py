@@ -140,7 +140,7 @@ def _run(args: argparse.Namespace) -> int:
                           f"or choose another --out")
     axes = grid_axes(bounds, args.n)
     x = grid_points(axes).numpy()
-    k = len(ev.observations)
+    k = ev.k
     z, failed = np.full(n_runs, np.nan), np.zeros(n_runs, dtype=bool)
     preds, reasons, done = np.full((n_runs, k), np.nan), [""] * n_runs, 0
     if ckpt.exists():

@@ -1,15 +1,6 @@
-"""DiagnosisEvaluator: a LandslideEvaluator whose observations may be vector-valued.
-
-Scalar :class:`torchslide.observe.Observation` s count as blocks of one value, each
-:class:`torchslide.observe_series.SeriesObservation` as a block of m values. ``predict`` returns the
-flattened (B, k) predictions (k = sum of block sizes), the data vector d (k,) and the effective
-standard deviations (k,) (sigma sqrt(f) for correlated maps/series, see observe_series) feed the
-ordinary diagonal :class:`torchslide.bayes.GaussianLikelihood`. Everything else (batching, records,
-failure flags) is inherited unchanged, so ``calibrate(evaluator, ...)`` works as for scalar data.
-
-Change proposed upstream (not made here): LandslideEvaluator could accept observations whose
-``predict`` returns (B, m) and flatten them itself; this subclass is that change, kept local.
-"""
+"""DiagnosisEvaluator: a LandslideEvaluator (scalar and vector observations, flattened into blocks of
+the data vector) with the grid's approximation error in its likelihood, a finer terrain for it, and
+copies over other priors (the candidates' enlarged spaces)."""
 from __future__ import annotations
 
 import dataclasses
@@ -19,10 +10,8 @@ import numpy as np
 import torch
 
 from ..bayes import GaussianLikelihood
-from ..evaluator import LandslideEvaluator
-from ..observe_series import SeriesObservation
+from ..evaluator import Block, LandslideEvaluator  # noqa: F401  (Block: the diagnosis' name for a data slice)
 from ..physics import default_value
-from ..result import SimulationResult
 
 
 def stack_values(parts: list[tuple[int, dict]]) -> dict:
@@ -36,25 +25,6 @@ def stack_values(parts: list[tuple[int, dict]]) -> dict:
                 for n, v in parts]
         out[k] = np.concatenate(cols)
     return out
-
-
-@dataclass
-class Block:
-    """One observation's slice of the flat data vector."""
-
-    name: str
-    kind: str
-    start: int
-    stop: int
-    obs: object
-
-    @property
-    def slice(self) -> slice:
-        return slice(self.start, self.stop)
-
-    @property
-    def is_vector(self) -> bool:
-        return isinstance(self.obs, SeriesObservation)
 
 
 @dataclass
@@ -78,82 +48,22 @@ class DiagnosisEvaluator(LandslideEvaluator):
             raise ValueError("at least one observation is needed")
         if self.fine_terrain is not None:
             self.fine_terrain.factor_for(self.dem)
-        gauge_names = [g[0] for g in self.gauges]
-        for o in self.observations:
-            if isinstance(o, SeriesObservation):
-                o.validate(self.dem, gauge_names)
-                if o.kind == "gauge_series" and float(o.times[-1]) > self.t_end:
-                    raise ValueError(f"observation {o.name!r}" + (f" ({o.source})" if o.source else "")
-                                     + f": recorded until t = {float(o.times[-1]):g} s, after the simulated time "
-                                     f"t_end = {self.t_end:g} s; raise t_end ([run] t_end) to cover the recording "
-                                     f"(a run still stops early once the flow has stopped)")
-            else:
-                o.validate(self.dem)
         names = [str(o.name) for o in self.observations]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"observations have duplicate names {dup}")
-        self.check_parameters()
-        self.blocks: list[Block] = []
-        d, s, s_raw = [], [], []
-        k = 0
-        for o in self.observations:
-            if isinstance(o, SeriesObservation):
-                m = o.m
-                d.append(np.asarray(o.values, dtype=np.float64))
-                s.append(o.sigma_eff())
-                s_raw.append(o.sigma_vector())
-            else:
-                m = 1
-                d.append(np.array([float(o.value)]))
-                s.append(np.array([float(o.sigma)]))
-                s_raw.append(np.array([float(o.sigma)]))
-            self.blocks.append(Block(str(o.name), o.kind, k, k + m, o))
-            k += m
-        self.data = np.concatenate(d)
-        self.data_recorded = self.data
-        self.sigma = np.concatenate(s)          # effective (used by the likelihood)
-        self.sigma_raw = np.concatenate(s_raw)  # per-value measurement sigma
+        super().__post_init__()
         me = self.model_error
         if me is None:
-            self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), sigma=torch.as_tensor(self.sigma))
             return
-        if me.samples.shape[1] != k:
-            raise ValueError(f"model_error has {me.samples.shape[1]} values per sample, the observations {k}")
+        if me.samples.shape[1] != self.k:
+            raise ValueError(f"model_error has {me.samples.shape[1]} values per sample, the observations {self.k}")
         gamma = me.covariance
         self.data = self.data_recorded - me.mean
         cov = np.diag(self.sigma**2) + gamma
         self.sigma = np.sqrt(np.diag(cov))
         self.sigma_raw = np.sqrt(self.sigma_raw**2 + np.diag(gamma))
         self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), covariance=torch.as_tensor(cov))
-
-    @property
-    def k(self) -> int:
-        return int(self.data.size)
-
-    def block(self, name: str) -> Block:
-        for b in self.blocks:
-            if b.name == name:
-                return b
-        raise KeyError(name)
-
-    def predict(self, result: SimulationResult):
-        B = result.batch_size
-        cols = []
-        for o in self.observations:
-            p = o.predict(result).to(torch.float64).cpu()
-            cols.append(p.reshape(B, -1))
-        preds = torch.cat(cols, dim=1)
-        failed = torch.zeros(B, dtype=torch.bool) if result.failed is None else result.failed.cpu().clone()
-        reasons = [(result.failure_reason[b] or "") if result.failure_reason else "" for b in range(B)]
-        finite = torch.isfinite(preds).all(dim=1)
-        for b in range(B):
-            if failed[b] and not reasons[b]:
-                reasons[b] = "solver reported failure"
-            if not bool(finite[b]) and not failed[b]:
-                failed[b] = True
-                reasons[b] = "non-finite observable(s)"
-        return preds, failed, reasons
 
     def _copy(self, **changes) -> "DiagnosisEvaluator":
         """A new evaluator with the same inputs except ``changes`` (own, empty run records)."""

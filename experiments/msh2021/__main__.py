@@ -1,0 +1,181 @@
+"""``python -m experiments.msh2021 [--work DIR] [--no-diagnose]``: a real event end to end.
+
+1. ``torchslide example msh2021``: the pre-event DEM, the failure depths (the release), the surveyed DEM of
+   difference (DoD) of the runout, calibrate.toml and diagnose.toml (landlab's data, MIT licence).
+2. ``torchslide calibrate``: Voellmy mu, xi on the mapped impact area, the deposition area and the DoD as an
+   elevation_change map (sigma 0.5 m, correlation length 20 m).
+3. ``torchslide predict``: 32 posterior draws, the impact probability over the mapped footprint.
+4. The posterior median run against the survey: footprint Jaccard (h_max > 0.1 m against the 224 mapped
+   cells), the shares of mapped cells reached and of reached cells outside the map, deposition and erosion
+   volumes, the DoD observed, simulated and their difference over the hillshade.
+5. ``torchslide diagnose`` on the same files: where the calibrated model and the survey disagree, which
+   candidate term explains it, if any.
+
+Writes under --work (default experiments/msh2021/_work; rerunning resumes the calibration) and regenerates
+experiments/msh2021/README.md and its figures.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+THRESHOLD = 0.1
+
+
+def _cli(args: list) -> int:
+    from torchslide.cli import main
+
+    print("$ torchslide " + " ".join(map(str, args)), file=sys.stderr)
+    return main([str(a) for a in args])
+
+
+def _median_run(case: Path, pred: Path):
+    """The run at the posterior draws' median (mu, xi)."""
+    from torchslide.config import load_config
+    from torchslide.physics import Params
+    from torchslide.solver import simulate
+
+    draws = np.genfromtxt(pred / "draws.csv", delimiter=",", names=True)
+    x = {n: float(np.median(draws[n])) for n in ("mu", "xi")}
+    cfg = load_config(case / "simulate.toml")
+    r = simulate(cfg.terrain.dem, cfg.terrain.release, Params.make(**x), t_end=cfg.run.t_end)
+    return x, cfg, r
+
+
+def survey_figures(dod: np.ndarray, dz: np.ndarray, h_max: np.ndarray, p_impact: np.ndarray, cell: float) -> dict:
+    """Figures a modeller quotes, of a run (simulated change dz, h_max) and the impact probability against the
+    survey (dod, NaN off the mapped cells): footprint Jaccard, reached shares, volumes (m^3, vertical)."""
+    mapped = np.isfinite(dod)
+    reached = h_max > THRESHOLD
+    return {"footprint_jaccard": float((mapped & reached).sum() / (mapped | reached).sum()),
+            "share_of_mapped_cells_reached": float((mapped & reached).sum() / mapped.sum()),
+            "share_of_reached_cells_unmapped": float((reached & ~mapped).sum() / max(reached.sum(), 1)),
+            "share_of_mapped_cells_with_p_impact_ge_0.5": float((p_impact[mapped] >= 0.5).mean()),
+            "deposition_m3": {"survey": float(np.nansum(np.where(dod > 0, dod, 0)) * cell),
+                              "model": float(np.where(dz > 0, dz, 0).sum() * cell)},
+            "erosion_m3": {"survey": float(-np.nansum(np.where(dod < 0, dod, 0)) * cell),
+                           "model": float(-np.where(dz < 0, dz, 0).sum() * cell)},
+            "dod_rmse_on_mapped_cells_m": float(np.sqrt(np.mean((dz[mapped] - dod[mapped]) ** 2)))}
+
+
+def plot_dod(dem, hillshade_file: Path, dod: np.ndarray, dz: np.ndarray, path: Path) -> None:
+    """Observed DoD, simulated change and their difference over the hillshade (vertical m)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torchslide.files import save_figure
+    from torchslide.terrain.io import read_asc_array
+
+    hs, hc, hx, hy = read_asc_array(hillshade_file)
+    ext_h = (hx, hx + hs.shape[1] * hc, hy, hy + hs.shape[0] * hc)
+    ext = (dem.xll, dem.xll + dem.nx * dem.cellsize, dem.yll, dem.yll + dem.ny * dem.cellsize)
+    sim = np.where(np.abs(dz) > 0.01, dz, np.nan)
+    panels = [("surveyed DoD", dod), ("simulated change", sim), ("simulated - surveyed", dz - dod)]
+    fig, axs = plt.subplots(1, 3, figsize=(12, 5.2), sharey=True)
+    for ax, (title, a) in zip(axs, panels):
+        ax.imshow(hs, origin="lower", extent=ext_h, cmap="gray")
+        im = ax.imshow(np.ma.masked_invalid(a), origin="lower", extent=ext, cmap="RdBu", vmin=-6, vmax=6, alpha=0.85)
+        ax.set_title(title, fontsize=10)
+        ax.set_xlabel("x (m)")
+        ys, xs = np.nonzero(np.isfinite(dod) | (np.abs(dz) > 0.01))
+        ax.set_xlim(dem.xll + (xs.min() - 5) * dem.cellsize, dem.xll + (xs.max() + 6) * dem.cellsize)
+        ax.set_ylim(dem.yll + (ys.min() - 5) * dem.cellsize, dem.yll + (ys.max() + 6) * dem.cellsize)
+    axs[0].set_ylabel("y (m)")
+    fig.colorbar(im, ax=axs, label="elevation change (m, vertical)", shrink=0.8)
+    save_figure(fig, path, 110)
+    plt.close(fig)
+
+
+def write_page(out: dict, path: Path) -> None:
+    """experiments/msh2021/README.md from the run's summary."""
+    p, f = out["posterior"], out
+    lines = [
+        "# The 2021 Mount St. Helens landslide: calibrated and diagnosed from its surveyed elevation change",
+        "",
+        "`python -m experiments.msh2021` (module docstring: the steps and the commands). Data: landlab's",
+        "MassWastingRunout tutorial (MIT licence; torchslide/data/msh2021/SOURCE.md): the pre-event DEM (10 m),",
+        "the failure depths of the 30 source cells (22,481 m^3, the release) and the surveyed DEM of difference",
+        "of the 224 mapped cells of the runout. Voellmy mu, xi calibrated on the mapped impact area, the",
+        "deposition area and the DoD (sigma 0.5 m, correlation length 20 m); no entrainment in the model.",
+        "",
+        f"Posterior ({out['inference']} inference): mu {p['mean']['mu']:.3f} +- {p['sd']['mu']:.3f} "
+        f"(90 % [{p['hdr90']['mu'][0]:.3f}, {p['hdr90']['mu'][1]:.3f}]), xi {p['mean']['xi']:.0f} +- {p['sd']['xi']:.0f} "
+        f"m/s^2 (90 % [{p['hdr90']['xi'][0]:.0f}, {p['hdr90']['xi'][1]:.0f}]).",
+        "",
+        f"The posterior median run (mu {f['median_run']['mu']:.3f}, xi {f['median_run']['xi']:.0f}) against the survey:",
+        "",
+        "| figure | value |",
+        "|---|---|",
+        f"| footprint Jaccard (h_max > {THRESHOLD:g} m against the mapped cells) | {f['footprint_jaccard']:.2f} |",
+        f"| mapped cells reached | {100 * f['share_of_mapped_cells_reached']:.0f} % |",
+        f"| reached cells outside the map | {100 * f['share_of_reached_cells_unmapped']:.0f} % |",
+        f"| mapped cells with impact probability >= 0.5 (32 draws) | {100 * f['share_of_mapped_cells_with_p_impact_ge_0.5']:.0f} % |",
+        f"| deposition, m^3 (vertical) | {f['deposition_m3']['model']:,.0f} (survey {f['deposition_m3']['survey']:,.0f}) |",
+        f"| erosion, m^3 (vertical, source included) | {f['erosion_m3']['model']:,.0f} (survey {f['erosion_m3']['survey']:,.0f}) |",
+        f"| DoD rmse over the mapped cells | {f['dod_rmse_on_mapped_cells_m']:.2f} m |",
+        "",
+        "![surveyed and simulated elevation change](figures/dod.png)",
+        "![impact probability](figures/impact_probability.png)",
+        "![posterior](figures/posterior.png)",
+        "",
+    ]
+    if "diagnosis" in out:
+        d = out["diagnosis"]
+        lines += [f"Diagnosis (`torchslide diagnose diagnose.toml`, {d['seconds']:.0f} s): verdict **{d['verdict']}**"
+                  + (f" ({d['missing_physics']})" if d.get("missing_physics") else "") + ".", ""]
+    lines.append(f"Wall time {out['wall_s']:.0f} s on the 2-core machine.")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--work", type=Path, default=HERE / "_work")
+    ap.add_argument("--no-diagnose", action="store_true")
+    a = ap.parse_args(argv)
+    from torchslide.terrain.io import read_asc_array, read_raster
+
+    t0 = time.perf_counter()
+    w = a.work
+    case, cal, pred, diag = w / "case", w / "cal", w / "pred", w / "diag"
+    if not case.exists():
+        assert _cli(["example", "msh2021", "--out", case]) == 0
+    resume = ["--resume"] if (cal / "checkpoint.pt").exists() else []
+    assert _cli(["calibrate", case / "calibrate.toml", "--out", cal, "--quiet", *resume]) == 0
+    assert _cli(["predict", case / "calibrate.toml", "--calibration", cal, "--out", pred, "--n", "32",
+                 "--threshold", THRESHOLD, "--overwrite", "--quiet"]) in (0, 1)
+    x, cfg, r = _median_run(case, pred)
+    dod = read_asc_array(case / "dod.asc")[0]
+    p_impact = np.nan_to_num(read_raster(pred / "impact_probability.asc", nodata="fill").z)
+    post = json.loads((cal / "posterior.json").read_text())
+    out = {"posterior": {k: post[k] for k in ("mean", "sd", "map", "hdr90")}, "inference": post["inference"]["path"],
+           "median_run": x,
+           **survey_figures(dod, r.elevation_change[0].numpy(), r.h_max[0].numpy(), p_impact, cfg.terrain.dem.cellsize ** 2)}
+    figs = HERE / "figures"
+    figs.mkdir(exist_ok=True)
+    plot_dod(cfg.terrain.dem, case / "hillshade.asc", dod, r.elevation_change[0].numpy(), figs / "dod.png")
+    shutil.copyfile(pred / "impact_probability.png", figs / "impact_probability.png")
+    shutil.copyfile(cal / "posterior.png", figs / "posterior.png")
+    if not a.no_diagnose:
+        t1 = time.perf_counter()
+        _cli(["diagnose", case / "diagnose.toml", "--out", diag, "--quiet"])
+        rep = json.loads((diag / "report.json").read_text())
+        out["diagnosis"] = {"verdict": rep["verdict"], "missing_physics": rep.get("missing_physics"),
+                            "seconds": time.perf_counter() - t1}
+    out["wall_s"] = time.perf_counter() - t0
+    (w / "summary.json").write_text(json.dumps(out, indent=1))
+    write_page(out, HERE / "README.md")
+    print(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
