@@ -154,3 +154,24 @@ def test_the_survey_figures_of_a_run():
     assert f["share_of_mapped_cells_with_p_impact_ge_0.5"] == pytest.approx(0.5)
     assert f["deposition_m3"] == {"survey": pytest.approx(150.0), "model": pytest.approx(250.0)}
     assert f["erosion_m3"] == {"survey": pytest.approx(200.0), "model": pytest.approx(100.0)}
+
+
+def test_the_footprint_likelihood_is_smooth_and_peaks_at_the_truth():
+    """A mapped outline of a synthetic chute run (mu 0.25): the footprint likelihood over mu is finite,
+    largest at the truth among its neighbours, and its central differences converge as the step halves."""
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.evaluator import LandslideEvaluator
+
+    from .conftest import chute_case
+
+    dem, rel = chute_case()
+    truth = simulate(dem, rel, Params.make(mu=0.25, xi=600.0), t_end=60.0)
+    outline = (truth.h_max[0].numpy() > 0.5).astype(float)
+    obs = SeriesObservation.from_array("footprint", outline, dem, 0.3, name="footprint", threshold=0.5)
+    ev = LandslideEvaluator(dem=dem, release=rel, observations=[obs], prior=Prior({"mu": Uniform(0.1, 0.4)}),
+                            fixed={"xi": 600.0}, t_end=60.0)
+    mus = np.array([0.25, 0.242, 0.258, 0.214, 0.218, 0.222, 0.226])
+    z = ev.evaluate(torch.as_tensor(mus[:, None]))[0].z.numpy()
+    assert np.isfinite(z).all() and z[0] > max(z[1], z[2])
+    d_coarse, d_fine = (z[6] - z[3]) / 0.012, (z[5] - z[4]) / 0.004
+    assert d_fine > 0 and abs(d_fine - d_coarse) < 0.25 * abs(d_fine)

@@ -106,13 +106,14 @@ def parse_prior(table: Any, cfg: Config):
 _VEC_KEYS = {"gauge_series": {"kind", "file", "gauge", "sigma", "corr_time", "name", "quantities"},
              "deposit_map": {"kind", "file", "sigma", "corr_length", "name"},
              "impact_map": {"kind", "file", "sigma", "corr_length", "name", "threshold"},
-             "elevation_change": {"kind", "file", "sigma", "corr_length", "name"}}
+             "elevation_change": {"kind", "file", "sigma", "corr_length", "name"},
+             "footprint": {"kind", "file", "sigma", "corr_length", "name", "threshold"}}
 
 
 def parse_observations(table: Any, cfg: Config) -> list:
     """[[observations]] -> validated observations: the scalar kinds (torchslide.observe.KINDS; points inside
     the DEM) and the series and map kinds read from files (gauge_series, deposit_map, impact_map,
-    elevation_change; torchslide.observe_series), the same tables for every command."""
+    elevation_change, footprint; torchslide.observe_series), the same tables for every command."""
     from .observe_series import GaugeSeriesError, SeriesObservation
 
     path = cfg.path

@@ -19,6 +19,11 @@ returns (B, m), which is why they are listed in :data:`VECTOR_KINDS` and must be
   - erosion; nodata where not surveyed) per mapped cell, against the simulated change of the surface
   (SimulationResult.elevation_change: the bed's change plus the flow's thickness per map area minus the
   release's).
+* ``footprint``: a mapped outline (a polygon file, or a 0/1 raster with nodata where not mapped) against the
+  smooth reach h_max^2 / (h_max^2 + threshold^2) per cell: 0 where the flow never came, 1/2 at the
+  threshold, towards 1 where it was thick. A cell's h_max grows from 0 as the front arrives, so the
+  prediction, and the likelihood, change continuously with the parameters (a 0/1 indicator steps), for
+  the emulator and for the local fits alike.
 * ``impact_map``: 1 where h_max > threshold, else 0, per cell (the indicator of ``impact_area``).
   With a Gaussian error model on a 0/1 quantity, sigma ~ 0.3-0.5 is sensible. The recording is a 0/1
   raster (nodata where not mapped) or an observed outline as a polygon file (1 inside, 0 outside).
@@ -55,8 +60,8 @@ from .terrain.grid import DEM, TerrainError
 __all__ = ["SeriesObservation", "VECTOR_KINDS", "read_gauge_csv", "read_map", "interp_series",
            "GaugeSeriesError", "effective_factor", "exponential_field"]
 
-VECTOR_KINDS = ("gauge_series", "deposit_map", "impact_map", "elevation_change")
-MAP_KINDS = ("deposit_map", "impact_map", "elevation_change")
+VECTOR_KINDS = ("gauge_series", "deposit_map", "impact_map", "elevation_change", "footprint")
+MAP_KINDS = ("deposit_map", "impact_map", "elevation_change", "footprint")
 
 
 class GaugeSeriesError(ValueError):
@@ -102,6 +107,16 @@ def _elevation_change_fn(result, obs):
     return _cells(result, obs, result.elevation_change)
 
 
+def footprint_reach(h_max: torch.Tensor, threshold: float) -> torch.Tensor:
+    """h_max^2 / (h_max^2 + threshold^2): the smooth reach of a cell, 0 unreached, 1/2 at the threshold."""
+    h2 = h_max * h_max
+    return h2 / (h2 + threshold * threshold)
+
+
+def _footprint_fn(result, obs):
+    return _cells(result, obs, footprint_reach(result.h_max, obs.threshold))
+
+
 def _impact_map_fn(result, obs):
     return _cells(result, obs, (result.h_max > obs.threshold).to(result.h_max))
 
@@ -113,6 +128,9 @@ register_kind("deposit_map", _deposit_map_fn, unit="m",
               description="vector (B, m): h_final per mapped cell (use SeriesObservation)", overwrite=True)
 register_kind("elevation_change", _elevation_change_fn, unit="m",
               description="vector (B, m): the surface's vertical change per surveyed cell (use SeriesObservation)",
+              overwrite=True)
+register_kind("footprint", _footprint_fn, unit="-", uses_threshold=True,
+              description="vector (B, m): the smooth reach h_max^2 / (h_max^2 + threshold^2) per mapped cell",
               overwrite=True)
 register_kind("impact_map", _impact_map_fn, unit="-", uses_threshold=True,
               description="vector (B, m): 1 where h_max > threshold per mapped cell (use SeriesObservation)",
@@ -216,14 +234,14 @@ class SeriesObservation:
     """A vector-valued observation (m values) with its error model.
 
     Attributes:
-        kind: "gauge_series", "deposit_map", "impact_map" or "elevation_change".
+        kind: "gauge_series", "deposit_map", "impact_map", "elevation_change" or "footprint".
         values: (m,) observed values (for maps: the mapped cells in row-major order of ``cell_index``).
         sigma: standard deviation (scalar or (m,)), > 0.
         name: label.
         gauge, quantity, times: gauge series only (gauge name, "h" or "speed", (m,) s).
         cell_index: (m,) flat indices (row-major, row 0 south) of the mapped cells (maps only).
         grid_shape: (ny, nx) of the map grid.
-        threshold: impact_map thickness threshold, m.
+        threshold: impact_map and footprint thickness threshold, m.
         corr_length: exponential correlation length (m for maps, s for series) or None (independent).
         source: the file it came from (messages).
     """
@@ -284,7 +302,7 @@ class SeriesObservation:
         if inf.any():
             raise ValueError(f"{label}: {int(inf.sum())} infinite cells, {first_cell(inf)}; "
                              f"mark cells without a recording as nodata (NaN)")
-        if kind == "impact_map":
+        if kind in ("impact_map", "footprint"):
             not01 = np.isfinite(a) & (a != 0) & (a != 1)
             if not01.any():
                 raise ValueError(f"{label}: an impact map holds 0 (not reached) or 1 (reached) per cell, and "
@@ -303,7 +321,7 @@ class SeriesObservation:
         (a polygon file: 1 inside, 0 outside, every cell mapped)."""
         from .terrain.vector import is_vector, rasterize_outline
 
-        if kind == "impact_map" and is_vector(path):
+        if kind in ("impact_map", "footprint") and is_vector(path):
             return cls.from_array(kind, rasterize_outline(path, dem), dem, sigma, source=str(path), **kw)
         arr = read_map(path, dem, what=kind.replace("_", " "))
         return cls.from_array(kind, arr, dem, sigma, source=str(path), **kw)
