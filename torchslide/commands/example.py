@@ -22,6 +22,7 @@ MassWastingRunout tutorial data, MIT licence; SOURCE.md and LICENSE.md beside th
                            nodata off the 224 mapped cells): an ``elevation_change`` observation
     DIR/source.asc         the mapped source (1 at the 30 cells)
     DIR/hillshade.asc      a 2 m hillshade for figures
+    DIR/erodible.asc       a regolith 1.2 m deep (the depth landlab's tutorial uses), for the entrainment candidate
     DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas and the DoD), diagnose.toml
 """
 from __future__ import annotations
@@ -29,6 +30,8 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+
+import numpy as np
 
 from ..config import ConfigError
 
@@ -184,11 +187,23 @@ def _msh2021(args: argparse.Namespace) -> int:
                 shutil.copyfile(f, tmp / name)
         (tmp / "simulate.toml").write_text(MSH_TERRAIN)
         (tmp / "calibrate.toml").write_text(MSH_TERRAIN + MSH_CALIBRATE)
-        (tmp / "diagnose.toml").write_text(MSH_TERRAIN + MSH_CALIBRATE.replace("[calibration]", MSH_DIAGNOSE
-                                                                              + "\n[calibration]"))
-    print(f"wrote {out}: the 2021 Mount St. Helens landslide ({', '.join(MSH_FILES)}), simulate.toml, "
+        _erodible(tmp)
+        terrain = MSH_TERRAIN.replace('thickness = "normal"\n', 'thickness = "normal"\n'
+                                      'erodible = "erodible.asc"    # the regolith, 1.2 m deep (landlab\'s tutorial)\n')
+        (tmp / "diagnose.toml").write_text(terrain + MSH_CALIBRATE.replace("[calibration]", MSH_DIAGNOSE
+                                                                           + "\n[calibration]"))
+    print(f"wrote {out}: the 2021 Mount St. Helens landslide ({', '.join(MSH_FILES)}, erodible.asc), simulate.toml, "
           "calibrate.toml, diagnose.toml; data from the landlab project, MIT licence (SOURCE.md, LICENSE.md)")
     return 0
+
+
+def _erodible(folder: Path, depth: float = 1.2) -> None:
+    """folder/erodible.asc: a regolith of ``depth`` m over the DEM's domain (the entrainment candidate's bed)."""
+    from ..terrain.io import read_asc, write_asc
+
+    dem = read_asc(folder / "dem.asc", nodata="outside")
+    inside = np.ones(dem.shape, dtype=bool) if dem.outside is None else ~dem.outside
+    write_asc(folder / "erodible.asc", np.where(inside, depth, 0.0), dem, fmt="%.3f")
 
 
 def _bondo(args: argparse.Namespace) -> int:
