@@ -175,3 +175,32 @@ def test_the_footprint_likelihood_is_smooth_and_peaks_at_the_truth():
     assert np.isfinite(z).all() and z[0] > max(z[1], z[2])
     d_coarse, d_fine = (z[6] - z[3]) / 0.012, (z[5] - z[4]) / 0.004
     assert d_fine > 0 and abs(d_fine - d_coarse) < 0.25 * abs(d_fine)
+
+
+def _dod_on_another_grid(case):
+    lines = (case / "dod.asc").read_text().splitlines()
+    rows = [" ".join(r.split()[1:]) for r in lines[6:]]
+    (case / "dod_other.asc").write_text("\n".join(["ncols 79"] + lines[1:6] + rows) + "\n")
+    return 'file = "dod.asc"', 'file = "dod_other.asc"'
+
+
+def _footprint_outside(case):
+    (case / "far.geojson").write_text('{"type": "FeatureCollection", "features": [{"type": "Feature", "properties": {}, '
+                                      '"geometry": {"type": "Polygon", "coordinates": [[[0, 0], [10, 0], [10, 10], '
+                                      '[0, 10], [0, 0]]]}}]}')
+    return "[calibration]", '[[observations]]\nkind = "footprint"\nfile = "far.geojson"\nsigma = 0.3\n\n[calibration]'
+
+
+@pytest.mark.parametrize("edit, match", [(_dod_on_another_grid, "does not match the DEM grid"),
+                                         (_footprint_outside, "covers no cell centre of the DEM")])
+def test_bad_survey_inputs_are_one_line_errors(msh, tmp_path, capsys, edit, match):
+    import shutil
+
+    case = tmp_path / "case"
+    shutil.copytree(msh, case)
+    old, new = edit(case)
+    (case / "bad.toml").write_text((case / "calibrate.toml").read_text().replace(old, new))
+    capsys.readouterr()
+    assert main(["calibrate", str(case / "bad.toml"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and match in err[0] and "Traceback" not in err[0]
