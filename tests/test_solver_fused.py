@@ -185,3 +185,21 @@ def test_the_kernel_that_ran_is_reported_and_a_missing_numba_is_named(monkeypatc
     assert r.kernel == "eager"
     msgs = [str(w.message) for w in caught if "fused CPU step" in str(w.message)]
     assert len(msgs) == 1 and "pip install numba" in msgs[0] and "torch step" in msgs[0]
+
+
+def test_the_fused_step_runs_on_the_processs_threads():
+    """A process with OMP_NUM_THREADS=1 (as the harness's and Dask's workers run) gives the fused step one
+    numba thread on a machine with more: N worker processes never start N x cores threads."""
+    import os
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, numba\n"
+            "from torchslide.solver import simulate\nfrom torchslide.physics import Params\n"
+            "from torchslide.terrain.grid import DEM\n"
+            "x = np.arange(12) * 10.0\ndem = DEM(np.tile(-0.5 * x, (8, 1)), 10.0)\nrel = np.zeros(dem.shape)\n"
+            "rel[3:5, 2:4] = 2.0\nr = simulate(dem, rel, Params.make(mu=0.2, xi=500.0), t_end=2.0)\n"
+            "print(r.kernel, numba.get_num_threads())\n")
+    env = dict(os.environ, OMP_NUM_THREADS="1", NUMBA_NUM_THREADS="2")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["fused-cpu", "1"]

@@ -11,12 +11,13 @@ Every term and setting of the torch step is covered: Voellmy with the slope metr
 no-creep rule, the yield stress, earth pressure, curvature, mu(I), a friction map (mu_scale), a moving
 bed (entrainment, deposition: the geometry recomputed per stage), outflow and open boundaries, cells
 outside the DEM's domain (outflow or wall). Members run in parallel
-(numba prange) on the threads numba is given (NUMBA_NUM_THREADS). The first call compiles (seconds)
+(numba prange) on the process's threads (``threads``: OMP_NUM_THREADS, at most NUMBA_NUM_THREADS). The first call compiles (seconds)
 and caches the machine code next to this file; later processes load it.
 """
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 import torch
@@ -597,6 +598,19 @@ def _np(t: torch.Tensor) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
+_TORCH_THREADS = torch.get_num_threads()
+"""torch's thread count when this module was imported (numba's OpenMP pool changes what torch reports later)."""
+
+
+def threads() -> int:
+    """The threads the fused step runs its members on: the process's setting (OMP_NUM_THREADS, else torch's
+    thread count at import), at most numba's pool (NUMBA_NUM_THREADS), so that N worker processes with one
+    thread each never start N x cores threads."""
+    env = os.environ.get("OMP_NUM_THREADS", "")
+    n = int(env) if env.isdigit() and int(env) > 0 else _TORCH_THREADS
+    return max(1, min(n, numba.config.NUMBA_NUM_THREADS))
+
+
 def fused_step(F):
     """``step(S, P) -> S`` for the settings ``F`` (supported(F, "cpu") must be None): stepping.make_step's
     step on the fused CPU kernel (same inputs and outputs)."""
@@ -650,6 +664,7 @@ def fused_step(F):
         erod_o = np.empty((B, ny, nx)) if F.use_ent else dummy
         dep_o = np.empty((B, ny, nx)) if F.use_dep else dummy
         dt_o, scal_o, flags_o = np.empty(B), np.empty((B, 5)), np.empty((B, 5), dtype=np.int64)
+        numba.set_num_threads(threads())
         _step_all(f64(h), f64(S["hu"]), f64(S["hv"]), z, erod, dep, g6, gx, gy, mus, inside, pm, _np(S["active"]),
                   f64(S["t"]), f64(S["t_next"]), float(P["t_end"]), rzx, rzy, rcs, h_max, v_max, arrival,
                   f64(S["ke_peak"]), f64(S["outflow"]), _np(S["steps"]), _np(S["failed"]), _np(S["stopped"]),
