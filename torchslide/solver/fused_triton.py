@@ -4,7 +4,7 @@
 arithmetic in the same order per cell and per face (stepping._stage, scheme.sweep, scheme.frozen_faces,
 scheme.draining_factors, friction.apply_friction), every division and square root rounded exactly and
 no fused multiply-add, so on CUDA one step equals the torch step's to the last bit; only the sums over
-the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels, each one
+the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels (and the velocity kernels below), each one
 pass over the grid of every member (grid axis 1 = member); the pressure coefficient k g cos^2 is
 recomputed from the state where it is needed; the velocities (KP07 Eq. 2.17) are written once per stage by
 a fifth kernel (_velocities; VELOCITIES = "recomputed" recomputes them at each use instead), and with the
