@@ -171,7 +171,8 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
         # direction), so a flow passing between cells of different slope keeps its speed (module docstring)
         ex, ey = unit_direction(u, v)
         sg = stretch(ex, ey, zx, zy)
-        carried_x, carried_y = (sg * u, sg * v), (sg * v, sg * u)
+        cu, cv = sg * u, sg * v
+        carried_x, carried_y = (cu, cv), (cv, cu)
     else:
         carried_x = carried_y = None
     k = _earth_pressure(u, v, P, F)
