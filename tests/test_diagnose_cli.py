@@ -286,3 +286,64 @@ def test_cli_design_ranks_where_a_new_gauge_reveals_each_candidate(tmp_path, cap
         assert len(v["best_new_gauges"]) == 2
         assert (out / f"design_{c}.asc").exists()
     assert (out / "design.png").exists()
+
+
+def test_a_diagnosis_killed_after_each_final_write_resumes_to_every_file(tmp_path, monkeypatch, capsys):
+    """Killed after its checkpoint or after any report file, `diagnose --resume` writes every report file
+    (report.json equal to the uninterrupted run's) and finished.json last, without running the solver again;
+    a resume with no checkpoint or with another recording is one line, exit 2."""
+    import json
+    import shutil
+    from pathlib import Path
+
+    import torchslide.files as files
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets())
+    ref = tmp_path / "ref"
+    assert main(["diagnose", str(p), "--out", str(ref), "--quiet"]) == 0
+    done = json.loads((ref / "finished.json").read_text())["files"]
+    assert "diagnosis.pkl" in done and "report.json" in done and "report.md" in done and len(done) >= 5
+    real_replace = files.os.replace
+
+    class Killed(BaseException):
+        pass
+
+    import torchslide.diagnose as diagnose_pkg
+    monkeypatch.setattr(diagnose_pkg, "diagnose", lambda *a, **k: pytest.fail("a resume ran the inference again"))
+    k = 0
+    while True:
+        k += 1
+        count = [0]
+
+        def replace(src, dst, _k=k):
+            real_replace(src, dst)
+            if Path(dst).name in done:
+                count[0] += 1
+                if count[0] == _k:
+                    raise Killed
+
+        out = tmp_path / f"killed_{k}"
+        out.mkdir()
+        shutil.copy(ref / "diagnosis.pkl", out / "diagnosis.pkl")     # killed right after the checkpoint
+        monkeypatch.setattr(files.os, "replace", replace)
+        try:
+            main(["diagnose", str(p), "--out", str(out), "--quiet", "--resume"])
+            killed = False
+        except Killed:
+            killed = True
+        monkeypatch.setattr(files.os, "replace", real_replace)
+        if not killed:
+            break
+        assert not (out / "finished.json").exists()
+        assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--resume"]) == 0
+        assert json.loads((out / "report.json").read_text()) == json.loads((ref / "report.json").read_text())
+        assert sorted(json.loads((out / "finished.json").read_text())["files"]) == sorted(done), k
+        assert all((out / f).is_file() for f in done), k
+    assert k == len(done)              # each report file was a kill point (the checkpoint, copied, the first)
+    capsys.readouterr()
+    assert main(["diagnose", str(p), "--out", str(tmp_path / "empty"), "--quiet", "--resume"]) == 2
+    assert "holds no interrupted diagnosis" in capsys.readouterr().err
+    (tmp_path / "g1.csv").write_text((tmp_path / "g1.csv").read_text().replace("2,1,3", "2,1.5,3"))
+    assert main(["diagnose", str(p), "--out", str(ref), "--quiet", "--resume"]) == 2
+    assert "made from another config or recording" in capsys.readouterr().err

@@ -221,3 +221,21 @@ def test_release_volume_sd_needs_the_model_error_runs(tmp_path):
         diagnose(ev, ["mu_i"], Budgets(model_error_runs=0, release_volume_sd=0.05), workdir=tmp_path)
     with pytest.raises(ValueError, match=r"release_volume_sd must be in \[0, 0.5\)"):
         diagnose(ev, ["mu_i"], Budgets(release_volume_sd=-0.1), workdir=tmp_path)
+
+
+def test_the_gauge_figure_shows_the_recording_as_given(tmp_path):
+    """With the grid's error in the likelihood, the localisation keeps the user's recording ("recorded")
+    beside the shifted data, and the report's gauge figure plots the recording, not recording - mean error."""
+    from torchslide.diagnose.localise import localise
+
+    ev = _evaluator()
+    k = ev.k
+    eps = np.random.default_rng(1).normal(3.0, 0.1, (6, k))          # a mean error of about +3 everywhere
+    ev2 = ev.with_model_error(ModelError(samples=eps, x=np.zeros((6, 2)), factor=2))
+    draws = np.random.default_rng(2).normal(0.0, 0.1, (4, k))
+    L = localise(ev2, draws, n_perm=9)
+    g = L.maps["g1:h"]
+    b = next(b for b in ev2.blocks if b.name == "g1:h")
+    assert np.array_equal(g["recorded"], ev.data[b.slice])              # what the user gave (zeros)
+    assert np.allclose(g["data"], ev.data[b.slice] - eps.mean(0)[b.slice])
+    assert np.allclose(g["offset"], eps.mean(0)[b.slice]) and np.all(g["offset"] > 2.5)

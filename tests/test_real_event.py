@@ -132,28 +132,63 @@ def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
     info = json.loads((pred / "predictive.json").read_text())
     assert info["maps_and_series"]["dod"]["n"] == 224 and len(info["values"]) == 226
     assert [o["name"] for o in info["observations"]] == ["impact", "deposit"]
+    j = info["against_observations"]["dod"]["footprint_jaccard"]
+    assert 0 <= j["q05"] <= j["median"] <= j["q95"] <= 1
+    assert info["against_observations"]["dod"]["deposition_m3"]["survey"] == pytest.approx(22542.77, rel=1e-6)
     assert main(["sweep", str(msh / "small.toml"), "--out", str(sw), "--n", "2", "--quiet"]) in (0, 1)
     assert sum(h.startswith("dod[") for h in (sw / "sweep.csv").read_text().splitlines()[0].split(",")) == 224
 
 
 def test_the_survey_figures_of_a_run():
-    """Footprint Jaccard, reached shares and volumes against a hand-made survey of 4 cells."""
-    from experiments.msh2021.__main__ import survey_figures
+    """torchslide.survey against a hand-made survey of 4 cells: footprint Jaccard, reached shares, volumes,
+    rmse and run-out from the release's crown."""
+    from torchslide.survey import change_figures, footprint_figures, runout_from_crown
 
     dod = np.full((3, 3), np.nan)
     dod[0, :2], dod[1, :2] = [-2.0, 1.0], [0.5, np.nan]
     dod[1, 1] = 0.0
+    mapped = np.isfinite(dod) & (dod != 0)                     # 3 cells: (0,0), (0,1), (1,0)
     dz = np.zeros((3, 3))
     dz[0, 0], dz[0, 1], dz[2, 2] = -1.0, 2.0, 0.5
-    h_max = np.where(np.abs(dz) > 0, 1.0, 0.0)
-    p = np.zeros((3, 3))
-    p[0, :2] = 0.7
-    f = survey_figures(dod, dz, h_max, p, cell=100.0)
-    assert f["footprint_jaccard"] == pytest.approx(2 / 5) and f["share_of_mapped_cells_reached"] == pytest.approx(0.5)
-    assert f["share_of_reached_cells_unmapped"] == pytest.approx(1 / 3)
-    assert f["share_of_mapped_cells_with_p_impact_ge_0.5"] == pytest.approx(0.5)
-    assert f["deposition_m3"] == {"survey": pytest.approx(150.0), "model": pytest.approx(250.0)}
-    assert f["erosion_m3"] == {"survey": pytest.approx(200.0), "model": pytest.approx(100.0)}
+    reached = np.abs(dz) > 0                                  # (0,0), (0,1), (2,2)
+    f = footprint_figures(reached, mapped)
+    assert f["footprint_jaccard"] == pytest.approx(2 / 4) and f["share_of_mapped_reached"] == pytest.approx(2 / 3)
+    assert f["share_of_reached_unmapped"] == pytest.approx(1 / 3)
+    c = change_figures(dz, dod, cellsize=10.0)
+    assert c["deposition_m3"] == {"survey": pytest.approx(150.0), "run": pytest.approx(250.0)}
+    assert c["erosion_m3"] == {"survey": pytest.approx(200.0), "run": pytest.approx(100.0)}
+    assert c["rmse_m"] == pytest.approx(np.sqrt((1 + 1 + 0.25 + 0) / 4))
+    z = np.array([[5.0, 9.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    release = np.zeros((3, 3))
+    release[0, :2] = 1.0                                      # crown: (0,1), the higher release cell
+    assert runout_from_crown(z, release, reached, 10.0) == pytest.approx(10.0 * np.hypot(2, 1))
+    assert runout_from_crown(z, release, np.zeros((3, 3), bool), 10.0) == 0.0
+
+
+def test_simulate_and_predict_report_the_survey_figures(msh, tmp_path):
+    """`simulate` on the example's calibrate.toml reports the run against the DoD (summary.json and a line),
+    with the figures torchslide.survey gives on its own rasters; predict gives the draws' spread."""
+    import json
+
+    from torchslide.observe_series import SeriesObservation
+    from torchslide.survey import run_figures
+
+    cfg = (msh / "calibrate.toml").read_text().replace("t_end = 300.0", "t_end = 60.0")
+    (msh / "short.toml").write_text(cfg)
+    out = tmp_path / "sim"
+    assert main(["simulate", str(msh / "short.toml"), "--out", str(out), "--quiet", "--threshold", "0.1"]) == 0
+    f = json.loads((out / "summary.json").read_text())["against_observations"]["dod"]
+    c = load_config(msh / "short.toml")
+    obs = SeriesObservation.from_raster(msh / "dod.asc", "elevation_change", c.terrain.dem, 0.5, name="dod")
+    h_max = read_asc_array(out / "h_max.asc")[0]
+    ref = run_figures(h_max, None, [obs], c.terrain.dem.z, c.terrain.release, 10.0, 0.1)["dod"]
+    assert f["footprint_jaccard"] == pytest.approx(ref["footprint_jaccard"]) and 0 < f["footprint_jaccard"] < 1
+    assert f["runout_m"]["mapped"] == pytest.approx(ref["runout_m"]["mapped"]) and f["runout_m"]["mapped"] > 700
+    assert f["runout_m"]["run"] == pytest.approx(ref["runout_m"]["run"])
+    assert f["deposition_m3"]["survey"] == pytest.approx(22542.77, rel=1e-6)
+    assert f["erosion_m3"]["survey"] == pytest.approx(26406.6, rel=1e-5)
+    # no entrainment: what the run deposits, it took from the source (outflow aside)
+    assert f["deposition_m3"]["run"] == pytest.approx(f["erosion_m3"]["run"], rel=0.02)
 
 
 def test_the_footprint_likelihood_is_smooth_and_peaks_at_the_truth():

@@ -290,9 +290,11 @@ class LandslideEvaluator:
 
     def maps_chunk(self, values: dict) -> tuple:
         """One chunk of ``value_chunks`` for maps: (predictions (n, k), failed (n,), reasons, {"h_max", "v_max",
-        "h_final": (n, ny, nx) float32 arrays}, map cell area (ny, nx) or scalar, seconds)."""
+        "h_final" and, from a solver run, "elevation_change": (n, ny, nx) float32 arrays}, map cell area (ny, nx)
+        or scalar, seconds)."""
         preds, failed, why, res, sec = self.values_chunk(values)
-        maps = {k: getattr(res, k).detach().cpu().float().numpy() for k in ("h_max", "v_max", "h_final")}
+        maps = {k: getattr(res, k).detach().cpu().float().numpy() for k in ("h_max", "v_max", "h_final", "elevation_change")
+                if getattr(res, k, None) is not None}
         return preds, failed, why, maps, res.map_cell_area, sec
 
     def run_values(self, values: dict) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,9 @@ them:
 * each observation's predictive distribution against its recorded value (a posterior-predictive
   check): the model's spread f(x) over the draws, and the spread of a new recording f(x) + e with e
   drawn from the likelihood's error model. A recorded value far in a tail of the latter is one the
-  calibrated model does not reproduce (its percentile near 0 or 1).
+  calibrated model does not reproduce (its percentile near 0 or 1);
+* where the observations map a footprint (torchslide.survey), each draw's footprint Jaccard, reached
+  shares, run-out and volumes against it, as medians and 90 % intervals.
 
 Shapes: M draws, p calibrated parameters, k observations, (ny, nx) the DEM grid.
 """
@@ -18,6 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import torch
+
+from .survey import run_figures, spread
 
 QUANTILES = (0.05, 0.5, 0.95)
 
@@ -51,6 +55,8 @@ class PredictiveRuns:
         the draws' mean impact area.
     quantiles: {"h_max" | "v_max" | "h_final": {q: (ny, nx)}} for q in QUANTILES (m, m/s, m).
     n_failed: draws whose run failed (left out; their reasons in ``failures``).
+    survey: the draws' figures against the mapped footprints among the observations (torchslide.survey.spread:
+        median and 90 % interval of each; {} when none).
     """
 
     x: np.ndarray
@@ -61,6 +67,7 @@ class PredictiveRuns:
     quantiles: dict
     n_failed: int = 0
     failures: list = field(default_factory=list)
+    survey: dict = field(default_factory=dict)
 
 
 def run_predictive(evaluator, samples: np.ndarray, threshold: float,
@@ -75,6 +82,7 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
     starts = list(range(0, x.shape[0], evaluator.max_batch))
     cell_area = None
     tick = None if progress is None else (lambda i, _: progress(min(starts[i] + evaluator.max_batch, x.shape[0])))
+    figures = []
     for s, (preds, failed, why, maps, area, _) in zip(starts, evaluator.map_chunks(evaluator.maps_chunk, chunks, tick)):
         xb = x[s:s + evaluator.max_batch]
         cell_area = np.broadcast_to(area, maps["h_max"].shape[1:])
@@ -84,13 +92,23 @@ def run_predictive(evaluator, samples: np.ndarray, threshold: float,
         preds_all.append(preds.numpy()[ok])
         for name in fields:  # float32 on the host: M maps of the grid fit in memory
             fields[name].append(maps[name][ok])
+        figures += _survey_figures(evaluator, maps, ok, threshold)
     maps = {k: np.concatenate(v) for k, v in fields.items()}
     if maps["h_max"].shape[0] == 0:
         raise RuntimeError(f"all {x.shape[0]} posterior-predictive runs failed; first: {failures[0]['reason']}")
     qs = {k: {q: np.quantile(v, q, axis=0).astype(np.float64) for q in quantiles} for k, v in maps.items()}
     return PredictiveRuns(x=np.concatenate(keep_x), predictions=np.concatenate(preds_all), threshold=float(threshold),
                           impact_probability=(maps["h_max"] > threshold).mean(axis=0).astype(np.float64),
-                          cell_area=np.broadcast_to(cell_area, maps["h_max"].shape[1:]).copy(), quantiles=qs, n_failed=len(failures), failures=failures)
+                          cell_area=np.broadcast_to(cell_area, maps["h_max"].shape[1:]).copy(), quantiles=qs, n_failed=len(failures), failures=failures,
+                          survey=spread(figures))
+
+
+def _survey_figures(evaluator, maps: dict, ok: np.ndarray, threshold: float) -> list[dict]:
+    """torchslide.survey.run_figures of each successful member of a chunk of maps (float64)."""
+    dz = maps.get("elevation_change")
+    return [run_figures(maps["h_max"][i].astype(np.float64), None if dz is None else dz[i].astype(np.float64),
+                        evaluator.observations, evaluator.dem.z, evaluator.release, evaluator.dem.cellsize, threshold)
+            for i in np.nonzero(ok)[0]]
 
 
 def observation_check(predictions: np.ndarray, values: np.ndarray, sigma: np.ndarray, names, seed: int = 0,

@@ -63,6 +63,8 @@ class BondoConfig:
             members have similar run-outs and share a small cropped window).
         dtype: "float64" or "float32" (the solver's precision; the GP is always float64).
         kernel: the solver step (SolverConfig.kernel: "fused" default, "eager", "compiled").
+        stop_quiet_time: SolverConfig.stop_quiet_time (the footprint stop rule); 0 ends a run on its
+            kinetic energy alone (1e-4 of its peak), the rule this study's page was made with.
         device: where the solver runs ("cpu", "cuda"); the GP and acquisition stay on the CPU.
         work_dir: caches, checkpoints, results (git-ignored); figures_dir: PNG output.
         tensorboard: write TensorBoard logs per case under work_dir/tb/case_N.
@@ -86,6 +88,7 @@ class BondoConfig:
     max_batch: int = 25
     dtype: str = "float32"
     kernel: str = "fused"
+    stop_quiet_time: float = 0.0
     device: str = "cpu"
     work_dir: str = str(HERE / "_work")
     figures_dir: str = str(HERE / "figures")

@@ -125,7 +125,7 @@ class CachedSimulator:
         gauges = [(k, float(px), float(py)) for k, (px, py) in c.points.items()]
         t0 = time.perf_counter()
         res = simulate(c.dem, c.release, params, t_end=self.cfg.t_end, gauges=gauges, dtype=dtype,
-                       device=self.cfg.device, config=SolverConfig(kernel=self.cfg.kernel))
+                       device=self.cfg.device, config=SolverConfig(kernel=self.cfg.kernel, stop_quiet_time=self.cfg.stop_quiet_time))
         self.solver_seconds += time.perf_counter() - t0
         self.last_result = res
         self.n_solver_calls += 1

@@ -44,7 +44,7 @@ TRUE_BASE = {"mu": 0.25, "xi": 500.0}
 V_NOMINAL = 2.0e5
 T_END = 90.0
 DT_OBS = 2.0
-SOLVER = dict(stop_ke_fraction=2e-3, output_interval=1.0)
+SOLVER = dict(stop_ke_fraction=2e-3, stop_quiet_time=0.0, output_interval=1.0)   # the thresholds' stop rule
 # gauge quantity -> (the likelihood's sigma, the sd of the noise drawn), and the deposit map's noise sd (its
 # likelihood sigma is make_recording's map_sigma, 0.5 m): the harness states errors larger than it draws
 GAUGE_ERRORS = {"h": (0.5, 0.2), "speed": (2.0, 0.5)}

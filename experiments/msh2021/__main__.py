@@ -50,19 +50,14 @@ def _median_run(case: Path, pred: Path):
 
 
 def survey_figures(dod: np.ndarray, dz: np.ndarray, h_max: np.ndarray, p_impact: np.ndarray, cell: float) -> dict:
-    """Figures a modeller quotes, of a run (simulated change dz, h_max) and the impact probability against the
-    survey (dod, NaN off the mapped cells): footprint Jaccard, reached shares, volumes (m^3, vertical)."""
-    mapped = np.isfinite(dod)
-    reached = h_max > THRESHOLD
-    return {"footprint_jaccard": float((mapped & reached).sum() / (mapped | reached).sum()),
-            "share_of_mapped_cells_reached": float((mapped & reached).sum() / mapped.sum()),
-            "share_of_reached_cells_unmapped": float((reached & ~mapped).sum() / max(reached.sum(), 1)),
+    """Figures a modeller quotes (torchslide.survey), of a run (simulated change dz, h_max) and the impact
+    probability against the survey (dod, NaN off the mapped cells)."""
+    from torchslide.survey import change_figures, footprint_figures
+
+    mapped = np.isfinite(dod) & (dod != 0)
+    return {**footprint_figures(h_max > THRESHOLD, mapped),
             "share_of_mapped_cells_with_p_impact_ge_0.5": float((p_impact[mapped] >= 0.5).mean()),
-            "deposition_m3": {"survey": float(np.nansum(np.where(dod > 0, dod, 0)) * cell),
-                              "model": float(np.where(dz > 0, dz, 0).sum() * cell)},
-            "erosion_m3": {"survey": float(-np.nansum(np.where(dod < 0, dod, 0)) * cell),
-                           "model": float(-np.where(dz < 0, dz, 0).sum() * cell)},
-            "dod_rmse_on_mapped_cells_m": float(np.sqrt(np.mean((dz[mapped] - dod[mapped]) ** 2)))}
+            **change_figures(dz, dod, np.sqrt(cell))}
 
 
 def plot_dod(dem, hillshade_file: Path, dod: np.ndarray, dz: np.ndarray, path: Path) -> None:
@@ -125,12 +120,12 @@ def write_page(out: dict, path: Path) -> None:
         "| figure | value |",
         "|---|---|",
         f"| footprint Jaccard (h_max > {THRESHOLD:g} m against the mapped cells) | {f['footprint_jaccard']:.2f} |",
-        f"| mapped cells reached | {100 * f['share_of_mapped_cells_reached']:.0f} % |",
-        f"| reached cells outside the map | {100 * f['share_of_reached_cells_unmapped']:.0f} % |",
+        f"| mapped cells reached | {100 * f['share_of_mapped_reached']:.0f} % |",
+        f"| reached cells outside the map | {100 * f['share_of_reached_unmapped']:.0f} % |",
         f"| mapped cells with impact probability >= 0.5 (32 draws) | {100 * f['share_of_mapped_cells_with_p_impact_ge_0.5']:.0f} % |",
-        f"| deposition, m^3 (vertical) | {f['deposition_m3']['model']:,.0f} (survey {f['deposition_m3']['survey']:,.0f}) |",
-        f"| erosion, m^3 (vertical, source included) | {f['erosion_m3']['model']:,.0f} (survey {f['erosion_m3']['survey']:,.0f}) |",
-        f"| DoD rmse over the mapped cells | {f['dod_rmse_on_mapped_cells_m']:.2f} m |",
+        f"| deposition, m^3 (vertical) | {f['deposition_m3']['run']:,.0f} (survey {f['deposition_m3']['survey']:,.0f}) |",
+        f"| erosion, m^3 (vertical, source included) | {f['erosion_m3']['run']:,.0f} (survey {f['erosion_m3']['survey']:,.0f}) |",
+        f"| DoD rmse over the mapped cells | {f['rmse_m']:.2f} m |",
         "",
         "![surveyed and simulated elevation change](figures/dod.png)",
         "![impact probability](figures/impact_probability.png)",

@@ -274,6 +274,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "from the baseline's posterior, each diagnosed like the data (costs N diagnoses; "
                         "torchslide.diagnose.null; N >= 10 advised); a rerun with the same seed reuses the "
                         "finished null cases in OUT/null, also those of a smaller N")
+    p.add_argument("--resume", action="store_true",
+                   help="finish a diagnosis that was interrupted after its inference (OUT/diagnosis.pkl): its null "
+                        "runs (which resume from OUT/null) and every report file still missing, without "
+                        "repeating the inference")
     p.add_argument("--design", action="store_true",
                    help="instead of the diagnosis: rank where one more gauge (peak depth and peak speed) would "
                         "reveal each candidate best, at the baseline's local fit (torchslide.diagnose.design); "
@@ -319,15 +323,74 @@ def _run(args: argparse.Namespace) -> int:
         return _diagnose_case(ev, cfg, bud, th, args, out, log)
 
 
+CHECKPOINT = "diagnosis.pkl"
+"""The diagnosis once its inference ended ({"fingerprint", "stage": "diagnosed" | "null", "diagnosis"}),
+written before the report: ``--resume`` starts from it."""
+FINISHED = "finished.json"
+"""Written last, once every report file is in place."""
+
+
+def _fingerprint(cfg: Config, ev, args) -> str:
+    """What a resumed diagnosis must share with the interrupted one: the config text and the recorded data."""
+    import hashlib
+
+    import numpy as np
+
+    h = hashlib.sha256(Path(cfg.path).read_bytes())
+    h.update(np.ascontiguousarray(ev.data_recorded, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+def _save_checkpoint(out: Path, fingerprint: str, stage: str, d) -> None:
+    import pickle
+
+    from ..files import atomic_path
+
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out / CHECKPOINT) as tmp:
+        tmp.write_bytes(pickle.dumps({"fingerprint": fingerprint, "stage": stage, "diagnosis": d}))
+
+
+def _load_checkpoint(out: Path, fingerprint: str):
+    """(diagnosis, stage) of OUT/diagnosis.pkl, or a one-line ConfigError when it is missing, unreadable or
+    was made from another config or recording."""
+    import pickle
+
+    path = out / CHECKPOINT
+    if not path.is_file():
+        raise ConfigError(f"--resume: {out} holds no interrupted diagnosis ({CHECKPOINT}); run without --resume")
+    try:
+        ck = pickle.loads(path.read_bytes())
+        d, stage, fp = ck["diagnosis"], ck["stage"], ck["fingerprint"]
+    except Exception as e:
+        raise ConfigError(f"--resume: {path} is unreadable ({type(e).__name__}); run without --resume") from None
+    if fp != fingerprint:
+        raise ConfigError(f"--resume: {path} was made from another config or recording; resume with the config "
+                          "it was made with, or run without --resume")
+    return d, stage
+
+
 def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log) -> int:
-    """The diagnosis of the config's case, its report, and (--null-runs) its thresholds set on null runs."""
+    """The diagnosis of the config's case, its report, and (--null-runs) its thresholds set on null runs.
+    The diagnosis is checkpointed (OUT/diagnosis.pkl) once inferred and once its thresholds are set on null
+    runs; the report files follow, finished.json last."""
+    import json
+
     from ..diagnose import diagnose
     from ..diagnose.report import write_report
+    from ..files import write_text_atomic
 
     dg = cfg.extra["diagnose"]
-    d = diagnose(ev, dg["candidates"], bud, th, log=log)
+    fp = _fingerprint(cfg, ev, args)
+    (out / FINISHED).unlink(missing_ok=True)
+    if args.resume:
+        d, stage = _load_checkpoint(out, fp)
+        log(f"resuming the diagnosis in {out} (stage: {stage})")
+    else:
+        d, stage = diagnose(ev, dg["candidates"], bud, th, log=log), "diagnosed"
+        _save_checkpoint(out, fp, stage, d)
     write_report(d, out, cfg.conventions())           # with the thresholds given; rewritten below when null runs reset them
-    if args.null_runs:
+    if args.null_runs and stage != "null":
         from ..diagnose.null import null_calibration
         named = f" ({d.missing_physics})" if d.missing_physics else ""
         print(f"verdict with the thresholds given: {d.verdict}{named}; now {args.null_runs} null runs")
@@ -339,7 +402,10 @@ def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log) -> int:
                   file=sys.stderr)
             return 1
         d.redecide(d.null_calibration["thresholds"], f"set on {args.null_runs} null simulations of this design")
+        _save_checkpoint(out, fp, "null", d)
         write_report(d, out, cfg.conventions())
+    files = sorted(f.name for f in out.iterdir() if f.is_file() and not f.name.startswith("."))
+    write_text_atomic(out / FINISHED, json.dumps({"files": files}, indent=1))
     print(f"verdict: {d.verdict}" + (f" ({d.missing_physics})" if d.missing_physics else "") + f"; report in {out}")
     return 0
 

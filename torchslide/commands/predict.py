@@ -18,7 +18,10 @@ predictive.json ``observations``: per scalar observation the model's mean, sd an
 the draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
 percentile in it, and ``inside``. A value outside is one the calibrated model does not reproduce (see also
 posterior.json's ``best_run_fit``). Maps and gauge series: ``maps_and_series`` gives the share of each
-one's values inside their 90 % intervals, ``values`` the check of every value.
+one's values inside their 90 % intervals, ``values`` the check of every value. ``against_observations``:
+where the observations map a footprint (footprint, impact_map, elevation_change), the draws' footprint
+Jaccard, shares of mapped cells reached and of reached cells unmapped, run-out and volumes against it
+(torchslide.survey; median, q05, q95).
 
 The config must be the one the calibration ran with (same calibrated parameters and prior box); nothing is
 half-written (a temporary folder next to DIR is moved into place at the end). Exit code 0; 1 when some draws
@@ -146,6 +149,7 @@ def _run(args: argparse.Namespace) -> int:
             "n_inside_90": int(sum(c["inside"] for c in scalar)),
             "maps_and_series": series,
             "values": checks if series else None,
+            "against_observations": pr.survey,
             "conventions": cfg.conventions(),
         }
         (tmp / "predictive.json").write_text(json.dumps(info, indent=2))
@@ -155,6 +159,11 @@ def _run(args: argparse.Namespace) -> int:
         if scalar:
             plot_predictive_check(scalar, tmp / "observations.png")
     if not args.quiet:
+        for name, f in pr.survey.items():
+            j, r = f["footprint_jaccard"], f["runout_m"]
+            print(f"against {name}: footprint Jaccard {j['median']:.2f} [{j['q05']:.2f}, {j['q95']:.2f}], "
+                  f"{100 * f['share_of_mapped_reached']['median']:.0f} % of the mapped cells reached, run-out "
+                  f"{r['median']:.0f} m [{r['q05']:.0f}, {r['q95']:.0f}] (mapped {r['mapped']:.0f} m)")
         for name, m in series.items():
             print(f"{name}: {100 * m['share_inside_90']:.0f} % of its {m['n']} values inside their 90 % intervals")
         for c in scalar:

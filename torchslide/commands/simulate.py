@@ -22,7 +22,11 @@ over cells with h_final > threshold), threshold_m, max_h_max (m), max_v_max (m/s
 runout {path name: m} (the run-out along each [[paths]] polyline, and a synthetic case's "thalweg"), steps,
 t_final (s), stopped, runtime_s (the whole batched call), kernel (the step that ran: fused-cpu,
 fused-triton, compiled or eager), failed, failure_reason, gauges {name: {x, y, h_max, v_max, h_final}} (m, m/s, m; from the
-gauge series), conventions (torchslide.config.CONVENTIONS, with the input thickness and the density).
+gauge series), conventions (torchslide.config.CONVENTIONS, with the input thickness and the density),
+against_observations {observation name: figures} when the config maps a footprint (``footprint``,
+``impact_map`` or ``elevation_change`` [[observations]]): footprint Jaccard, shares of mapped cells reached
+and of reached cells unmapped, run-out from the release's crown, volumes of deposition and erosion
+(torchslide.survey).
 
 Nothing is half-written: the config is validated before running, results go to a temporary folder next
 to DIR, which is moved into place at the end. Exit code 0; 1 when some member failed (non-finite run;
@@ -118,8 +122,31 @@ OUTFLOW_WARN = 0.01
 """Share of the release leaving through the DEM edge above which ``simulate`` warns."""
 
 
-def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict[str, Any]]:
-    """Write every member's files and the summaries into ``tmp``; return the member summaries."""
+def observed_footprints(cfg: Config) -> list:
+    """The config's [[observations]] that map a footprint (torchslide.survey), validated; [] when none."""
+    from ..survey import FOOTPRINT_KINDS
+
+    table = cfg.raw.get("observations")
+    if not table:
+        return []
+    from ..calibration_config import parse_observations
+
+    return [o for o in parse_observations(table, cfg) if getattr(o, "kind", None) in FOOTPRINT_KINDS]
+
+
+def survey_summary(result, b: int, cfg: Config, observations, threshold: float) -> dict[str, Any]:
+    """torchslide.survey.run_figures of member b against the mapped footprints ``observations``."""
+    from ..survey import run_figures
+
+    dz = result.elevation_change
+    return run_figures(result.h_max[b].detach().cpu().double().numpy(),
+                       None if dz is None else dz[b].detach().cpu().double().numpy(), observations,
+                       result.dem.z, cfg.terrain.release, result.dem.cellsize, threshold)
+
+
+def write_outputs(tmp: Path, cfg: Config, result, threshold: float, observations=()) -> list[dict[str, Any]]:
+    """Write every member's files and the summaries into ``tmp``; return the member summaries (with the
+    figures against the mapped footprints ``observations``, "against_observations", when there are any)."""
     import torch
 
     fmt = "%.17g" if result.h_max.dtype == torch.float64 else "%.9g"
@@ -131,6 +158,8 @@ def write_outputs(tmp: Path, cfg: Config, result, threshold: float) -> list[dict
         folder.mkdir(exist_ok=True)
         write_member(folder, result, b, fmt, cfg.output_format, cfg.model.density)
         s = member_summary(result, b, threshold, paths, cfg.model.density)
+        if observations:
+            s["against_observations"] = survey_summary(result, b, cfg, observations, threshold)
         s["conventions"] = cfg.conventions()
         (folder / "summary.json").write_text(json.dumps(s, indent=2) + "\n")
         s["folder"] = "." if B == 1 else folder.name
@@ -182,9 +211,10 @@ def _run(args: argparse.Namespace) -> int:
     from ..solver import simulate
 
     kwargs = cfg.simulate_kwargs()
+    footprints = observed_footprints(cfg)
     with staged_output(out, anc, "simulate") as tmp:
         result = simulate(**kwargs, progress=not args.quiet)
-        summaries = write_outputs(tmp, cfg, result, args.threshold)
+        summaries = write_outputs(tmp, cfg, result, args.threshold, footprints)
     failed = [i for i, s in enumerate(summaries) if s["failed"]]
     if not args.quiet:
         for i, s in enumerate(summaries):
@@ -194,6 +224,11 @@ def _run(args: argparse.Namespace) -> int:
                 f"  release {s['release_volume']:.4g} m^3, impact area {s['impact_area']:.4g} m^2, "
                 f"deposit {s['deposit_volume']:.4g} m^3, t_final {s['t_final']} s, {s['steps']} steps"
             )
+            for name, f in s.get("against_observations", {}).items():
+                print(f"  against {name}: footprint Jaccard {f['footprint_jaccard']:.2f}, "
+                      f"{100 * f['share_of_mapped_reached']:.0f} % of the mapped cells reached, "
+                      f"{100 * f['share_of_reached_unmapped']:.0f} % of the reached cells unmapped, run-out "
+                      f"{f['runout_m']['run']:.0f} m (mapped {f['runout_m']['mapped']:.0f} m)")
         print(f"wrote {out}")
     for i in failed:
         print(f"torchslide: warning: member {i} failed: {summaries[i]['failure_reason']}", file=sys.stderr)

@@ -282,7 +282,11 @@ def localise(evaluator, draws: np.ndarray, z_threshold: float = 3.0, block_thres
             shift_score = math.copysign(math.sqrt(max(gain, 0.0) / f), tau) if tau else 0.0
             info.update({"arrival_shift_s": tau, "shift_score": shift_score, "windows": windows,
                          "Z_block_aligned": float((np.sum(za**2) - m) / math.sqrt(2 * m * f))})
-            L.maps[b.name] = {"t": t, "data": d, "pred": mean[b.slice], "pred_sd": np.sqrt(var[b.slice]), "z": za}
+            # "recorded": what the user gave; "offset": the grid's mean error the likelihood adds to the
+            # prediction (data = recorded - offset; zero without a model error)
+            rec = np.asarray(getattr(evaluator, "data_recorded", evaluator.data), float)[b.slice]
+            L.maps[b.name] = {"t": t, "data": d, "recorded": rec, "offset": rec - d, "pred": mean[b.slice],
+                              "pred_sd": np.sqrt(var[b.slice]), "z": za}
             if abs(shift_score) >= z_threshold:
                 L.located.append({"what": f"arrival-time shift {tau:+.3g} s ({b.name})",
                                   "where": {"gauge": o.gauge, "quantity": o.quantity, "t0": float(t[0]), "t1": float(t[-1])},

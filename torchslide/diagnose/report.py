@@ -11,10 +11,12 @@ def _fmt(v, f="{:.3g}"):
 
 def write_figures(diag, out: Path) -> list[str]:
     import matplotlib
+    import numpy as np
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from mpl_toolkits.axes_grid1 import make_axes_locatable
 
+    from ..files import save_figure
     from ..physics import label
 
     files = []
@@ -40,24 +42,29 @@ def write_figures(diag, out: Path) -> list[str]:
                     axs[0][0].add_patch(plt.Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, ec="k", lw=1.2))
             fig.tight_layout()
             f = out / f"residual_map_{safe}.png"
-            fig.savefig(f, dpi=90)
+            save_figure(fig, f, dpi=90)
             plt.close(fig)
             files.append(f.name)
         else:
             fig, ax = plt.subplots(figsize=(6, 3))
-            ax.plot(m["t"], m["data"], "k.", ms=3, label="data")
-            ax.plot(m["t"], m["pred"], "C0-", label="baseline")
-            ax.fill_between(m["t"], m["pred"] - 2 * m["pred_sd"], m["pred"] + 2 * m["pred_sd"], color="C0", alpha=0.2)
+            rec, off = m.get("recorded", m["data"]), m.get("offset", np.zeros_like(m["data"]))
+            corrected = bool(np.any(off != 0))
+            ax.plot(m["t"], rec, "k.", ms=3, label="recording")
+            top = m["pred"] + off
+            ax.plot(m["t"], top, "C0-", label="baseline + the grid's mean error" if corrected else "baseline")
+            ax.fill_between(m["t"], top - 2 * m["pred_sd"], top + 2 * m["pred_sd"], color="C0", alpha=0.2)
+            if corrected:
+                ax.plot(m["t"], m["pred"], "C0:", lw=1, label="baseline on the inversion grid")
             if name in after:
                 a = after[name]
-                ax.plot(a["t"], a["pred"], "C3-", label=f"refit ({diag.fit_after.get('model')})")
+                ax.plot(a["t"], a["pred"] + a.get("offset", 0.0), "C3-", label=f"refit ({diag.fit_after.get('model')})")
             ax.set_xlabel("t (s)")
             ax.set_ylabel({"h": "flow thickness (m)", "speed": "speed (m/s)"}.get(name.rsplit(":", 1)[-1], name))
             ax.set_title(name)
             ax.legend(fontsize=7)
             fig.tight_layout()
             f = out / f"gauge_{safe}.png"
-            fig.savefig(f, dpi=90)
+            save_figure(fig, f, dpi=90)
             plt.close(fig)
             files.append(f.name)
     # posteriors of the refit switches: 1-D marginal of the samples (histogram) or of the grid posterior,
@@ -81,7 +88,7 @@ def write_figures(diag, out: Path) -> list[str]:
             ax.set_title(c)
         fig.tight_layout()
         f = out / "posteriors.png"
-        fig.savefig(f, dpi=90)
+        save_figure(fig, f, dpi=90)
         plt.close(fig)
         files.append(f.name)
     return files

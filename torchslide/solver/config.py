@@ -28,6 +28,11 @@ class SolverConfig:
         output_interval: s, spacing of gauge / mass / kinetic-energy samples (t_end is always a sample).
         stop_ke_fraction: a member ends when its kinetic energy falls below this fraction of its
             peak (after the peak). 1e-4 means speeds about 1 % of the peak mean speed.
+        stop_quiet_time: s; a member also ends once its footprint has stopped growing: no cell newly
+            reached (h > arrival_threshold) for this long while its kinetic energy is below
+            ``stop_quiet_ke`` of its peak (tested at the host checks, every ``check_every`` steps).
+            0 switches this rule off (the kinetic-energy rule alone).
+        stop_quiet_ke: the kinetic-energy fraction under which the footprint rule applies.
         dt_max: s, largest time step (used where nothing moves, e.g. a fully dry or resting domain).
         no_creep: freeze faces between resting cells whose driving jump friction can hold (D-Claw rule).
         slope_correction: use g_n = g cos(theta) per cell (theta the DEM slope); False uses g_n = g.
@@ -71,6 +76,8 @@ class SolverConfig:
     v_max_min_depth: float = 0.05
     output_interval: float = 1.0
     stop_ke_fraction: float = 1e-4
+    stop_quiet_time: float = 10.0
+    stop_quiet_ke: float = 1e-2
     dt_max: float = 1.0
     no_creep: bool = True
     slope_correction: bool = True
@@ -99,6 +106,8 @@ class SolverConfig:
         need(self.v_max_min_depth >= 0, "v_max_min_depth", "need >= 0")
         need(self.output_interval > 0, "output_interval", "need > 0")
         need(0 <= self.stop_ke_fraction < 1, "stop_ke_fraction", "need 0 <= f < 1")
+        need(self.stop_quiet_time >= 0, "stop_quiet_time", "need >= 0 s")
+        need(0 <= self.stop_quiet_ke < 1, "stop_quiet_ke", "need 0 <= f < 1")
         need(self.dt_max > 0, "dt_max", "need > 0")
         need(self.entrain_h_min >= 0, "entrain_h_min", "need >= 0")
         need(self.check_every >= 1, "check_every", "need >= 1")

@@ -367,6 +367,17 @@ def _member_params(P0: Params, inp: _Inputs, t_end: float) -> tuple[dict, dict]:
     return Pm, shared
 
 
+def _footprint_quiet(work: dict, arrival: Tensor, cfg: SolverConfig) -> Tensor:
+    """(B,) bool: members whose footprint has stopped growing (SolverConfig.stop_quiet_time): no cell
+    reached in the last stop_quiet_time s (``arrival`` (B, ny, nx) s, inf where never reached: the box holds
+    every reached cell) while the kinetic energy is below stop_quiet_ke of its peak."""
+    if cfg.stop_quiet_time <= 0:
+        return torch.zeros_like(work["active"])
+    last = torch.where(torch.isinf(arrival), torch.zeros_like(arrival), arrival).amax(dim=(1, 2))
+    calm = work["ke"] < cfg.stop_quiet_ke * work["ke_peak"]
+    return calm & (work["t"] - last >= cfg.stop_quiet_time)
+
+
 def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out_times: Tensor, t_end: float,
          progress: bool) -> tuple[dict, Tensor]:
     """Step every member until it ends: the steps run on the bounding box of the cells the flow has
@@ -446,6 +457,12 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
             exceeded[idx[over]] = True
             work["active"] = act & ~over
             sub["active"] = work["active"]
+            act = work["active"]
+        quiet = _footprint_quiet(work, sub["arrival"], cfg) & act
+        if bool(quiet.any()):
+            work["stopped"] = work["stopped"] | quiet
+            work["active"] = act & ~quiet
+            sub["active"], sub["stopped"] = work["active"], work["stopped"]
             act = work["active"]
         n_act = int(act.sum())
         if bar is not None:

@@ -1,0 +1,100 @@
+"""What a modeller quotes of a run against a mapped event.
+
+For each mapped footprint among the observations (``footprint`` and ``impact_map``: the cells mapped as
+reached; ``elevation_change``: the surveyed cells whose surface changed), a run's figures:
+
+- ``footprint_jaccard``: |mapped and reached| / |mapped or reached|, reached meaning h_max > threshold;
+- ``share_of_mapped_reached``: the share of the mapped cells the run reaches;
+- ``share_of_reached_unmapped``: the share of the reached cells outside the mapped footprint;
+- ``runout_m``: {"run", "mapped"}: the horizontal distance from the release's highest cell (the crown) to
+  the farthest reached / mapped cell centre, m;
+- for ``elevation_change`` also ``deposition_m3`` and ``erosion_m3`` ({"run", "survey"}: volumes of the
+  vertical surface rise and fall, m^3; the run's over the whole grid, the survey's over its cells) and
+  ``rmse_m`` (the simulated against the surveyed change over the surveyed cells, m).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+FOOTPRINT_KINDS = ("footprint", "impact_map", "elevation_change")
+
+
+def mapped_footprint(obs) -> np.ndarray:
+    """(ny, nx) bool: the cells a map observation marks as reached (see the module doc)."""
+    grid = obs.to_grid(obs.values)
+    if obs.kind == "elevation_change":
+        return np.isfinite(grid) & (grid != 0.0)
+    return np.nan_to_num(grid) >= 0.5
+
+
+def runout_from_crown(z: np.ndarray, release: np.ndarray, mask: np.ndarray, cellsize: float) -> float:
+    """Horizontal distance, m, from the release's highest cell to the farthest cell of ``mask`` (0 if empty)."""
+    if not mask.any() or not (release > 0).any():
+        return 0.0
+    zr = np.where(release > 0, z, -np.inf)
+    r0, c0 = np.unravel_index(np.argmax(zr), z.shape)
+    rows, cols = np.nonzero(mask)
+    return float(np.hypot(rows - r0, cols - c0).max() * cellsize)
+
+
+def footprint_figures(reached: np.ndarray, mapped: np.ndarray) -> dict:
+    """Jaccard and the two shares of a reached (ny, nx) bool mask against a mapped one."""
+    both, either = int((reached & mapped).sum()), int((reached | mapped).sum())
+    return {"footprint_jaccard": both / either if either else 1.0,
+            "share_of_mapped_reached": both / int(mapped.sum()) if mapped.any() else float("nan"),
+            "share_of_reached_unmapped": int((reached & ~mapped).sum()) / int(reached.sum()) if reached.any() else 0.0}
+
+
+def change_figures(dz: np.ndarray, survey: np.ndarray, cellsize: float) -> dict:
+    """Deposition / erosion volumes (m^3) of a simulated vertical change ``dz`` (ny, nx) and of the survey
+    (NaN off its cells), and the rmse of dz against the survey over its cells (m)."""
+    area = cellsize * cellsize
+    on = np.isfinite(survey)
+    s = np.where(on, survey, 0.0)
+    return {"deposition_m3": {"run": float(np.clip(dz, 0, None).sum() * area), "survey": float(np.clip(s, 0, None).sum() * area)},
+            "erosion_m3": {"run": float(-np.clip(dz, None, 0).sum() * area), "survey": float(-np.clip(s, None, 0).sum() * area)},
+            "rmse_m": float(np.sqrt(np.mean((dz[on] - survey[on]) ** 2)))}
+
+
+def run_figures(h_max: np.ndarray, dz: np.ndarray | None, observations, z: np.ndarray, release: np.ndarray,
+                cellsize: float, threshold: float) -> dict:
+    """{observation name: figures} of one run (h_max (ny, nx) m, dz its vertical surface change or None) against
+    every mapped footprint among ``observations`` (module doc); reached means h_max > the observation's
+    threshold (``threshold`` for elevation_change)."""
+    out = {}
+    for obs in observations:
+        if getattr(obs, "kind", None) not in FOOTPRINT_KINDS:
+            continue
+        mapped = mapped_footprint(obs)
+        t = threshold if obs.kind == "elevation_change" else obs.threshold
+        reached = h_max > t
+        f = {"threshold_m": t, **footprint_figures(reached, mapped),
+             "runout_m": {"run": runout_from_crown(z, release, reached, cellsize),
+                          "mapped": runout_from_crown(z, release, mapped, cellsize)}}
+        if obs.kind == "elevation_change" and dz is not None:
+            f.update(change_figures(dz, obs.to_grid(obs.values), cellsize))
+        out[str(obs.name)] = f
+    return out
+
+
+def spread(per_run: list[dict]) -> dict:
+    """{name: {figure: {"median", "q05", "q95"}}} over the runs' run_figures (nested {"run", ...} figures by
+    their "run" value; the survey's and the mapped values kept as they are)."""
+    out: dict = {}
+    if not per_run:
+        return out
+    for name, first in per_run[0].items():
+        out[name] = {}
+        for key, v in first.items():
+            if isinstance(v, dict):
+                vals = np.array([r[name][key]["run"] for r in per_run])
+                fixed = {k: x for k, x in v.items() if k != "run"}
+            else:
+                vals = np.array([r[name][key] for r in per_run], dtype=float)
+                fixed = {}
+            if key == "threshold_m":
+                out[name][key] = v
+                continue
+            out[name][key] = {"median": float(np.median(vals)), "q05": float(np.quantile(vals, 0.05)),
+                              "q95": float(np.quantile(vals, 0.95)), **fixed}
+    return out
