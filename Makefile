@@ -58,6 +58,7 @@ bench-solver-gpu: $(STAMP)
 # registers, spills and SASS instructions per cell of every Triton kernel, compiled for an H100/H200 on the CPU
 bench-triton-profile: $(STAMP)
 	$(PY) -m bench.triton_profile --arch 90 --out bench/results/triton_profile.json
+	TORCHSLIDE_EXACT_FLOAT32=1 $(PY) -m bench.triton_profile --arch 90 --out bench/results/triton_profile_exact_float32.json
 
 bench-inference: $(STAMP)
 	$(PY) -m pip install -q -e ".[bench]" || echo "pyvbmc not installable: its comparison is skipped"

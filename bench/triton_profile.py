@@ -4,6 +4,7 @@ SASS instructions of the kernel's body per cell, with the MUFU among them (the s
 approximations: each exactly rounded division and square root starts with one).
 
     python -m bench.triton_profile [--arch 90] [--block 512] [--warps 4] [--out bench/results/triton_profile.json]
+    TORCHSLIDE_EXACT_FLOAT32=1 python -m bench.triton_profile --out bench/results/triton_profile_exact_float32.json
 
 Rows: every kernel, float32 and float64, the switches of a default Voellmy run (TERMS["voellmy"]: the slope
 metric and the no-creep rule, what bench.bench_solver times) and every term on, the velocities recomputed
@@ -21,8 +22,8 @@ import re
 import subprocess
 import tempfile
 
-KERNELS = ("_faces", "_drain", "_velocities", "_update", "_combine")
-"""The kernels of a step (fused_triton), in launch order."""
+KERNELS = ("_velocities", "_carried", "_faces", "_drain", "_update", "_combine")
+"""The kernels of a step (fused_triton), in launch order (_carried: with the slope metric, on in every row)."""
 
 TERMS = {"voellmy": {"SLOPE": True, "NO_CREEP": True}, "all": None}
 """Switches on per row set: a default SolverConfig's Voellmy run (mu, xi only); every switch (None)."""
@@ -39,8 +40,9 @@ def switches(name: str) -> list[str]:
 
 def compile_kernel(name: str, dtype: str, on: dict, axis: int | None = None, arch: int = 90,
                    block: int | None = None, num_warps: int | None = None):
-    """Kernel ``name`` of fused_triton compiled for sm_``arch`` with the launch options of the step (no
-    fused multiply-add); ``dtype``: 'fp32' or 'fp64'; ``on``: switch -> value (switches not named are off)."""
+    """Kernel ``name`` of fused_triton compiled for sm_``arch`` with the launch options of the step (fused
+    multiply-add in float32 on the fast paths only); ``dtype``: 'fp32' or 'fp64'; ``on``: switch -> value
+    (switches not named are off)."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
@@ -55,7 +57,7 @@ def compile_kernel(name: str, dtype: str, on: dict, axis: int | None = None, arc
     sig = {p: "constexpr" if p in consts else ("*i1" if p == "inside_ptr" else f"*{dtype}")
            if p.endswith("_ptr") else "i32" for p in params}
     src = ASTSource(fn=fn, signature=sig, constexprs={(params.index(k),): v for k, v in consts.items()})
-    options = {"enable_fp_fusion": False, "num_warps": num_warps or fused_triton.NUM_WARPS}
+    options = {"enable_fp_fusion": fused_triton.fp_fusion(dtype), "num_warps": num_warps or fused_triton.NUM_WARPS}
     return triton.compile(src, target=GPUTarget("cuda", arch, 32), options=options)
 
 
@@ -137,7 +139,9 @@ def main(argv=None) -> None:
     rows = profile(args.arch, args.block, args.warps)
     for r in rows:
         print(json.dumps(r), flush=True)
-    res = {"arch": f"sm_{args.arch}", "triton": triton.__version__, "rows": rows,
+    from torchslide.solver import fused_triton
+
+    res = {"arch": f"sm_{args.arch}", "triton": triton.__version__, "fast_float32": fused_triton.FAST_FLOAT32, "rows": rows,
            "per_cell_update": per_cell_update(rows)}
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:

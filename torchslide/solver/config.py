@@ -28,11 +28,14 @@ class SolverConfig:
         output_interval: s, spacing of gauge / mass / kinetic-energy samples (t_end is always a sample).
         stop_ke_fraction: a member ends when its kinetic energy falls below this fraction of its
             peak (after the peak). 1e-4 means speeds about 1 % of the peak mean speed.
-        stop_quiet_time: s; a member also ends once its footprint has stopped growing: no cell newly
-            reached (h > arrival_threshold) for this long while its kinetic energy is below
-            ``stop_quiet_ke`` of its peak (tested at the host checks, every ``check_every`` steps).
-            0 switches this rule off (the kinetic-energy rule alone).
-        stop_quiet_ke: the kinetic-energy fraction under which the footprint rule applies.
+        stop_quiet_time: s; a member also ends once its flow has stopped (torchslide.solver.stop): for
+            this long no cell newly reached (h > arrival_threshold) and the thickness changed by less
+            than ``stop_quiet_change`` of the volume, while its kinetic energy is below ``stop_quiet_ke`` of its peak
+            (tested at the host checks, every ``check_every`` steps). 0 switches this rule off (the
+            kinetic-energy rule alone).
+        stop_quiet_ke: the kinetic-energy fraction under which that rule applies.
+        stop_quiet_change: sum over cells of |h(t) - h(t - stop_quiet_time)| over the volume sum h(t)
+            below which the deposit counts as at rest.
         dt_max: s, largest time step (used where nothing moves, e.g. a fully dry or resting domain).
         no_creep: freeze faces between resting cells whose driving jump friction can hold (D-Claw rule).
         slope_correction: use g_n = g cos(theta) per cell (theta the DEM slope); False uses g_n = g.
@@ -78,6 +81,7 @@ class SolverConfig:
     stop_ke_fraction: float = 1e-4
     stop_quiet_time: float = 10.0
     stop_quiet_ke: float = 1e-2
+    stop_quiet_change: float = 0.01
     dt_max: float = 1.0
     no_creep: bool = True
     slope_correction: bool = True
@@ -108,6 +112,7 @@ class SolverConfig:
         need(0 <= self.stop_ke_fraction < 1, "stop_ke_fraction", "need 0 <= f < 1")
         need(self.stop_quiet_time >= 0, "stop_quiet_time", "need >= 0 s")
         need(0 <= self.stop_quiet_ke < 1, "stop_quiet_ke", "need 0 <= f < 1")
+        need(self.stop_quiet_change > 0, "stop_quiet_change", "need > 0")
         need(self.dt_max > 0, "dt_max", "need > 0")
         need(self.entrain_h_min >= 0, "entrain_h_min", "need >= 0")
         need(self.check_every >= 1, "check_every", "need >= 1")

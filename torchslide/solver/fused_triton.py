@@ -2,9 +2,11 @@
 
 ``triton_step(F)`` returns a drop-in for ``stepping.make_step(F)``: the same SSP-RK2 step with the same
 arithmetic in the same order per cell and per face (stepping._stage, scheme.sweep, scheme.frozen_faces,
-scheme.draining_factors, friction.apply_friction), every division and square root rounded exactly and
-no fused multiply-add, so on CUDA one step equals the torch step's to the last bit; only the sums over
-the grid (mass, kinetic energy, outflow) add in another order. A stage is four kernels (and the velocity kernels below), each one
+scheme.draining_factors, friction.apply_friction). In float64 (the reference) every division and square
+root is rounded exactly and nothing fuses into a multiply-add, so on CUDA one step equals the torch step's
+to the last bit; only the sums over the grid (mass, kinetic energy, outflow) add in another order. In
+float32 the kernels take the card's fast paths (FAST_FLOAT32: approximate division and square root,
+fused multiply-add), judged by physics (docs/verification.md), not by bits. A stage is four kernels (and the velocity kernels below), each one
 pass over the grid of every member (grid axis 1 = member); the pressure coefficient k g cos^2 is
 recomputed from the state where it is needed; the velocities (KP07 Eq. 2.17) are written once per stage by
 a fifth kernel (_velocities; VELOCITIES = "recomputed" recomputes them at each use instead), and with the
@@ -49,6 +51,12 @@ BLOCK = 512
 NUM_WARPS = 4
 """Warps per program (bench.bench_solver --launch measures other BLOCK x NUM_WARPS)."""
 
+FAST_FLOAT32 = os.environ.get("TORCHSLIDE_EXACT_FLOAT32", "0") != "1"
+"""float32 on the fast paths: Triton's approximate division (2 ulp) and square root and fused multiply-add
+(within the verification cases' tolerances of float64). False (environment TORCHSLIDE_EXACT_FLOAT32=1 when
+the module is imported; the kernels compile the choice in): exactly rounded division and square root and
+no fused multiply-add, as float64 always is, so that float32 too equals the torch step's bits."""
+
 VELOCITIES = "stored"
 """Where the faces and the cell update take the desingularised velocities u, v (KP07 Eq. 2.17) from:
 "stored" once per stage by one more kernel (_velocities; two more fields written and read), or
@@ -84,23 +92,34 @@ if triton is not None:
     def _min(a, b):
         return tl.minimum(a, b, propagate_nan=tl.PropagateNan.ALL)
 
-    @triton.jit
-    def _div(a, b):
-        """a / b rounded as IEEE division (torch's, in float32 too; Triton's float32 ``/`` is approximate)."""
-        if b.dtype == tl.float32:
-            r = tl.div_rn(a, b)
-        else:
-            r = a / b
-        return r
+    if FAST_FLOAT32:
+        @triton.jit
+        def _div(a, b):
+            """a / b: IEEE division in float64, Triton's approximate one in float32."""
+            return a / b
 
-    @triton.jit
-    def _sqrt(x):
-        """sqrt(x) rounded as IEEE (torch's; Triton's float32 tl.sqrt is approximate)."""
-        if x.dtype == tl.float32:
-            r = tl.sqrt_rn(x)
-        else:
-            r = tl.sqrt(x)
-        return r
+        @triton.jit
+        def _sqrt(x):
+            """sqrt(x): IEEE in float64, Triton's approximate one in float32."""
+            return tl.sqrt(x)
+    else:
+        @triton.jit
+        def _div(a, b):
+            """a / b rounded as IEEE division (torch's, in float32 too; Triton's float32 ``/`` is approximate)."""
+            if b.dtype == tl.float32:
+                r = tl.div_rn(a, b)
+            else:
+                r = a / b
+            return r
+
+        @triton.jit
+        def _sqrt(x):
+            """sqrt(x) rounded as IEEE (torch's; Triton's float32 tl.sqrt is approximate)."""
+            if x.dtype == tl.float32:
+                r = tl.sqrt_rn(x)
+            else:
+                r = tl.sqrt(x)
+            return r
 
     @triton.jit
     def _desing(h, q, sqrt2, heps4):
@@ -630,9 +649,15 @@ def _constants(F, dtype, device) -> torch.Tensor:
     return torch.tensor(vals, dtype=dtype, device=device)
 
 
+def fp_fusion(dtype) -> bool:
+    """Whether the kernels of ``dtype`` may fuse multiply-adds: float32 on the fast paths only (FAST_FLOAT32);
+    never float64, whose every operation rounds as in the torch step."""
+    return bool(FAST_FLOAT32 and dtype in (torch.float32, "fp32"))
+
+
 def _launch(dtype) -> dict:
-    """Launch options: no fused multiply-add, so that every operation rounds as in the torch step."""
-    return {"BLOCK": BLOCK, "num_warps": NUM_WARPS, "enable_fp_fusion": False}
+    """Launch options (fused multiply-add: fp_fusion)."""
+    return {"BLOCK": BLOCK, "num_warps": NUM_WARPS, "enable_fp_fusion": fp_fusion(dtype)}
 
 
 def _stride(t: torch.Tensor) -> int:

@@ -18,6 +18,7 @@ from .config import SolverConfig
 from .friction import desingularised_velocity
 from .graphs import StepGraphs
 from .stepping import StepFlags, make_step, static_geometry, surface_geometry
+from .stop import QuietWatch
 
 Tensor = torch.Tensor
 
@@ -367,17 +368,6 @@ def _member_params(P0: Params, inp: _Inputs, t_end: float) -> tuple[dict, dict]:
     return Pm, shared
 
 
-def _footprint_quiet(work: dict, arrival: Tensor, cfg: SolverConfig) -> Tensor:
-    """(B,) bool: members whose footprint has stopped growing (SolverConfig.stop_quiet_time): no cell
-    reached in the last stop_quiet_time s (``arrival`` (B, ny, nx) s, inf where never reached: the box holds
-    every reached cell) while the kinetic energy is below stop_quiet_ke of its peak."""
-    if cfg.stop_quiet_time <= 0:
-        return torch.zeros_like(work["active"])
-    last = torch.where(torch.isinf(arrival), torch.zeros_like(arrival), arrival).amax(dim=(1, 2))
-    calm = work["ke"] < cfg.stop_quiet_ke * work["ke_peak"]
-    return calm & (work["t"] - last >= cfg.stop_quiet_time)
-
-
 def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out_times: Tensor, t_end: float,
          progress: bool) -> tuple[dict, Tensor]:
     """Step every member until it ends: the steps run on the bounding box of the cells the flow has
@@ -435,6 +425,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
     box = _crop.grow(work["h"], None, ny, nx, margin) if cfg.crop else _crop.full_box(ny, nx)
     sub, Psub, gsub, gin = enter(work, box)
     chunks = new_chunks()
+    watch = QuietWatch(cfg, work["h"])
     while True:
         s_ = 0
         while s_ < cfg.check_every:     # chunks of steps between the host's looks at the box
@@ -458,7 +449,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
             work["active"] = act & ~over
             sub["active"] = work["active"]
             act = work["active"]
-        quiet = _footprint_quiet(work, sub["arrival"], cfg) & act
+        quiet = watch.quiet(work, sub, box) & act
         if bool(quiet.any()):
             work["stopped"] = work["stopped"] | quiet
             work["active"] = act & ~quiet
@@ -476,6 +467,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
             _crop.write_back(work, sub, box, ny, nx, member_keys)
             _scatter(full, work, idx, member_keys)
             idx = idx[act]
+            watch.keep(act)
             work = {k: (v[act] if k in member_keys else v) for k, v in work.items()}
             Pw = dict({k: v[idx] for k, v in Pm.items()}, **shared)
             sub, Psub, gsub, gin = enter(work, box)
