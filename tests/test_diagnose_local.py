@@ -211,10 +211,11 @@ def test_laplace_draws_stay_in_the_box_and_follow_the_truncated_gaussian():
     assert d[:, 0].mean() == pytest.approx(tn.mean(), abs=0.01)
 
 
-def _plane_case(kappa: float):
+def _plane_case(kappa: float, release_scale: float = 0.0):
     """Recordings on a small inclined plane (deposit map, two gauges' depth and speed series, the final
     volume; sigmas of centimetres and decimetres per second) made with entrainment switch ``kappa`` on
-    an erodible layer, and the diagnosis evaluator of plain Voellmy."""
+    an erodible layer from a release ``release_scale`` larger than stated, and the diagnosis evaluator of
+    plain Voellmy with the stated release."""
     from torchslide.bayes import Prior, Uniform
     from torchslide.diagnose import DiagnosisEvaluator
     from torchslide.observe import Observation
@@ -228,8 +229,8 @@ def _plane_case(kappa: float):
     erod = np.zeros(dem.shape)
     erod[:, : dem.shape[1] // 2] = 1.0
     gauges = [("g1", 450.0, 160.0), ("g2", 700.0, 160.0)]
-    res = simulate(dem, rel, Params.make(mu=0.3, xi=600.0, kappa=kappa), t_end=40.0, gauges=gauges,
-                   config=SolverConfig(), erodible_depth=erod)
+    res = simulate(dem, rel, Params.make(mu=0.3, xi=600.0, kappa=kappa, release_scale=release_scale), t_end=40.0,
+                   gauges=gauges, config=SolverConfig(), erodible_depth=erod)
     t = np.arange(2.0, 40.0, 2.0)
     obs = [SeriesObservation.from_array("deposit_map", res.h_final[0].numpy(), dem, 0.05, name="deposit"),
            Observation("final_volume", float(res.final_volume[0]), 200.0, name="final_volume")]
@@ -273,6 +274,27 @@ def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
         assert d.verdict == "no_missing_physics"
     md = write_markdown(d.to_json(), [])
     assert "local" in md and "Laplace" in md
+
+
+@pytest.mark.parametrize("release_scale, kappa, named", [(0.25, 0.0, "release_volume"), (0.0, 0.001, "entrainment")])
+def test_a_release_larger_than_stated_is_not_named_entrainment(release_scale, kappa, named):
+    """Recordings from a release 25 % larger than stated (no entrainment) name the release volume, with the
+    truth in its 90 % interval, not entrainment, which alone would have been named (2 ln BF about 700);
+    with entrainment hidden and the release as stated, entrainment is still named."""
+    from torchslide.diagnose import Budgets, Thresholds, diagnose
+
+    ev = _plane_case(kappa, release_scale)
+    bud = Budgets(model_error_runs=0, n_posterior_samples=8, n_posterior_samples_after=6, top_k=3, n_perm=9,
+                  local_lhs=8, local_starts=1, profile_top=1)
+    d = diagnose(ev, ["entrainment", "release_volume", "mu_i"], bud, Thresholds(), log=lambda s: None)
+    assert d.verdict == "missing_physics" and d.missing_physics == named
+    by = {c["name"]: c for c in d.candidates}
+    if named == "release_volume":
+        lo, hi = by["release_volume"]["parameters"]["release_scale"]["hdr90"]
+        assert lo <= release_scale <= hi
+        assert by["entrainment"]["two_ln_bf"] > 100     # what would have named entrainment without the candidate
+        from torchslide.diagnose.report import write_markdown
+        assert "This is not missing physics" in write_markdown(d.to_json(), [])
 
 
 def test_the_design_equals_the_detectability_with_the_extra_gauge_recorded():

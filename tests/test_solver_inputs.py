@@ -148,3 +148,24 @@ def test_dem_nodata_read_as_outside_and_written_back_as_nodata(tmp_path):
     assert np.array_equal(again.outside, dem.outside) and again.crs.strip() == "EPSG:2056"
     with pytest.raises(Exception, match="nodata cells"):
         read_raster(tmp_path / "dem.asc")
+
+
+def test_release_scale_scales_each_members_release_and_is_plain_at_zero():
+    """Params.release_scale: member b starts from release x (1 + release_scale[b]); 0 gives the run of the
+    release as given bitwise; <= -1 is refused naming the field."""
+    import pytest
+    import torch
+
+    from torchslide.physics import Params
+    from torchslide.solver import simulate
+
+    from .conftest import chute_case
+
+    dem, rel = chute_case()
+    r = simulate(dem, rel, Params.make(mu=0.3, xi=500.0, release_scale=[0.0, 0.25, -0.2]), t_end=5.0)
+    assert torch.allclose(r.release_volume / r.release_volume[0], torch.tensor([1.0, 1.25, 0.8], dtype=torch.float64),
+                          rtol=1e-12)
+    plain = simulate(dem, rel, Params.make(mu=0.3, xi=500.0), t_end=5.0)
+    assert torch.equal(plain.h_final[0], r.h_final[0]) and torch.equal(plain.v_max[0], r.v_max[0])
+    with pytest.raises(ValueError, match="release_scale"):
+        Params.make(mu=0.3, release_scale=-1.0)

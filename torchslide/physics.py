@@ -37,6 +37,9 @@ mu_i            -        0         mu(I) (Pouliquen): mu_eff = mu + mu_i I/(I0 +
 deposition      1/s      0         deposition rate D: mass leaves the flow onto the bed at rate
                                    D h max(0, 1 - Fr / FR_DEP), Fr = |V| / sqrt(g_n h)
                                    (slow / thin flow deposits; the deposit is part of h_final)
+release_scale   -        0         relative change of the release: each member starts from the release
+                                   thickness x (1 + release_scale), > -1 (an uncertain release volume,
+                                   calibrated or diagnosed like the terms)
 =============== ======== ========= ================================================================
 
 The per-cell friction multiplier raster ``mu_scale`` (ny, nx) is not a batched parameter: it is an
@@ -70,6 +73,7 @@ _DEFAULTS: dict[str, float | None] = {
     "tau_y": 0.0,
     "mu_i": 0.0,
     "deposition": 0.0,
+    "release_scale": 0.0,
 }
 
 
@@ -95,6 +99,7 @@ DOMAINS: dict[str, tuple[float, float, bool, bool]] = {
     "tau_y": (0.0, math.inf, False, True),
     "mu_i": (0.0, math.inf, False, True),
     "deposition": (0.0, math.inf, False, True),
+    "release_scale": (-1.0, math.inf, True, True),
 }
 
 
@@ -131,6 +136,7 @@ class Params:
     tau_y: torch.Tensor
     mu_i: torch.Tensor
     deposition: torch.Tensor
+    release_scale: torch.Tensor
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -198,6 +204,8 @@ class Params:
         for n in ("curvature", "kappa", "tau_y", "mu_i", "deposition"):
             t = getattr(self, n)
             bad(n, ~(torch.isfinite(t) & (t >= 0)), f"need a finite {n} >= 0")
+        bad("release_scale", ~(torch.isfinite(self.release_scale) & (self.release_scale > -1)),
+            "need a finite release_scale > -1")
 
     # ------------------------------------------------------------------ helpers
     @property

@@ -17,7 +17,9 @@ and a [diagnose] section::
     corr_length = 60.0           # optional exponential correlation length, m
 
     [diagnose]                   # every key optional; defaults shown
-    candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
+    candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i", "release_volume", "deposition"]
+                                 # release_volume: a release holding more than stated (an input error, checked
+                                 #     like the terms, so that extra mass is not named entrainment)
     inference = "auto"           # "local": baseline and candidates fitted on the solver (trust-region least squares,
                                  #     Laplace evidence, likelihood ratio, profile); "emulator": GP emulator over the
                                  #     prior box; "auto": local when the baseline's 90 % Laplace region fills less

@@ -92,7 +92,7 @@ batch_size = 10
 
 MSH_DIAGNOSE = """
 [diagnose]
-candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
+candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i", "release_volume"]
 """
 
 TERRAIN = """[terrain]

@@ -4,7 +4,9 @@ Each candidate is a term of the solver's model (torchslide.physics.Params) with 
 whose value ``baseline`` (0) gives plain Voellmy bitwise: the candidate models are nested in the
 baseline. ``prior`` is the switch's calibration range, ``signature`` what the term leaves in the
 recordings, ``fixed`` the other parameters the term needs (e.g. phi_int for the Savage-Hutter earth
-pressure).
+pressure). ``release_volume`` is not physics but the explanation a modeller checks first: a release that
+holds more than stated (Params.release_scale), which a term that adds mass (entrainment) could be
+mistaken for.
 """
 from __future__ import annotations
 
@@ -40,6 +42,10 @@ CANDIDATES: dict[str, Candidate] = {
     "mu_i": Candidate(
         "mu_i", "mu_i", 0.0, (0.0, 0.4),
         "rate-dependent friction: fast thin fronts brake more, slow parts less (velocity-depth dependent)"),
+    "release_volume": Candidate(
+        "release_volume", "release_scale", 0.0, (0.0, 0.5),
+        "more mass than the stated release (up to +50 %), from the start: larger depths, deposit and volumes "
+        "everywhere, no growth along the path (an input error, not a missing term)"),
     "deposition": Candidate(
         "deposition", "deposition", 0.0, (0.0, 0.5),
         "mass left behind along the path where the flow slows: trail deposit, reduced front volume"),

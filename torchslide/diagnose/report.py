@@ -138,6 +138,12 @@ def _verdict_section(j: dict) -> list[str]:
     L = ["# Missing-physics diagnosis", "", f"**Verdict: {j['verdict']}**" +
          (f" — missing physics: **{j['missing_physics']}**" if j["missing_physics"] else ""), "",
          f"Reason: {j['decision']['reason']}", ""]
+    if j["missing_physics"] == "release_volume":
+        rs = next((c["parameters"].get("release_scale") for c in j["candidates"] if c["name"] == "release_volume"), None)
+        size = f" by {100 * rs['mean']:.0f} % (90 %: {100 * rs['hdr90'][0]:.0f} to {100 * rs['hdr90'][1]:.0f} %)" \
+            if rs and rs.get("hdr90") else ""
+        L += [f"This is not missing physics: the recordings hold more mass from the start than the stated "
+              f"release{size}. Check the release's thickness or outline before any term.", ""]
     inf = j["decision"].get("inference")
     if inf:
         L += [f"Inference: {'local fits on the solver with Laplace evidence' if inf['path'] == 'local' else 'GP emulator over the prior box'}"

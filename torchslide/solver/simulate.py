@@ -250,6 +250,8 @@ def _inputs(dem: DEM, release, P0: Params, erodible_depth, mu_scale, gauges, dty
     if rel.ndim == 3 and rel.shape[0] != B:
         raise ValueError(f"release has {rel.shape[0]} members (shape {tuple(rel.shape)}) but params has B = {B}")
     h0 = (rel.expand(B, ny, nx) if rel.ndim == 2 else rel) / per_map_area
+    if bool((P0.release_scale != 0).any()):     # Params.release_scale (0: the release as given, bitwise)
+        h0 = h0 * (1.0 + P0.release_scale.to(dtype=dtype, device=device)).view(B, 1, 1)
     use_ent = bool((P0.kappa > 0).any())
     erod0 = None
     if erodible_depth is not None:
