@@ -64,20 +64,22 @@ def test_decide_ambiguous_and_null_like():
     th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)
     base = {"ess": 5.0}
     loc = [{"standardised_residual": 9.0}]
-    # the runner-up explains the located mismatch better: evidence and location disagree -> no name
+    # the runner-up explains the located mismatch better: evidence and location disagree -> "A or B", no
+    # single name
     better = {"items": [{"before": 9.0, "after": 0.5}], "max_after": 0.5, "explained": 0.99}
     d = decide([_cand("earth_pressure", 60.0), _cand("yield_stress", -10.0, located_rescored=better)],
                loc, base, 100.0, th)
-    assert d["verdict"] == "unexplained" and d["missing_physics"] is None and d["ambiguous"]
-    assert d["competitors"] == ["yield_stress"]
-    # two candidates pass every check within margin_min: no name
+    assert d["verdict"] == "missing_physics" and d["missing_physics"] == "earth_pressure or yield_stress"
+    assert d["ambiguous"] and d["competitors"] == ["yield_stress"]
+    assert d["alternatives"] == ["earth_pressure", "yield_stress"]
+    # two candidates pass every check within margin_min: "A or B"
     d = decide([_cand("earth_pressure", 60.0), _cand("curvature", 57.0)], loc, base, 100.0, th)
-    assert d["verdict"] == "unexplained" and d["ambiguous"]
+    assert d["missing_physics"] == "earth_pressure or curvature" and d["ambiguous"]
     # a runner-up within margin_min that passes the evidence check but fails another one (here its
-    # Savage-Dickey sign) still blocks the name (the evidence does not separate them)
+    # Savage-Dickey sign) still joins the verdict (the evidence does not separate them)
     close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
     d = decide(close, loc, base, 100.0, th)
-    assert d["verdict"] == "unexplained" and d["ambiguous"] and d["competitors"] == ["earth_pressure"]
+    assert d["missing_physics"] == "curvature or earth_pressure" and d["ambiguous"] and d["competitors"] == ["earth_pressure"]
     # ... but one below the evidence threshold does not
     weak = [_cand("curvature", 24.0), _cand("earth_pressure", 19.0, two_ln_bf_lower=17.0)]
     assert decide(weak, loc, base, 100.0, th)["missing_physics"] == "curvature"
@@ -255,3 +257,21 @@ def test_local_path_checks_reliability_and_the_likelihood_ratio():
     assert d["missing_physics"] is None and not d["checks"]["entrainment"]["reliable"]
     d = decide([ok], [], dict(base, reliable=False), 100.0, th)
     assert d["missing_physics"] is None
+
+
+def test_separation_names_the_data_where_the_alternatives_differ():
+    """pipeline.separation: per value |mean_A - mean_B| / sigma, largest first, and per block the root sum
+    of squares: the data that would tell two unseparated candidates apart."""
+    from types import SimpleNamespace as NS
+
+    from torchslide.diagnose.pipeline import separation
+
+    ev = NS(sigma=np.array([1.0, 2.0, 0.5, 1.0]), observation_names=["v", "g:h[0]", "g:h[1]", "vol"],
+            blocks=[NS(name="v", slice=slice(0, 1)), NS(name="g:h", slice=slice(1, 3)), NS(name="vol", slice=slice(3, 4))])
+    pred = lambda m: NS(pred=NS(mean=np.array(m, float), draws=np.zeros((3, 4))))
+    refits = {"A": pred([1.0, 4.0, 1.0, 5.0]), "B": pred([1.5, 0.0, 1.0, 5.0])}
+    s = separation(ev, refits, ["A", "B"], top=2)
+    assert s["alternatives"] == ["A", "B"]
+    assert s["values"] == [{"observation": "g:h[0]", "difference_sigma": 2.0}, {"observation": "v", "difference_sigma": 0.5}]
+    assert s["blocks"][0] == {"block": "g:h", "difference_sigma_rss": 2.0}
+    assert separation(ev, {"A": refits["A"]}, ["A", "B"]) == {}

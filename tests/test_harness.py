@@ -102,7 +102,7 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert j["decision_as_run"]["missing_physics"] == "entrainment" and j["thresholds"] == asdict(new)
     assert apply_thresholds(tmp_path, asdict(new)) == 0
     # --force: a case whose saved verdict differs from what the decision rule gives at its own thresholds
-    # (a close runner-up failing only its Savage-Dickey sign blocks the name) is re-decided; a thresholds
+    # (a close runner-up failing only its Savage-Dickey sign joins an "A or B") is re-decided; a thresholds
     # file next to the cases is skipped
     close = [_cand("curvature", 82.3), _cand("earth_pressure", 78.0, two_ln_bf_savage_dickey=-1.0)]
     d1 = dict(decide(close, loc, {"ess": 5.0}, 100.0, old), verdict="missing_physics", missing_physics="curvature")
@@ -116,7 +116,7 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert apply_thresholds(rule, asdict(old)) == 0
     assert apply_thresholds(rule, asdict(old), force=True) == 1
     j = json.loads((rule / "low_friction_patch_s1.json").read_text())["diagnosis"]
-    assert (j["verdict"], j["missing_physics"]) == ("unexplained", None)
+    assert (j["verdict"], j["missing_physics"]) == ("missing_physics", "curvature or earth_pressure")
 
 
 def test_harness_skips_strengths_beyond_a_switch_range():
@@ -360,6 +360,18 @@ def test_strict_success_is_the_blind_tests_target():
     assert not strict_success(_case("entrainment", "entrainment", covered=False))
     assert not strict_success(_case("entrainment", "entrainment", margin=5.9))
     assert not strict_success(_case("entrainment", "entrainment", after=100.0))
+    # an "A or B" verdict that contains the term, its interval covering the truth; never for the patch
+    either = _case("entrainment", "entrainment or yield_stress")
+    either["diagnosis"]["decision"]["alternatives"] = ["entrainment", "yield_stress"]
+    assert strict_success(either)
+    either["true_term_covered_hdr90"] = False
+    assert not strict_success(either)
+    other = _case("mu_i", "entrainment or yield_stress")
+    other["diagnosis"]["decision"]["alternatives"] = ["entrainment", "yield_stress"]
+    assert not strict_success(other)
+    patch = _case("low_friction_patch", "entrainment or yield_stress")
+    patch["diagnosis"]["decision"]["alternatives"] = ["entrainment", "yield_stress"]
+    assert not strict_success(patch)
 
 
 def test_success_against_detectability():

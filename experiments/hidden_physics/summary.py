@@ -10,7 +10,8 @@ A case is a *strict success* (the target of the blind test, >= 4 of 5 seeds per 
 * null scenario: the verdict "nothing missing";
 * out-of-library term (a low-friction patch): no library term named;
 * a library term: that term named, with 2 ln BF >= 6 over the runner-up, its switch's 90 % interval
-  covering the truth, and the misfit reduced by the refit.
+  covering the truth, and the misfit reduced by the refit; or named in an "A or B" verdict (the
+  evidence does not separate the alternatives) with its interval covering the truth.
 
 Measured against detectability (the issue's criterion): a library term whose true switch is below the
 smallest switch these recordings can reveal (the screening's detectable switch at the calibrated
@@ -55,6 +56,9 @@ def strict_success(case: dict) -> bool:
         return j["verdict"] == "no_missing_physics"
     if tl == "unexplained":
         return j["missing_physics"] is None
+    alts = j["decision"].get("alternatives") or []
+    if j["verdict"] == "missing_physics" and len(alts) > 1:
+        return tl in alts and bool(case.get("true_term_covered_hdr90"))
     margin = j["decision"].get("two_ln_bf_over_runner_up")
     after = (j.get("fit_after") or {}).get("misfit")
     return (found_label(case) == tl and margin is not None and margin >= MARGIN_MIN

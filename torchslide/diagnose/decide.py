@@ -1,4 +1,4 @@
-"""The verdict: "missing_physics" | "no_missing_physics" | "unexplained".
+"""The verdict: "missing_physics" (one term, or "A or B") | "no_missing_physics" | "unexplained".
 
 Every refitted candidate gets these checks (the statistics come from torchslide.diagnose.verify and
 are computed from *solver runs* at posterior draws, not from the emulator alone):
@@ -25,8 +25,10 @@ Rules:
      Savage-Dickey sign, still means the evidence does not separate the two), and
    * no other candidate that passes ``explains`` explains a larger fraction of the located mismatch
      (the evidence and the located structure must point at the same term).
-   Otherwise "unexplained" with ``ambiguous`` = True and the competitors listed (never a guess
-   between two terms that the data do not separate).
+   Otherwise "missing_physics" with ``missing_physics`` = "A or B" (``alternatives`` [A, B, ...],
+   ``ambiguous`` = True, the competitors listed): never a guess between terms that the data do not
+   separate, and never a single name (the pipeline adds ``separate``: the observations where the
+   alternatives' refits differ most, the data that would tell them apart).
 2. Otherwise, when that candidate passes ``evidence`` and either the baseline left a located mismatch
    with |score| >= ``located_min`` or the candidate does explain the located structure: "unexplained"
    (located / supported, but no library term passes every check: never a forced label).
@@ -164,9 +166,12 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                     why.append(f"{', '.join(better)} explain(s) more of the located mismatch "
                                f"({', '.join(f'{_explained(c):.2f}' for c in scored if c['name'] in better)} vs "
                                f"{ex_best:.2f})")
-                out.update(verdict="unexplained", ambiguous=True, competitors=close + [b for b in better if b not in close],
+                comp = close + [b for b in better if b not in close]
+                alts = [best["name"]] + comp
+                out.update(verdict="missing_physics", missing_physics=" or ".join(alts), ambiguous=True,
+                           competitors=comp, alternatives=alts,
                            reason=f"{best['name']} has the largest evidence (2 ln BF = {tl:.1f}) and passes every "
-                                  f"check, but {'; '.join(why)}: ambiguous, not named")
+                                  f"check, but {'; '.join(why)}: the data do not separate them ({' or '.join(alts)})")
                 return out
             out.update(verdict="missing_physics", missing_physics=best["name"], ambiguous=False,
                        reason=f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "

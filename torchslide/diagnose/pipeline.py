@@ -133,6 +133,9 @@ class Diagnosis:
         dec = decide(self.candidates, self.localisation.located, keep["baseline_verification"] or {},
                      self.fit_before["misfit"], th, fit_z=keep["fit_z"])
         dec.update(keep, decision_before=before, thresholds_source=source)
+        sep = self.decision.get("separate") or {}
+        if dec.get("alternatives") and sep.get("alternatives") == dec["alternatives"]:
+            dec["separate"] = sep
         self.decision, self.verdict, self.thresholds = dec, dec["verdict"], th
 
     def to_json(self) -> dict:
@@ -404,12 +407,31 @@ def _consistency_stage(evaluator, scr: ScreenResult, log) -> list | None:
     return out
 
 
+def separation(evaluator, refits: dict, names: list, top: int = 5) -> dict:
+    """Where the refits of ``names`` (two or more alternatives the evidence does not separate) predict
+    differently: per observation the largest difference of their posterior-predictive means over the
+    likelihood's sigma, and per block the root sum of squares of those; the ``top`` of each, largest first.
+    These are the data that would tell the alternatives apart (recorded more precisely, or recorded at all)."""
+    means = [np.asarray(refits[n].pred.mean, float) for n in names if n in refits and len(refits[n].pred.draws)]
+    if len(means) < 2:
+        return {}
+    M = np.stack(means)
+    d = (M.max(0) - M.min(0)) / np.asarray(evaluator.sigma, float)
+    obs_names = evaluator.observation_names
+    order = np.argsort(-d)[:top]
+    blocks = sorted(((b.name, float(np.sqrt(np.sum(d[b.slice] ** 2)))) for b in evaluator.blocks), key=lambda t: -t[1])
+    return {"alternatives": list(names),
+            "values": [{"observation": obs_names[i], "difference_sigma": float(d[i])} for i in order],
+            "blocks": [{"block": n, "difference_sigma_rss": v} for n, v in blocks[:top]]}
+
+
 def _after_stage(cand_out: list, dec: dict, refits: dict, th: Thresholds, bud: Budgets) -> tuple:
     """(predictive, localisation, fit) after the named candidate, else after the best by verified evidence."""
     fitted = [c for c in cand_out if c.get("log_bayes_factor") is not None]
     if not fitted:
         return None, None, {}
-    name = dec["missing_physics"] or max(fitted, key=lambda c: c["log_bayes_factor"])["name"]
+    name = (dec.get("alternatives") or [dec["missing_physics"]])[0] or \
+        max(fitted, key=lambda c: c["log_bayes_factor"])["name"]
     r = refits[name]
     if len(r.pred.draws) <= 1:
         return r.pred, None, {}
@@ -473,6 +495,8 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
                baseline_verification=dict(base.ver, source=base.source),
                elpd_waic_baseline=base.elpd["elpd"],
                inference={"path": "emulator", "why": path[1] if path else "inference = \"emulator\""})
+    if dec.get("alternatives"):
+        dec["separate"] = separation(evaluator, refits, dec["alternatives"])
     log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
     after_pred, after_loc, fit_after = _after_stage(cand_out, dec, refits, th, bud)
     lap("after_s")
@@ -605,6 +629,8 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     dec.update(fit_z=fit_z, fit_z_source="baseline local fit", baseline_verification=dict(base.ver, source=base.source),
                elpd_waic_baseline=base.elpd["elpd"],
                inference={"path": "local", "why": why, "baseline_converged": bool(f0.converged)})
+    if dec.get("alternatives"):
+        dec["separate"] = separation(evaluator, refits, dec["alternatives"])
     log(f"[diagnose] verdict {dec['verdict']} ({dec['reason']})")
     after_pred, after_loc, fit_after = _after_stage(cand_out, dec, refits, th, bud)
     lap("after_s")

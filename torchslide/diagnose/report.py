@@ -155,8 +155,16 @@ def _verdict_section(j: dict) -> list[str]:
               f"Screening): {', '.join(unseen)}. The verdict says nothing about {'it' if len(unseen) == 1 else 'them'}.",
               ""]
     if j["decision"].get("ambiguous"):
-        L += [f"Ambiguous: competing candidate(s) {', '.join(j['decision'].get('competitors') or [])} "
-              f"(see the reason above); no name is given.", ""]
+        alts = j["decision"].get("alternatives") or []
+        L += [f"Ambiguous: {' or '.join(alts)}; the data do not separate them, so no single term is named.", ""]
+        sep = j["decision"].get("separate") or {}
+        if sep.get("values"):
+            L += ["What would separate them: the observations where their refits differ most (difference of the "
+                  "posterior-predictive means over the likelihood's sigma); record these more precisely, or add "
+                  "a gauge where they differ (`--design`).", "", "| observation | difference / sigma |", "|---|---|"]
+            L += [f"| {v['observation']} | {v['difference_sigma']:.2f} |" for v in sep["values"]]
+            L += ["", "| observation block | root sum of squares |", "|---|---|"]
+            L += [f"| {b['block']} | {b['difference_sigma_rss']:.2f} |" for b in sep["blocks"]] + [""]
     db = j["decision"].get("decision_before")
     if db:
         L += [f"Thresholds {j['decision'].get('thresholds_source')}; with the thresholds given before, the verdict "
