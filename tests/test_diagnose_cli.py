@@ -286,6 +286,16 @@ def test_cli_design_ranks_where_a_new_gauge_reveals_each_candidate(tmp_path, cap
         assert len(v["best_new_gauges"]) == 2
         assert (out / f"design_{c}.asc").exists()
     assert (out / "design.png").exists()
+    # --discriminate A,B: where one more gauge tells two candidates apart; bad pairs are one line
+    assert main(["diagnose", str(p), "--out", str(out), "--design", "--discriminate", "mu_i,mu_i"]) == 2
+    assert "--discriminate needs two different candidates" in capsys.readouterr().err
+    assert main(["diagnose", str(p), "--out", str(out), "--discriminate", "mu_i,curvature"]) == 2
+    assert "goes with --design" in capsys.readouterr().err
+    d2 = tmp_path / "disc"
+    assert main(["diagnose", str(p), "--out", str(d2), "--quiet", "--design", "--discriminate", "mu_i,curvature"]) == 0
+    j = json.loads((d2 / "design.json").read_text())
+    assert set(j["candidates"]) == {"mu_i|curvature", "curvature|mu_i"}
+    assert (d2 / "design_mu_i_vs_curvature.asc").exists() and (d2 / "design.png").exists()
 
 
 def test_a_diagnosis_killed_after_each_final_write_resumes_to_every_file(tmp_path, monkeypatch, capsys):

@@ -331,6 +331,26 @@ def test_the_design_equals_the_detectability_with_the_extra_gauge_recorded():
     assert len(js["best_new_gauges"]) == 3 and js["detectable_now"] == pytest.approx(d.now["entrainment"])
 
 
+def test_discriminating_two_candidates_needs_more_than_detecting_either():
+    """design.discriminate: entrainment's switch that the release volume (with mu, xi) cannot mimic is never
+    smaller than the switch that reveals entrainment alone, at every cell, and the same the other way round;
+    the two are told apart by the recorded data already (finite), better with one more gauge somewhere."""
+    from torchslide.diagnose.design import design, discriminate
+
+    ev = _plane_case(0.0)
+    x0 = np.array([0.3, 600.0])
+    kw = dict(sigma_h=0.2, sigma_v=1.0, threshold=6.0, top=2)
+    alone = design(ev, x0, ["entrainment", "release_volume"], **kw)
+    both = discriminate(ev, x0, "entrainment", "release_volume", **kw)
+    for key, c in (("entrainment|release_volume", "entrainment"), ("release_volume|entrainment", "release_volume")):
+        assert both.now[key] >= alone.now[c] * (1 - 1e-9) and np.isfinite(both.now[key])
+        assert np.all(both.maps[key] >= alone.maps[c] * (1 - 1e-9))
+        assert both.best[key][0]["switch"] <= both.now[key]
+    assert set(both.to_json()["candidates"]) == {"entrainment|release_volume", "release_volume|entrainment"}
+    with pytest.raises(ValueError, match="two different candidates"):
+        discriminate(ev, x0, "entrainment", "entrainment")
+
+
 def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_is_unreliable(monkeypatch):
     """_local_profiles profiles the profile_top candidates with the largest 2 ln BF; a profile that beats
     the fit (a negative 2 ln drop beyond 1) marks the candidate unreliable."""

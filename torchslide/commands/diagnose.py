@@ -284,6 +284,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instead of the diagnosis: rank where one more gauge (peak depth and peak speed) would "
                         "reveal each candidate best, at the baseline's local fit (torchslide.diagnose.design); "
                         "writes OUT/design.json, OUT/design_<candidate>.asc and OUT/design.png")
+    p.add_argument("--discriminate", default=None, metavar="A,B",
+                   help="with --design: where one more gauge tells candidates A and B apart (an \"A or B\" verdict): "
+                        "the switch of each that the other, with the baseline re-tuned, cannot mimic; writes "
+                        "OUT/design_A_vs_B.asc and OUT/design_B_vs_A.asc")
     p.add_argument("--design-sigma", default="0.5,2.0", metavar="H,V",
                    help="the new gauge's errors: peak depth (m), peak speed (m/s) (default 0.5,2.0)")
     p.add_argument("--design-top", type=int, default=5, metavar="N", help="best cells listed per candidate")
@@ -320,6 +324,8 @@ def _run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     log = (lambda s: None) if args.quiet else print
     with executor_for(args, cfg, ev):
+        if args.discriminate and not args.design:
+            raise ConfigError("--discriminate A,B goes with --design")
         if args.design:
             return _design(ev, dg["candidates"], bud, th, args, cfg, out, log)
         return _diagnose_case(ev, cfg, bud, th, args, out, log)
@@ -436,15 +442,29 @@ def _design(ev, candidates, bud, th, args, cfg: Config, out: Path, log) -> int:
     sh, sv = _design_sigma(args.design_sigma)
     if args.design_top < 1:
         raise ConfigError(f"--design-top must be >= 1, got {args.design_top}")
+    pair = None
+    if args.discriminate:
+        from ..diagnose.candidates import CANDIDATES
+
+        pair = [c.strip() for c in args.discriminate.split(",")]
+        if len(pair) != 2 or pair[0] == pair[1] or any(c not in CANDIDATES for c in pair):
+            raise ConfigError(f"--discriminate needs two different candidates A,B of {sorted(CANDIDATES)}, "
+                              f"got {args.discriminate!r}")
     f, n = fit_model(ev, n_lhs=bud.local_lhs, starts=bud.local_starts, seed=bud.seed, rel_step=bud.local_rel_step,
                      max_iter=bud.local_max_iter, log=log)
     log(f"[design] baseline local fit ({n} runs): " + ", ".join(f"{k} {v:.4g}" for k, v in zip(ev.prior.names, f.x)))
-    d = design(ev, f.x, candidates, sigma_h=sh, sigma_v=sv, threshold=th.bf_min, top=args.design_top)
+    if pair:
+        from ..diagnose.design import discriminate
+
+        d = discriminate(ev, f.x, *pair, sigma_h=sh, sigma_v=sv, threshold=th.margin_min, top=args.design_top)
+        candidates = list(d.now)
+    else:
+        d = design(ev, f.x, candidates, sigma_h=sh, sigma_v=sv, threshold=th.bf_min, top=args.design_top)
     out.mkdir(parents=True, exist_ok=True)
     j = {"baseline": dict(zip(ev.prior.names, map(float, f.x))), **d.to_json(), "conventions": cfg.conventions()}
     write_text_atomic(out / "design.json", json.dumps(j, indent=1))
     for c, m in d.maps.items():
-        write_named_raster(out, f"design_{c}", np.where(np.isfinite(m), m, np.nan), ev.dem)
+        write_named_raster(out, f"design_{c.replace('|', '_vs_')}", np.where(np.isfinite(m), m, np.nan), ev.dem)
     _design_figure(d, ev, out / "design.png")
     for c in candidates:
         b = d.best[c][0] if d.best[c] else None

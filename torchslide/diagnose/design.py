@@ -14,6 +14,10 @@ re-tunes is the Schur complement
 and the smallest switch the data would reveal at 2 ln BF = T is sqrt(T / I_s(c)) (local.detectable_switch
 for the recorded data alone). Cells are ranked by it. Linearised at x0 over the screening's steps: a
 guide to where a sensor pays, not a guarantee.
+
+``discriminate`` asks the same of two candidates A and B that the evidence does not separate ("A or B"):
+the switch of A whose effect B's switch cannot mimic, with theta and B's switch both re-tuned (the Schur
+complement over theta and s_B), and the same for B against A: where one more gauge tells them apart.
 """
 from __future__ import annotations
 
@@ -61,9 +65,10 @@ def _detectable(info: np.ndarray, threshold: float) -> np.ndarray:
         return np.where(info > 0, np.sqrt(threshold / np.where(info > 0, info, 1.0)), np.inf)
 
 
-def design(evaluator, x0: np.ndarray, candidates, sigma_h: float = 0.5, sigma_v: float = 2.0,
-           threshold: float = 6.0, top: int = 5, step_fraction: float = 0.3) -> Design:
-    """The design of the module doc at the baseline point x0 (p,) for ``candidates``."""
+def _sensitivities(evaluator, x0: np.ndarray, candidates, sigma_h: float, sigma_v: float, step_fraction: float):
+    """(dW (n - 1, k) whitened sensitivities of the recorded data, gh and gv (n - 1, ny, nx) of a new gauge's
+    peak depth and speed, failed (n,)) of the screening's members at x0: rows the baseline parameters, then
+    ``candidates``' switches."""
     if not (sigma_h > 0 and sigma_v > 0):
         raise ValueError(f"the new gauge's errors must be > 0, got sigma_h = {sigma_h!r}, sigma_v = {sigma_v!r}")
     names = list(evaluator.prior.names)
@@ -85,22 +90,54 @@ def design(evaluator, x0: np.ndarray, candidates, sigma_h: float = 0.5, sigma_v:
     dW = (W[1:] - W[0]) / st[:, None]                                   # (n - 1, k)
     gh = (hmax[1:] - hmax[0]) / st[:, None, None] / sigma_h             # (n - 1, ny, nx)
     gv = (vmax[1:] - vmax[0]) / st[:, None, None] / sigma_v
+    return dW, gh, gv, failed
+
+
+def _answer(dW, gh, gv, rows: list, threshold: float, top: int, dem) -> tuple:
+    """(detectable now, map with one more gauge per cell, best cells) of the switch in ``rows``' last place,
+    the others (the nuisance: theta, or theta and a rival's switch) re-tuned."""
+    J = dW[rows].T                                                      # (k, q)
+    F0 = J.T @ J
+    G = np.moveaxis(np.stack([gh[rows], gv[rows]], axis=0), (2, 3), (0, 1))   # (ny, nx, 2, q)
+    F = F0 + np.einsum("yxaq,yxar->yxqr", G, G)
+    m = _detectable(_schur(F), threshold)
+    flat = np.argsort(m, axis=None)[:top]
+    best = [{"row": int(r), "col": int(k), "x": dem.cell_centre(int(r), int(k))[0],
+             "y": dem.cell_centre(int(r), int(k))[1], "switch": float(m[r, k])}
+            for r, k in zip(*np.unravel_index(flat, m.shape))]
+    return float(_detectable(_schur(F0), threshold)), m, best
+
+
+def design(evaluator, x0: np.ndarray, candidates, sigma_h: float = 0.5, sigma_v: float = 2.0,
+           threshold: float = 6.0, top: int = 5, step_fraction: float = 0.3) -> Design:
+    """The design of the module doc at the baseline point x0 (p,) for ``candidates``."""
+    p = len(evaluator.prior.names)
+    dW, gh, gv, failed = _sensitivities(evaluator, x0, candidates, sigma_h, sigma_v, step_fraction)
     now, maps, best = {}, {}, {}
-    dem = evaluator.dem
     for i, c in enumerate(candidates):
-        rows = list(range(p)) + [p + i]                                 # baseline parameters, then the switch
-        if failed[1 + rows[-1]]:
-            now[c], maps[c], best[c] = math.inf, np.full(hmax.shape[1:], np.inf), []
+        if failed[1 + p + i]:
+            now[c], maps[c], best[c] = math.inf, np.full(gh.shape[1:], np.inf), []
             continue
-        J = dW[rows].T                                                  # (k, q)
-        F0 = J.T @ J
-        G = np.moveaxis(np.stack([gh[rows], gv[rows]], axis=0), (2, 3), (0, 1))   # (ny, nx, 2, q)
-        F = F0 + np.einsum("yxaq,yxar->yxqr", G, G)
-        now[c] = float(_detectable(_schur(F0), threshold))
-        maps[c] = _detectable(_schur(F), threshold)
-        flat = np.argsort(maps[c], axis=None)[:top]
-        best[c] = [{"row": int(r), "col": int(k), "x": dem.cell_centre(int(r), int(k))[0],
-                    "y": dem.cell_centre(int(r), int(k))[1], "switch": float(maps[c][r, k])}
-                   for r, k in zip(*np.unravel_index(flat, maps[c].shape))]
+        now[c], maps[c], best[c] = _answer(dW, gh, gv, list(range(p)) + [p + i], threshold, top, evaluator.dem)
+    return Design(now=now, maps=maps, best=best, sigma_h=float(sigma_h), sigma_v=float(sigma_v),
+                  threshold=float(threshold))
+
+
+def discriminate(evaluator, x0: np.ndarray, a: str, b: str, sigma_h: float = 0.5, sigma_v: float = 2.0,
+                 threshold: float = 6.0, top: int = 5, step_fraction: float = 0.3) -> Design:
+    """Where one more gauge separates candidates ``a`` and ``b`` (module doc): a Design whose entries
+    "a|b" and "b|a" give the smallest switch of the first that the second (with theta) cannot mimic."""
+    if a == b:
+        raise ValueError(f"discriminate needs two different candidates, got {a!r} twice")
+    p = len(evaluator.prior.names)
+    dW, gh, gv, failed = _sensitivities(evaluator, x0, [a, b], sigma_h, sigma_v, step_fraction)
+    now, maps, best = {}, {}, {}
+    for s_, o_, (name, other) in ((p, p + 1, (a, b)), (p + 1, p, (b, a))):
+        key = f"{name}|{other}"
+        if failed[1 + p] or failed[2 + p]:
+            now[key], maps[key], best[key] = math.inf, np.full(gh.shape[1:], np.inf), []
+            continue
+        now[key], maps[key], best[key] = _answer(dW, gh, gv, list(range(p)) + [o_, s_], threshold, top,
+                                                 evaluator.dem)
     return Design(now=now, maps=maps, best=best, sigma_h=float(sigma_h), sigma_v=float(sigma_v),
                   threshold=float(threshold))

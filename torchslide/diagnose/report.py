@@ -161,7 +161,7 @@ def _verdict_section(j: dict) -> list[str]:
         if sep.get("values"):
             L += ["What would separate them: the observations where their refits differ most (difference of the "
                   "posterior-predictive means over the likelihood's sigma); record these more precisely, or add "
-                  "a gauge where they differ (`--design`).", "", "| observation | difference / sigma |", "|---|---|"]
+                  "a gauge where they differ (`--design --discriminate A,B`).", "", "| observation | difference / sigma |", "|---|---|"]
             L += [f"| {v['observation']} | {v['difference_sigma']:.2f} |" for v in sep["values"]]
             L += ["", "| observation block | root sum of squares |", "|---|---|"]
             L += [f"| {b['block']} | {b['difference_sigma_rss']:.2f} |" for b in sep["blocks"]] + [""]
