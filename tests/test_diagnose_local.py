@@ -351,22 +351,33 @@ def test_discriminating_two_candidates_needs_more_than_detecting_either():
         discriminate(ev, x0, "entrainment", "entrainment")
 
 
-def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_is_unreliable(monkeypatch):
-    """_local_profiles profiles the profile_top candidates with the largest 2 ln BF; a profile that beats
-    the fit (a negative 2 ln drop beyond 1) marks the candidate unreliable."""
+def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monkeypatch):
+    """_local_profiles profiles the profile_top candidates with the largest 2 ln BF; a profile point that
+    beats a fit (a negative 2 ln drop beyond 1) restarts the fit from there: a better fit replaces the row
+    (profiled again), a restart that finds nothing better leaves the candidate marked unreliable."""
     from torchslide.diagnose import pipeline
 
-    drops = {"a": [2.7, -3.0], "b": [2.5, 2.9], "c": [2.6, 2.8]}
+    drops = {"a": [2.7, -3.0], "a2": [2.7, 2.6], "b": [2.5, 2.9], "c": [2.6, 2.8], "d": [-4.0, 2.0]}
     monkeypatch.setattr(pipeline, "profile_ends",
                         lambda ev, cfs, bud, log: [({"two_ln_drop": drops[cf], "interval90": [0.0, 1.0],
-                                                     "gaussian": 2.71}, 10) for cf in cfs])
+                                                     "gaussian": 2.71, "lowest_point": [0.1]}, 10) for cf in cfs])
+    monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"a": "a2"}.get(cf, cf))
+    monkeypatch.setattr(pipeline, "_local_candidate",
+                        lambda ev, cf, base, scr, bud, log: ("refit", {"name": "a", "param": "a", "two_ln_bf": 45.0,
+                                                                       "reliable": True, "n_runs": 7}))
     rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None}
-            for n, bf in (("a", 30.0), ("b", 20.0), ("c", 10.0))]
-    pipeline._local_profiles(None, rows, {"a": "a", "b": "b", "c": "c"}, pipeline.Budgets(profile_top=2),
+            for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
+    fits, refits = {n: n for n in "abcd"}, {}
+    pipeline._local_profiles(None, rows, fits, refits, None, None, None, pipeline.Budgets(profile_top=3),
                              log=lambda s: None)
     by = {r["name"]: r for r in rows}
-    assert by["a"]["profile_ends"] and by["b"]["profile_ends"] and by["c"]["profile_ends"] is None
-    assert not by["a"]["reliable"] and by["b"]["reliable"] and by["a"]["n_runs"] == 15
+    assert by["c"]["profile_ends"] is None and by["b"]["profile_ends"] and by["b"]["reliable"]
+    # a: fitted again from the profile point, the better fit's row, profiled again, reliable
+    assert by["a"]["restarted_from_profile"] and by["a"]["two_ln_bf"] == 45.0 and by["a"]["reliable"]
+    assert by["a"]["profile_ends"]["two_ln_drop"] == [2.7, 2.6] and fits["a"] == "a2" and refits["a"] == "refit"
+    assert by["a"]["n_runs"] == 5 + 10 + 7 + 10
+    # d: the restart found nothing better: unreliable
+    assert not by["d"]["reliable"] and "restarted_from_profile" not in by["d"]
 
 
 # ---- fits in lockstep (torchslide.diagnose.lockstep) ----

@@ -45,7 +45,9 @@ and a [diagnose] section::
                                  #     +-10 %, the sd of that uniform error), marginalised in every likelihood
                                  #     with the grid's error (needs model_error_runs >= 2); 0: taken as exact
     profile_top = 2              # local path: candidates (largest 2 ln BF) profiled at the ends of their
-                                 #     switch's 90 % interval; 0: off
+                                 #     switch's 90 % interval (a profile point beating the fit restarts it); 0: off
+    candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
+    candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
@@ -92,7 +94,7 @@ HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, 
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
              "model_error_runs", "model_error_factor", "profile_top", "top_k", "batch_size", "n_perm",
-             "local_lhs", "local_starts", "local_max_iter")
+             "local_lhs", "local_starts", "local_max_iter", "candidate_lhs", "candidate_starts")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold",
                    "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
@@ -126,7 +128,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
         low = {"model_error_runs": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2,
-               "local_lhs": 0}.get(k, 1)
+               "local_lhs": 0, "candidate_lhs": 0, "candidate_starts": 0}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if c["inference"] not in ("auto", "local", "emulator"):

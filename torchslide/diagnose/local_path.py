@@ -12,14 +12,17 @@ baseline and each candidate model are fitted by trust-region least squares on th
 3. ``laplace_result``: the fit as a CalibrationResult (Laplace draws truncated to the box as its
    samples), so the localisation, WAIC, re-scoring and report of the pipeline apply unchanged;
 4. ``fit_candidate``: the enlarged model (baseline + switch) from the baseline's mode, with the
-   switch started at the screening's linearised optimum; its 2 ln BF against the baseline, the
+   switch started at the screening's linearised optimum, and from global starts (``candidate_lhs``
+   maximin-LHS points over the switch's whole range and the baseline's mode +- ``candidate_box`` of each
+   range, in the same batch; the ``candidate_starts`` best that beat the first start); its 2 ln BF against the baseline, the
    likelihood ratio lambda = 2 (ln L_c - ln L_0) with its boundary-corrected reference (the switch's
    null value 0 is the bound of its range, so under the null lambda ~ chi2_0 / 2 + chi2_1 / 2, Self &
    Liang 1987: p = P(chi2_1 > lambda) / 2), the Savage-Dickey ratio of the Laplace marginal at 0, and
    the profile of ln L at the ends of the switch's 90 % interval for the ``profile_top`` candidates
    with the largest 2 ln BF (``profile_ends``: mu, xi re-fitted with the switch held; a Gaussian gives
    2 ln drops of chi2_1(0.9) = 2.71 there, a very different drop says the Laplace shape does not hold,
-   and a negative one that the fit is not at its mode, which makes the candidate unreliable).
+   and a negative one that the fit is not at its mode: the fit restarts from that profile point
+   (``refit_from``), and a candidate whose profile still beats its fit is unreliable).
 
 Fits that can run side by side (the starts of one model, the candidates, the profile ends) run in
 lockstep (lockstep.Lockstep, ``merged_residuals``): one solver call per round for all of them.
@@ -106,22 +109,26 @@ def _with_prior(f: LocalFit, prob: Problem) -> LocalFit:
 
 
 def fit_model(evaluator, n_lhs: int = 16, starts: int = 2, extra_starts=None, seed: int = 0,
-              rel_step: float = 3e-3, max_iter: int = 30, log=print, lockstep: Lockstep | None = None
-              ) -> tuple[LocalFit, int]:
+              rel_step: float = 3e-3, max_iter: int = 30, log=print, lockstep: Lockstep | None = None,
+              box: tuple | None = None, only_better: bool = False) -> tuple[LocalFit, int]:
     """(best LocalFit, solver members used) of ``evaluator``'s model: ``n_lhs`` maximin-LHS points in one
-    batch, local.fit from the ``starts`` best of them and from every ``extra_starts`` (m, p) point. The
-    fits from several starts run in lockstep (one solver call per round for all of them); inside a
-    ``lockstep`` of the caller's they run one after another, each round shared with the caller's other fits."""
+    batch (over ``box`` (lo (p,), hi (p,)), default the prior box), local.fit from the ``starts`` best of them
+    and from every ``extra_starts`` (m, p) point; ``only_better``: from those LHS points only that fit the
+    data better than every extra start (evaluated in the same batch). The fits from several starts run in
+    lockstep (one solver call per round for all of them); inside a ``lockstep`` of the caller's they run one
+    after another, each round shared with the caller's other fits."""
     prob = problem(evaluator, lockstep)
-    lo, hi = prob.bounds
+    lo, hi = prob.bounds if box is None else (np.asarray(box[0], float), np.asarray(box[1], float))
     pts = lo + maximin_lhs(n_lhs, len(prob.names), seed) * (hi - lo) if n_lhs > 0 else np.empty((0, len(lo)))
+    extra = [] if extra_starts is None else [np.asarray(x, dtype=np.float64) for x in np.atleast_2d(extra_starts)]
     x0 = []
     if len(pts):
-        R, _ = prob.residuals(pts)
-        order = np.argsort(np.sum(R * R, axis=1))
+        R, _ = prob.residuals(np.concatenate([pts] + ([np.stack(extra)] if only_better and extra else [])))
+        ss = np.sum(R * R, axis=1)
+        bar = ss[len(pts):].min() if only_better and extra else np.inf
+        order = [i for i in np.argsort(ss[:len(pts)]) if ss[i] < bar]
         x0 = [pts[i] for i in order[:starts]]
-    if extra_starts is not None:
-        x0 = [np.asarray(x, dtype=np.float64) for x in np.atleast_2d(extra_starts)] + list(x0)
+    x0 = extra + list(x0)
 
     def one(x):
         return _with_prior(fit(prob.residuals, x, prob.bounds, prob.log_norm, 0.0, rel_step=rel_step,
@@ -229,8 +236,26 @@ def fit_candidate(evaluator, c: str, base: LocalFit, start: dict | None, bud, lo
     b = ev_c.prior.bounds.numpy().astype(np.float64)
     x_small = np.append(base.x, cd.prior[0] + 0.05 * (cd.prior[1] - cd.prior[0]))
     starts = [x_small] if start is None else [np.clip([start[n] for n in names], b[0], b[1])]
-    fc, n = fit_model(ev_c, n_lhs=0, extra_starts=np.array(starts), rel_step=bud.local_rel_step,
-                      max_iter=bud.local_max_iter, log=log, lockstep=lockstep)
+    fc, n = fit_model(ev_c, n_lhs=bud.candidate_lhs, starts=bud.candidate_starts, seed=bud.seed + 1,
+                      extra_starts=np.array(starts), rel_step=bud.local_rel_step, max_iter=bud.local_max_iter,
+                      log=log, lockstep=lockstep, box=global_box(base.x, b, bud.candidate_box), only_better=True)
+    return candidate_fit(c, ev_c, fc, base, n)
+
+
+def global_box(x0: np.ndarray, bounds: np.ndarray, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """The box of a candidate's global starts: each baseline parameter within ``fraction`` of its prior
+    range around the baseline's mode x0 (p,), the switch (the last of ``bounds`` (2, p + 1)) over its whole
+    prior range: where re-tuned baseline parameters and any strength of the term may meet."""
+    w = fraction * (bounds[1, :-1] - bounds[0, :-1])
+    lo = np.append(np.maximum(x0 - w, bounds[0, :-1]), bounds[0, -1])
+    hi = np.append(np.minimum(x0 + w, bounds[1, :-1]), bounds[1, -1])
+    return lo, hi
+
+
+def candidate_fit(c: str, ev_c, fc: LocalFit, base: LocalFit, n: int) -> CandidateFit:
+    """The CandidateFit of candidate ``c``'s local fit ``fc`` (its evaluator ``ev_c``) against the baseline's."""
+    cd = CANDIDATES[c]
+    names = list(ev_c.prior.names)
     lam = 2 * (fc.log_like - base.log_like)
     return CandidateFit(c, ev_c, fc, 2 * (fc.log_evidence - base.log_evidence), lam, lr_pvalue(lam),
                         savage_dickey(fc, names.index(cd.param), cd.prior), n)
@@ -246,19 +271,20 @@ def profile_interval(cf: CandidateFit) -> list[float]:
 
 
 def profile_drop(evaluator, cf: CandidateFit, value: float, bud, log=print,
-                 lockstep: Lockstep | None = None) -> tuple[float, int]:
-    """(2 ln drop of the profile likelihood from the mode with the switch held at ``value``, members used):
-    ln L re-maximised over the baseline parameters (module doc, item 4)."""
+                 lockstep: Lockstep | None = None) -> tuple[float, int, np.ndarray]:
+    """(2 ln drop of the profile likelihood from the mode with the switch held at ``value``, members used,
+    the profile's point in the candidate's parameters): ln L re-maximised over the baseline parameters
+    (module doc, item 4)."""
     cd, fc = CANDIDATES[cf.name], cf.fit
     names = list(cf.evaluator.prior.names)
     bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)
     i = names.index(cd.param)
     if abs(value - fc.x[i]) <= 1e-12 * (bounds[1, i] - bounds[0, i]):
-        return 0.0, 0
+        return 0.0, 0, fc.x.copy()
     ev_s = evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(value)})
     fs, n = fit_model(ev_s, n_lhs=0, extra_starts=np.delete(fc.x, i)[None], rel_step=bud.local_rel_step,
                       max_iter=bud.local_max_iter, log=log, lockstep=lockstep)
-    return float(2 * (fc.log_like - fs.log_like)), n
+    return float(2 * (fc.log_like - fs.log_like)), n, np.insert(fs.x, i, float(value))
 
 
 def fit_candidates(evaluator, cands: list, base: LocalFit, starts: dict, bud, log=print) -> dict:
@@ -283,8 +309,23 @@ def profile_ends(evaluator, fits: list, bud, log=print) -> list[tuple[dict, int]
         if isinstance(o, BaseException):
             raise o
     gauss = float(stats.chi2.ppf(0.9, 1))
-    return [({"interval90": e, "two_ln_drop": [d for d, _ in out[2 * k: 2 * k + 2]], "gaussian": gauss},
-             sum(n for _, n in out[2 * k: 2 * k + 2])) for k, e in enumerate(ends)]
+    res = []
+    for k, e in enumerate(ends):
+        pair = out[2 * k: 2 * k + 2]
+        j = int(np.argmin([d for d, _, _ in pair]))
+        res.append(({"interval90": e, "two_ln_drop": [d for d, _, _ in pair], "gaussian": gauss,
+                     "lowest_point": pair[j][2].tolist()}, sum(n for _, n, _ in pair)))
+    return res
+
+
+def refit_from(evaluator, cf: CandidateFit, x: np.ndarray, base: LocalFit, bud, log=print) -> CandidateFit:
+    """Candidate ``cf`` fitted again from ``x`` (a profile point that beats its fit: the fit was not at its
+    mode); the better of the two fits is kept."""
+    fc, n = fit_model(cf.evaluator, n_lhs=0, extra_starts=np.asarray(x, float)[None], rel_step=bud.local_rel_step,
+                      max_iter=bud.local_max_iter, log=log)
+    if fc.log_like <= cf.fit.log_like:
+        return cf
+    return candidate_fit(cf.name, cf.evaluator, fc, base, cf.n_runs + n)
 
 
 INFERENCE = ("auto", "local", "emulator")

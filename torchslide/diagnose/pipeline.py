@@ -42,7 +42,7 @@ from .predictive import Predictive, posterior_mode, posterior_predictive, poster
 from .refit import calibrate_evaluator, refit
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
 from .screen import ScreenResult, detectable_switch, screen
-from .local_path import choose_path, fit_candidates, fit_model, laplace_result, profile_ends
+from .local_path import choose_path, fit_candidates, fit_model, laplace_result, profile_ends, refit_from
 
 
 @dataclass
@@ -75,7 +75,11 @@ class Budgets:
     release_volume_sd: float = 0.0     # > 0: the release volume's relative sd, marginalised in the same
                                        # likelihoods (model_error module doc; needs model_error_runs >= 2)
     profile_top: int = 2               # local path: candidates profiled at the ends of their switch's 90 %
-                                       # interval, those with the largest 2 ln BF (0: off)
+                                       # interval, those with the largest 2 ln BF (0: off); a profile point
+                                       # that beats the fit restarts the fit from there
+    candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
+    candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
+    candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
     batch_size: int = 8
     top_k: int = 2
     n_perm: int = 99
@@ -580,14 +584,29 @@ def _local_candidate(evaluator, cf, base: _Baseline, scr: ScreenResult, bud: Bud
     return r, row
 
 
-def _local_profiles(evaluator, rows: list, fits: dict, bud: Budgets, log) -> None:
-    """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows."""
+def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
+                    bud: Budgets, log) -> None:
+    """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows. A profile
+    point that beats a fit by more than 1 in 2 ln L restarts that fit from there (local_path.refit_from);
+    the restarted fit is profiled again, and a fit that its profile still beats is marked unreliable."""
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
     for row, (prof, n) in zip(ranked, profile_ends(evaluator, [fits[r["name"]] for r in ranked], bud, log)):
+        c = row["name"]
         row["profile_ends"], row["n_runs"] = prof, row["n_runs"] + n
         if min(prof["two_ln_drop"]) < -1.0:     # the profile beats the fit: the fit is not at its mode
-            row["reliable"] = False
-        log(f"[diagnose] profile of {row['name']}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
+            cf = refit_from(evaluator, fits[c], np.asarray(prof["lowest_point"]), f0, bud, log)
+            if cf is not fits[c]:
+                fits[c] = cf
+                refits[c], new = _local_candidate(evaluator, cf, base, scr, bud, log)
+                log(f"[diagnose] {c}: a profile point beat the fit by {-min(prof['two_ln_drop']):.1f}; fitted again "
+                    f"from it: 2 ln BF {row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}")
+                (prof, n2), = profile_ends(evaluator, [cf], bud, log)
+                runs = row["n_runs"]
+                row.clear()
+                row.update(new, profile_ends=prof, restarted_from_profile=True, n_runs=runs + new["n_runs"] + n2)
+            if min(prof["two_ln_drop"]) < -1.0:
+                row["reliable"] = False
+        log(f"[diagnose] profile of {c}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
             f"{row['param']} = {[round(v, 5) for v in prof['interval90']]} (Gaussian {prof['gaussian']:.2f})")
 
 
@@ -620,7 +639,7 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     cand_out += [_not_refit(c, scr, "screening score below the top_k") for c in candidates
                  if c not in scr.ranking[: bud.top_k]]
     lap("refit_s")
-    _local_profiles(evaluator, cand_out, fits, bud, log)
+    _local_profiles(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
     lap("profile_s")
     consistency = _consistency_stage(evaluator, scr, log)
     lap("consistency_s")
