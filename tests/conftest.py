@@ -60,7 +60,8 @@ TERMS_T_END = 80.0
 TERMS_BASE = dict(mu=0.25, xi=600.0)
 
 
-TERMS_ON = {"kappa": 0.004, "curvature": 1.0, "earth_pressure": 1.0, "tau_y": 60.0, "mu_i": 0.3, "deposition": 0.3}
+TERMS_ON = {"kappa": 0.004, "curvature": 1.0, "earth_pressure": 1.0, "tau_y": 60.0, "mu_i": 0.3, "deposition": 0.3,
+            "release_scale": 0.2}
 
 
 def all_terms_case():

@@ -93,6 +93,7 @@ batch_size = 10
 MSH_DIAGNOSE = """
 [diagnose]
 candidates = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i", "release_volume"]
+model_error_runs = 6         # the grid's error from 6 run pairs on 10 m and 5 m cells (12 by default)
 """
 
 TERRAIN = """[terrain]
