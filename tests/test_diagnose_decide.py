@@ -275,3 +275,25 @@ def test_separation_names_the_data_where_the_alternatives_differ():
     assert s["values"] == [{"observation": "g:h[0]", "difference_sigma": 2.0}, {"observation": "v", "difference_sigma": 0.5}]
     assert s["blocks"][0] == {"block": "g:h", "difference_sigma_rss": 2.0}
     assert separation(ev, {"A": refits["A"]}, ["A", "B"]) == {}
+
+
+def test_a_candidate_at_the_end_of_an_open_range_is_not_named():
+    """A release_volume fit whose interval reaches +50 % (the end of its range, a budget, not a limit): the
+    data want more than the range allows, so it is not named even when it passes every other check; the
+    report says so. pipeline.at_range_end reads it from the switch's interval."""
+    from torchslide.diagnose.pipeline import at_range_end
+    from torchslide.diagnose.report import _verdict_section
+
+    th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)
+    loc = [{"standardised_residual": 14.0}]
+    edge = {"release_scale": {"mean": 0.5, "hdr90": [0.4994, 0.5]}}
+    assert at_range_end("release_volume", edge) and not at_range_end("release_volume", {"release_scale": {"hdr90": [0.2, 0.3]}})
+    assert not at_range_end("earth_pressure", {"earth_pressure": {"hdr90": [0.9, 1.0]}})   # a limit of the term
+    c = _cand("release_volume", 228.0, at_range_end=True, parameters=edge, param="release_scale")
+    d = decide([c, _cand("entrainment", -12.0)], loc, {"ess": 5.0}, 100.0, th)
+    assert d["verdict"] == "unexplained" and d["missing_physics"] is None
+    assert d["checks"]["release_volume"]["within_range"] is False and "within_range" in d["reason"]
+    j = {"verdict": d["verdict"], "missing_physics": None, "decision": d, "candidates": [c]}
+    assert any("the data want more than the range allows" in line for line in _verdict_section(j))
+    ok = _cand("release_volume", 228.0, at_range_end=False)
+    assert decide([ok], loc, {"ess": 5.0}, 100.0, th)["missing_physics"] == "release_volume"

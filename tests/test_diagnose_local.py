@@ -294,7 +294,7 @@ def test_a_release_larger_than_stated_is_not_named_entrainment(release_scale, ka
         assert lo <= release_scale <= hi
         assert by["entrainment"]["two_ln_bf"] > 100     # what would have named entrainment without the candidate
         from torchslide.diagnose.report import write_markdown
-        assert "This is not missing physics" in write_markdown(d.to_json(), [])
+        assert "Not a physics term" in write_markdown(d.to_json(), [])
 
 
 def test_the_design_equals_the_detectability_with_the_extra_gauge_recorded():

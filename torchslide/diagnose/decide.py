@@ -12,6 +12,8 @@ are computed from *solver runs* at posterior draws, not from the emulator alone)
 * ``savage_dickey``: the Savage-Dickey 2 ln BF at switch = 0 is > 0 (same sign as the evidence);
 * ``predictive``: out-of-sample check, 2 (elpd_WAIC(candidate) - elpd_WAIC(baseline)) >= ``waic_min``;
 * ``misfit``: the misfit of its posterior-predictive mean is below the baseline's;
+* ``within_range`` (candidates with an open range, e.g. release_volume): the switch's 90 % interval
+  stays below the end of its range (a fit at the end: the data want more than the range allows);
 * ``explains``: the baseline's located mismatches, re-scored at the same places with the candidate's
   predictive draws, lose >= ``explain_min`` of their sum of squared scores and none stays above
   ``located_min`` (no located mismatch: passes).
@@ -117,6 +119,8 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
     out["predictive"] = bool(dw is not None and np.isfinite(dw) and dw >= th.waic_min)
     ma = c.get("misfit_after")
     out["misfit"] = bool(ma is not None and ma < misfit_before)
+    if "at_range_end" in c:
+        out["within_range"] = not c["at_range_end"]
     rs = c.get("located_rescored") or {}
     if not rs.get("items"):
         out["explains"] = True

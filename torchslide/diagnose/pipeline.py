@@ -179,6 +179,14 @@ class Diagnosis:
         })
 
 
+def at_range_end(c: str, params: dict) -> bool:
+    """Whether candidate ``c``'s switch sits at the upper end of an open range (Candidate.open_range): its
+    90 % interval reaches the range's last thousandth."""
+    cd = CANDIDATES[c]
+    iv = (params.get(cd.param) or {}).get("hdr90")
+    return bool(cd.open_range and iv is not None and iv[1] >= cd.prior[1] - 1e-3 * (cd.prior[1] - cd.prior[0]))
+
+
 def _params(cal) -> dict:
     """Posterior mean, MAP, the calibration's 90 % interval ('hdr90': grid HDR extent or MCMC
     equal-tailed) and 'hdi90': the 90 % highest-density interval on the prior range (boundary-corrected
@@ -383,7 +391,7 @@ def _candidate_report(evaluator, c: str, r: _Refit, base: _Baseline, scr: Screen
            "two_ln_bf_savage_dickey": sd["two_ln_bf"], "savage_dickey": sd,
            "delta_waic": 2 * (el["elpd"] - base.elpd["elpd"]), "located_rescored": rs,
            "misfit_after": misfit, "screening_score": scr.scores[c], "mimic": scr.mimic[c],
-           "parameters": _params(cal_c),
+           "parameters": _params(cal_c), "at_range_end": at_range_end(c, _params(cal_c)),
            "best_misfit": r.evaluator.misfit(rb.predictions) if rb is not None else float("inf"),
            "n_runs": cal_c.n_runs, "best_x": cal_c.x[best_i].tolist()}
     log(f"[diagnose] refit {c}: 2 ln BF {2 * lbf:.1f} (lower {out['two_ln_bf_lower']:.1f}; emulator "
@@ -578,6 +586,7 @@ def _local_candidate(evaluator, cf, base: _Baseline, scr: ScreenResult, bud: Bud
            "delta_waic": 2 * (el["elpd"] - base.elpd["elpd"]), "located_rescored": rs,
            "misfit_after": cf.evaluator.misfit(pred.mean) if len(pred.draws) else float("inf"),
            "screening_score": scr.scores[c], "mimic": scr.mimic[c], "parameters": _params(cal),
+           "at_range_end": at_range_end(c, _params(cal)),
            "n_runs": cf.n_runs + len(pred.x), "best_x": cf.fit.x.tolist(), "fit_message": cf.fit.message}
     log(f"[diagnose] local fit {c}: 2 ln BF {cf.two_ln_bf:.1f}, 2 ln LR {cf.lr:.1f} (p {cf.lr_pvalue:.2g}), "
         f"SD {cf.two_ln_bf_savage_dickey:.1f}, dWAIC {row['delta_waic']:.1f}, explained {rs.get('explained')}")

@@ -142,8 +142,15 @@ def _verdict_section(j: dict) -> list[str]:
         rs = next((c["parameters"].get("release_scale") for c in j["candidates"] if c["name"] == "release_volume"), None)
         size = f" by {100 * rs['mean']:.0f} % (90 %: {100 * rs['hdr90'][0]:.0f} to {100 * rs['hdr90'][1]:.0f} %)" \
             if rs and rs.get("hdr90") else ""
-        L += [f"This is not missing physics: the recordings hold more mass from the start than the stated "
-              f"release{size}. Check the release's thickness or outline before any term.", ""]
+        L += [f"Not a physics term: the recordings hold more mass than the stated release{size}, as if from the "
+              f"start. Either the release is larger than stated, or the flow gained mass along its path in a way "
+              f"the entrainment candidate (its erodible depth and rate law as set up) does not reproduce; check "
+              f"the release's thickness and outline, and the erodible depth.", ""]
+    for c in j["candidates"]:
+        if c.get("at_range_end"):
+            iv = (c["parameters"].get(c["param"]) or {}).get("hdr90")
+            L += [f"{c['name']} fits at the end of its range ({c['param']} 90 % interval {iv}): the data want more "
+                  f"than the range allows, so it is not named.", ""]
     inf = j["decision"].get("inference")
     if inf:
         L += [f"Inference: {'local fits on the solver with Laplace evidence' if inf['path'] == 'local' else 'GP emulator over the prior box'}"
