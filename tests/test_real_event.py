@@ -130,7 +130,7 @@ def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
     assert main(["predict", str(msh / "small.toml"), "--calibration", str(cal), "--out", str(pred), "--n", "3",
                  "--quiet"]) in (0, 1)
     info = json.loads((pred / "predictive.json").read_text())
-    assert info["maps_and_series"]["dod"]["n"] == 224 and len(info["values"]) == 226
+    assert info["maps_and_series"]["dod"]["n"] == 224 and len(info["values"]) == 2 + 224 + 1123   # + the outline
     assert [o["name"] for o in info["observations"]] == ["impact", "deposit"]
     j = info["against_observations"]["dod"]["footprint_jaccard"]
     assert 0 <= j["q05"] <= j["median"] <= j["q95"] <= 1

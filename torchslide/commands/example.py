@@ -23,7 +23,9 @@ MassWastingRunout tutorial data, MIT licence; SOURCE.md and LICENSE.md beside th
     DIR/source.asc         the mapped source (1 at the 30 cells)
     DIR/hillshade.asc      a 2 m hillshade for figures
     DIR/erodible.asc       a regolith 1.2 m deep (the depth landlab's tutorial uses), for the entrainment candidate
-    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas and the DoD), diagnose.toml
+    DIR/footprint.asc      the mapped outline: 1 on the 224 changed cells, 0 within 50 m around them (a
+                           ``footprint`` observation), nodata beyond
+    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas, the outline and the DoD), diagnose.toml
 """
 from __future__ import annotations
 
@@ -75,6 +77,14 @@ kind = "deposit_area"      # cells where the survey found deposition
 name = "deposit"
 value = 13000.0
 sigma = 1300.0
+threshold = 0.1
+
+[[observations]]
+kind = "footprint"         # the mapped outline (footprint.asc: 1 mapped, 0 within 50 m around it), against
+name = "outline"           # the smooth reach h_max^2 / (h_max^2 + threshold^2) of each cell
+file = "footprint.asc"
+sigma = 0.3
+corr_length = 20.0
 threshold = 0.1
 
 [[observations]]
@@ -189,13 +199,30 @@ def _msh2021(args: argparse.Namespace) -> int:
         (tmp / "simulate.toml").write_text(MSH_TERRAIN)
         (tmp / "calibrate.toml").write_text(MSH_TERRAIN + MSH_CALIBRATE)
         _erodible(tmp)
+        _footprint(tmp)
         terrain = MSH_TERRAIN.replace('thickness = "normal"\n', 'thickness = "normal"\n'
                                       'erodible = "erodible.asc"    # the regolith, 1.2 m deep (landlab\'s tutorial)\n')
         (tmp / "diagnose.toml").write_text(terrain + MSH_CALIBRATE.replace("[calibration]", MSH_DIAGNOSE
                                                                            + "\n[calibration]"))
-    print(f"wrote {out}: the 2021 Mount St. Helens landslide ({', '.join(MSH_FILES)}, erodible.asc), simulate.toml, "
+    print(f"wrote {out}: the 2021 Mount St. Helens landslide ({', '.join(MSH_FILES)}, erodible.asc, footprint.asc), simulate.toml, "
           "calibrate.toml, diagnose.toml; data from the landlab project, MIT licence (SOURCE.md, LICENSE.md)")
     return 0
+
+
+def _footprint(folder: Path, ring: int = 5) -> None:
+    """folder/footprint.asc: the mapped runout as an outline raster: 1 on the surveyed cells that changed
+    (the DoD's), 0 on the ``ring`` cells around them (mapped as not reached), nodata beyond."""
+    from scipy.ndimage import binary_dilation
+
+    from ..terrain.io import read_asc, read_asc_array, write_asc
+
+    dem = read_asc(folder / "dem.asc", nodata="outside")
+    dod = read_asc_array(folder / "dod.asc")[0]
+    mapped = np.isfinite(dod) & (dod != 0)
+    near = binary_dilation(mapped, iterations=ring)
+    if dem.outside is not None:
+        near &= ~dem.outside
+    write_asc(folder / "footprint.asc", np.where(mapped, 1.0, np.where(near, 0.0, np.nan)), dem, fmt="%.0f")
 
 
 def _erodible(folder: Path, depth: float = 1.2) -> None:
