@@ -2,12 +2,13 @@
 
 1. ``torchslide example msh2021``: the pre-event DEM, the failure depths (the release), the surveyed DEM of
    difference (DoD) of the runout, calibrate.toml and diagnose.toml (landlab's data, MIT licence).
-2. ``torchslide calibrate``: Voellmy mu, xi on the mapped impact area, the deposition area and the DoD as an
-   elevation_change map (sigma 0.5 m, correlation length 20 m).
+2. ``torchslide calibrate``: Voellmy mu, xi on the mapped impact area, the deposition area, the mapped
+   outline (a footprint map) and the DoD as an elevation_change map (sigma 0.5 m, correlation length 20 m).
 3. ``torchslide predict``: 32 posterior draws, the impact probability over the mapped footprint.
 4. The posterior median run against the survey: footprint Jaccard (h_max > 0.1 m against the 224 mapped
    cells), the shares of mapped cells reached and of reached cells outside the map, deposition and erosion
-   volumes, the DoD observed, simulated and their difference over the hillshade.
+   volumes, the run-out from the release's crown, the DoD observed, simulated and their difference over
+   the hillshade (torchslide.survey).
 5. ``torchslide diagnose`` on the same files: where the calibrated model and the survey disagree, which
    candidate term explains it, if any.
 
@@ -58,6 +59,15 @@ def survey_figures(dod: np.ndarray, dz: np.ndarray, h_max: np.ndarray, p_impact:
     return {**footprint_figures(h_max > THRESHOLD, mapped),
             "share_of_mapped_cells_with_p_impact_ge_0.5": float((p_impact[mapped] >= 0.5).mean()),
             **change_figures(dz, dod, np.sqrt(cell))}
+
+
+def runout(cfg, dod: np.ndarray, h_max: np.ndarray) -> dict:
+    """Run-out from the release's crown (torchslide.survey) of the run (h_max > THRESHOLD) and of the survey."""
+    from torchslide.survey import runout_from_crown
+
+    dem, rel = cfg.terrain.dem, cfg.terrain.release
+    return {"run": runout_from_crown(dem.z, rel, h_max > THRESHOLD, dem.cellsize),
+            "survey": runout_from_crown(dem.z, rel, np.isfinite(dod) & (dod != 0), dem.cellsize)}
 
 
 def plot_dod(dem, hillshade_file: Path, dod: np.ndarray, dz: np.ndarray, path: Path) -> None:
@@ -112,7 +122,8 @@ def write_page(out: dict, path: Path) -> None:
         "MassWastingRunout tutorial (MIT licence; torchslide/data/msh2021/SOURCE.md): the pre-event DEM (10 m),",
         "the failure depths of the 30 source cells (22,481 m^3, the release) and the surveyed DEM of difference",
         "of the 224 mapped cells of the runout. Voellmy mu, xi calibrated on the mapped impact area, the",
-        "deposition area and the DoD (sigma 0.5 m, correlation length 20 m); no entrainment in the model.",
+        "deposition area, the mapped outline (footprint.asc, a `footprint` observation) and the DoD (sigma",
+        "0.5 m, correlation length 20 m); no entrainment in the model.",
         "",
         f"Posterior ({out['inference']} inference): mu {p['mean']['mu']:.3f} +- {p['sd']['mu']:.3f} "
         f"(90 % [{p['hdr90']['mu'][0]:.3f}, {p['hdr90']['mu'][1]:.3f}]), xi {p['mean']['xi']:.0f} +- {p['sd']['xi']:.0f} "
@@ -129,6 +140,7 @@ def write_page(out: dict, path: Path) -> None:
         f"| deposition, m^3 (vertical) | {f['deposition_m3']['run']:,.0f} (survey {f['deposition_m3']['survey']:,.0f}) |",
         f"| erosion, m^3 (vertical, source included) | {f['erosion_m3']['run']:,.0f} (survey {f['erosion_m3']['survey']:,.0f}) |",
         f"| DoD rmse over the mapped cells | {f['rmse_m']:.2f} m |",
+        f"| run-out from the release's crown | {f['runout_m']['run']:.0f} m (survey {f['runout_m']['survey']:.0f} m) |",
         "",
         "![surveyed and simulated elevation change](figures/dod.png)",
         "![impact probability](figures/impact_probability.png)",
@@ -153,8 +165,9 @@ def write_page(out: dict, path: Path) -> None:
                       f"surveyed release, so nothing is named. The survey's own balance ({f['erosion_m3']['survey']:,.0f} "
                       f"m^3 eroded, source included, against {f['deposition_m3']['survey']:,.0f} m^3 deposited and "
                       f"22,481 m^3 released) points to mass gained along the path, which the entrainment candidate as "
-                      f"set up (a uniform 1.2 m regolith, erosion rate kappa |V|) does not place where the survey "
-                      f"found it (2 ln BF {d['candidates'].get('entrainment', float('nan')):+.1f}).", ""]
+                      f"set up (a uniform 1.2 m regolith, erosion rate kappa |V|) does not reproduce ("
+                      + (f"2 ln BF {d['candidates']['entrainment']:+.1f}" if "entrainment" in d["candidates"] else
+                         "not among the two candidates the screening ranked highest") + ").", ""]
     lines.append(f"Wall time {out['wall_s']:.0f} s on the 2-core machine.")
     path.write_text("\n".join(lines) + "\n")
 
@@ -181,7 +194,8 @@ def main(argv=None) -> int:
     post = json.loads((cal / "posterior.json").read_text())
     out = {"posterior": {k: post[k] for k in ("mean", "sd", "map", "hdr90")}, "inference": post["inference"]["path"],
            "median_run": x,
-           **survey_figures(dod, r.elevation_change[0].numpy(), r.h_max[0].numpy(), p_impact, cfg.terrain.dem.cellsize ** 2)}
+           **survey_figures(dod, r.elevation_change[0].numpy(), r.h_max[0].numpy(), p_impact, cfg.terrain.dem.cellsize ** 2),
+           "runout_m": runout(cfg, dod, r.h_max[0].numpy())}
     figs = HERE / "figures"
     figs.mkdir(exist_ok=True)
     plot_dod(cfg.terrain.dem, case / "hillshade.asc", dod, r.elevation_change[0].numpy(), figs / "dod.png")
