@@ -67,7 +67,8 @@ no flux (the D-Claw rule; scheme.frozen_faces).
 Per-member time steps: dt_b from the CFL condition, clipped so members land exactly on the output
 times; all members advance together with a (B, 1, 1) dt; an ended member has dt_b = 0 (bitwise
 unchanged) and is dropped from the working batch at the next check (``SolverConfig.check_every``).
-A member ends at t_end or when its kinetic energy falls below ``stop_ke_fraction`` of its peak.
+A member ends at t_end, when its kinetic energy falls below ``stop_ke_fraction`` of its peak, or once
+its flow has stopped (torchslide.solver.stop: footprint and deposit quiet for ``stop_quiet_time``).
 Results of one member do not depend on the other members.
 """
 from .config import SolverConfig
