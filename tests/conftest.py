@@ -307,3 +307,33 @@ def cand(name, two_ln_bf, **kw):
     c.update(kw)
     return c
 
+
+
+class Killed(BaseException):
+    """What killed_after_write raises in place of a kill -9."""
+
+
+def killed_after_write(monkeypatch, names, k: int, run) -> bool:
+    """Call ``run()`` with os.replace patched so that right after the ``k``-th atomic write of a file named in
+    ``names`` (torchslide.files writes every result through os.replace) the process "dies" (Killed); True
+    when it did, False when ``run`` ended with fewer such writes."""
+    import torchslide.files as files
+
+    real_replace = files.os.replace
+    count = [0]
+
+    def replace(src, dst):
+        real_replace(src, dst)
+        if Path(dst).name in names:
+            count[0] += 1
+            if count[0] == k:
+                raise Killed
+
+    monkeypatch.setattr(files.os, "replace", replace)
+    try:
+        run()
+        return False
+    except Killed:
+        return True
+    finally:
+        monkeypatch.setattr(files.os, "replace", real_replace)

@@ -304,46 +304,26 @@ def test_a_diagnosis_killed_after_each_final_write_resumes_to_every_file(tmp_pat
     a resume with no checkpoint or with another recording is one line, exit 2."""
     import json
     import shutil
-    from pathlib import Path
 
-    import torchslide.files as files
     from torchslide.terrain.synthetic import inclined_plane
+
+    from .conftest import killed_after_write
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
     p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets())
     ref = tmp_path / "ref"
     assert main(["diagnose", str(p), "--out", str(ref), "--quiet"]) == 0
     done = json.loads((ref / "finished.json").read_text())["files"]
     assert "diagnosis.pkl" in done and "report.json" in done and "report.md" in done and len(done) >= 5
-    real_replace = files.os.replace
-
-    class Killed(BaseException):
-        pass
-
     import torchslide.diagnose as diagnose_pkg
     monkeypatch.setattr(diagnose_pkg, "diagnose", lambda *a, **k: pytest.fail("a resume ran the inference again"))
     k = 0
     while True:
         k += 1
-        count = [0]
-
-        def replace(src, dst, _k=k):
-            real_replace(src, dst)
-            if Path(dst).name in done:
-                count[0] += 1
-                if count[0] == _k:
-                    raise Killed
-
         out = tmp_path / f"killed_{k}"
         out.mkdir()
         shutil.copy(ref / "diagnosis.pkl", out / "diagnosis.pkl")     # killed right after the checkpoint
-        monkeypatch.setattr(files.os, "replace", replace)
-        try:
-            main(["diagnose", str(p), "--out", str(out), "--quiet", "--resume"])
-            killed = False
-        except Killed:
-            killed = True
-        monkeypatch.setattr(files.os, "replace", real_replace)
-        if not killed:
+        if not killed_after_write(monkeypatch, done, k,
+                                  lambda: main(["diagnose", str(p), "--out", str(out), "--quiet", "--resume"])):
             break
         assert not (out / "finished.json").exists()
         assert main(["diagnose", str(p), "--out", str(out), "--quiet", "--resume"]) == 0

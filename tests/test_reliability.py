@@ -193,39 +193,18 @@ def test_a_command_killed_after_each_final_write_resumes_to_every_file(case, mon
     """Killed right after each of its final writes (for calibrate: posterior.json, .npz, the rewritten
     posterior.json, runs.csv, the figures), a calibration or sweep resumes to every result file, equal to an
     uninterrupted run's; a calibration says there is nothing to resume only once finished.json, written
-    last, is there. (predict writes its folder whole or not at all, diagnose has no resume.)"""
-    import torchslide.files as files
+    last, is there. (predict writes its folder whole or not at all; diagnose: tests/test_diagnose_cli.py.)"""
+    from .conftest import killed_after_write
 
     extra, finals, compare, n_writes = KILL_CASES[command]
     cmd = [command, str(case / "calibrate.toml"), *extra, "--quiet"]
     ref = case.parent / "ref"
     assert main([*cmd, "--out", str(ref)]) in (0, 1)
-    real_replace = files.os.replace
-
-    class Killed(BaseException):
-        pass
-
     k = 0
     while True:
         k += 1
-        count = [0]
-
-        def replace(src, dst, _k=k):
-            real_replace(src, dst)
-            if Path(dst).name in finals:
-                count[0] += 1
-                if count[0] == _k:
-                    raise Killed
-
         out = case.parent / f"killed_{k}"
-        monkeypatch.setattr(files.os, "replace", replace)
-        try:
-            main([*cmd, "--out", str(out)])
-            killed = False
-        except Killed:
-            killed = True
-        monkeypatch.setattr(files.os, "replace", real_replace)
-        if not killed:
+        if not killed_after_write(monkeypatch, finals, k, lambda: main([*cmd, "--out", str(out)])):
             break
         assert not (out / "finished.json").exists()
         assert main([*cmd, "--out", str(out), "--resume"]) in (0, 1)
