@@ -1,6 +1,7 @@
 """experiments.bondo: Table 1 noise, Table 2 log-posteriors, and the whole pipeline in its quick
 configuration (coarse terrain, 8 initial + 4 adaptive runs, 2 cases, 6 x 6 sweep), including resume."""
 import json
+import shutil
 import time
 
 import numpy as np
@@ -44,7 +45,7 @@ def test_case_log_posterior_uses_its_columns():
 def test_quick_pipeline_end_to_end(tmp_path):
     from experiments.bondo.report import write_readme
     from experiments.bondo.simulator import CachedSimulator
-    from experiments.bondo.study import run_study
+    from experiments.bondo.study import run_active, run_study
 
     cfg = BondoConfig.quick(str(tmp_path), tensorboard=True)
     t0 = time.perf_counter()
@@ -77,4 +78,12 @@ def test_quick_pipeline_end_to_end(tmp_path):
     res2 = run_study(cfg)
     assert res2["timing"]["solver_calls"] == 0 and res2["timing"]["n_simulations_cached"] == n_before
     assert res2["cases"]["1"]["tv_ref"] == res["cases"]["1"]["tv_ref"]
+    # the cases' GPs in worker processes pick the same points (the simulations come from a copy of the cache)
+    par = cfg.with_(workers=2, work_dir=str(tmp_path / "workers"), tensorboard=False)
+    par.run_dir.mkdir(parents=True)
+    shutil.copy(rd / "cache.npz", par.run_dir / "cache.npz")
+    res3 = run_active(par, CachedSimulator(par, par.run_dir / "cache.npz"),
+                      {c: CaseLogPosterior(c, sim, saved["table1"]["data"], par) for c in par.cases})
+    for c in par.cases:
+        np.testing.assert_array_equal(res3[c]["state"].x.numpy(), np.load(rd / f"case_{c}" / "posteriors.npz")["x"])
     print(f"quick pipeline wall time {wall:.1f} s")

@@ -35,6 +35,8 @@ def main(argv=None) -> int:
                     help="solver step (default: fused)")
     ap.add_argument("--device", default=None, help="solver device, e.g. cuda (default: cpu)")
     ap.add_argument("--max-batch", type=int, default=None, help="most solver members per call (default: 25)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="processes for the cases' GP fits and acquisitions (default: 1, this process)")
     a = ap.parse_args(argv)
     cfg = BondoConfig.quick(a.work_dir) if a.quick else BondoConfig()
     kw = {k: v for k, v in {"cellsize": a.cellsize, "t_end": a.t_end, "n_initial": a.n_initial,
@@ -50,7 +52,8 @@ def main(argv=None) -> int:
         kw["work_dir"] = a.work_dir
     if a.dtype is not None:
         kw["dtype"] = a.dtype
-    kw.update({k: v for k, v in {"kernel": a.kernel, "device": a.device, "max_batch": a.max_batch}.items()
+    kw.update({k: v for k, v in {"kernel": a.kernel, "device": a.device, "max_batch": a.max_batch,
+                                 "workers": a.workers}.items()
                if v is not None})
     if a.no_tensorboard:
         kw["tensorboard"] = False

@@ -27,7 +27,7 @@ Commands:
     python -m experiments.bondo                 # full study (all 10 cases, sweep, figures, this page)
     python -m experiments.bondo --case 1        # one case
     python -m experiments.bondo --quick         # a small configuration of the whole pipeline (minutes)
-    python -m experiments.bondo --cellsize 20 --device cuda --max-batch 100   # 20 m cells, solver on a GPU
+    python -m experiments.bondo --cellsize 20 --device cuda --max-batch 100 --workers 10   # 20 m, GPU
     python -m experiments.sweep [--n 30]        # the brute-force sweep alone (resumable)
     python -m experiments.bondo.report          # regenerate this page from saved results
 
@@ -135,7 +135,9 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append("## Run shown on this page\n")
     L.append(f"- run directory: `{run_dir.name}`; cell size **{cfg['cellsize']:g} m**, t_end {cfg['t_end']:g} s, "
              f"{cfg['dtype']}; cases {cfg['cases']}")
-    L.append(f"- solver: {_solver_mode(cfg, t.get('machine'))}")
+    L.append(f"- solver: {_solver_mode(cfg, t.get('machine'))}; GP fits and acquisitions "
+             + (f"in {cfg['workers']} worker processes (one per case at a time)" if cfg.get("workers", 1) > 1
+                else "in the study's process"))
     L.append(f"- {cfg['n_initial']} shared initial maximin-LHS runs, {cfg['n_adaptive']} adaptive runs per case "
              f"in batches of q = {cfg['batch_size']} per case (the points of all cases run in one solver call), "
              f"grid {cfg['grid_size']} x {cfg['grid_size']}")
@@ -175,7 +177,7 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
                  f"({solver_mode}) the ~1500 runs of the study plus the sweep take hours on a 2-core CPU at 20 m (per "
                  "run the cost grows roughly with the cube of 1/cell size: 4x the cells and 2x the time steps per "
                  "halving; the 20 m cost per run is in bench/results/solver_full_runs_idle_*.json). The 20 m study is "
-                 "`python -m experiments.bondo --cellsize 20 --device cuda --max-batch 100` (solver on a GPU); it "
+                 "`python -m experiments.bondo --cellsize 20 --device cuda --max-batch 100 --workers 10` (solver on a GPU); it "
                  "was not run here.")
     L.append("- Terrain: the analytic Bondo-like valley of `torchslide.terrain.synthetic.bondo_like` "
              "(3e6 m^3 release), not the real DEM; solver: torchslide, not r.avaflow. Table 1 values therefore differ "

@@ -67,75 +67,201 @@ def fit_density(cfg: BondoConfig, x, z):
     return grid_posterior(em.mean, torch.as_tensor(cfg.bounds_array()), cfg.grid_size).density
 
 
+class _Given:
+    """The evaluator of a case's learner: the result the main process computed for the points it is
+    asked about (the learner never runs the solver itself; the main process batches all cases' runs)."""
+
+    def __init__(self):
+        self.result = None
+
+    def __call__(self, x):
+        r, self.result = self.result, None
+        if r is None or r.z.numel() != x.shape[0]:
+            raise RuntimeError("a case's learner asked for a result the study did not hand it")
+        return r
+
+
+class CaseRunner:
+    """One Table 2 case's Algorithm 1 (its ActiveLearner, snapshots and timings), stepped by run_active."""
+
+    def __init__(self, c: int, cfg: BondoConfig, x0: torch.Tensor, res0):
+        rd = cfg.run_dir
+        self.c, self.cfg = c, cfg
+        acfg = ActiveConfig(n_initial=cfg.n_initial, n_total=cfg.n_total, batch_size=cfg.batch_size, seed=cfg.seed,
+                            grid_size=cfg.grid_size, tv_lag=cfg.tv_lag, num_restarts=cfg.num_restarts,
+                            raw_samples=cfg.raw_samples, image_every=cfg.tv_lag)
+        self.given = _Given()
+        self.L = ActiveLearner(self.given, torch.as_tensor(cfg.bounds_array()), acfg,
+                               checkpoint=rd / f"case_{c}" / "checkpoint.pt", progress=False, names=cfg.names)
+        self.given.result = res0
+        self.L.initialise(x0)
+        self.given.result = None
+        if cfg.tensorboard:
+            self.L.open_log(rd / "tb" / f"case_{c}")
+        sp = rd / f"case_{c}" / "snapshots.npz"
+        self.snaps = dict(np.load(sp)) if sp.exists() else {}
+        tp = rd / f"case_{c}" / "seconds.json"
+        self.secs = json.loads(tp.read_text()) if tp.exists() else {"gp_acq_s": 0.0, "solver_share_s": 0.0}
+        # a case that already finished (resume) is not refitted: its final posterior is in its snapshots
+        self.done = self.L.state.n_runs >= cfg.n_total and f"a{cfg.n_adaptive}" in self.snaps
+        self.pending = None
+
+    @property
+    def n_runs(self) -> int:
+        return self.L.state.n_runs
+
+    def step(self):
+        """Fit, snapshot, and either finish (None) or propose the next points (q, 2)."""
+        cfg, L = self.cfg, self.L
+        t0 = time.perf_counter()
+        density, cvol, tv = L.update()
+        n_ad = L.state.n_runs - cfg.n_initial
+        if n_ad in cfg.snapshots:
+            self.snaps[f"a{n_ad}"] = density
+            np.savez(cfg.run_dir / f"case_{self.c}" / "snapshots.npz", **self.snaps)
+        x_new = None
+        if L.state.n_runs >= cfg.n_total:
+            L.finish("n_total reached", tv, density)
+            self.done = True
+        else:
+            x_new, vals = L.propose(min(cfg.batch_size, cfg.n_total - L.state.n_runs))
+            self.pending = (vals, tv, density)
+        self.secs["gp_acq_s"] += time.perf_counter() - t0
+        return x_new
+
+    def tell(self, x_new: torch.Tensor, res, solver_share_s: float) -> None:
+        vals, tv, density = self.pending
+        self.secs["solver_share_s"] += solver_share_s
+        self.given.result = res
+        self.L.tell(x_new, self.L.evaluate(x_new), acq_max=vals[0], tv=tv, density=density)
+        (self.cfg.run_dir / f"case_{self.c}" / "seconds.json").write_text(json.dumps(self.secs))
+
+    def close(self) -> dict:
+        (self.cfg.run_dir / f"case_{self.c}" / "seconds.json").write_text(json.dumps(self.secs))
+        self.L.close_log()
+        return {"state": self.L.state, "snapshots": self.snaps, "seconds": self.secs}
+
+
+def _case_worker(conn, c: int, cfg: BondoConfig, x0, res0) -> None:
+    """A worker process holding one CaseRunner: answers ("step",), ("tell", x, res, s), ("close",) (then
+    waits for one more message before it exits)."""
+    torch.set_num_threads(1)
+    try:
+        runner = CaseRunner(c, cfg, x0, res0)
+        conn.send(("ready", runner.done, runner.n_runs))
+        while True:
+            msg = conn.recv()
+            if msg[0] == "step":
+                x = runner.step()
+                conn.send(("step", x, runner.done, runner.n_runs))
+            elif msg[0] == "tell":
+                runner.tell(*msg[1:])
+                conn.send(("told", runner.n_runs))
+            else:   # torch hands tensors over by file descriptor: stay until the main process has them
+                conn.send(("closed", runner.close()))
+                conn.recv()
+                return
+    except BaseException as e:  # noqa: BLE001 - reported in the main process, which stops the study
+        conn.send(("error", f"case {c}: {type(e).__name__}: {e}"))
+
+
+class RemoteCase:
+    """A CaseRunner in its own process (spawned, one torch thread), with the same step/tell/close."""
+
+    def __init__(self, c: int, cfg: BondoConfig, x0, res0, ctx):
+        self.c = c
+        self.conn, child = ctx.Pipe()
+        self.proc = ctx.Process(target=_case_worker, args=(child, c, cfg, x0, res0), daemon=True)
+        self.proc.start()
+
+    def _recv(self, kind: str):
+        msg = self.conn.recv()
+        if msg[0] == "error":
+            raise RuntimeError(msg[1])
+        assert msg[0] == kind, msg
+        return msg[1:]
+
+    def ready(self) -> None:
+        self.done, self.n_runs = self._recv("ready")
+
+    def start_step(self) -> None:
+        self.conn.send(("step",))
+
+    def end_step(self):
+        x, self.done, self.n_runs = self._recv("step")
+        return x
+
+    def tell(self, x_new, res, solver_share_s: float) -> None:
+        self.conn.send(("tell", x_new, res, solver_share_s))
+        (self.n_runs,) = self._recv("told")
+
+    def close(self) -> dict:
+        self.conn.send(("close",))
+        (out,) = self._recv("closed")
+        self.conn.send(("bye",))
+        self.proc.join()
+        return out
+
+
 def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
-    """Algorithm 1 for all cases in lockstep; returns case -> {"state", "snapshots", "seconds"}."""
-    rd = cfg.run_dir
-    acfg = ActiveConfig(n_initial=cfg.n_initial, n_total=cfg.n_total, batch_size=cfg.batch_size, seed=cfg.seed,
-                        grid_size=cfg.grid_size, tv_lag=cfg.tv_lag, num_restarts=cfg.num_restarts,
-                        raw_samples=cfg.raw_samples, image_every=cfg.tv_lag)
-    bounds = torch.as_tensor(cfg.bounds_array())
-    learners, snaps, secs = {}, {}, {}
+    """Algorithm 1 for all cases in lockstep; returns case -> {"state", "snapshots", "seconds"}.
+
+    Each iteration fits every case's GP and optimises its acquisition (in cfg.workers processes when
+    that is above 1: the cases are independent), then simulates all cases' new points in one solver call.
+    """
     x0 = torch.as_tensor(cfg.bounds_array()[0] + maximin_lhs(cfg.n_initial, 2, cfg.seed)
                          * np.diff(cfg.bounds_array(), axis=0)[0])
     _log(f"initial design: {cfg.n_initial} maximin-LHS runs shared by {len(fns)} cases")
     sim.run(x0.numpy())
-    for c, fn in fns.items():
-        L = ActiveLearner(fn, bounds, acfg, checkpoint=rd / f"case_{c}" / "checkpoint.pt", progress=False,
-                          names=cfg.names)
-        L.initialise(x0)
-        if cfg.tensorboard:
-            L.open_log(rd / "tb" / f"case_{c}")
-        learners[c] = L
-        sp = rd / f"case_{c}" / "snapshots.npz"
-        snaps[c] = dict(np.load(sp)) if sp.exists() else {}
-        secs[c] = json.loads((rd / f"case_{c}" / "seconds.json").read_text()) \
-            if (rd / f"case_{c}" / "seconds.json").exists() else {"gp_acq_s": 0.0, "solver_share_s": 0.0}
+    res0 = {c: fn(x0) for c, fn in fns.items()}
+    workers = min(cfg.workers, len(fns))
+    if workers > 1:
+        import multiprocessing
+
+        ctx = multiprocessing.get_context("spawn")
+        runners = {c: RemoteCase(c, cfg, x0, res0[c], ctx) for c in fns}
+        for r in runners.values():
+            r.ready()
+    else:
+        runners = {c: CaseRunner(c, cfg, x0, res0[c]) for c in fns}
     from tqdm.auto import tqdm
 
-    # a case that already finished (resume) is not refitted: its final posterior is in its snapshots
-    done = {c: L.state.n_runs >= cfg.n_total and f"a{cfg.n_adaptive}" in snaps[c] for c, L in learners.items()}
-    total = sum(cfg.n_total for _ in learners)
-    bar = tqdm(total=total, initial=sum(L.state.n_runs for L in learners.values()), desc="active (all cases)",
-               unit="run")
-    while not all(done.values()):
-        proposals = {}
-        for c, L in learners.items():
-            if done[c]:
-                continue
-            t0 = time.perf_counter()
-            s = L.state
-            density, cvol, tv = L.update()
-            n_ad = s.n_runs - cfg.n_initial
-            if n_ad in cfg.snapshots:
-                snaps[c][f"a{n_ad}"] = density
-                np.savez(cfg.run_dir / f"case_{c}" / "snapshots.npz", **snaps[c])
-            if s.n_runs >= cfg.n_total:
-                L.finish("n_total reached", tv, density)
-                done[c] = True
-            else:
-                q = min(cfg.batch_size, cfg.n_total - s.n_runs)
-                x_new, vals = L.propose(q)
-                proposals[c] = (x_new, vals, tv, density)
-            secs[c]["gp_acq_s"] += time.perf_counter() - t0
+    bar = tqdm(total=cfg.n_total * len(runners), initial=sum(r.n_runs for r in runners.values()),
+               desc="active (all cases)", unit="run")
+    try:
+        _lockstep(cfg, sim, fns, runners, workers > 1, bar)
+    except BaseException:
+        for r in runners.values():
+            if isinstance(r, RemoteCase):
+                r.proc.terminate()
+        raise
+    finally:
+        bar.close()
+    return {c: r.close() for c, r in runners.items()}
+
+
+def _lockstep(cfg: BondoConfig, sim: CachedSimulator, fns: dict, runners: dict, remote: bool, bar) -> None:
+    """The iterations of run_active until every case has n_total runs."""
+    while not all(r.done for r in runners.values()):
+        live = [c for c, r in runners.items() if not r.done]
+        if remote:
+            for c in live:
+                runners[c].start_step()
+            stepped = {c: runners[c].end_step() for c in live}
+        else:
+            stepped = {c: runners[c].step() for c in live}
+        proposals = {c: x for c, x in stepped.items() if x is not None}
         if not proposals:
             break
-        allx = torch.cat([p[0] for p in proposals.values()])
+        allx = torch.cat(list(proposals.values()))
         t0 = time.perf_counter()
         sim.run(allx.numpy())  # ONE batched solver call for all cases' new points
         dt = time.perf_counter() - t0
-        for c, (x_new, vals, tv, density) in proposals.items():
-            L = learners[c]
-            secs[c]["solver_share_s"] += dt * x_new.shape[0] / allx.shape[0]
-            L.tell(x_new, L.evaluate(x_new), acq_max=vals[0], tv=tv, density=density)
-            (cfg.run_dir / f"case_{c}" / "seconds.json").write_text(json.dumps(secs[c]))
+        for c, x_new in proposals.items():
+            runners[c].tell(x_new, fns[c](x_new), dt * x_new.shape[0] / allx.shape[0])
             bar.update(x_new.shape[0])
         _log(f"iteration done: {allx.shape[0]} new runs in {dt:.1f} s; runs per case "
-             + ", ".join(f"{c}:{learners[c].state.n_runs}" for c in learners))
-    bar.close()
-    for c, L in learners.items():
-        (cfg.run_dir / f"case_{c}" / "seconds.json").write_text(json.dumps(secs[c]))
-        L.close_log()
-    return {c: {"state": L.state, "snapshots": snaps[c], "seconds": secs[c]} for c, L in learners.items()}
+             + ", ".join(f"{c}:{runners[c].n_runs}" for c in runners))
 
 
 def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:
