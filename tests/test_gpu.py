@@ -137,6 +137,23 @@ def test_float32_on_the_fast_paths_is_judged_by_physics(case):
     assert bool(((o32 - o64).abs() <= tol).all()), ((o32 - o64).abs() / o64.abs().clamp_min(1e-300))
 
 
+def test_verification_cases_pass_in_float32_on_the_fast_paths():
+    """Cases 4, 5 and 7 of docs/verification.md in float32 on the Triton step, at their own tolerances."""
+    from .test_solver_reference import _energy_line, _mangeney, _similarity_run
+
+    kw = {"device": DEVICE, "dtype": torch.float32}
+    for theta, delta in [(22.0, 21.0), (40.0, 30.0)]:
+        e1, fn1, fr1, r1 = _mangeney(1.0, theta=theta, delta=delta, **kw)
+        assert e1 < 0.03 and abs(fn1 - fr1) <= 5 * 1.0
+        assert abs(float(r1.final_volume[0] + r1.outflow_volume[0] - r1.release_volume[0])) \
+            < 1e-5 * float(r1.release_volume[0])
+    e5, c5, ref, a5 = _similarity_run(5.0, 0.0, **kw)
+    assert e5 < 0.03 and abs(c5 - ref) < 0.2 * 5.0 and abs(a5[0.1] - 1) < 0.03
+    com, x_line, x0, r = _energy_line(**kw)
+    assert bool(r.stopped[0]) and not bool(r.failed[0])
+    assert x_line - 0.1 * (x_line - x0) < com < x_line
+
+
 @pytest.mark.parametrize("dtype,rtol", [(torch.float64, 1e-12)])
 def test_triton_step_on_cuda_equals_eager(dtype, rtol):
     """The fused kernel on CUDA (the Triton step) against the torch step on the same device, every term on."""

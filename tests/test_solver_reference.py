@@ -17,9 +17,10 @@ from .conftest import tilted_plane
 G = 9.81
 
 
-def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.0, h0: float = 1.0):
+def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.0, h0: float = 1.0, **kw):
     """The dam break on a DEM of the incline in map coordinates (x_map = x cos(theta)), h0 normal to
-    the slope; returns (L1 error of the normal thickness, front, reference front (map m), result)."""
+    the slope; returns (L1 error of the normal thickness, front, reference front (map m), result).
+    kw: simulate's device and dtype."""
     cs, tt = math.cos(math.radians(theta)), math.tan(math.radians(theta))
     x0, x1 = -40.0 * cs, 60.0 * cs
     nx = int(round((x1 - x0) / dx))
@@ -28,13 +29,13 @@ def _mangeney(dx: float, t: float = 5.0, theta: float = 22.0, delta: float = 21.
     rel = np.tile(np.where(xc < 0, h0, 0.0), (3, 1))
     # the reference is an infinite reservoir: the upslope edge must feed it (boundary "open")
     r = simulate(dem, rel, Params.make(mu=math.tan(math.radians(delta))), t_end=t,
-                 config=SolverConfig(output_interval=t, boundary="open"))
+                 config=SolverConfig(output_interval=t, boundary="open"), **kw)
     m = G * cs * (tt - math.tan(math.radians(delta)))
     c0 = math.sqrt(G * cs * h0)
     xs = xc / cs   # along the slope
     href = np.where(xs <= (m * t / 2 - c0) * t, h0,
                     np.where(xs <= (2 * c0 + m * t / 2) * t, (2 * c0 - xs / t + m * t / 2) ** 2 / (9 * G * cs), 0.0))
-    h = r.h_final[0, 1].numpy()
+    h = r.h_final[0, 1].double().cpu().numpy()
     err = np.abs(h - href).sum() / href.sum()
     thr = 0.05 * h0
     front_num, front_ref = xc[h > thr].max(), xc[href > thr].max()
@@ -87,17 +88,18 @@ def _sh_reference(t_s: float, Lx=80.0, Ly=80.0, H=4.0, delta_deg=25.0, zeta_deg=
     return h_of
 
 
-def _similarity_run(dx: float, plan: float, t_s: float = 5.0, zeta_deg: float = 35.0):
+def _similarity_run(dx: float, plan: float, t_s: float = 5.0, zeta_deg: float = 35.0, **kw):
     """Case 5 on a user's DEM of the 35 degree plane in map coordinates: the release cap in slope
     coordinates (x_s = S / cos), normal thickness. Returns (L1 error, centre of mass along the dip,
-    the reference's, both in map m, {threshold m: area with h > threshold / the reference's})."""
+    the reference's, both in map m, {threshold m: area with h > threshold / the reference's}).
+    kw: simulate's device and dtype."""
     Lx, H, delta = 80.0, 4.0, math.radians(25.0)
     cs = math.cos(math.radians(zeta_deg))
     dem, X, Y, S, T = tilted_plane(int(round(260.0 / dx)), dx, zeta_deg, plan)
     h0 = np.clip(H * (1 - (S / cs / Lx) ** 2 - (T / Lx) ** 2), 0, None)
-    r = simulate(dem, h0, Params.make(mu=math.tan(delta)), t_end=t_s, config=SolverConfig(output_interval=t_s))
+    r = simulate(dem, h0, Params.make(mu=math.tan(delta)), t_end=t_s, config=SolverConfig(output_interval=t_s), **kw)
     href = _sh_reference(t_s, zeta_deg=zeta_deg)(S / cs, T)
-    h = r.h_final[0].numpy()
+    h = r.h_final[0].double().cpu().numpy()
     area_ratio = {t: (h > t).sum() / (href > t).sum() for t in (0.001, 0.01, 0.1)}
     return np.abs(h - href).sum() / href.sum(), (h * S).sum() / h.sum(), (href * S).sum() / href.sum(), area_ratio
 
@@ -184,12 +186,9 @@ def test_thacker_paraboloid():
     assert np.abs(gs.u[0].numpy() - u_ref).max() < 0.1 * np.abs(u_ref).max()
 
 
-def test_energy_line_parabola():
-    """Case 7: on z = C (1 - x/L)^2, L = C / tan 34 deg, a point mass with Coulomb friction released
-    at x0 stops at x0 + z0 / mu on the flat (the energy line, s the horizontal distance). A small, thin
-    release (1 m, radius 60 m) is nearly a point mass: its deposit's centre of mass lies before the line
-    (a depth-averaged flow also loses energy in its spreading and its shocks) and within 10 % of the
-    travel distance of it."""
+def _energy_line(**kw):
+    """Case 7's run: (deposit centre, energy line's stop, release centre (m along x), result);
+    kw: simulate's device and dtype."""
     Cz, mu, dx = 1000.0, 0.4, 25.0
     Lp = Cz / math.tan(math.radians(34))
     nx, ny = 130, 24
@@ -199,12 +198,22 @@ def test_energy_line_parabola():
     dem = DEM(np.tile(zx, (ny, 1)), dx)
     X, Y = np.meshgrid(x, y)
     rel = np.clip(1.0 * (1 - ((X - 150) / 60) ** 2 - ((Y - 300) / 60) ** 2), 0, None)
-    r = simulate(dem, rel, Params.make(mu=mu), t_end=400.0, config=SolverConfig(output_interval=10.0))
-    assert bool(r.stopped[0]) and not bool(r.failed[0])
-    vol = (r.h_final[0] * r.cell_area).numpy()
+    r = simulate(dem, rel, Params.make(mu=mu), t_end=400.0, config=SolverConfig(output_interval=10.0), **kw)
+    vol = (r.h_final[0].double().cpu() * r.cell_area).numpy()
     w0 = rel * np.tile(1 / np.sqrt(1 + (2 * Cz / Lp * np.clip(1 - x / Lp, 0, None)) ** 2), (ny, 1)) ** -1
     x0 = (w0 * X).sum() / w0.sum()
     z0 = Cz * (1 - x0 / Lp) ** 2
     x_line = x0 + z0 / mu
     com = (vol * X).sum() / vol.sum()
+    return com, x_line, x0, r
+
+
+def test_energy_line_parabola():
+    """Case 7: on z = C (1 - x/L)^2, L = C / tan 34 deg, a point mass with Coulomb friction released
+    at x0 stops at x0 + z0 / mu on the flat (the energy line, s the horizontal distance). A small, thin
+    release (1 m, radius 60 m) is nearly a point mass: its deposit's centre of mass lies before the line
+    (a depth-averaged flow also loses energy in its spreading and its shocks) and within 10 % of the
+    travel distance of it."""
+    com, x_line, x0, r = _energy_line()
+    assert bool(r.stopped[0]) and not bool(r.failed[0])
     assert x_line - 0.1 * (x_line - x0) < com < x_line
