@@ -53,7 +53,7 @@ bench-solver: $(STAMP)
 KERNELS ?= eager,fused
 bench-solver-gpu: $(STAMP)
 	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --kernels $(KERNELS) \
-		--batches 1,32,256 --graphs on,off --launch 512x4:stored,256x4,256x4:stored,128x4:stored --repeats 2 --t-short 10 --full-configs ""
+		--batches 1,32,256 --graphs on,off --launch 512x4,256x4,128x4:recomputed --repeats 3 --t-short 10 --full-configs ""
 
 # registers, spills and SASS instructions per cell of every Triton kernel, compiled for an H100/H200 on the CPU
 bench-triton-profile: $(STAMP)

@@ -84,7 +84,7 @@ def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
 
 
 def parse_launch(spec: str) -> tuple[int, int, str]:
-    """'BLOCKxNUM_WARPS[:VELOCITIES]' (e.g. '512x4:stored') -> (BLOCK, NUM_WARPS, VELOCITIES) of the
+    """'BLOCKxNUM_WARPS[:VELOCITIES]' (e.g. '128x4:stored') -> (BLOCK, NUM_WARPS, VELOCITIES) of the
     Triton step; VELOCITIES defaults to fused_triton's."""
     from torchslide.solver import fused_triton
 
@@ -125,10 +125,14 @@ def _throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float
         r, w = _timed(case, p, t_end, cfg, DTYPES[dtype], device)
         walls.append(w)
         rates.append(float(r.steps.sum()) * ny * nx / w)
+    failed = int(r.failed.sum()) if r.failed is not None else 0
+    if failed:
+        print(f"bench_solver: {failed} of {B} members of {kernel} {dtype} failed ({next((x for x in r.failure_reason if x), '')}): "
+              "this row's rate is not a throughput", flush=True)
     return {"B": B, "kernel": kernel, "dtype": dtype, "cuda_graphs": graphs and device.startswith("cuda"),
             "cell_updates_per_s_median": statistics.median(rates),
             "wall_s_median": statistics.median(walls), "first_call_s": warm,
-            "steps_per_member": float(r.steps.float().mean())}
+            "steps_per_member": float(r.steps.float().mean()), "failed_members": failed}
 
 
 def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_end: float, repeats: int) -> dict:

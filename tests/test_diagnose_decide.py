@@ -59,6 +59,38 @@ def test_decide_new_rules():
     assert decide([_cand("curvature", 15.0)], loc, base, 100.0, th)["verdict"] == "unexplained"
 
 
+def test_a_strongly_supported_term_is_named_with_what_it_leaves_unexplained():
+    th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)
+    base = {"ess": 5.0}
+    loc = [{"what": "final_volume", "where": "final_volume", "standardised_residual": 12.0},
+           {"what": "g2 speed below prediction", "where": {"gauge": "g2", "t0": 20.0, "t1": 40.0},
+            "standardised_residual": -10.0}]
+    part = {"items": [{"what": "final_volume", "before": 12.0, "after": 1.0},
+                      {"what": "g2 speed below prediction", "before": -10.0, "after": -9.5}],
+            "max_after": 9.5, "explained": 0.38}
+    little = {"items": [{"what": "final_volume", "before": 12.0, "after": 11.7}], "max_after": 11.7, "explained": 0.05}
+    d = decide([_cand("entrainment", 500.0, located_rescored=part), _cand("curvature", 30.0, located_rescored=little)],
+               loc, base, 100.0, th)
+    assert d["verdict"] == "missing_physics" and d["missing_physics"] == "entrainment" and d["partial"]
+    assert d["explained_share"] == 0.38
+    assert d["remainder"] == [{"what": "g2 speed below prediction", "where": {"gauge": "g2", "t0": 20.0, "t1": 40.0},
+                               "before": -10.0, "after": -9.5}]
+    assert "38 %" in d["reason"] and "g2 speed below prediction" in d["reason"]
+    from torchslide.diagnose.report import _verdict_section
+
+    text = "\n".join(_verdict_section({"verdict": d["verdict"], "missing_physics": d["missing_physics"], "decision": d,
+                                       "candidates": []}))
+    assert "Partial: entrainment removes 38 %" in text and "| g2 speed below prediction |" in text
+    # a share below explain_partial_min, or another failed check beside it: not named
+    for bad in ({"located_rescored": dict(part, explained=0.2)}, {"located_rescored": part, "delta_waic": -5.0}):
+        d = decide([_cand("entrainment", 500.0, **bad)], loc, base, 100.0, th)
+        assert d["verdict"] == "unexplained" and d["missing_physics"] is None
+    # a runner-up within the margin: "A or B", still with the remainder
+    d = decide([_cand("entrainment", 500.0, located_rescored=part),
+                _cand("release_volume", 497.0, located_rescored=little)], loc, base, 100.0, th)
+    assert d["missing_physics"] == "entrainment or release_volume" and d["ambiguous"] and d["partial"]
+
+
 # ------------------------------------------------- ambiguity, null-like evidence, HDI, baseline refinement
 def test_decide_ambiguous_and_null_like():
     th = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, margin_min=6.0)

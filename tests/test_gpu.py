@@ -97,6 +97,9 @@ def _max_rel(a, b) -> float:
     return float((a[fin] - b[fin]).abs().max() / b[fin].abs().max().clamp_min(1e-300)) if fin.any() else 0.0
 
 
+OBSERVABLES = ("peak h_max", "peak v_max", "mean arrival", "deposit", "final volume", "outflow volume")
+
+
 def _observables(r) -> torch.Tensor:
     """(B, 6) whole-run observables in float64: peak h_max, peak v_max, mean arrival over the reached cells,
     deposit volume (sum of h_final), final and outflow volumes."""
@@ -111,7 +114,8 @@ def _observables(r) -> torch.Tensor:
 def test_float32_on_the_fast_paths_is_judged_by_physics(case):
     """The Triton step in float32 (approximate division and sqrt, fused multiply-add: fused_triton.FAST_FLOAT32)
     against float64: whole-run observables within 1e-3 relative, or within the spread float64 itself shows
-    when the release changes by one ulp, whichever is larger."""
+    when the release changes by one ulp, whichever is larger (an outflow volume within a millionth of the
+    final volume: float64 gives 1e-29 m^3 where nothing leaves)."""
     from torchslide.terrain.synthetic import bondo_like
 
     if not ON_CUDA:
@@ -134,7 +138,9 @@ def test_float32_on_the_fast_paths_is_judged_by_physics(case):
     spread = (run(torch.float64, np.where(np.asarray(rel) > 0, bumped, rel)) - o64).abs()
     o32 = run(torch.float32, rel)
     tol = torch.maximum(1e-3 * o64.abs(), spread)
-    assert bool(((o32 - o64).abs() <= tol).all()), ((o32 - o64).abs() / o64.abs().clamp_min(1e-300))
+    tol[:, 5] = torch.maximum(tol[:, 5], 1e-6 * o64[:, 4])     # an outflow of 1e-29 m^3 is no outflow
+    bad = ((o32 - o64).abs() > tol).nonzero().tolist()
+    assert not bad, [(m, OBSERVABLES[j], float(o64[m, j]), float(o32[m, j]), float(tol[m, j])) for m, j in bad]
 
 
 def test_verification_cases_pass_in_float32_on_the_fast_paths():

@@ -29,6 +29,14 @@ def test_triton_step_equals_the_torch_step(case):
     assert "equals the torch step" in run.stdout
 
 
+def test_fast_float32_stays_finite_when_subnormals_flush_to_zero():
+    env = dict(os.environ, TRITON_INTERPRET="1", OMP_NUM_THREADS="1", **triton_interpret.SETTINGS["flushed_float32"])
+    env.pop("TORCHSLIDE_EXACT_FLOAT32", None)
+    run = subprocess.run([sys.executable, "-m", "tests.triton_interpret", "flushed_float32"], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stdout + run.stderr[-3000:]
+
+
 def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch):
     from torchslide.solver import fused_triton
     from torchslide.solver.stepping import StepFlags

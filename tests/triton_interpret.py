@@ -72,6 +72,25 @@ def float32():
              dtype=torch.float32, rtol=1e-5)
 
 
+def flushed_float32():
+    """float32 on the fast paths with subnormals flushed to zero in division and sqrt, as the card does
+    (run with TORCHSLIDE_FLUSH_SUBNORMALS=1): the Bondo-like run stays finite and within 1e-3 of the torch
+    step (a guard that let a subnormal divisor through gave NaN in the second step on an H200)."""
+    from torchslide.physics import Params
+    from torchslide.solver import fused_triton, simulate
+    from torchslide.terrain.synthetic import bondo_like
+
+    assert fused_triton.FAST_FLOAT32 and fused_triton.FLUSH_SUBNORMALS
+    c = bondo_like(80.0)
+    p = Params.make(mu=[0.15, 0.23], xi=[500.0, 1000.0], dtype=torch.float32)
+    runs = [simulate(c.dem, c.release, p, t_end=4.0, dtype=torch.float32, config=SolverConfig(kernel=k))
+            for k in ("fused", "eager")]
+    assert runs[0].kernel == "fused-triton" and not bool(runs[0].failed.any()), runs[0].failure_reason
+    for f in ("h_max", "v_max", "h_final"):
+        a, b = (getattr(r, f).double() for r in runs)
+        assert float((a - b).norm() / b.norm()) < 1e-3, f
+
+
 def _exact_sqrt() -> None:
     """torch.sqrt rounded exactly in float64 on the CPU, as it is on CUDA (torch's vectorised CPU sqrt is
     not correctly rounded; Triton's interpreter rounds exactly)."""
@@ -105,6 +124,10 @@ def bitwise():
 
 
 CASES = {f.__name__: f for f in (channel, terms, moving_bed, nodata, plane, float32, bitwise)}
+"""The cases against the torch step (tests/test_solver_triton.py); flushed_float32 runs with its own setting."""
+
+SETTINGS = {"flushed_float32": {"TORCHSLIDE_FLUSH_SUBNORMALS": "1"}}
+"""Environment of the cases that need one (read when torchslide.solver.fused_triton is imported)."""
 
 
 def main(name: str) -> None:
@@ -115,7 +138,7 @@ def main(name: str) -> None:
     calls = []
     make = fused_triton.triton_step
     fused_triton.triton_step = lambda F: calls.append(F) or make(F)
-    CASES[name]()
+    {**CASES, "flushed_float32": flushed_float32}[name]()
     if not calls:
         raise SystemExit(f"{name}: the Triton step was not used")
     print(f"{name}: the Triton step equals the torch step ({len(calls)} configurations)")

@@ -31,6 +31,10 @@ Rules:
    ``ambiguous`` = True, the competitors listed): never a guess between terms that the data do not
    separate, and never a single name (the pipeline adds ``separate``: the observations where the
    alternatives' refits differ most, the data that would tell them apart).
+   A candidate that fails only ``explains`` but removes at least ``explain_partial_min`` of the located
+   structure is named the same way with ``partial`` = True: ``explained_share`` says how much it removes,
+   ``remainder`` lists the located mismatches it leaves above ``located_min`` (what, where, score before
+   and after), reported as unexplained (a recording that differs from the model in more than one way).
 2. Otherwise, when that candidate passes ``evidence`` and either the baseline left a located mismatch
    with |score| >= ``located_min`` or the candidate does explain the located structure: "unexplained"
    (located / supported, but no library term passes every check: never a forced label).
@@ -67,6 +71,8 @@ class Thresholds:
     located_min: float = 8.0    # |score| of a located mismatch that counts as significant
     waic_min: float = 6.0       # 2 (elpd_WAIC candidate - baseline) for the out-of-sample check
     explain_min: float = 0.5    # fraction of the located structure (sum of squared scores) a named term must remove
+    explain_partial_min: float = 0.25  # a term that passes every other check and removes this fraction is named
+                                       # with the rest of the located mismatch reported as unexplained
     ess_min: float = 2.0        # importance-sampling ESS (draws) for a verified evidence to count
     z_threshold: float = 3.0    # per-value / cluster / window detection level (localisation)
     fit_max: float | dict | None = None  # Z_fit of an observable above which its fit is a mismatch (None: off)
@@ -83,6 +89,18 @@ def _explained(c: dict) -> float:
 
 def _has_items(c: dict) -> bool:
     return bool((c.get("located_rescored") or {}).get("items"))
+
+
+def remainder(c: dict, located_before: list, th: Thresholds) -> list:
+    """The located mismatches candidate ``c`` leaves at |score| >= located_min: [{what, where, before, after}]."""
+    where = {l.get("what"): l.get("where") for l in located_before}
+    return [{"what": i.get("what"), "where": where.get(i.get("what")), "before": float(i["before"]),
+             "after": float(i["after"])}
+            for i in (c.get("located_rescored") or {}).get("items", []) if abs(i["after"]) >= th.located_min]
+
+
+def _describe(r: dict) -> str:
+    return f"{r['what']} (score {r['before']:.1f} -> {r['after']:.1f})"
 
 
 def significant(located: list, th: Thresholds) -> list:
@@ -155,7 +173,11 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
             out["two_ln_bf_over_runner_up"] = tl
         ck = out["checks"][best["name"]]
         failed = [k for k, v in ck.items() if not v]
-        if not failed:
+        partial = failed == ["explains"] and _explained(best) >= th.explain_partial_min
+        if partial:
+            out.update(partial=True, explained_share=_explained(best),
+                       remainder=remainder(best, located_before, th))
+        if not failed or partial:
             ex_best = _explained(best)
             close = [c["name"] for c in scored[1:]
                      if out["checks"][c["name"]]["evidence"]
@@ -180,6 +202,13 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
             out.update(verdict="missing_physics", missing_physics=best["name"], ambiguous=False,
                        reason=f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "
                               f"{th.bf_min:.1f}); Savage-Dickey, out-of-sample, misfit and located-structure checks pass")
+            if partial:
+                out["reason"] = (f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "
+                                 f"{th.bf_min:.1f}); every check but the located structure passes: it removes "
+                                 f"{100 * out['explained_share']:.0f} % of the located mismatch; "
+                                 + (f"unexplained: {'; '.join(_describe(r) for r in out['remainder'])}"
+                                    if out["remainder"] else "no located mismatch stays above "
+                                    f"{th.located_min:.1f}"))
             return out
         if ck["evidence"] and (sig_before or flags or (ck["explains"] and _has_items(best))):
             out.update(verdict="unexplained",

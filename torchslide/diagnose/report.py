@@ -161,6 +161,14 @@ def _verdict_section(j: dict) -> list[str]:
         L += [f"Beyond what these data can detect on this grid at any strength in its prior (linearised; see "
               f"Screening): {', '.join(unseen)}. The verdict says nothing about {'it' if len(unseen) == 1 else 'them'}.",
               ""]
+    if j["decision"].get("partial"):
+        rem = j["decision"].get("remainder") or []
+        L += [f"Partial: {j['missing_physics']} removes {100 * j['decision']['explained_share']:.0f} % of the located "
+              f"mismatch (sum of squared scores); the recordings differ from the model in another way too."
+              + (" Unexplained after it:" if rem else ""), ""]
+        if rem:
+            L += ["| located mismatch | where | score before | score after |", "|---|---|---|---|"]
+            L += [f"| {r['what']} | {r['where']} | {r['before']:.1f} | {r['after']:.1f} |" for r in rem] + [""]
     if j["decision"].get("ambiguous"):
         alts = j["decision"].get("alternatives") or []
         L += [f"Ambiguous: {' or '.join(alts)}; the data do not separate them, so no single term is named.", ""]

@@ -45,8 +45,9 @@ except ImportError:     # the Triton step is optional: without triton a GPU runs
 PM = ("mu", "xi", "tau_y", "k_ap", "earth_pressure", "k_act", "k_pass", "curvature", "mu_i", "kappa", "deposition")
 """The per-member parameters the kernels read, in their order (columns of the (B, 11) table)."""
 
-BLOCK = 512
-"""Cells (or faces) per program."""
+BLOCK = 128
+"""Cells (or faces) per program: 128 with 4 warps (one cell per thread) ran float64 1.6 times faster than 512
+and float32 as fast, on an H200 (20 m grid, batch 256; bench/results/solver_gpu.json)."""
 
 NUM_WARPS = 4
 """Warps per program (bench.bench_solver --launch measures other BLOCK x NUM_WARPS)."""
@@ -56,6 +57,11 @@ FAST_FLOAT32 = os.environ.get("TORCHSLIDE_EXACT_FLOAT32", "0") != "1"
 (within the verification cases' tolerances of float64). False (environment TORCHSLIDE_EXACT_FLOAT32=1 when
 the module is imported; the kernels compile the choice in): exactly rounded division and square root and
 no fused multiply-add, as float64 always is, so that float32 too equals the torch step's bits."""
+
+FLUSH_SUBNORMALS = os.environ.get("TORCHSLIDE_FLUSH_SUBNORMALS", "0") == "1"
+"""Under Triton's interpreter (the tests on the CPU): flush float32 subnormals in the fast division and
+square root to zero, as the card's approximate instructions do, so that a guard that lets a subnormal
+divisor through shows up as a non-finite state without a GPU (environment TORCHSLIDE_FLUSH_SUBNORMALS=1)."""
 
 VELOCITIES = "stored"
 """Where the faces and the cell update take the desingularised velocities u, v (KP07 Eq. 2.17) from:
@@ -82,7 +88,7 @@ def supported(F, device) -> str | None:
 if triton is not None:
     # indices into the kernels' constant table (_constants; compile-time constants: Triton reads no other globals)
     C_G, C_DX, C_THETA, C_HEPS4, C_HWET, C_WB, C_SQRT2, C_WSMIN, C_HEPS, C_ENTMIN, C_FRDEP, C_MUI, C_I0, C_TINY, \
-        C_VMIN, C_ARR, C_INF, C_INVDX = (tl.constexpr(k) for k in range(18))
+        C_VMIN, C_ARR, C_INF, C_INVDX, C_NORMAL = (tl.constexpr(k) for k in range(19))
 
     @triton.jit
     def _max(a, b):
@@ -92,7 +98,26 @@ if triton is not None:
     def _min(a, b):
         return tl.minimum(a, b, propagate_nan=tl.PropagateNan.ALL)
 
-    if FAST_FLOAT32:
+    if FAST_FLOAT32 and FLUSH_SUBNORMALS:
+        @triton.jit
+        def _ftz(x):
+            """x with float32 subnormals flushed to zero (as the card's approximate division and sqrt do)."""
+            if x.dtype == tl.float32:
+                r = tl.where(tl.abs(x) < 1.1754944e-38, 0.0, x)
+            else:
+                r = x
+            return r
+
+        @triton.jit
+        def _div(a, b):
+            """a / b as the card's approximate float32 division treats subnormal divisors and results."""
+            return _ftz(a / _ftz(b))
+
+        @triton.jit
+        def _sqrt(x):
+            """sqrt(x) as the card's approximate float32 square root treats subnormals."""
+            return _ftz(tl.sqrt(_ftz(x)))
+    elif FAST_FLOAT32:
         @triton.jit
         def _div(a, b):
             """a / b: IEEE division in float64, Triton's approximate one in float32."""
@@ -130,9 +155,9 @@ if triton is not None:
     @triton.jit
     def _unit(px, py):
         """stepping.unit_direction."""
-        n2 = px * px + py * py
-        ok = n2 > 0
-        inv = tl.where(ok, _div(1.0, _sqrt(tl.where(ok, n2, 1.0))), 0.0)
+        n = _sqrt(px * px + py * py)
+        ok = n > 0      # not n^2 > 0: a fast float32 sqrt flushes a subnormal n^2 to 0
+        inv = tl.where(ok, _div(1.0, tl.where(ok, n, 1.0)), 0.0)
         return px * inv, py * inv
 
     @triton.jit
@@ -400,7 +425,7 @@ if triton is not None:
             + (_max(tl.load(fhy_ptr + ys + nx, mask=m, other=0.0), 0.0) + _max(-tl.load(fhy_ptr + ys, mask=m, other=0.0), 0.0))
         out = out * (tl.load(dt_ptr + b) * tl.load(c_ptr + C_INVDX))
         h = tl.load(h_ptr + b * ny * nx + idx, mask=m, other=0.0)
-        over = out > h
+        over = (out > h) & (out >= tl.load(c_ptr + C_NORMAL))
         tl.store(fac_ptr + b * ny * nx + idx, tl.where(over, _div(h, tl.where(over, out, 1.0)), 1.0), mask=m)
 
     @triton.jit
@@ -542,7 +567,7 @@ if triton is not None:
                 rate = tl.load(pm_ptr + b * 11 + 10) * h * _max(1.0 - _div(froude, tl.load(c_ptr + C_FRDEP)), 0.0)
                 hpos = _max(hn, 0.0)
                 dd = _min(dt * rate, hpos)
-                left = hpos > 0
+                left = (hpos > 0) & (hpos >= tl.load(c_ptr + C_NORMAL))
                 ratio = tl.where(left, _div(hpos - dd, tl.where(left, hpos, 1.0)), 0.0)
                 qx = qx * ratio
                 qy = qy * ratio
@@ -645,8 +670,14 @@ def _constants(F, dtype, device) -> torch.Tensor:
     """The kernels' constant table (C_* indices) in the state's dtype."""
     vals = [F.g, F.dx, F.theta, F.h_eps ** 4, F.h_wet, F.wb_ratio, 2.0 ** 0.5, WAVE_SPEED_MIN, F.h_eps,
             F.entrain_h_min, FR_DEP, 2.5 * MU_I_D, MU_I_I0, 1e-12, F.v_max_min_depth, F.arrival_threshold, math.inf,
-            1.0 / F.dx]
+            1.0 / F.dx, _normal(dtype)]
     return torch.tensor(vals, dtype=dtype, device=device)
+
+
+def _normal(dtype) -> float:
+    """The least denominator a guarded division takes (C_NORMAL): float32's smallest normal number on the
+    fast paths, whose division and square root flush subnormal operands to zero; else 0 (every positive one)."""
+    return torch.finfo(torch.float32).tiny if fp_fusion(dtype) else 0.0
 
 
 def fp_fusion(dtype) -> bool:
