@@ -23,14 +23,16 @@ class Candidate:
     prior: tuple[float, float]
     signature: str
     fixed: tuple[tuple[str, float], ...] = ()
-    open_range: bool = False    # the prior's upper end is a budget, not a limit of the term: a fit there
-                                # (the data want more than the range allows) is not named (decide: within_range)
+    open_range: bool = False    # the prior's upper end is a budget, not a limit of the term (every rate or
+                                # stress here; not the 0-1 switches, whose 1 is the physical term): a fit
+                                # there (the data want more than the range allows) is not named
+                                # (decide: within_range, set aside)
 
 
 CANDIDATES: dict[str, Candidate] = {
     "entrainment": Candidate(
         "entrainment", "kappa", 0.0, (0.0, 0.02),
-        "volume grows along the path; deposits larger and further out than released volume allows"),
+        "volume grows along the path; deposits larger and further out than released volume allows", open_range=True),
     "curvature": Candidate(
         "curvature", "curvature", 0.0, (0.0, 1.0),
         "extra friction in hollows / bends (centrifugal normal stress): slower in curved channels, faster on convex crests"),
@@ -40,16 +42,18 @@ CANDIDATES: dict[str, Candidate] = {
         fixed=(("phi_int", 35.0),)),
     "yield_stress": Candidate(
         "yield_stress", "tau_y", 0.0, (0.0, 20.0),  # m^2/s^2 (stress / density): up to ~40 kPa at 2000 kg/m^3
-        "thin flows stop early: thick lobate deposits with steep margins, shorter run-out of the tail"),
+        "thin flows stop early: thick lobate deposits with steep margins, shorter run-out of the tail",
+        open_range=True),
     "mu_i": Candidate(
         "mu_i", "mu_i", 0.0, (0.0, 0.4),
-        "rate-dependent friction: fast thin fronts brake more, slow parts less (velocity-depth dependent)"),
+        "rate-dependent friction: fast thin fronts brake more, slow parts less (velocity-depth dependent)",
+        open_range=True),
     "release_volume": Candidate(
         "release_volume", "release_scale", 0.0, (0.0, 0.5),
         "more mass than the stated release (up to +50 %), from the start: larger depths, deposit and volumes "
         "everywhere, no growth along the path (an input error, not a missing term)", open_range=True),
     "deposition": Candidate(
         "deposition", "deposition", 0.0, (0.0, 0.5),
-        "mass left behind along the path where the flow slows: trail deposit, reduced front volume"),
+        "mass left behind along the path where the flow slows: trail deposit, reduced front volume", open_range=True),
 }
 """Candidate terms of the diagnosis: each ``param`` at ``baseline`` (0) gives plain Voellmy."""

@@ -20,6 +20,9 @@ are computed from *solver runs* at posterior draws, not from the emulator alone)
 
 Rules:
 
+0. Candidates that fail ``within_range`` (a fit at the end of a budget range: the data want more of the
+   term than its range allows, so it does not explain them as that term) are set aside (``set_aside``)
+   while another candidate remains; the rules below apply to the others.
 1. The candidate with the largest verified 2 ln BF is named ("missing_physics") when it passes all
    checks and nothing else competes with it:
    * no other candidate that also passes ``evidence`` is within ``margin_min`` of its 2 ln BF (the
@@ -162,6 +165,13 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     flagged = "; ".join(f"{f['observable']} fits at Z_fit {f['Z_fit']:.1f} > {f['fit_max']:.1f}" for f in flags)
     for c in scored:
         out["checks"][c["name"]] = checks(c, baseline, misfit_before, th)
+    # a fit at the end of a budget range explains the data only beyond the term's range: set aside (rule 0)
+    ends = [c["name"] for c in scored if not out["checks"][c["name"]].get("within_range", True)]
+    if ends and len(ends) < len(scored):
+        out["set_aside"] = ends
+        scored = [c for c in scored if c["name"] not in ends]
+    aside = (f"{', '.join(ends)} fit(s) at the end of the range (fails within_range) and is set aside; "
+             if ends else "")
     best = scored[0] if scored else None
     if best is not None:
         tl = 2 * best["log_bayes_factor"]
@@ -198,7 +208,7 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                            competitors=comp, alternatives=alts,
                            reason=f"{best['name']} has the largest evidence (2 ln BF = {tl:.1f}) and passes every "
                                   f"check, but {'; '.join(why)}: the data do not separate them ({' or '.join(alts)})")
-                return out
+                return _prefixed(out, aside)
             out.update(verdict="missing_physics", missing_physics=best["name"], ambiguous=False,
                        reason=f"{best['name']}: 2 ln BF = {tl:.1f} (lower bound {best['two_ln_bf_lower']:.1f} >= "
                               f"{th.bf_min:.1f}); Savage-Dickey, out-of-sample, misfit and located-structure checks pass")
@@ -209,18 +219,18 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                                  + (f"unexplained: {'; '.join(_describe(r) for r in out['remainder'])}"
                                     if out["remainder"] else "no located mismatch stays above "
                                     f"{th.located_min:.1f}"))
-            return out
+            return _prefixed(out, aside)
         if ck["evidence"] and (sig_before or flags or (ck["explains"] and _has_items(best))):
             out.update(verdict="unexplained",
                        reason=f"{best['name']} is supported by the evidence (2 ln BF = {tl:.1f}) but fails "
                               f"{', '.join(failed)}: not named" + (f" ({flagged})" if flags else ""))
-            return out
+            return _prefixed(out, aside)
         if ck["evidence"]:
             out.update(verdict="no_missing_physics",
                        reason=f"{best['name']} gains evidence (2 ln BF = {tl:.1f}) but no located mismatch reaches "
                               f"{th.located_min:.1f} and it does not explain the located structure (fails "
                               f"{', '.join(failed)}): what discretisation alone gives on null data")
-            return out
+            return _prefixed(out, aside)
     why = ("no candidate refitted" if best is None else
            f"best candidate {best['name']}: 2 ln BF lower bound "
            f"{best.get('two_ln_bf_lower', float('nan')):.1f} < {th.bf_min:.1f}")
@@ -230,4 +240,9 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         out.update(verdict="unexplained", reason=f"{'; '.join(where)}; {why}")
     else:
         out.update(verdict="no_missing_physics", reason=f"no located mismatch above {th.located_min:.1f}; {why}")
+    return _prefixed(out, aside)
+
+
+def _prefixed(out: dict, aside: str) -> dict:
+    out["reason"] = aside + out["reason"]
     return out

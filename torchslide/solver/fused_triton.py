@@ -52,6 +52,11 @@ and float32 as fast, on an H200 (20 m grid, batch 256; bench/results/solver_gpu.
 NUM_WARPS = 4
 """Warps per program (bench.bench_solver --launch measures other BLOCK x NUM_WARPS)."""
 
+INTERPRETED_BLOCK = 1024
+"""Cells per program under Triton's interpreter (the tests on the CPU), whose cost is per program: the same
+arithmetic per cell as any BLOCK; only the per-block partial sums (mass, kinetic energy, outflow) add in
+another order."""
+
 FAST_FLOAT32 = os.environ.get("TORCHSLIDE_EXACT_FLOAT32", "0") != "1"
 """float32 on the fast paths: Triton's approximate division (2 ulp) and square root and fused multiply-add
 (within the verification cases' tolerances of float64). False (environment TORCHSLIDE_EXACT_FLOAT32=1 when
@@ -688,7 +693,12 @@ def fp_fusion(dtype) -> bool:
 
 def _launch(dtype) -> dict:
     """Launch options (fused multiply-add: fp_fusion)."""
-    return {"BLOCK": BLOCK, "num_warps": NUM_WARPS, "enable_fp_fusion": fp_fusion(dtype)}
+    return {"BLOCK": _block(), "num_warps": NUM_WARPS, "enable_fp_fusion": fp_fusion(dtype)}
+
+
+def _block() -> int:
+    """Cells per program: BLOCK, or INTERPRETED_BLOCK under the interpreter."""
+    return INTERPRETED_BLOCK if interpreted() else BLOCK
 
 
 def _stride(t: torch.Tensor) -> int:
@@ -720,18 +730,18 @@ def triton_step(F):
         s_geo = _stride(cs)
         mus = P["mu_scale"].contiguous() if F.use_mu_scale else cs
         inside = P["inside"].contiguous() if F.domain else cs
-        cells = (triton.cdiv(ny * nx, BLOCK), B)
+        cells = (triton.cdiv(ny * nx, _block()), B)
         stored = VELOCITIES == "stored"
         u, v = (torch.empty_like(h), torch.empty_like(h)) if stored else (h, h)
         if stored:
-            _velocities[(triton.cdiv(h.numel(), BLOCK),)](h, hu, hv, c, u, v, h.numel(), **_launch(h.dtype))
+            _velocities[(triton.cdiv(h.numel(), _block()),)](h, hu, hv, c, u, v, h.numel(), **_launch(h.dtype))
         cu, cv = (torch.empty_like(h), torch.empty_like(h)) if F.slope_correction else (h, h)
         if F.slope_correction:
             _carried[cells](h, hu, hv, zx, zy, c, cu, cv, ny, nx, s_geo, **_launch(h.dtype))
         sweeps = []
         for axis, (zp, nf) in enumerate(((zpx, (ny, nx + 1)), (zpy, (ny + 1, nx)))):
             out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
-            grid = (triton.cdiv(nf[0] * nf[1], BLOCK), B)
+            grid = (triton.cdiv(nf[0] * nf[1], _block()), B)
             amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
             _faces[grid](h, hu, hv, u, v, cu, cv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
                          _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
@@ -782,7 +792,7 @@ def triton_step(F):
         e_o = torch.empty_like(h) if F.use_ent else erod
         d_o = torch.empty_like(h) if F.use_dep else dep
         rec = [torch.empty_like(h) for _ in range(3)]
-        cells = (triton.cdiv(ny * nx, BLOCK), B)
+        cells = (triton.cdiv(ny * nx, _block()), B)
         part = torch.empty((B, cells[0], 2), dtype=h.dtype, device=h.device)
         some = lambda a: h if a is None else a
         _combine[cells](h, hu, hv, hu1, hv1, h2, hu2, hv2, some(z), some(z2), some(erod), some(e2), some(dep),
