@@ -373,11 +373,21 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     by = {r["name"]: r for r in rows}
     assert by["c"]["profile_ends"] is None and by["b"]["profile_ends"] and by["b"]["reliable"]
     # a: fitted again from the profile point, the better fit's row, profiled again, reliable
-    assert by["a"]["restarted_from_profile"] and by["a"]["two_ln_bf"] == 45.0 and by["a"]["reliable"]
+    assert by["a"]["restarted_from_profile"] == 1 and by["a"]["two_ln_bf"] == 45.0 and by["a"]["reliable"]
     assert by["a"]["profile_ends"]["two_ln_drop"] == [2.7, 2.6] and fits["a"] == "a2" and refits["a"] == "refit"
     assert by["a"]["n_runs"] == 5 + 10 + 7 + 10
     # d: the restart found nothing better: unreliable
     assert not by["d"]["reliable"] and "restarted_from_profile" not in by["d"]
+    # e: its restarted fit is beaten again by its new profile: restarted once more (profile_restarts = 2), then
+    # at its mode; with profile_restarts = 1 it stays unreliable
+    drops.update(e=[-2.0, 2.0], e2=[2.5, -1.9], e3=[2.6, 2.5])
+    monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"e": "e2", "e2": "e3"}.get(cf, cf))
+    for restarts, reliable, times in ((2, True, 2), (1, False, 1)):
+        rows = [{"name": "e", "param": "e", "two_ln_bf": 30.0, "reliable": True, "n_runs": 5, "profile_ends": None}]
+        fits = {"e": "e"}
+        pipeline._local_profiles(None, rows, fits, {}, None, None, None,
+                                 pipeline.Budgets(profile_top=1, profile_restarts=restarts), log=lambda s: None)
+        assert rows[0]["reliable"] is reliable and rows[0]["restarted_from_profile"] == times
 
 
 # ---- fits in lockstep (torchslide.diagnose.lockstep) ----

@@ -46,6 +46,7 @@ and a [diagnose] section::
                                  #     with the grid's error (needs model_error_runs >= 2); 0: taken as exact
     profile_top = 2              # local path: candidates (largest 2 ln BF) profiled at the ends of their
                                  #     switch's 90 % interval (a profile point beating the fit restarts it); 0: off
+    profile_restarts = 2         # local path: restarts from a profile point that beats the fit, at most
     candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
     candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)
@@ -58,6 +59,8 @@ and a [diagnose] section::
     located_min = 8.0            # |score| of a located mismatch that counts as significant
     waic_min = 6.0               # out-of-sample check: 2 (elpd_WAIC candidate - baseline)
     explain_min = 0.5            # fraction of the located structure a named term must remove (0..1)
+    explain_partial_min = 0.25   # ... or this fraction, when it passes every other check: named with what it
+                                 #     leaves unexplained
     ess_min = 2.0                # importance-sampling ESS a verified evidence needs (>= 1)
     z_threshold = 3.0            # per-value / cluster / window detection level
     lr_alpha = 0.01              # local path: a candidate's likelihood ratio must reach this boundary-corrected p-value
@@ -94,9 +97,9 @@ HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, 
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
              "model_error_runs", "model_error_factor", "profile_top", "top_k", "batch_size", "n_perm",
-             "local_lhs", "local_starts", "local_max_iter", "candidate_lhs", "candidate_starts")
-_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "ess_min", "z_threshold",
-                   "lr_alpha")
+             "local_lhs", "local_starts", "local_max_iter", "candidate_lhs", "candidate_starts", "profile_restarts")
+_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "explain_partial_min", "ess_min",
+                   "z_threshold", "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
               *_INT_KEYS, *_THRESHOLD_KEYS}
 
@@ -164,8 +167,9 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         if c[k] < 0:
             raise ConfigError(f"{path}: [diagnose] {k} must be >= 0 (a candidate must do at least as well as "
                               f"the baseline), got {c[k]!r}")
-    if not 0.0 <= c["explain_min"] <= 1.0:
-        raise ConfigError(f"{path}: [diagnose] explain_min is a fraction in [0, 1], got {c['explain_min']!r}")
+    for k in ("explain_min", "explain_partial_min"):
+        if not 0.0 <= c[k] <= 1.0:
+            raise ConfigError(f"{path}: [diagnose] {k} is a fraction in [0, 1], got {c[k]!r}")
     if not 0.0 < c["lr_alpha"] < 1.0:
         raise ConfigError(f"{path}: [diagnose] lr_alpha is a p-value level in (0, 1), got {c['lr_alpha']!r}")
     if c["ess_min"] < 1.0:

@@ -77,6 +77,7 @@ class Budgets:
     profile_top: int = 2               # local path: candidates profiled at the ends of their switch's 90 %
                                        # interval, those with the largest 2 ln BF (0: off); a profile point
                                        # that beats the fit restarts the fit from there
+    profile_restarts: int = 2          # local path: restarts from a profile point that beats the fit, at most
     candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
     candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
     candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
@@ -596,25 +597,29 @@ def _local_candidate(evaluator, cf, base: _Baseline, scr: ScreenResult, bud: Bud
 def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
                     bud: Budgets, log) -> None:
     """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows. A profile
-    point that beats a fit by more than 1 in 2 ln L restarts that fit from there (local_path.refit_from);
-    the restarted fit is profiled again, and a fit that its profile still beats is marked unreliable."""
+    point that beats a fit by more than 1 in 2 ln L restarts that fit from there (local_path.refit_from;
+    ``restarted_from_profile`` counts the restarts); the restarted fit is profiled again, up to
+    ``profile_restarts`` times, and a fit that its profile still beats is marked unreliable."""
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
     for row, (prof, n) in zip(ranked, profile_ends(evaluator, [fits[r["name"]] for r in ranked], bud, log)):
         c = row["name"]
         row["profile_ends"], row["n_runs"] = prof, row["n_runs"] + n
-        if min(prof["two_ln_drop"]) < -1.0:     # the profile beats the fit: the fit is not at its mode
+        for _ in range(bud.profile_restarts):
+            if min(prof["two_ln_drop"]) >= -1.0:    # the profile does not beat the fit
+                break
             cf = refit_from(evaluator, fits[c], np.asarray(prof["lowest_point"]), f0, bud, log)
-            if cf is not fits[c]:
-                fits[c] = cf
-                refits[c], new = _local_candidate(evaluator, cf, base, scr, bud, log)
-                log(f"[diagnose] {c}: a profile point beat the fit by {-min(prof['two_ln_drop']):.1f}; fitted again "
-                    f"from it: 2 ln BF {row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}")
-                (prof, n2), = profile_ends(evaluator, [cf], bud, log)
-                runs = row["n_runs"]
-                row.clear()
-                row.update(new, profile_ends=prof, restarted_from_profile=True, n_runs=runs + new["n_runs"] + n2)
-            if min(prof["two_ln_drop"]) < -1.0:
-                row["reliable"] = False
+            if cf is fits[c]:                       # nothing better from there
+                break
+            fits[c] = cf
+            refits[c], new = _local_candidate(evaluator, cf, base, scr, bud, log)
+            log(f"[diagnose] {c}: a profile point beat the fit by {-min(prof['two_ln_drop']):.1f}; fitted again "
+                f"from it: 2 ln BF {row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}")
+            (prof, n2), = profile_ends(evaluator, [cf], bud, log)
+            runs, k = row["n_runs"], row.get("restarted_from_profile", 0)
+            row.clear()
+            row.update(new, profile_ends=prof, restarted_from_profile=k + 1, n_runs=runs + new["n_runs"] + n2)
+        if min(prof["two_ln_drop"]) < -1.0:         # still beaten: the fit is not at its mode
+            row["reliable"] = False
         log(f"[diagnose] profile of {c}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
             f"{row['param']} = {[round(v, 5) for v in prof['interval90']]} (Gaussian {prof['gaussian']:.2f})")
 
