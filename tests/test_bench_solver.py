@@ -12,8 +12,23 @@ def test_bench_solver_measures_each_kernel(tmp_path):
                        "--repeats", "1", "--t-short", "1", "--full-configs", "", "--cellsize", "80"])
     d = json.loads(out.read_text())
     assert [r["kernel"] for r in d["throughput"]] == ["eager", "fused"]
-    assert all(r["cell_updates_per_s_median"] > 0 and r["steps_per_member"] >= 1 for r in d["throughput"])
+    assert all(r["cell_updates_per_s_median"] > 0 and r["steps_per_member"] >= 1 and r["failed_members"] == 0
+               for r in d["throughput"])
     assert set(d["speedup_vs_eager"]) == {"fused_float64_B1"}
+
+
+def test_a_row_whose_members_failed_says_so(monkeypatch, capsys):
+    import torch
+
+    from torchslide.terrain.synthetic import bondo_like
+
+    class Failed:
+        steps, failed = torch.tensor([2, 48]), torch.tensor([True, False])
+        failure_reason = ["non-finite state (NaN/inf) at t=2 s after 2 steps", None]
+
+    monkeypatch.setattr(bench_solver, "_timed", lambda *a: (Failed(), 0.1))
+    row = bench_solver.throughput(bondo_like(120.0), 2, "fused", "float32", "cpu", 1.0, 1)
+    assert row["failed_members"] == 1 and "not a throughput" in capsys.readouterr().out
 
 
 def test_a_launch_setting_holds_for_its_row_only(monkeypatch):

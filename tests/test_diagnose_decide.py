@@ -346,4 +346,4 @@ def test_a_term_at_the_end_of_its_budget_is_set_aside_for_one_that_fits_within_i
     assert d["missing_physics"] == "yield_stress" and d["set_aside"] == ["mu_i"] and "set aside" in d["reason"]
     # with nothing else left the set-aside term is still not named
     d = decide(cands[:1], [{"standardised_residual": 9.0}], {"ess": 5.0}, 100.0, th)
-    assert d["missing_physics"] is None and "set_aside" not in d
+    assert d["missing_physics"] is None and "set_aside" not in d and "set aside" not in d["reason"]

@@ -66,8 +66,8 @@ class BondoConfig:
         stop_quiet_time: SolverConfig.stop_quiet_time (the footprint stop rule); 0 ends a run on its
             kinetic energy alone (1e-4 of its peak), the rule this study's page was made with.
         device: where the solver runs ("cpu", "cuda"); the GP and acquisition stay on the CPU.
-        workers: processes that fit the cases' GPs and optimise their acquisitions in parallel (one
-            torch thread each; 1: all in this process).
+        workers: processes that fit the cases' GPs and optimise their acquisitions in parallel (the cases
+            split over them, one torch thread each; 1: all in this process).
         work_dir: caches, checkpoints, results (git-ignored); figures_dir: PNG output.
         tensorboard: write TensorBoard logs per case under work_dir/tb/case_N.
         num_restarts, raw_samples: acquisition optimiser settings.

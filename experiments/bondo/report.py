@@ -136,7 +136,7 @@ def write_readme(run_dir: Path, readme: Path, fig_dir: Path, figures: bool = Tru
     L.append(f"- run directory: `{run_dir.name}`; cell size **{cfg['cellsize']:g} m**, t_end {cfg['t_end']:g} s, "
              f"{cfg['dtype']}; cases {cfg['cases']}")
     L.append(f"- solver: {_solver_mode(cfg, t.get('machine'))}; GP fits and acquisitions "
-             + (f"in {cfg['workers']} worker processes (one per case at a time)" if cfg.get("workers", 1) > 1
+             + (f"in {cfg['workers']} worker processes (the cases split over them)" if cfg.get("workers", 1) > 1
                 else "in the study's process"))
     L.append(f"- {cfg['n_initial']} shared initial maximin-LHS runs, {cfg['n_adaptive']} adaptive runs per case "
              f"in batches of q = {cfg['batch_size']} per case (the points of all cases run in one solver call), "

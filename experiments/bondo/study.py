@@ -142,37 +142,62 @@ class CaseRunner:
         return {"state": self.L.state, "snapshots": self.snaps, "seconds": self.secs}
 
 
-def _case_worker(conn, c: int, cfg: BondoConfig, x0, res0) -> None:
-    """A worker process holding one CaseRunner: answers ("step",), ("tell", x, res, s), ("close",) (then
-    waits for one more message before it exits)."""
+class LocalCases:
+    """Cases' CaseRunners stepped in this process: start_step / end_step -> {case: new points or None},
+    tell, close (the interface of RemoteCases)."""
+
+    def __init__(self, runners: dict):
+        self.runners = runners
+
+    def status(self) -> dict:
+        """{case: (done, n_runs)}."""
+        return {c: (r.done, r.n_runs) for c, r in self.runners.items()}
+
+    def start_step(self) -> None:
+        self._stepped = {c: r.step() for c, r in self.runners.items() if not r.done}
+
+    def end_step(self) -> dict:
+        return self._stepped
+
+    def tell(self, c: int, x_new, res, solver_share_s: float) -> None:
+        self.runners[c].tell(x_new, res, solver_share_s)
+
+    def close(self) -> dict:
+        return {c: r.close() for c, r in self.runners.items()}
+
+
+def _cases_worker(conn, cases: list, cfg: BondoConfig, x0, res0: dict) -> None:
+    """A worker process holding the CaseRunners of ``cases`` (LocalCases), answering ("step",),
+    ("tell", case, x, res, s) and ("close",) (then waiting for one more message before it exits)."""
     torch.set_num_threads(1)
     try:
-        runner = CaseRunner(c, cfg, x0, res0)
-        conn.send(("ready", runner.done, runner.n_runs))
+        local = LocalCases({c: CaseRunner(c, cfg, x0, res0[c]) for c in cases})
+        conn.send(("ready", local.status()))
         while True:
             msg = conn.recv()
             if msg[0] == "step":
-                x = runner.step()
-                conn.send(("step", x, runner.done, runner.n_runs))
+                local.start_step()
+                conn.send(("step", local.end_step(), local.status()))
             elif msg[0] == "tell":
-                runner.tell(*msg[1:])
-                conn.send(("told", runner.n_runs))
+                local.tell(*msg[1:])
+                conn.send(("told", local.status()))
             else:   # torch hands tensors over by file descriptor: stay until the main process has them
-                conn.send(("closed", runner.close()))
+                conn.send(("closed", local.close()))
                 conn.recv()
                 return
     except BaseException as e:  # noqa: BLE001 - reported in the main process, which stops the study
-        conn.send(("error", f"case {c}: {type(e).__name__}: {e}"))
+        conn.send(("error", f"cases {cases}: {type(e).__name__}: {e}"))
 
 
-class RemoteCase:
-    """A CaseRunner in its own process (spawned, one torch thread), with the same step/tell/close."""
+class RemoteCases:
+    """Cases' CaseRunners in one spawned process (one torch thread), with LocalCases' interface."""
 
-    def __init__(self, c: int, cfg: BondoConfig, x0, res0, ctx):
-        self.c = c
+    def __init__(self, cases: list, cfg: BondoConfig, x0, res0: dict, ctx):
         self.conn, child = ctx.Pipe()
-        self.proc = ctx.Process(target=_case_worker, args=(child, c, cfg, x0, res0), daemon=True)
+        self.proc = ctx.Process(target=_cases_worker, args=(child, cases, cfg, x0, {c: res0[c] for c in cases}),
+                                daemon=True)
         self.proc.start()
+        self._status = None
 
     def _recv(self, kind: str):
         msg = self.conn.recv()
@@ -181,19 +206,21 @@ class RemoteCase:
         assert msg[0] == kind, msg
         return msg[1:]
 
-    def ready(self) -> None:
-        self.done, self.n_runs = self._recv("ready")
+    def status(self) -> dict:
+        if self._status is None:
+            (self._status,) = self._recv("ready")
+        return self._status
 
     def start_step(self) -> None:
         self.conn.send(("step",))
 
-    def end_step(self):
-        x, self.done, self.n_runs = self._recv("step")
-        return x
+    def end_step(self) -> dict:
+        stepped, self._status = self._recv("step")
+        return stepped
 
-    def tell(self, x_new, res, solver_share_s: float) -> None:
-        self.conn.send(("tell", x_new, res, solver_share_s))
-        (self.n_runs,) = self._recv("told")
+    def tell(self, c: int, x_new, res, solver_share_s: float) -> None:
+        self.conn.send(("tell", c, x_new, res, solver_share_s))
+        (self._status,) = self._recv("told")
 
     def close(self) -> dict:
         self.conn.send(("close",))
@@ -206,62 +233,59 @@ class RemoteCase:
 def run_active(cfg: BondoConfig, sim: CachedSimulator, fns: dict) -> dict:
     """Algorithm 1 for all cases in lockstep; returns case -> {"state", "snapshots", "seconds"}.
 
-    Each iteration fits every case's GP and optimises its acquisition (in cfg.workers processes when
-    that is above 1: the cases are independent), then simulates all cases' new points in one solver call.
+    Each iteration fits every case's GP and optimises its acquisition (the cases split over cfg.workers
+    spawned processes when that is above 1: they are independent), then simulates all cases' new points
+    in one solver call.
     """
     x0 = torch.as_tensor(cfg.bounds_array()[0] + maximin_lhs(cfg.n_initial, 2, cfg.seed)
                          * np.diff(cfg.bounds_array(), axis=0)[0])
     _log(f"initial design: {cfg.n_initial} maximin-LHS runs shared by {len(fns)} cases")
     sim.run(x0.numpy())
     res0 = {c: fn(x0) for c, fn in fns.items()}
-    workers = min(cfg.workers, len(fns))
+    cases = list(fns)
+    workers = min(cfg.workers, len(cases))
     if workers > 1:
         import multiprocessing
 
         ctx = multiprocessing.get_context("spawn")
-        runners = {c: RemoteCase(c, cfg, x0, res0[c], ctx) for c in fns}
-        for r in runners.values():
-            r.ready()
+        groups = [RemoteCases(cases[k::workers], cfg, x0, res0, ctx) for k in range(workers)]
     else:
-        runners = {c: CaseRunner(c, cfg, x0, res0[c]) for c in fns}
+        groups = [LocalCases({c: CaseRunner(c, cfg, x0, res0[c]) for c in cases})]
     from tqdm.auto import tqdm
 
-    bar = tqdm(total=cfg.n_total * len(runners), initial=sum(r.n_runs for r in runners.values()),
-               desc="active (all cases)", unit="run")
     try:
-        _lockstep(cfg, sim, fns, runners, workers > 1, bar)
+        bar = tqdm(total=cfg.n_total * len(cases), initial=sum(n for g in groups for _, n in g.status().values()),
+                   desc="active (all cases)", unit="run")
+        try:
+            _lockstep(sim, fns, groups, bar)
+        finally:
+            bar.close()
     except BaseException:
-        for r in runners.values():
-            if isinstance(r, RemoteCase):
-                r.proc.terminate()
+        for g in groups:
+            if isinstance(g, RemoteCases):
+                g.proc.terminate()
         raise
-    finally:
-        bar.close()
-    return {c: r.close() for c, r in runners.items()}
+    return {c: v for g in groups for c, v in g.close().items()}
 
 
-def _lockstep(cfg: BondoConfig, sim: CachedSimulator, fns: dict, runners: dict, remote: bool, bar) -> None:
+def _lockstep(sim: CachedSimulator, fns: dict, groups: list, bar) -> None:
     """The iterations of run_active until every case has n_total runs."""
-    while not all(r.done for r in runners.values()):
-        live = [c for c, r in runners.items() if not r.done]
-        if remote:
-            for c in live:
-                runners[c].start_step()
-            stepped = {c: runners[c].end_step() for c in live}
-        else:
-            stepped = {c: runners[c].step() for c in live}
-        proposals = {c: x for c, x in stepped.items() if x is not None}
+    while not all(done for g in groups for done, _ in g.status().values()):
+        for g in groups:
+            g.start_step()
+        proposals = {c: (g, x) for g in groups for c, x in g.end_step().items() if x is not None}
         if not proposals:
             break
-        allx = torch.cat(list(proposals.values()))
+        allx = torch.cat([x for _, x in proposals.values()])
         t0 = time.perf_counter()
         sim.run(allx.numpy())  # ONE batched solver call for all cases' new points
         dt = time.perf_counter() - t0
-        for c, x_new in proposals.items():
-            runners[c].tell(x_new, fns[c](x_new), dt * x_new.shape[0] / allx.shape[0])
+        for c, (g, x_new) in proposals.items():
+            g.tell(c, x_new, fns[c](x_new), dt * x_new.shape[0] / allx.shape[0])
             bar.update(x_new.shape[0])
+        runs = {c: n for g in groups for c, (_, n) in g.status().items()}
         _log(f"iteration done: {allx.shape[0]} new runs in {dt:.1f} s; runs per case "
-             + ", ".join(f"{c}:{runners[c].n_runs}" for c in runners))
+             + ", ".join(f"{c}:{runs[c]}" for c in sorted(runs)))
 
 
 def run_study(cfg: BondoConfig, with_sweep: bool = True) -> dict:

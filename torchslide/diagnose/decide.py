@@ -167,11 +167,11 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
         out["checks"][c["name"]] = checks(c, baseline, misfit_before, th)
     # a fit at the end of a budget range explains the data only beyond the term's range: set aside (rule 0)
     ends = [c["name"] for c in scored if not out["checks"][c["name"]].get("within_range", True)]
+    aside = ""
     if ends and len(ends) < len(scored):
         out["set_aside"] = ends
         scored = [c for c in scored if c["name"] not in ends]
-    aside = (f"{', '.join(ends)} fit(s) at the end of the range (fails within_range) and is set aside; "
-             if ends else "")
+        aside = f"{', '.join(ends)} fit(s) at the end of the range (fails within_range) and is set aside; "
     best = scored[0] if scored else None
     if best is not None:
         tl = 2 * best["log_bayes_factor"]
