@@ -337,3 +337,33 @@ def test_a_diagnosis_killed_after_each_final_write_resumes_to_every_file(tmp_pat
     (tmp_path / "g1.csv").write_text((tmp_path / "g1.csv").read_text().replace("2,1,3", "2,1.5,3"))
     assert main(["diagnose", str(p), "--out", str(ref), "--quiet", "--resume"]) == 2
     assert "made from another config or recording" in capsys.readouterr().err
+
+
+def test_cli_cellsize_auto_chooses_the_grid_and_reports_it(tmp_path):
+    """[diagnose] cellsize = "auto": the grid chosen by its own error (the deposit map averaged onto it)
+    reaches the diagnosis, report.json "grid" and report.md say which and why, the located mismatches the
+    grid's error accounts for are in decision["resolution"]; a fixed number or fine_terrain with "auto" is
+    refused naming the key."""
+    import json
+    from torchslide.commands.diagnose import load_diagnose_config
+    from torchslide.config import ConfigError
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets('cellsize = "auto"\nmax_cells = 150'))
+    out = tmp_path / "out"
+    assert main(["diagnose", str(p), "--out", str(out), "--quiet"]) == 0
+    j = json.loads((out / "report.json").read_text())
+    g = j["grid"]
+    assert g["max_cells"] == 150 and g["cellsize"] in [t["cellsize"] for t in g["tried"] if "ratio" in t]
+    assert [t["cellsize"] for t in g["tried"]] == sorted((t["cellsize"] for t in g["tried"]), reverse=True)
+    assert all("skipped" in t or set(t["ratio"]) == {"G1:h", "G1:speed", "deposit_map"} for t in g["tried"])
+    assert "resolution" in j["decision"]
+    md = (out / "report.md").read_text()
+    assert f"Inversion grid: {g['cellsize']:g} m, chosen by its own error" in md
+    for extra, msg in (("cellsize = 40.0", r'cellsize must be "auto"'), ("max_cells = 5", "max_cells must be an integer"),
+                       ('cellsize = "auto"\nfine_terrain = { synthetic = "inclined_plane", cellsize = 25.0, options = '
+                        '{ theta_deg = 30.0, slope_length = 500.0, runout_length = 700.0, width = 300.0 }, release = '
+                        '{ centre = [250.0, 150.0], radii = [120.0, 100.0], volume = 1.0e5 } }', "leave out fine_terrain")):
+        q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["mu_i"]\n{extra}')
+        with pytest.raises(ConfigError, match=msg):
+            load_diagnose_config(q)

@@ -172,31 +172,60 @@ def test_make_evaluator_compiles_the_solver_on_request():
 
 
 def test_harness_terrain_variants(tmp_path, monkeypatch):
-    """scenarios.TERRAINS: ``harness --terrain resolved`` runs its cases on the wider channel with the
-    smooth transition and the larger release, and restores the default (narrow) afterwards; an unknown
-    variant is refused naming it."""
+    """scenarios.SITES: ``harness --terrain resolved`` runs its cases on the wider channel with the larger
+    release, ``--terrain fan`` on the bend-to-fan terrain with its three gauges and its own thresholds file,
+    and the default (narrow) is restored afterwards; an unknown variant is refused naming it."""
     import experiments.hidden_physics.harness as H
     from experiments.hidden_physics import scenarios as S
 
     seen = []
 
-    def fake(sc, seed, out, cellsize=40.0, **kw):
-        dem, _ = S.terrain(cellsize)
+    def fake(sc, seed, out, cellsize=40.0, thresholds=None, **kw):
+        dem, erod = S.terrain(cellsize)
         rel = S.release(dem, S.V_NOMINAL)
-        seen.append((S.TERRAIN, S.GEOM["channel_halfwidth"], S.GEOM.get("transition", 0.0), int((rel > 0).sum())))
+        seen.append((S.TERRAIN, dem.shape, int((rel > 0).sum()), [g[0] for g in S.gauges()], thresholds))
         return {"wall_s": 0.0, "diagnosis": {"verdict": "no_missing_physics", "missing_physics": None}}
 
     monkeypatch.setattr(H, "run_case", fake)
-    assert H.main(["--terrain", "resolved", "--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path)]) == 0
-    assert H.main(["--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path)]) == 0
-    (r, hw_r, tr_r, n_r), (n, hw_n, tr_n, n_n) = seen
-    assert (r, hw_r, tr_r, n) == ("resolved", 100.0, 300.0, "narrow") and (hw_n, tr_n) == (40.0, 0.0)
+    for terr in ("resolved", "fan", "narrow"):
+        args = ["--terrain", terr] if terr != "narrow" else []
+        assert H.main(args + ["--seed-list", "0", "--scenarios", "null", "--out", str(tmp_path / terr)]) == 0
+    (r, shape_r, n_r, g_r, _), (f, shape_f, n_f, g_f, th_f), (n, shape_n, n_n, g_n, th_n) = seen
+    assert (r, f, n) == ("resolved", "fan", "narrow") and S.TERRAIN == "narrow"
     assert n_r > 3 * n_n  # release radius 120 m against 60 m
-    assert S.TERRAIN == "narrow" and S.RELEASE_RADIUS == 60.0
+    assert shape_f == (25, 40) and g_f == ["g1", "g2", "g3"] and g_n == ["g1", "g2"]
+    assert H.thresholds_file("fan").name == "thresholds_fan.json" and H.thresholds_file("narrow") == H.THRESHOLDS_FILE
+    assert th_f == H.load_thresholds(H.thresholds_file("fan")) != th_n == H.load_thresholds()
     with pytest.raises(ValueError, match="unknown variant 'wide'"):
         S.use_terrain("wide")
     with pytest.raises(SystemExit):
         H.main(["--terrain", "wide", "--out", str(tmp_path)])
+
+
+def test_the_fan_terrain_sends_the_flow_through_its_bend_onto_the_fan():
+    """synthetic.bend_to_fan at the harness' truth (mu 0.25, xi 500) on 40 m cells: the release holds its
+    volume, the erodible reach lies in the channel through the bend, the flow passes all three gauges and
+    deposits on the fan's head (beyond the bend), nothing leaves the domain; the harness recording on
+    cells of 20 m has the deposit map on the 40 m grid."""
+    from experiments.hidden_physics import scenarios as S
+    from torchslide.physics import Params
+    from torchslide.solver import SolverConfig, simulate
+    from torchslide.terrain.synthetic import FAN_APEX_X, bend_to_fan
+
+    case = bend_to_fan(40.0)
+    assert math.isclose(case.release_volume, 2.0e5, rel_tol=1e-9) and case.dem.shape == (25, 40)
+    with S.terrain_variant("fan"):
+        dem, erod = S.terrain(40.0)
+        assert np.array_equal(dem.z, case.dem.z) and np.array_equal(erod, case.erodible_depth)
+        r = simulate(dem, S.release(dem, S.V_NOMINAL), Params.make(**S.TRUE_BASE), t_end=S.T_END, gauges=S.gauges(),
+                     config=SolverConfig(**S.SOLVER), erodible_depth=erod)
+        assert all(float(g.h.max()) > 1.0 for g in r.gauges.values())
+        h = r.h_final[0].numpy()
+        x = dem.x_centres()
+        assert float((h[:, x > FAN_APEX_X - 100] * dem.cellsize ** 2).sum()) > 0.5 * float(r.final_volume[0])
+        assert abs(float(r.final_volume[0]) - S.V_NOMINAL) < 1e-6 * S.V_NOMINAL
+        rec = S.make_recording("null", 0)
+        assert rec.observations[0].grid_shape == (25, 40) and len(rec.observations) == 8
 
 
 def test_coverage_counts_a_truth_at_the_prior_bound(tmp_path):
@@ -249,7 +278,7 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
     import json
     import torch
     from experiments.hidden_physics import export_case, scenarios
-    from experiments.hidden_physics.harness import HARNESS_BUDGETS, load_thresholds
+    from experiments.hidden_physics.harness import HARNESS_BUDGETS, load_thresholds, thresholds_file
     from torchslide.commands.diagnose import budgets_and_thresholds, load_diagnose_config
     from torchslide.commands.diagnose import make_evaluator as cli_evaluator
     from torchslide.diagnose import Budgets
@@ -268,7 +297,8 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
     x = torch.tensor([[0.27, 600.0]], dtype=torch.float64)
     assert float(ev(x).z[0]) == float(harness_ev(x).z[0])
     bud, th = budgets_and_thresholds(cfg)
-    assert bud == Budgets(**HARNESS_BUDGETS, seed=2) and th == load_thresholds()
+    # the terrain's own thresholds (the resolved channel has none set: the defaults)
+    assert bud == Budgets(**HARNESS_BUDGETS, seed=2) and th == load_thresholds(thresholds_file("resolved")) == Thresholds()
     truth = json.loads((tmp_path / "truth.json").read_text())
     assert truth["truth"]["tau_y"] == 3.0 and truth["terrain"] == "resolved"
     with pytest.raises(SystemExit, match="earth_pressure's switch earth_pressure = 2 beyond its range"):

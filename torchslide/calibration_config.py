@@ -143,10 +143,11 @@ def parse_observations(table: Any, cfg: Config) -> list:
                         o.validate(dem, sorted(gauges))
                     out += obs
                 else:
-                    o = SeriesObservation.from_raster(f, kind, dem, float(d["sigma"]), name=d.get("name", kind),
+                    grid = cfg.terrain.source_dem or dem   # maps lie on the DEM file's grid
+                    o = SeriesObservation.from_raster(f, kind, grid, float(d["sigma"]), name=d.get("name", kind),
                                                       corr_length=d.get("corr_length"),
                                                       threshold=float(d.get("threshold", 0.5)))
-                    out.append(o.validate(dem))
+                    out.append(o.on_grid(grid, dem).validate(dem))
             except ConfigError:
                 raise
             except GaugeSeriesError as e:

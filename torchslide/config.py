@@ -133,6 +133,7 @@ class TerrainConfig:
     thickness: str = "normal"
     nodata: str = "outflow"
     release_note: str = ""   # how the release was made when torchslide converted it (a failure depth)
+    source_dem: DEM | None = None   # the DEM file's grid when [terrain] cellsize resampled it (maps lie on it)
 
     def cell_volume_area(self) -> np.ndarray:
         """(ny, nx) m^2 that turns an input thickness into a volume: the surface area of each cell for
@@ -486,7 +487,8 @@ def _parse_terrain(t: Any, path: Path) -> TerrainConfig:
     if src is not None and src is not dem and src.crs and not dem.crs:    # a raster read on the DEM file's grid
         dem.crs = src.crs                                                   # gave the CRS (terrain.io)
     return TerrainConfig(dem=dem, release=np.asarray(release, dtype=np.float64), erodible_depth=erod,
-                         source=source, case=case, thickness=convention, nodata=nodata, release_note=release_note)
+                         source=source, case=case, thickness=convention, nodata=nodata, release_note=release_note,
+                         source_dem=src if has_dem and src is not dem else None)
 
 
 def _failure_surface(src: DEM, path: Path) -> tuple[DEM, tuple[np.ndarray, str]]:

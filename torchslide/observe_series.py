@@ -326,6 +326,31 @@ class SeriesObservation:
         arr = read_map(path, dem, what=kind.replace("_", " "))
         return cls.from_array(kind, arr, dem, sigma, source=str(path), **kw)
 
+    def on_grid(self, src: DEM, dst: DEM) -> "SeriesObservation":
+        """This map (on ``src``'s grid) on ``dst``'s grid, each new cell the area-weighted mean of the
+        recorded cells it overlaps (terrain.resample.resample_map; impact maps and footprints rounded to 0 or
+        1), with the same stated sigma per value (an error correlated over the source cells does not average
+        out); a gauge series or a map already on ``dst``'s grid is returned as it is."""
+        from .terrain.resample import resample_map
+
+        if not self.is_map or (tuple(self.grid_shape) == dst.shape and abs(self.cellsize - dst.cellsize) <= 1e-9 * dst.cellsize):
+            return self
+        full = np.full(src.shape, np.nan)
+        full.ravel()[self.cell_index] = self.values
+        binary = self.kind in ("impact_map", "footprint")
+        sigma = self.sigma
+        if np.ndim(sigma) and np.size(sigma) > 1:
+            s_full = np.full(src.shape, np.nan)
+            s_full.ravel()[self.cell_index] = np.asarray(sigma, dtype=np.float64)
+            s_dst = resample_map(s_full, src, dst)
+        arr = resample_map(full, src, dst, binary=binary)
+        o = type(self).from_array(self.kind, arr, dst, sigma, name=self.name, threshold=self.threshold,
+                                  corr_length=self.corr_length, source=self.source)
+        if np.ndim(sigma) and np.size(sigma) > 1:
+            o.sigma = s_dst.ravel()[o.cell_index]
+        o.options = dict(self.options)
+        return o
+
     # ---------------------------------------------------------------- properties
     @property
     def m(self) -> int:

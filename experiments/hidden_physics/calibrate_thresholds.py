@@ -12,7 +12,8 @@ on them is what discretisation and noise alone buy. The rule (torchslide.diagnos
   Bonferroni over the observables);
 * waic_min = margin_min = 6, explain_min = 0.5, ess_min = 2, z_threshold = 3, fixed a priori.
 
-Writes ``FILE`` (default experiments/hidden_physics/thresholds.json, read by the harness).
+Writes ``FILE`` (default: the null cases' terrain's file, experiments/hidden_physics/thresholds.json for
+the narrow channel, thresholds_<terrain>.json for the others; the harness reads it for that terrain).
 ``--apply DIR2`` then re-decides every saved case in DIR2 with the new thresholds (the verdict is a
 pure function of a case's saved statistics and the thresholds, so this equals re-running it); the
 decision it was run with is kept as ``decision_as_run``.
@@ -84,7 +85,7 @@ def apply_thresholds(results, th: dict, force: bool = False) -> int:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="decision thresholds from null harness cases")
     p.add_argument("--results", required=True, help="harness folder with null cases (null_s<seed>.json)")
-    p.add_argument("--out", default=str(HERE / "thresholds.json"))
+    p.add_argument("--out", default=None, help="thresholds file (default: the null cases' terrain's)")
     p.add_argument("--apply", default=None, help="harness results folder to re-decide with the new thresholds")
     p.add_argument("--force", action="store_true",
                    help="with --apply: re-decide every case, also those already at these thresholds")
@@ -92,8 +93,14 @@ def main(argv=None) -> int:
     st = null_statistics(a.results)
     if not st["cases"]:
         p.error(f"--results {a.results}: no null cases (null_s<seed>.json)")
+    terrains = {json.loads(f.read_text()).get("terrain", "narrow") for f in Path(a.results).glob("null_s*.json")}
+    if len(terrains) > 1:
+        p.error(f"--results {a.results}: null cases of several terrains {sorted(terrains)}")
+    from .harness import thresholds_file
+
+    out = a.out or thresholds_file(terrains.pop())
     th = thresholds_from_null(st, st["fit_rows"] or None)
-    write_json(a.out, {"rule": RULE, "null_cases": st["cases"], "fit_null_cases": len(st["fit_rows"]),
+    write_json(out, {"rule": RULE, "null_cases": st["cases"], "fit_null_cases": len(st["fit_rows"]),
                        "thresholds": th})
     print(json.dumps(th))
     if a.apply:

@@ -1,5 +1,5 @@
 """Write one harness case as the files a user would bring, with a config for the ``torchslide diagnose`` CLI.
-``python -m experiments.hidden_physics.export_case SCENARIO SEED --out DIR [--terrain narrow|resolved]
+``python -m experiments.hidden_physics.export_case SCENARIO SEED --out DIR [--terrain narrow|resolved|fan]
 [--strength S] [--thresholds FILE]``, then ``torchslide diagnose DIR/diagnose.toml --out DIR/diagnosis``.
 
 The harness calls torchslide.diagnose from Python. This writes the same case as files:
@@ -11,7 +11,7 @@ The harness calls torchslide.diagnose from Python. This writes the same case as 
 * ``diagnose.toml``: [terrain], [model], [run] (the harness solver settings), [[gauges]],
   [[observations]] (with the harness' sigmas and correlation lengths; the final volume as a scalar),
   [prior], [calibration] (the baseline's budget) and [diagnose] (harness.HARNESS_BUDGETS, the case's
-  seed and the decision thresholds of ``--thresholds``, default the harness' thresholds.json);
+  seed and the decision thresholds of ``--thresholds``, default the harness' file of the terrain);
 * with ``--fine-terrain``: ``dem_fine.asc``, ``release_fine.asc``, ``erodible_fine.asc``, the terrain on the
   recording grid (no hidden term), as ``[diagnose] fine_terrain`` (the harness' ``--fine-terrain``);
 * ``truth.json``: the answer (scenario, hidden term, its value, the release volume factor). The
@@ -33,7 +33,7 @@ import numpy as np
 from torchslide.terrain.io import write_asc
 
 from . import scenarios
-from .harness import HARNESS_BUDGETS, LIBRARY, THRESHOLDS_FILE, out_of_range
+from .harness import HARNESS_BUDGETS, LIBRARY, load_thresholds, out_of_range, thresholds_file as thresholds_file_of
 from .scenarios import (SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges, make_recording, release,
                         terrain)
 
@@ -63,7 +63,7 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
                 cellsize: float = 40.0, fine_terrain: bool = False, release_volume_sd: float = 0.0) -> Path:
     """Write the case (module doc) for the current terrain variant (scenarios.use_terrain) to ``out``;
     returns the config's path. ``thresholds_file``: a thresholds JSON as calibrate_thresholds writes
-    it (default harness.THRESHOLDS_FILE). ``fine_terrain``: also write the terrain on the recording
+    it (default: the harness file of the current terrain; the default thresholds where it has none). ``fine_terrain``: also write the terrain on the recording
     grid (``*_fine.asc``, scenarios.fine_terrain_grids) as ``[diagnose] fine_terrain``, as the harness'
     ``--fine-terrain``; ``release_volume_sd`` > 0: write it under [diagnose], as the harness'
     ``--budget release_volume_sd=...``."""
@@ -103,7 +103,7 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
     # the harness' order: deposit map, gauge series, scalars (the data vector's order)
     order = {"deposit_map": 0, "gauge_series": 1}
     obs_tables.sort(key=lambda d: order.get(d["kind"], 2))
-    th = json.loads(Path(thresholds_file or THRESHOLDS_FILE).read_text())["thresholds"]
+    th = load_thresholds(thresholds_file or thresholds_file_of(scenarios.TERRAIN)).to_json()
     bud = dict(HARNESS_BUDGETS)
     if fine_terrain:
         dem_f, rel_f, erod_f = fine_terrain_grids(cellsize)
@@ -144,7 +144,7 @@ def main(argv=None) -> int:
     a.add_argument("--out", required=True, help="folder for the files and diagnose.toml")
     a.add_argument("--terrain", default="narrow", choices=sorted(TERRAINS))
     a.add_argument("--strength", type=float, default=1.0)
-    a.add_argument("--thresholds", default=None, help="thresholds JSON (default: the harness' thresholds.json)")
+    a.add_argument("--thresholds", default=None, help="thresholds JSON (default: the harness' file of --terrain)")
     a.add_argument("--fine-terrain", action="store_true",
                    help="also write the recording grid's terrain (dem_fine.asc, release_fine.asc, erodible_fine.asc) "
                         "as [diagnose] fine_terrain, as the harness' --fine-terrain")

@@ -1,5 +1,5 @@
 """The blind test of the diagnosis: ``python -m experiments.hidden_physics.harness --out DIR
-[--terrain narrow|resolved] [--cellsize M] [--seeds N | --seed-list 100,101] [--scenarios a,b]
+[--terrain narrow|resolved|fan] [--cellsize M] [--seeds N | --seed-list 100,101] [--scenarios a,b]
 [--strengths 0.5,1,2] [--sigmas harness|noise] [--budget NAME=VALUE ...] [--thresholds FILE]
 [--device cuda] [--max-batch N] [--compile]``.
 
@@ -9,9 +9,10 @@ with the before/after maps and gauge series), and refresh DIR/summary.json (summ
 saved are skipped, so an interrupted run resumes; a case being run is marked DIR/<case>.running, so
 several processes can share one DIR.
 
-Decision thresholds: ``--thresholds`` (default thresholds.json next to this file, written by
-calibrate_thresholds.py from null seeds that are not reported). Any other design (terrain, cell size,
-sigmas, budgets) needs thresholds from its own null seeds.
+Decision thresholds: ``--thresholds`` (default: the terrain's file next to this one, thresholds.json for
+the narrow channel and thresholds_<terrain>.json for the others, written by calibrate_thresholds.py from
+null seeds that are not reported). Any other design (cell size, sigmas, budgets) needs thresholds from
+its own null seeds.
 """
 from __future__ import annotations
 
@@ -37,6 +38,11 @@ HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_i
                        baseline_n_initial=10, baseline_n_total=16, batch_size=8, top_k=len(LIBRARY),
                        n_perm=49)
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
+
+
+def thresholds_file(terrain: str = "narrow") -> Path:
+    """The harness' thresholds file of ``terrain`` (each terrain's are set on its own null seeds)."""
+    return THRESHOLDS_FILE if terrain == "narrow" else THRESHOLDS_FILE.with_name(f"thresholds_{terrain}.json")
 
 
 def load_thresholds(path=THRESHOLDS_FILE) -> Thresholds:
@@ -177,7 +183,8 @@ def main(argv=None) -> int:
                    help="the likelihood's sigmas: the harness' (1.7-4 times the noise drawn) or the noise drawn")
     p.add_argument("--budget", action="append", default=[], metavar="NAME=VALUE",
                    help="override a torchslide.diagnose.Budgets field (repeatable)")
-    p.add_argument("--thresholds", default=str(THRESHOLDS_FILE), help="decision thresholds file")
+    p.add_argument("--thresholds", default=None,
+                   help="decision thresholds file (default: the terrain's, thresholds[_<terrain>].json here)")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     p.add_argument("--compile", action="store_true", help="torch.compile the diagnosis' solver steps")
@@ -232,7 +239,11 @@ def _case(a, budgets: dict, th: Thresholds, item: tuple) -> tuple:
 def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
     """Every case of seeds x strengths x scenarios: one after another, or as tasks of a Dask cluster
     (--workers / --scheduler; the cases' files and claims are on this machine's ``out``)."""
-    th = load_thresholds(a.thresholds)
+    path = Path(a.thresholds) if a.thresholds else thresholds_file(a.terrain)
+    if not path.exists():
+        print(f"=== {path} does not exist: the cases are decided with the default thresholds (set this terrain's "
+              f"on its null seeds with calibrate_thresholds.py)", flush=True)
+    th = load_thresholds(path)
     items = []
     for seed in seeds:
         for strength in strengths:

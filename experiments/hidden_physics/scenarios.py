@@ -1,15 +1,17 @@
 """Blind hidden-physics scenarios: recordings from a finer grid with a hidden term, noise and a release error.
 
-Terrain: a short S-bend channel (torchslide.terrain.synthetic.channel_with_bends, 1200 m slope + 500 m
-run-out, 600 m wide), in one of two variants (``TERRAINS``; select with :func:`terrain_variant`, the
-harness' ``--terrain``):
+Terrains (``SITES``; select with :func:`terrain_variant`, the harness' ``--terrain``):
 
-* ``"narrow"`` (the default): a channel of half-width 40 m with a sharp slope-to-run-out kink and a
-  release of radius 60 m, i.e. two 40 m cells across the channel; the solver's runs on it agree
+* ``"narrow"`` (the default): a short S-bend channel (torchslide.terrain.synthetic.channel_with_bends,
+  1200 m slope + 500 m run-out, 600 m wide) of half-width 40 m with a sharp slope-to-run-out kink and
+  a release of radius 60 m, i.e. two 40 m cells across the channel; the solver's runs on it agree
   between grids only from 10 m cells on.
-* ``"resolved"``: half-width 100 m, the kink replaced by a 300 m parabolic transition, a release of
-  radius 120 m, and gauge g2 at x = 1150 m (in the transition) instead of 1300 m (at the deposit's
-  front): a terrain that a 40 m grid resolves.
+* ``"resolved"``: the same channel of half-width 100 m, the kink replaced by a 300 m parabolic
+  transition, a release of radius 120 m, and gauge g2 at x = 1150 m (in the transition) instead of
+  1300 m (at the deposit's front): a terrain that a 40 m grid resolves.
+* ``"fan"``: a steep channel with one 60 deg bend onto a fan, an erodible reach through the bend
+  (torchslide.terrain.synthetic.bend_to_fan), three gauges (above the bend, below it, on the fan's head)
+  and the low-friction patch through the bend.
 
 The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of ``cellsize /
 fine_factor`` (same analytic surface), their deposit map block-averaged onto the inversion grid.
@@ -18,6 +20,7 @@ inversion; its final_volume sigma is 10 % of the nominal volume).
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 
@@ -29,17 +32,9 @@ from torchslide.observe_series import SeriesObservation, interp_series
 from torchslide.physics import Params
 from torchslide.terrain.grid import DEM
 from torchslide.solver import SolverConfig, simulate
+from torchslide.terrain import synthetic
 from torchslide.terrain.synthetic import _bends, channel_with_bends, release_from_shape
 
-_COMMON = dict(slope_length=1200.0, runout_length=500.0, width=600.0, amplitude=80.0)
-# terrain variant -> (channel_with_bends keywords, release radius m, x of gauge g2 m)
-TERRAINS = {
-    "narrow": (dict(_COMMON, channel_halfwidth=40.0), 60.0, 1300.0),
-    "resolved": (dict(_COMMON, channel_halfwidth=100.0, transition=300.0), 120.0, 1150.0),
-}
-GEOM = dict(TERRAINS["narrow"][0])
-RELEASE_RADIUS, G2_X = TERRAINS["narrow"][1:]
-TERRAIN = "narrow"
 TRUE_BASE = {"mu": 0.25, "xi": 500.0}
 V_NOMINAL = 2.0e5
 T_END = 90.0
@@ -62,25 +57,71 @@ SCENARIOS = {
 }
 SWITCH = {"entrainment": "kappa", "curvature": "curvature", "earth_pressure": "earth_pressure",
           "yield_stress": "tau_y", "mu_i": "mu_i"}
+PATCH_MU_SCALE = 0.55   # the out-of-library patch: mu x this inside it
+
+
+@dataclass(frozen=True)
+class Site:
+    """One harness terrain. surface: cellsize m -> DEM (the same analytic surface at every cell size);
+    release_centre (x, y) m and release_radius m of the paraboloid-cap release; gauges ((name, x, y), ...);
+    erodible: (X, Y) cell centres (ny, nx) m -> erodible depth (ny, nx) m; patch: (X, Y) -> (ny, nx) bool,
+    where the out-of-library scenario lowers mu."""
+
+    surface: Callable
+    release_centre: tuple
+    release_radius: float
+    gauges: tuple
+    erodible: Callable
+    patch: Callable
+
+
+def _channel_site(halfwidth: float, transition: float, release_radius: float, g2_x: float) -> Site:
+    geom = dict(slope_length=1200.0, runout_length=500.0, width=600.0, amplitude=80.0, channel_halfwidth=halfwidth,
+                transition=transition)
+    L = geom["slope_length"]
+    yc = lambda x: 0.5 * geom["width"] + float(_bends(x, 0.15 * L, 0.85 * L, geom["amplitude"]))
+    return Site(surface=lambda cs: channel_with_bends(cs, **geom), release_centre=(150.0, yc(150.0)),
+                release_radius=release_radius, gauges=(("g1", 700.0, yc(700.0)), ("g2", g2_x, yc(g2_x))),
+                erodible=lambda X, Y: np.where((X > 300) & (X < 1100), 2.0, 0.0),
+                patch=lambda X, Y: (X > 650) & (X < 1000))
+
+
+def _fan_site() -> Site:
+    yc = lambda x: float(synthetic._fan_centreline(x))
+    x0, x1, depth = synthetic.FAN_ERODIBLE
+    return Site(surface=lambda cs: synthetic.bend_to_fan(cs).dem,
+                release_centre=(synthetic.FAN_RELEASE["centre_x"], yc(synthetic.FAN_RELEASE["centre_x"])),
+                release_radius=synthetic.FAN_RELEASE["radius"],
+                gauges=tuple((k, x, yc(x) + dy) for k, (x, dy) in synthetic.FAN_POINTS.items()),
+                erodible=lambda X, Y: np.where((X >= x0) & (X <= x1)
+                                               & (np.abs(Y - synthetic._fan_centreline(X)) <= 100.0), depth, 0.0),
+                patch=lambda X, Y: (X > 550) & (X < 900))
+
+
+SITES = {
+    "narrow": _channel_site(40.0, 0.0, 60.0, 1300.0),
+    "resolved": _channel_site(100.0, 300.0, 120.0, 1150.0),
+    "fan": _fan_site(),
+}
+TERRAINS = tuple(SITES)
+TERRAIN = "narrow"
+SITE = SITES[TERRAIN]
 
 
 def use_terrain(name: str) -> str:
-    """Make ``name`` (a key of ``TERRAINS``) the terrain of every function of this module; returns the
+    """Make ``name`` (a key of ``SITES``) the terrain of every function of this module; returns the
     variant it replaces."""
-    global TERRAIN, RELEASE_RADIUS, G2_X
-    if name not in TERRAINS:
-        raise ValueError(f"terrain: unknown variant {name!r} (known: {', '.join(TERRAINS)})")
+    global TERRAIN, SITE
+    if name not in SITES:
+        raise ValueError(f"terrain: unknown variant {name!r} (known: {', '.join(SITES)})")
     previous = TERRAIN
-    geom, RELEASE_RADIUS, G2_X = TERRAINS[name]
-    GEOM.clear()
-    GEOM.update(geom)
-    TERRAIN = name
+    TERRAIN, SITE = name, SITES[name]
     return previous
 
 
 @contextmanager
 def terrain_variant(name: str):
-    """``with terrain_variant("resolved"): ...`` -- :func:`use_terrain` for the block, restored after."""
+    """``with terrain_variant("fan"): ...`` -- :func:`use_terrain` for the block, restored after."""
     previous = use_terrain(name)
     try:
         yield
@@ -88,30 +129,26 @@ def terrain_variant(name: str):
         use_terrain(previous)
 
 
-def yc(x):
-    L = GEOM["slope_length"]
-    return 0.5 * GEOM["width"] + float(_bends(x, 0.15 * L, 0.85 * L, GEOM["amplitude"]))
-
-
 def gauges():
-    return [("g1", 700.0, yc(700.0)), ("g2", G2_X, yc(G2_X))]
+    return list(SITE.gauges)
+
+
+def _centres(dem):
+    return np.meshgrid(dem.x_centres(), dem.y_centres())
 
 
 def terrain(cellsize: float):
-    dem = channel_with_bends(cellsize, **GEOM)
-    x = dem.x_centres()
-    erod = np.zeros(dem.shape)
-    erod[:, (x > 300) & (x < 1100)] = 2.0
-    return dem, erod
+    """(DEM, erodible depth (ny, nx) m) of the current terrain on ``cellsize`` m cells."""
+    dem = SITE.surface(cellsize)
+    return dem, SITE.erodible(*_centres(dem))
 
 
 def release(dem, volume: float):
-    return release_from_shape(dem, (150.0, yc(150.0)), RELEASE_RADIUS, volume=volume)
+    return release_from_shape(dem, SITE.release_centre, SITE.release_radius, volume=volume)
 
 
 def mu_scale_patch(dem):
-    x, y = np.meshgrid(dem.x_centres(), dem.y_centres())
-    return np.where((x > 650) & (x < 1000), 0.55, 1.0)
+    return np.where(SITE.patch(*_centres(dem)), PATCH_MU_SCALE, 1.0)
 
 
 def block_average(a: np.ndarray, f: int) -> np.ndarray:

@@ -10,7 +10,8 @@ and a [diagnose] section::
     sigma = { h = 0.5, speed = 2.0 }   # or one number for every column
     corr_time = 4.0              # optional exponential correlation time, s
 
-    [[observations]]             # maps on the DEM grid (ESRI ASCII / GeoTIFF; nodata = not mapped)
+    [[observations]]             # maps on the DEM file's grid (ESRI ASCII / GeoTIFF; nodata = not
+                                 #     mapped), averaged onto the [terrain] cellsize grid when it is coarser
     kind = "deposit_map"         # or "impact_map" (0/1 raster, threshold = 0.5 m)
     file = "deposit.asc"
     sigma = 0.5
@@ -34,6 +35,10 @@ and a [diagnose] section::
     n_initial = 16               # emulator path, refit budgets: LHS runs, first-stage total ...
     n_total = 32
     n_total_max = 48             # ... and the total a refit with untrustworthy evidence is continued to
+    # cellsize = "auto"          # choose the inversion grid by its own error: cells 8, 4, 2, 1 times [terrain]'s,
+    max_cells = 20000            #     the coarsest whose error (run pairs on cells half as large) is below the
+                                 #     stated noise in every observable, else the finest within max_cells
+                                 #     (torchslide.diagnose.resolution); maps are averaged onto it
     model_error_runs = 12        # > 0: the grid's approximation error (runs on cells model_error_factor times
     model_error_factor = 2       #     smaller at this many pilot posterior draws) enters every likelihood; 0: off
     # fine_terrain = { dem = "dem_5m.asc", release = "release_5m.asc", erodible = "erodible_5m.asc" }
@@ -101,7 +106,7 @@ _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "explain_partial_min", "ess_min",
                    "z_threshold", "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
-              *_INT_KEYS, *_THRESHOLD_KEYS}
+              "cellsize", "max_cells", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
 def diagnose_defaults() -> dict:
@@ -176,6 +181,16 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] ess_min must be >= 1 (an effective number of draws), got {c['ess_min']!r}")
     c["fine_terrain"] = _parse_fine_terrain(table.get("fine_terrain"), cfg, c["model_error_factor"])
     c["fit_max"] = _parse_fit_max(c.get("fit_max"), path)
+    c.setdefault("cellsize", None)
+    c.setdefault("max_cells", 20000)
+    if c["cellsize"] not in (None, "auto"):
+        raise ConfigError(f"{path}: [diagnose] cellsize must be \"auto\" (the grid chosen by its own error; set a "
+                          f"fixed one with [terrain] cellsize), got {c['cellsize']!r}")
+    if c["cellsize"] == "auto" and c["fine_terrain"] is not None:
+        raise ConfigError(f"{path}: [diagnose] cellsize = \"auto\" resamples the finer runs' terrain from [terrain] "
+                          f"itself; give the finest DEM as [terrain] and leave out fine_terrain")
+    if not isinstance(c["max_cells"], int) or isinstance(c["max_cells"], bool) or c["max_cells"] < 9:
+        raise ConfigError(f"{path}: [diagnose] max_cells must be an integer >= 9, got {c['max_cells']!r}")
     return c
 
 
@@ -322,6 +337,16 @@ def _run(args: argparse.Namespace) -> int:
     cfg = load_diagnose_config(args.config)
     ev = make_evaluator(cfg)
     dg = cfg.extra["diagnose"]
+    grid = None
+    if dg["cellsize"] == "auto":
+        from ..diagnose.resolution import choose_grid
+
+        try:
+            ev, ft, grid = choose_grid(ev, max_cells=dg["max_cells"], seed=dg["seed"],
+                                       log=(lambda s: None) if args.quiet else print)
+        except ValueError as e:
+            raise ConfigError(f"{cfg.path}: [diagnose] {e}") from None
+        ev = ev._copy(fine_terrain=ft)
     if "entrainment" in dg["candidates"] and cfg.terrain.erodible_depth is None:
         raise ConfigError(f"{cfg.path}: candidate 'entrainment' needs an erodible depth raster ([terrain] erodible)")
     bud, th = budgets_and_thresholds(cfg)
@@ -334,7 +359,7 @@ def _run(args: argparse.Namespace) -> int:
             raise ConfigError("--discriminate A,B goes with --design")
         if args.design:
             return _design(ev, dg["candidates"], bud, th, args, cfg, out, log)
-        return _diagnose_case(ev, cfg, bud, th, args, out, log)
+        return _diagnose_case(ev, cfg, bud, th, args, out, log, grid=grid)
 
 
 CHECKPOINT = "diagnosis.pkl"
@@ -384,8 +409,9 @@ def _load_checkpoint(out: Path, fingerprint: str):
     return d, stage
 
 
-def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log) -> int:
-    """The diagnosis of the config's case, its report, and (--null-runs) its thresholds set on null runs.
+def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log, grid: dict | None = None) -> int:
+    """The diagnosis of the config's case, its report, and (--null-runs) its thresholds set on null runs
+    (``grid``: how the inversion grid was chosen, for the report).
     The diagnosis is checkpointed (OUT/diagnosis.pkl) once inferred and once its thresholds are set on null
     runs; the report files follow, finished.json last."""
     import json
@@ -402,6 +428,7 @@ def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log) -> int:
         log(f"resuming the diagnosis in {out} (stage: {stage})")
     else:
         d, stage = diagnose(ev, dg["candidates"], bud, th, log=log), "diagnosed"
+        d.grid = grid
         _save_checkpoint(out, fp, stage, d)
     write_report(d, out, cfg.conventions())           # with the thresholds given; rewritten below when null runs reset them
     if args.null_runs and stage != "null":

@@ -40,6 +40,7 @@ from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, refit
+from .resolution import removed_by_resolution
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
 from .screen import ScreenResult, detectable_switch, screen
 from .local_path import choose_path, fit_candidates, fit_model, laplace_result, profile_ends, refit_from
@@ -98,7 +99,7 @@ def check_candidates(candidates) -> list[str]:
     return list(candidates)
 
 
-DECISION_CONTEXT = ("fit_z", "fit_z_source", "baseline_verification", "elpd_waic_baseline", "inference")
+DECISION_CONTEXT = ("fit_z", "fit_z_source", "baseline_verification", "elpd_waic_baseline", "inference", "resolution")
 """What the pipeline adds to decide()'s output; kept when a saved case is decided again."""
 
 
@@ -122,6 +123,7 @@ class Diagnosis:
     model_error: dict | None = None
     consistency: list | None = None     # consistency.subset_consistency at the final baseline (None: not computable)
     null_calibration: dict | None = None  # thresholds set on null simulations of this design (diagnose.null)
+    grid: dict | None = None            # how the inversion grid was chosen (resolution.choose_grid; None: as configured)
 
     @property
     def missing_physics(self):
@@ -177,6 +179,7 @@ class Diagnosis:
             "subset_consistency": self.consistency,
             "null_calibration": None if self.null_calibration is None else
             {**self.null_calibration, "thresholds": self.null_calibration["thresholds"].to_json()},
+            "grid": self.grid,
         })
 
 
@@ -303,6 +306,7 @@ class _Baseline:
     elpd: dict | None = None
     misfit: float = float("nan")
     source: str = "baseline calibration"
+    resolution: list | None = None     # located mismatches the grid's error accounts for (resolution.py)
 
 
 @dataclass
@@ -346,6 +350,11 @@ def _assess(evaluator, base: _Baseline, th: Thresholds, bud: Budgets) -> None:
     base.loc = localise(evaluator, base.pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm, seed=bud.seed)
     base.elpd = waic(evaluator, base.pred.draws)
     base.misfit = evaluator.misfit(base.pred.mean)
+    if getattr(evaluator, "model_error", None) is not None:
+        raw = localise(evaluator.with_model_error(None), base.pred.draws, z_threshold=th.z_threshold, n_perm=bud.n_perm,
+                       seed=bud.seed)
+        significant = lambda loc: [l for l in loc if abs(l["standardised_residual"]) >= th.located_min]
+        base.resolution = removed_by_resolution(significant(raw.located), significant(base.loc.located))
 
 
 def _screen_stage(evaluator, base: _Baseline, candidates, th: Thresholds, log) -> ScreenResult:
@@ -504,6 +513,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     fit_before = _fit(evaluator, base.pred, base.loc, base.ver["log_evidence"])
     fit_before["log_evidence_emulator"] = base.calibration.log_evidence
     dec = decide(cand_out, base.loc.located, base.ver, base.misfit, th, fit_z=fit_z)
+    dec["resolution"] = base.resolution
     dec.update(fit_z=fit_z, fit_z_source="calibrated baseline",
                baseline_verification=dict(base.ver, source=base.source),
                elpd_waic_baseline=base.elpd["elpd"],
@@ -659,6 +669,7 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     lap("consistency_s")
     fit_before = _fit(evaluator, base.pred, base.loc, base.ver["log_evidence"])
     dec = decide(cand_out, base.loc.located, base.ver, base.misfit, th, fit_z=fit_z)
+    dec["resolution"] = base.resolution
     dec.update(fit_z=fit_z, fit_z_source="baseline local fit", baseline_verification=dict(base.ver, source=base.source),
                elpd_waic_baseline=base.elpd["elpd"],
                inference={"path": "local", "why": why, "baseline_converged": bool(f0.converged)})

@@ -180,6 +180,20 @@ def _verdict_section(j: dict) -> list[str]:
             L += [f"| {v['observation']} | {v['difference_sigma']:.2f} |" for v in sep["values"]]
             L += ["", "| observation block | root sum of squares |", "|---|---|"]
             L += [f"| {b['block']} | {b['difference_sigma_rss']:.2f} |" for b in sep["blocks"]] + [""]
+    res = j["decision"].get("resolution")
+    if res:
+        L += [f"Resolution: {len(res)} mismatch(es) of the calibrated baseline with the recordings as given are the "
+              f"inversion grid's own: runs on cells half as large account for them (the grid's approximation "
+              f"error), so they are not read as missing physics.", "",
+              "| located mismatch (without the grid's error) | where | standardised residual |", "|---|---|---|"]
+        L += [f"| {r['what']} | {r['where']} | {r['standardised_residual']:.1f} |" for r in res] + [""]
+    g = j.get("grid")
+    if g:
+        L += [f"Inversion grid: {g['cellsize']:g} m, chosen by its own error (`cellsize = \"auto\"`): {g['reason']}.", "",
+              "| cells, m | cells | the grid's error / stated noise (rms per observable) |", "|---|---|---|"]
+        L += [f"| {t['cellsize']:g} | {t.get('cells', '')} | " +
+              (", ".join(f"{k} {v:.2g}" for k, v in t["ratio"].items()) if "ratio" in t else t.get("skipped", "")) + " |"
+              for t in g["tried"]] + [""]
     db = j["decision"].get("decision_before")
     if db:
         L += [f"Thresholds {j['decision'].get('thresholds_source')}; with the thresholds given before, the verdict "

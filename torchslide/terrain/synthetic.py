@@ -9,6 +9,7 @@ Flow goes towards +x unless stated; the grid origin is (0, 0).
 * :func:`bowl` -- a paraboloid bowl.
 * :func:`channel_with_bends` -- an inclined channel with two bends and a flat run-out.
 * :func:`bondo_like` -- a Bondo-like case (rock face, bending channel, fan) as a :class:`SyntheticCase`.
+* :func:`bend_to_fan` -- a steep channel with one 60 deg bend onto a fan, with an erodible reach.
 * :func:`release_from_shape` -- an elliptic paraboloid-cap (or cylinder) release of a given volume.
 * :func:`release_from_raster` -- a release thickness raster on a DEM's grid.
 """
@@ -28,6 +29,7 @@ __all__ = [
     "bowl",
     "channel_with_bends",
     "bondo_like",
+    "bend_to_fan",
     "release_from_shape",
     "release_from_raster",
     "SYNTHETIC_TERRAINS",
@@ -336,10 +338,100 @@ def bondo_like(cellsize: float = 20.0) -> SyntheticCase:
                          erodible_depth=erod, info=info)
 
 
+# ------------------------------------------------------------------------------------- bend to fan
+# x runs down-slope, y across. The thalweg heads 30 deg to the right of +x, turns 60 deg left over the
+# bend and reaches the fan's apex heading 30 deg to the left of +x.
+FAN_EXTENT = (1600.0, 1000.0)
+FAN_Y0 = 600.0                                   # thalweg y at x = 0, m
+FAN_BEND = (450.0, 750.0, 30.0)                  # x where the bend starts and ends, m; heading +-deg
+FAN_ANGLES = ((0.0, 35.0), (400.0, 35.0), (700.0, 28.0), (950.0, 24.0), (1050.0, 6.0), (1600.0, 6.0))
+FAN_APEX_X = 1000.0
+FAN_CHANNEL = dict(depth=15.0, halfwidth=50.0, side_deg=15.0)
+FAN_RELEASE = dict(centre_x=150.0, radius=100.0, volume=2.0e5)
+FAN_ERODIBLE = (350.0, 800.0, 2.0)               # x range of the erodible reach, m; its depth, m
+FAN_POINTS = {"g1": (400.0, 0.0), "g2": (800.0, 0.0), "g3": (1050.0, -80.0)}   # x, offset from the thalweg in y, m
+
+
+def _fan_heading(x):
+    """Thalweg heading (rad, from +x, positive to +y): -30 deg, turning C1 to +30 deg over the bend."""
+    x0, x1, a = FAN_BEND
+    return np.radians(a) * (2.0 * _smoothstep(x, x0, x1) - 1.0)
+
+
+_FAN_XS = np.arange(0.0, FAN_EXTENT[0] + 1.0, 1.0)
+
+
+def _fan_lookup():
+    """(y_c, z_thalweg) on _FAN_XS: the centreline and the elevation along it, integrated on 1 m steps so
+    that the slope along the path (not along x) is FAN_ANGLES' angle."""
+    xs = _FAN_XS
+    dy = np.tan(_fan_heading(xs))
+    ang = np.radians(np.interp(xs, [k[0] for k in FAN_ANGLES], [k[1] for k in FAN_ANGLES]))
+    dz = np.tan(ang) * np.sqrt(1.0 + dy ** 2)
+    cum = lambda g: np.concatenate([[0.0], np.cumsum(0.5 * (g[1:] + g[:-1]) * np.diff(xs))])
+    z = cum(dz)
+    return FAN_Y0 + cum(dy), z[-1] - z
+
+
+def _fan_centreline(x):
+    yc, _ = _fan_lookup()
+    return np.interp(x, _FAN_XS, yc)
+
+
+def _fan_surface(X, Y):
+    """z(x, y), m: a channel (Gaussian section in a valley of 15 deg sides) down to the apex, blended over
+    x in [apex - 150, apex + 50] m into a cone of FAN_ANGLES' last angle around the apex."""
+    yc_t, z_t = _fan_lookup()
+    yc = np.interp(X, _FAN_XS, yc_t)
+    d = Y - yc
+    ch = FAN_CHANNEL
+    c = 50.0
+    z_ch = np.interp(X, _FAN_XS, z_t) + ch["depth"] * (1.0 - np.exp(-((d / ch["halfwidth"]) ** 2))) \
+        + math.tan(math.radians(ch["side_deg"])) * (np.sqrt(d ** 2 + c ** 2) - c)
+    xa = FAN_APEX_X
+    za, ya = float(np.interp(xa, _FAN_XS, z_t)), float(np.interp(xa, _FAN_XS, yc_t))
+    z_fan = za - math.tan(math.radians(FAN_ANGLES[-1][1])) * np.hypot(X - xa, Y - ya)
+    w = _smoothstep(X, xa - 150.0, xa + 50.0)
+    return z_ch - w * np.maximum(z_ch - z_fan, 0.0)
+
+
+def bend_to_fan(cellsize: float = 20.0) -> SyntheticCase:
+    """A steep channel with one 60 deg bend that opens onto a fan, with an erodible reach.
+
+    Domain 1600 m (x, down-slope) x 1000 m (y), origin (0, 0); 40 x 25 cells at 40 m.
+    * Thalweg y_c(x): heading 30 deg to -y down to x = 450 m, turning 60 deg (C1) to 30 deg to +y by
+      x = 750 m (bend radius about 330 m), the fan's apex at x = 1000 m.
+    * Slope along the path 35 deg down to x = 400 m, 22 deg at 700 m, 18 deg at 950 m, 7 deg on the fan.
+    * Channel: 15 m deep, Gaussian half-width 50 m, in a valley of 15 deg sides, blended over x in
+      [850, 1050] m into a cone of 7 deg around the apex: the fan.
+    * Release: paraboloid cap of radius 100 m on the thalweg at x = 150 m, 2.0e5 m^3.
+    * erodible_depth: 2 m within 100 m of the thalweg for x in [350, 800] m (the steep reach and the bend).
+    * Points: g1 on the thalweg above the bend (x = 400 m), g2 on it just below the bend (800 m), g3 on
+      the fan's head 80 m to the outer side of the thalweg (x = 1050 m), where mu = 0.25, xi = 500 deposits.
+    """
+    X, Y = _grid(*FAN_EXTENT, cellsize)
+    dem = DEM(z=_fan_surface(X, Y), cellsize=cellsize)
+    rel = FAN_RELEASE
+    cx = rel["centre_x"]
+    release = release_from_shape(dem, (cx, float(_fan_centreline(cx))), rel["radius"], volume=rel["volume"])
+    x0, x1, depth = FAN_ERODIBLE
+    erod = np.where((X >= x0) & (X <= x1) & (np.abs(Y - _fan_centreline(X)) <= 100.0), depth, 0.0)
+    xt = np.arange(0.0, FAN_EXTENT[0] + 1e-9, 10.0)
+    thalweg = np.stack([xt, _fan_centreline(xt)], axis=1)
+    points = {k: (float(x), float(_fan_centreline(x)) + dy) for k, (x, dy) in FAN_POINTS.items()}
+    z_t = _fan_lookup()[1]
+    info = {"release_volume_m3": float((release * dem.surface_area()).sum()),
+            "drop_release_to_apex_m": float(np.interp(cx, _FAN_XS, z_t) - np.interp(FAN_APEX_X, _FAN_XS, z_t)),
+            "thalweg_length_m": thalweg_length(thalweg)}
+    return SyntheticCase(name="bend_to_fan", dem=dem, release=release, points=points, thalweg=thalweg,
+                         erodible_depth=erod, info=info)
+
+
 SYNTHETIC_TERRAINS = {
     "inclined_plane": inclined_plane,
     "parabola": parabola,
     "bowl": bowl,
     "channel_with_bends": channel_with_bends,
     "bondo_like": bondo_like,
+    "bend_to_fan": bend_to_fan,
 }
