@@ -428,17 +428,58 @@ def test_merged_residuals_equal_each_model_run_alone():
     from torchslide.diagnose.local_path import merged_residuals, problem
     from torchslide.diagnose.refit import candidate_evaluator
 
+    from torchslide.diagnose.model_error import ModelError
+
     ev = _plane_case(0.001)
-    probs = [problem(ev), problem(candidate_evaluator(ev, "entrainment")),
+    # a candidate with its own grid error (pipeline._candidate_grid_error): whitened by its own likelihood
+    me = ModelError(samples=0.01 * np.random.default_rng(0).standard_normal((3, ev.k)), x=np.zeros((3, 2)), factor=2)
+    ent = candidate_evaluator(ev, "entrainment")
+    probs = [problem(ev), problem(ent),
              problem(candidate_evaluator(ev, "earth_pressure")),
-             problem(ev.with_prior(ev.prior, fixed={"kappa": 0.002}))]
+             problem(ev.with_prior(ev.prior, fixed={"kappa": 0.002})), problem(ent.with_model_error(me))]
     X = [np.array([[0.3, 600.0], [0.35, 400.0]]), np.array([[0.3, 600.0, 0.001]]),
-         np.array([[0.28, 700.0, 0.5], [0.3, 600.0, 0.0]]), np.array([[0.31, 650.0]])]
+         np.array([[0.28, 700.0, 0.5], [0.3, 600.0, 0.0]]), np.array([[0.31, 650.0]]), np.array([[0.3, 600.0, 0.001]])]
     merged = merged_residuals(list(zip(probs, X)))
     for p, x, (r, bad) in zip(probs, X, merged):
         r1, bad1 = merged_residuals([(p, x)])[0]
         assert not bad.any() and not bad1.any()
         np.testing.assert_allclose(r, r1, rtol=1e-9, atol=1e-9)
-    assert [p.n_runs for p in probs] == [4, 2, 4, 2]
+    assert [p.n_runs for p in probs] == [4, 2, 4, 2, 2]
+    assert not np.allclose(merged[1][0], merged[4][0])     # the same run, another likelihood
     with pytest.raises(ValueError, match="share the terrain"):
         merged_residuals([(probs[0], X[0]), (problem(_plane_case(0.0)), X[0])])
+
+
+def test_a_candidates_grid_error_is_taken_where_it_fits(monkeypatch):
+    """pipeline._candidate_grid_error: the profile_top candidate's grid error gets the mean of run pairs at
+    draws of its own fit and keeps the baseline's covariance; the candidate is refitted with it, and its
+    profile is taken in that likelihood (local_path.profile_drop)."""
+    from torchslide.diagnose import Budgets, pipeline
+    from torchslide.diagnose.local_path import fit_candidates, fit_model, profile_drop
+    from torchslide.diagnose.model_error import approximation_error
+
+    ev = _plane_case(0.001)
+    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]))
+    ev_me = ev.with_model_error(me0)
+    bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, candidate_error_rounds=1)
+    f0, _ = fit_model(ev_me, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=40, log=lambda s: None)
+    fits = fit_candidates(ev_me, ["entrainment"], f0, {}, bud, log=lambda s: None)
+    cf = fits["entrainment"]
+    monkeypatch.setattr(pipeline, "_local_candidate", lambda e, c, base, scr, b, log: (
+        "refit", {"name": c.name, "param": "kappa", "two_ln_bf": c.two_ln_bf, "n_runs": c.n_runs}))
+    rows = [{"name": "entrainment", "param": "kappa", "two_ln_bf": cf.two_ln_bf, "n_runs": cf.n_runs}]
+    pipeline._candidate_grid_error(ev_me, rows, fits, {}, None, f0, None, bud, log=lambda s: None)
+    new = fits["entrainment"]
+    me_c = new.evaluator.model_error
+    np.testing.assert_allclose(me_c.grid_covariance, me0.grid_covariance, atol=1e-12)
+    x = cf.fit.draws(3, cf.evaluator.prior.bounds.numpy().astype(np.float64), seed=bud.seed + 7)
+    np.testing.assert_allclose(me_c.mean, approximation_error(cf.evaluator, x).mean, rtol=1e-9, atol=1e-12)
+    assert not np.allclose(me_c.mean, me0.mean)
+    (rnd,) = rows[0]["grid_error_at_fit"]
+    assert rnd["n"] == 3 and set(rnd["mean_shift_sigma"]) == {b.name for b in ev.blocks}
+    assert rnd["kappa"] == float(new.fit.x[2])
+    # the profile holds the switch in the candidate's own likelihood: next to the fit's own switch it drops
+    # by about 0 (in the baseline's likelihood the same point would differ by the grid error's shift)
+    i = list(new.evaluator.prior.names).index("kappa")
+    drop, _, _ = profile_drop(ev_me, new, float(new.fit.x[i]) * (1 + 1e-6), bud, log=lambda s: None)
+    assert abs(drop) < 0.5

@@ -52,6 +52,8 @@ and a [diagnose] section::
     profile_top = 2              # local path: candidates (largest 2 ln BF) profiled at the ends of their
                                  #     switch's 90 % interval (a profile point beating the fit restarts it); 0: off
     profile_restarts = 2         # local path: restarts from a profile point that beats the fit, at most
+    candidate_error_rounds = 2   # local path: rounds in which the grid's mean error of the profile_top candidates
+                                 #     is taken at draws of their own fit and the candidate refitted with it (0: off)
     candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
     candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)
@@ -102,7 +104,8 @@ HELP = "diagnose missing physics: locate misfit, screen candidate terms, refit, 
 
 _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n_total", "n_total_max",
              "model_error_runs", "model_error_factor", "profile_top", "top_k", "batch_size", "n_perm",
-             "local_lhs", "local_starts", "local_max_iter", "candidate_lhs", "candidate_starts", "profile_restarts")
+             "local_lhs", "local_starts", "local_max_iter", "candidate_lhs", "candidate_starts", "profile_restarts",
+             "candidate_error_rounds")
 _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "explain_partial_min", "ess_min",
                    "z_threshold", "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
@@ -136,7 +139,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         raise ConfigError(f"{path}: [diagnose] candidates lists {dup} more than once")
     for k in _INT_KEYS:
         low = {"model_error_runs": 0, "profile_top": 0, "model_error_factor": 2, "n_initial": 2,
-               "local_lhs": 0, "candidate_lhs": 0, "candidate_starts": 0}.get(k, 1)
+               "local_lhs": 0, "candidate_lhs": 0, "candidate_starts": 0, "candidate_error_rounds": 0}.get(k, 1)
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < low:
             raise ConfigError(f"{path}: [diagnose] {k} must be an integer >= {low}, got {c[k]!r}")
     if c["inference"] not in ("auto", "local", "emulator"):

@@ -78,22 +78,24 @@ class Problem:
 
 def merged_residuals(requests: list) -> list:
     """[(Problem, X (n_i, p_i))] -> [(residuals (n_i, k), failed (n_i,))], all points in one batch of the
-    first problem's evaluator. The problems must share the terrain, observations and model error (models of
-    one diagnosis: they differ only in which parameters are free and which are fixed)."""
+    first problem's evaluator, each request's predictions whitened by its own likelihood (a candidate
+    may carry its own grid error). The problems must share the terrain and observations (models of one
+    diagnosis: they differ in which parameters are free and which are fixed, and in the grid's error)."""
     runner = requests[0][0].evaluator
     for prob, _ in requests[1:]:
         e = prob.evaluator
-        if (e.dem is not runner.dem or e.observations is not runner.observations
-                or getattr(e, "model_error", None) is not getattr(runner, "model_error", None)):
-            raise ValueError("problems of one batch must share the terrain, the observations and the model error")
+        if e.dem is not runner.dem or e.observations is not runner.observations:
+            raise ValueError("problems of one batch must share the terrain and the observations")
     for prob, X in requests:
         prob.n_runs += len(X)
     preds, failed = runner.run_values(stack_values([(len(X), prob.values(X)) for prob, X in requests]))
-    r = runner.likelihood.whiten(torch.as_tensor(preds)).numpy()
-    bad = failed | ~np.all(np.isfinite(r), axis=1)
-    r = np.where(bad[:, None], np.inf, r)
     cuts = np.cumsum([len(X) for _, X in requests])[:-1]
-    return list(zip(np.split(r, cuts), np.split(bad, cuts)))
+    out = []
+    for (prob, _), p, f in zip(requests, np.split(np.asarray(preds), cuts), np.split(np.asarray(failed), cuts)):
+        r = prob.evaluator.likelihood.whiten(torch.as_tensor(p)).numpy()
+        bad = f | ~np.all(np.isfinite(r), axis=1)
+        out.append((np.where(bad[:, None], np.inf, r), bad))
+    return out
 
 
 def problem(evaluator, lockstep: Lockstep | None = None) -> Problem:
@@ -281,6 +283,9 @@ def profile_drop(evaluator, cf: CandidateFit, value: float, bud, log=print,
     i = names.index(cd.param)
     if abs(value - fc.x[i]) <= 1e-12 * (bounds[1, i] - bounds[0, i]):
         return 0.0, 0, fc.x.copy()
+    me = getattr(cf.evaluator, "model_error", None)
+    if me is not getattr(evaluator, "model_error", None):     # the candidate's own grid error (refit_with_error)
+        evaluator = evaluator.with_model_error(me)
     ev_s = evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(value)})
     fs, n = fit_model(ev_s, n_lhs=0, extra_starts=np.delete(fc.x, i)[None], rel_step=bud.local_rel_step,
                       max_iter=bud.local_max_iter, log=log, lockstep=lockstep)
@@ -326,6 +331,15 @@ def refit_from(evaluator, cf: CandidateFit, x: np.ndarray, base: LocalFit, bud, 
     if fc.log_like <= cf.fit.log_like:
         return cf
     return candidate_fit(cf.name, cf.evaluator, fc, base, cf.n_runs + n)
+
+
+def refit_with_error(cf: CandidateFit, model_error, base: LocalFit, bud, log=print) -> CandidateFit:
+    """Candidate ``cf`` fitted again from its mode with ``model_error`` (model_error.ModelError) in its
+    likelihood: the grid's error where the candidate fits (pipeline._candidate_grid_error)."""
+    ev = cf.evaluator.with_model_error(model_error)
+    fc, n = fit_model(ev, n_lhs=0, extra_starts=cf.fit.x[None], rel_step=bud.local_rel_step,
+                      max_iter=bud.local_max_iter, log=log)
+    return candidate_fit(cf.name, ev, fc, base, cf.n_runs + n)
 
 
 INFERENCE = ("auto", "local", "emulator")

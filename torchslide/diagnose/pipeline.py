@@ -26,6 +26,7 @@ The emulator path's stages (``_diagnose``; their wall times in Diagnosis.timings
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 import time
@@ -79,6 +80,10 @@ class Budgets:
                                        # interval, those with the largest 2 ln BF (0: off); a profile point
                                        # that beats the fit restarts the fit from there
     profile_restarts: int = 2          # local path: restarts from a profile point that beats the fit, at most
+    candidate_error_rounds: int = 2    # local path: rounds in which the grid's mean error of the profile_top
+                                       # candidates is taken at draws of their own fit (model_error_runs run
+                                       # pairs each) and the candidate refitted with it (0: off); its
+                                       # covariance stays the baseline's
     candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
     candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
     candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
@@ -604,6 +609,50 @@ def _local_candidate(evaluator, cf, base: _Baseline, scr: ScreenResult, bud: Bud
     return r, row
 
 
+def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
+                          bud: Budgets, log) -> None:
+    """The grid's approximation error where each of the ``profile_top`` candidates (largest 2 ln BF) fits:
+    its mean eps_bar taken again from ``model_error_runs`` run pairs at draws of the candidate's Laplace
+    posterior (a term changes where the flow goes, so the grid's error at the baseline's fit is not the
+    error at the candidate's), the covariance kept the baseline's (the evidences' normalisations stay
+    comparable), and the candidate refitted from its mode with it (local_path.refit_with_error), for
+    ``candidate_error_rounds`` rounds (a fixed-point iteration: the refit moves the fit, so the error is taken
+    again there); the row's ``grid_error_at_fit`` lists per round the shift of eps_bar per observable (rms,
+    in the likelihood's sigmas), the 2 ln BF and the switch."""
+    from .local_path import refit_with_error
+    from .model_error import approximation_error
+
+    ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
+    me0 = evaluator.model_error
+    seed = (bud.seed if bud.model_error_seed is None else bud.model_error_seed) + 7
+    sig = np.asarray(evaluator.sigma, dtype=np.float64)
+    for row in ranked:
+        c, history = row["name"], []
+        for k in range(bud.candidate_error_rounds):
+            cf = fits[c]
+            x = cf.fit.draws(bud.model_error_runs, cf.evaluator.prior.bounds.numpy().astype(np.float64), seed=seed + k)
+            try:
+                eps = approximation_error(cf.evaluator, x, me0.factor)
+            except RuntimeError as e:       # fewer than 2 run pairs succeeded: the error stays as it is
+                log(f"[diagnose] {c}: the grid's error at its fit could not be sampled ({e})")
+                break
+            shift = eps.mean - me0.mean
+            new_cf = refit_with_error(cf, dataclasses.replace(me0, samples=me0.samples + shift), f0, bud, log)
+            fits[c] = new_cf
+            refits[c], new = _local_candidate(evaluator, new_cf, base, scr, bud, log)
+            moved = {b.name: float(np.sqrt(np.mean((shift[b.slice] / sig[b.slice]) ** 2))) for b in evaluator.blocks}
+            i = list(new_cf.evaluator.prior.names).index(row["param"])
+            history.append({"n": int(len(eps.samples)), "mean_shift_sigma": moved, "two_ln_bf": new["two_ln_bf"],
+                            row["param"]: float(new_cf.fit.x[i])})
+            log(f"[diagnose] {c}, round {k + 1}: the grid's error at its own fit ({len(eps.samples)} run pairs) "
+                f"is {', '.join(f'{b} {v:.2g}' for b, v in moved.items())} sigma from the baseline's; 2 ln BF "
+                f"{row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}, {row['param']} {cf.fit.x[i]:.4g} -> "
+                f"{new_cf.fit.x[i]:.4g}")
+            runs = row["n_runs"] + new["n_runs"] + 2 * len(x)
+            row.clear()
+            row.update(new, n_runs=runs, grid_error_at_fit=history)
+
+
 def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
                     bud: Budgets, log) -> None:
     """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows. A profile
@@ -663,6 +712,9 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     cand_out += [_not_refit(c, scr, "screening score below the top_k") for c in candidates
                  if c not in scr.ranking[: bud.top_k]]
     lap("refit_s")
+    if model_error is not None and bud.candidate_error_rounds > 0:
+        _candidate_grid_error(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
+        lap("candidate_model_error_s")
     _local_profiles(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
     lap("profile_s")
     consistency = _consistency_stage(evaluator, scr, log)
