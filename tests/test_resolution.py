@@ -98,6 +98,8 @@ def test_regrid_keeps_the_release_volume_and_averages_the_maps():
     full0 = dep0.to_grid(dep0.values)
     assert math.isclose(float(dep.to_grid(dep.values)[3, 10]), float(np.mean(full0[6:8, 20:22])))
     assert regrid(ev, 25.0) is ev
+    with pytest.raises(ValueError, match=r"gauge G1 at \(990, 150\) lies outside the 75 m grid's extent"):
+        regrid(ev._copy(gauges=[("G1", 990.0, 150.0)]), 75.0)
     ft = fine_terrain_from(ev, c)                # cells of 25 m: the configured grid itself
     assert ft.factor_for(c.dem) == 2 and np.array_equal(ft.dem.z, ev.dem.z)
     assert fine_terrain_from(ev, ev) is None     # 12.5 m: finer than the configured grid

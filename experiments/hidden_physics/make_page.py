@@ -271,8 +271,11 @@ def build_page(runs_dir=HERE / "results", out=HERE, thresholds_file=HERE / "thre
          "kept here as `results/<run>.json`.", "",
          "Each case hides one term (or none) in recordings made on cells half the size of the inversion grid, "
          "adds noise and a release-volume error of U(0.9, 1.1), and runs `torchslide.diagnose` without telling it "
-         "the scenario (scenarios.py, harness.py). The recordings: a deposit map, two gauge series (flow thickness "
-         "and speed every 2 s) and the final volume. Library: entrainment, curvature, earth pressure, yield stress, "
+         "the scenario (scenarios.py, harness.py). The recordings: a deposit map, gauge series (flow thickness "
+         "and speed every 2 s; two gauges on the channels, three on the fan terrain) and the final volume. The "
+         "terrains: the narrow S-bend channel and the bend-to-fan terrain (a steep channel with one 60 deg bend "
+         "onto a fan, an erodible reach through the bend), each with its thresholds set on its own null seeds "
+         "100-104. Library: entrainment, curvature, earth pressure, yield stress, "
          "mu(I); the low-friction patch lies outside it.", "",
          "A **strict success**: for the null scenario \"nothing missing\"; for the out-of-library patch no library "
          f"name; for a library term that term named with 2 ln BF >= {MARGIN_MIN:g} over the runner-up, its 90 % "

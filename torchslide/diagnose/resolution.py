@@ -48,6 +48,9 @@ def regrid(ev, cellsize: float):
         raise ValueError("a full covariance of the observations is stated for their values on the configured grid; "
                          "it cannot follow them onto another grid")
     dem = resample_dem(ev.dem, cellsize)
+    for name, x, y in ev.gauges:
+        if not (dem.xll <= x < dem.xll + dem.nx * cellsize and dem.yll <= y < dem.yll + dem.ny * cellsize):
+            raise ValueError(f"gauge {name} at ({x:g}, {y:g}) lies outside the {cellsize:g} m grid's extent")
     a_src, a_dst = _areas(ev, ev.dem), _areas(ev, dem)
     thick = lambda a: None if a is None else resample_thickness(np.asarray(a, dtype=np.float64), ev.dem, dem,
                                                                 a_src, a_dst)
