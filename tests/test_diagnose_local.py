@@ -267,6 +267,10 @@ def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
         assert ent["profile_ends"] is not None and min(ent["profile_ends"]["two_ln_drop"]) > 0
         lo, hi = ent["parameters"]["kappa"]["hdr90"]
         assert lo <= kappa <= hi
+        # near-Gaussian here: the profile-likelihood interval, closed on both sides, is close to the Laplace one
+        p_lo, p_hi = ent["parameters"]["kappa"]["profile90"]
+        assert ent["parameters"]["kappa"]["profile90_closed"] == [True, True] and p_lo <= kappa <= p_hi
+        assert abs((p_hi - p_lo) / (hi - lo) - 1) < 0.5
         assert ent["lr_pvalue"] < 1e-6 and ent["two_ln_bf"] > 20
         assert d.verdict == "missing_physics" and d.missing_physics == "entrainment"
     else:
@@ -364,9 +368,12 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"a": "a2"}.get(cf, cf))
     monkeypatch.setattr(pipeline, "_local_candidate",
                         lambda ev, cf, base, scr, bud, log: ("refit", {"name": "a", "param": "a", "two_ln_bf": 45.0,
-                                                                       "reliable": True, "n_runs": 7}))
-    rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None}
-            for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
+                                                                       "reliable": True, "n_runs": 7,
+                                                                       "parameters": {"a": {}}}))
+    monkeypatch.setattr(pipeline, "profile_interval90",
+                        lambda ev, cf, prof, bud, log: ({"interval": [0.1, 0.9], "closed": [True, False]}, 3))
+    rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None,
+             "parameters": {n: {}}} for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
     fits, refits = {n: n for n in "abcd"}, {}
     pipeline._local_profiles(None, rows, fits, refits, None, None, None, pipeline.Budgets(profile_top=3),
                              log=lambda s: None)
@@ -375,7 +382,11 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     # a: fitted again from the profile point, the better fit's row, profiled again, reliable
     assert by["a"]["restarted_from_profile"] == 1 and by["a"]["two_ln_bf"] == 45.0 and by["a"]["reliable"]
     assert by["a"]["profile_ends"]["two_ln_drop"] == [2.7, 2.6] and fits["a"] == "a2" and refits["a"] == "refit"
-    assert by["a"]["n_runs"] == 5 + 10 + 7 + 10
+    assert by["a"]["n_runs"] == 5 + 10 + 7 + 10 + 3
+    # the profile-likelihood interval of every reliable profiled candidate; none for an unreliable one
+    assert by["a"]["parameters"]["a"]["profile90"] == [0.1, 0.9] and by["b"]["parameters"]["b"]["profile90_closed"] == [
+        True, False]
+    assert "profile90" not in by["d"]["parameters"]["d"] and "profile90" not in by["c"]["parameters"]["c"]
     # d: the restart found nothing better: unreliable
     assert not by["d"]["reliable"] and "restarted_from_profile" not in by["d"]
     # e: its restarted fit is beaten again by its new profile: restarted once more (profile_restarts = 2), then
@@ -383,7 +394,8 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     drops.update(e=[-2.0, 2.0], e2=[2.5, -1.9], e3=[2.6, 2.5])
     monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"e": "e2", "e2": "e3"}.get(cf, cf))
     for restarts, reliable, times in ((2, True, 2), (1, False, 1)):
-        rows = [{"name": "e", "param": "e", "two_ln_bf": 30.0, "reliable": True, "n_runs": 5, "profile_ends": None}]
+        rows = [{"name": "e", "param": "e", "two_ln_bf": 30.0, "reliable": True, "n_runs": 5, "profile_ends": None,
+                 "parameters": {"e": {}}}]
         fits = {"e": "e"}
         pipeline._local_profiles(None, rows, fits, {}, None, None, None,
                                  pipeline.Budgets(profile_top=1, profile_restarts=restarts), log=lambda s: None)
@@ -483,3 +495,33 @@ def test_a_candidates_grid_error_is_taken_where_it_fits(monkeypatch):
     i = list(new.evaluator.prior.names).index("kappa")
     drop, _, _ = profile_drop(ev_me, new, float(new.fit.x[i]) * (1 + 1e-6), bud, log=lambda s: None)
     assert abs(drop) < 0.5
+
+
+def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypatch):
+    """local_path.profile_interval90: from the Laplace ends, a side whose profile drops less than 2.71 is
+    stepped outward until it does (the crossing interpolated in sqrt(drop): exact for a quadratic profile),
+    a side that drops more is interpolated inward, and a side still below 2.71 at the prior's bound is open
+    there. The profile here is quadratic with sd 0.2 below the mode 1.0 and 0.6 above it (a skewed likelihood
+    whose Laplace interval is too narrow on the upper side)."""
+    from types import SimpleNamespace
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.diagnose import local_path as lp
+
+    level = 2.705543454095404
+    def drop(ev, cf, v, bud, log=print):
+        sd = 0.2 if v < 1.0 else 0.6
+        return ((v - 1.0) / sd) ** 2, 4, None
+    monkeypatch.setattr(lp, "profile_drop", drop)
+    ev_c = SimpleNamespace(prior=Prior({"mu": Uniform(0.1, 0.4), "tau_y": Uniform(0.0, 5.0)}))
+    cf = SimpleNamespace(name="yield_stress", evaluator=ev_c, fit=SimpleNamespace(x=np.array([0.25, 1.0])))
+    z = math.sqrt(level)
+    laplace = [1.0 - 0.3 * z, 1.0 + 0.3 * z]                      # sd 0.3 both sides
+    prof = {"interval90": laplace, "two_ln_drop": [drop(None, None, v, None)[0] for v in laplace]}
+    out, runs = lp.profile_interval90(None, cf, prof, None)
+    assert out["closed"] == [True, True] and runs > 0
+    np.testing.assert_allclose(out["interval"], [1.0 - 0.2 * z, 1.0 + 0.6 * z], rtol=1e-9)
+    # the upper side reaches the prior's bound 5 still below 2.71 (sd 6 there): open at the bound
+    monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print: (((v - 1.0) / (0.2 if v < 1 else 6.0)) ** 2, 4, None))
+    prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 6.0) ** 2]}
+    out, _ = lp.profile_interval90(None, cf, prof, None, steps=6)
+    assert out["closed"] == [True, False] and out["interval"][1] == 5.0

@@ -244,6 +244,10 @@ def test_coverage_counts_a_truth_at_the_prior_bound(tmp_path):
     assert coverage(diag, truth) == (True, True)
     assert coverage(diag, {"term": "earth_pressure", "earth_pressure": 0.75}) == (False, True)
     assert coverage(diag, {"term": "entrainment", "kappa": 0.0015}) == (None, None)
+    # a profiled switch: its profile-likelihood interval is the one reported (and checked)
+    prof = {"candidates": [{"name": "yield_stress", "parameters": {"tau_y": {
+        "mean": 2.4, "hdr90": [2.1, 2.8], "hdi90": [2.1, 2.8], "profile90": [1.9, 3.2]}}}]}
+    assert coverage(prof, {"term": "yield_stress", "tau_y": 3.0}) == (True, False)
     assert coverage(diag, {"term": None}) == (None, None)
     case = {"truth": truth, "true_term_covered_hdr90": False, "true_term_covered_equal_tailed90": False,
             "diagnosis": diag}

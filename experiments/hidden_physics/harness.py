@@ -67,7 +67,8 @@ def out_of_range(scenario: str, strength: float) -> str | None:
 
 
 def coverage(diag: dict, truth: dict) -> tuple:
-    """(true switch in the 90 % HDI, true switch in the 'hdr90' interval) of the true term's refit in a
+    """(true switch in the 90 % interval the diagnosis reports: the profile-likelihood interval where it was
+    profiled, else the HDI; true switch in the 'hdr90' interval) of the true term's refit in a
     report.json-style ``diag``; (None, None) when the scenario has no library term or it was not refitted.
     The HDI is taken on the prior range (it may include a prior bound, e.g. earth pressure = 1), with a
     tolerance of 1e-9 of the prior width for a grid's last cell edge."""
@@ -81,7 +82,7 @@ def coverage(diag: dict, truth: dict) -> tuple:
     lo_p, hi_p = CANDIDATES[term].prior
     tol = 1e-9 * (hi_p - lo_p)
     v = truth[SWITCH[term]]
-    lo, hi = par.get("hdi90", par["hdr90"])
+    lo, hi = par.get("profile90") or par.get("hdi90", par["hdr90"])
     lo_e, hi_e = par["hdr90"]
     return bool(lo - tol <= v <= hi + tol), bool(lo_e - tol <= v <= hi_e + tol)
 

@@ -292,6 +292,42 @@ def profile_drop(evaluator, cf: CandidateFit, value: float, bud, log=print,
     return float(2 * (fc.log_like - fs.log_like)), n, np.insert(fs.x, i, float(value))
 
 
+def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int = 2, log=print) -> tuple[dict, int]:
+    """({"interval": [lo, hi], "closed": [bool, bool]}, members used): the 90 % profile-likelihood interval
+    of candidate ``cf``'s switch, where the profile's 2 ln drop from the mode reaches chi2_1(0.9) = 2.71.
+    From the ends of the Laplace interval and their drops (``prof``, profile_ends' record): a side whose
+    drop is below 2.71 is stepped outward (the distance scaled by sqrt(2.71 / drop), at most 3 times, within
+    the prior range) up to ``steps`` times; the crossing is interpolated linearly in sqrt(drop) between the
+    last point below and the first at or above 2.71. A side that never reaches it is open ("closed" False):
+    the interval runs at least to its last point (the prior's bound, when it got there)."""
+    level = float(stats.chi2.ppf(0.9, 1))
+    i = list(cf.evaluator.prior.names).index(CANDIDATES[cf.name].param)
+    bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
+    m = float(cf.fit.x[i])
+    out, closed, runs = [], [], 0
+    for v_end, d_end, bound in zip(prof["interval90"], prof["two_ln_drop"], bounds):
+        pts = [(m, 0.0), (float(v_end), float(d_end))]
+        for _ in range(steps):
+            v, d = pts[-1]
+            if d >= level or abs(v - bound) <= 1e-12 * (bounds[1] - bounds[0]) or v == m:
+                break
+            grow = min(max(1.1 * math.sqrt(level / max(d, 0.25 * level)), 1.25), 3.0)
+            v_new = float(np.clip(m + (v - m) * grow, bounds[0], bounds[1]))
+            d_new, n, _ = profile_drop(evaluator, cf, v_new, bud, log)
+            runs += n
+            pts.append((v_new, d_new))
+        hit = next((k for k in range(1, len(pts)) if pts[k][1] >= level), None)
+        if hit is None:
+            out.append(pts[-1][0])
+            closed.append(False)
+            continue
+        (v0, d0), (v1, d1) = pts[hit - 1], pts[hit]
+        s0, s1 = math.sqrt(max(d0, 0.0)), math.sqrt(d1)
+        out.append(v0 + (math.sqrt(level) - s0) / (s1 - s0) * (v1 - v0) if s1 > s0 else v1)
+        closed.append(True)
+    return {"interval": out, "closed": closed, "level": level}, runs
+
+
 def fit_candidates(evaluator, cands: list, base: LocalFit, starts: dict, bud, log=print) -> dict:
     """{candidate: CandidateFit, or the exception that ended its fit}: ``fit_candidate`` of every
     candidate in ``cands`` (``starts``: the screening's linearised optima), all in lockstep (one solver

@@ -44,7 +44,8 @@ from .refit import calibrate_evaluator, refit
 from .resolution import removed_by_resolution
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
 from .screen import ScreenResult, detectable_switch, screen
-from .local_path import choose_path, fit_candidates, fit_model, laplace_result, profile_ends, refit_from
+from .local_path import (choose_path, fit_candidates, fit_model, laplace_result, profile_ends, profile_interval90,
+                         refit_from)
 
 
 @dataclass
@@ -679,6 +680,14 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
             row.update(new, profile_ends=prof, restarted_from_profile=k + 1, n_runs=runs + new["n_runs"] + n2)
         if min(prof["two_ln_drop"]) < -1.0:         # still beaten: the fit is not at its mode
             row["reliable"] = False
+        else:
+            p90, n3 = profile_interval90(evaluator, fits[c], prof, bud, log=log)
+            row["n_runs"] += n3
+            row["parameters"][row["param"]]["profile90"] = p90["interval"]
+            row["parameters"][row["param"]]["profile90_closed"] = p90["closed"]
+            log(f"[diagnose] {c}: 90 % profile-likelihood interval of {row['param']} "
+                f"{[round(v, 5) for v in p90['interval']]}" + ("" if all(p90["closed"]) else " (open: the drop "
+                "stays below 2.71 up to there)"))
         log(f"[diagnose] profile of {c}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
             f"{row['param']} = {[round(v, 5) for v in prof['interval90']]} (Gaussian {prof['gaussian']:.2f})")
 

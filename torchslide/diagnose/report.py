@@ -256,15 +256,28 @@ def _screening_section(scr: dict) -> list[str]:
 def _candidates_section(candidates: list) -> list[str]:
     L = ["", "## Candidates", "",
          "'refit check': on the local path, the likelihood ratio with its boundary-corrected p-value and the profile "
-         "at the ends of the switch's 90 % interval; on the emulator path, whether the verified evidence converged.", "",
-         "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % HDI | refit check |",
+         "at the ends of the switch's 90 % interval; on the emulator path, whether the verified evidence converged. "
+         "'90 % interval': where the candidate was profiled, the profile-likelihood interval (2 ln drop 2.71; "
+         "'open' where the drop stays below it up to the prior's bound), else the posterior's 90 % HDI.", "",
+         "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % interval | refit check |",
          "|---|---|---|---|---|---|---|---|"]
     for c in candidates:
         p = c["parameters"].get(c["param"], {}) if c["parameters"] else {}
         L.append(f"| {c['name']} | {_fmt(c['screening_score'], '{:.1f}')} | {_fmt(c.get('mimic'), '{:.2f}')} | "
                  f"{_fmt(c['log_evidence'], '{:.2f}')} | {_fmt(c['two_ln_bf'], '{:.1f}')} | {_fmt(p.get('mean'))} | "
-                 f"{[round(v, 5) for v in p.get('hdi90', p['hdr90'])] if p else '-'} | {_refit_check(c)} |")
+                 f"{_interval(p)} | {_refit_check(c)} |")
     return L
+
+
+def _interval(p: dict) -> str:
+    """A switch's reported 90 % interval: the profile-likelihood one where computed (module doc of
+    local_path.profile_interval90), else the HDI."""
+    if not p:
+        return "-"
+    if p.get("profile90"):
+        ends = [f"{v:.5g}" + ("" if ok else " (open)") for v, ok in zip(p["profile90"], p.get("profile90_closed", [True, True]))]
+        return f"[{', '.join(ends)}] (profile)"
+    return str([round(v, 5) for v in p.get("hdi90", p["hdr90"])])
 
 
 def _fit_section(j: dict) -> list[str]:
