@@ -649,7 +649,7 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
                 f"is {', '.join(f'{b} {v:.2g}' for b, v in moved.items())} sigma from the baseline's; 2 ln BF "
                 f"{row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}, {row['param']} {cf.fit.x[i]:.4g} -> "
                 f"{new_cf.fit.x[i]:.4g}")
-            runs = row["n_runs"] + new["n_runs"] + 2 * len(x)
+            runs = new["n_runs"] + (row["n_runs"] - cf.n_runs) + 2 * len(x)   # the fits' runs, counted once
             row.clear()
             row.update(new, n_runs=runs, grid_error_at_fit=history)
 
