@@ -525,3 +525,25 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 6.0) ** 2]}
     out, _ = lp.profile_interval90(None, cf, prof, None, steps=6)
     assert out["closed"] == [True, False] and out["interval"][1] == 5.0
+
+
+def test_the_baseline_gets_as_many_grid_error_rounds_as_the_candidates():
+    """pipeline._local_baseline: after the pilot draws' grid error, candidate_error_rounds more rounds take
+    its mean at draws of the baseline's refit (covariance kept), so a candidate's own rounds do not give
+    it a likelihood the baseline was denied."""
+    from torchslide.diagnose import Budgets, pipeline
+    from torchslide.diagnose.local_path import fit_model
+
+    ev = _plane_case(0.0)
+    pilot, _ = fit_model(ev, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=20, log=lambda s: None)
+    for rounds in (0, 1):
+        bud = Budgets(model_error_runs=3, candidate_error_rounds=rounds, local_max_iter=20)
+        ev_me, f, s = pipeline._local_baseline(ev, pilot, bud, log=lambda s: None)
+        assert len(s["rounds"]) == rounds
+        if rounds == 0:
+            first, f_first = ev_me.model_error, f
+    me = ev_me.model_error
+    np.testing.assert_allclose(me.grid_covariance, first.grid_covariance, atol=1e-12)
+    x = f_first.draws(3, ev.prior.bounds.numpy().astype(np.float64), seed=bud.seed + 6)
+    from torchslide.diagnose.model_error import approximation_error
+    np.testing.assert_allclose(me.mean, approximation_error(ev, x).mean, rtol=1e-9, atol=1e-12)

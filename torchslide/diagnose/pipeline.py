@@ -81,10 +81,10 @@ class Budgets:
                                        # interval, those with the largest 2 ln BF (0: off); a profile point
                                        # that beats the fit restarts the fit from there
     profile_restarts: int = 2          # local path: restarts from a profile point that beats the fit, at most
-    candidate_error_rounds: int = 2    # local path: rounds in which the grid's mean error of the profile_top
-                                       # candidates is taken at draws of their own fit (model_error_runs run
-                                       # pairs each) and the candidate refitted with it (0: off); its
-                                       # covariance stays the baseline's
+    candidate_error_rounds: int = 2    # local path: rounds in which the grid's mean error of the baseline and
+                                       # of the profile_top candidates is taken at draws of their own fit
+                                       # (model_error_runs run pairs each) and the model refitted with it
+                                       # (0: off); the covariance stays the first sample's
     candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
     candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
     candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
@@ -560,7 +560,9 @@ def _pilot_stage(evaluator, bud: Budgets, baseline, log):
 
 def _local_baseline(evaluator, pilot, bud: Budgets, log):
     """(evaluator, baseline fit, model-error summary): with model_error_runs > 0 the grid's approximation
-    error at draws of the pilot's Laplace posterior enters the likelihood and the baseline is refitted."""
+    error at draws of the pilot's Laplace posterior enters the likelihood and the baseline is refitted;
+    then ``candidate_error_rounds`` times its mean is taken again at draws of the refit and the baseline
+    refitted (the candidates get as many rounds: _candidate_grid_error)."""
     if bud.model_error_runs <= 0:
         return evaluator, pilot, None
     from .model_error import approximation_error
@@ -574,6 +576,26 @@ def _local_baseline(evaluator, pilot, bud: Budgets, log):
     evaluator = evaluator.with_model_error(me)
     f, _ = fit_model(evaluator, n_lhs=0, extra_starts=pilot.x[None], rel_step=bud.local_rel_step,
                      max_iter=bud.local_max_iter, log=log)
+    # the same rounds as the candidates get (_candidate_grid_error): the mean error taken again where the
+    # baseline now fits, the covariance kept, so that no model's fit gains from more rounds than another's
+    s["rounds"] = []
+    for k in range(bud.candidate_error_rounds):
+        x = f.draws(bud.model_error_runs, evaluator.prior.bounds.numpy().astype(np.float64), seed=seed + 6 + k)
+        try:
+            eps = approximation_error(evaluator, x, bud.model_error_factor)
+        except RuntimeError as e:
+            log(f"[diagnose] baseline: the grid's error at its fit could not be sampled ({e})")
+            break
+        me_k = evaluator.model_error
+        shift = eps.mean - me_k.mean
+        evaluator = evaluator.with_model_error(dataclasses.replace(me_k, samples=me_k.samples + shift))
+        f, _ = fit_model(evaluator, n_lhs=0, extra_starts=f.x[None], rel_step=bud.local_rel_step,
+                         max_iter=bud.local_max_iter, log=log)
+        sig = np.asarray(evaluator.sigma, dtype=np.float64)
+        moved = {b.name: float(np.sqrt(np.mean((shift[b.slice] / sig[b.slice]) ** 2))) for b in evaluator.blocks}
+        s["rounds"].append(moved)
+        log(f"[diagnose] baseline, round {k + 1}: the grid's error at its fit moved by " +
+            ", ".join(f"{b} {v:.2g}" for b, v in moved.items()) + " sigma; ln L " + f"{f.log_like:.1f}")
     return evaluator, f, s
 
 
