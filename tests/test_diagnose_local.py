@@ -245,6 +245,16 @@ def _plane_case(kappa: float, release_scale: float = 0.0):
                               solver_config=SolverConfig(), erodible_depth=erod)
 
 
+def _with_fine_terrain(ev):
+    """The plane case's evaluator with its terrain on cells half as large (a FineTerrain), as a user with
+    the finer DEM has it: the grid-error rounds run only then."""
+    from torchslide.diagnose.model_error import FineTerrain
+    from torchslide.terrain.synthetic import inclined_plane, release_from_shape
+
+    dem_f = inclined_plane(30.0, 20.0, slope_length=600.0, runout_length=600.0, width=320.0, transition=200.0)
+    return ev._copy(fine_terrain=FineTerrain(dem_f, release_from_shape(dem_f, (150.0, 160.0), 60.0, volume=2.0e4)))
+
+
 @pytest.mark.parametrize("kappa", [0.001, 0.0])
 def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
     """Rich recordings (a deposit map and a depth series): the baseline's posterior fills a tiny part of the
@@ -470,7 +480,7 @@ def test_a_candidates_grid_error_is_taken_where_it_fits(monkeypatch):
     from torchslide.diagnose.local_path import fit_candidates, fit_model, profile_drop
     from torchslide.diagnose.model_error import approximation_error
 
-    ev = _plane_case(0.001)
+    ev = _with_fine_terrain(_plane_case(0.001))
     me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]))
     ev_me = ev.with_model_error(me0)
     bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, candidate_error_rounds=1)
@@ -528,14 +538,19 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
 
 
 def test_the_baseline_gets_as_many_grid_error_rounds_as_the_candidates():
-    """pipeline._local_baseline: after the pilot draws' grid error, candidate_error_rounds more rounds take
-    its mean at draws of the baseline's refit (covariance kept), so a candidate's own rounds do not give
-    it a likelihood the baseline was denied."""
+    """pipeline._local_baseline: with a finer terrain, after the pilot draws' grid error,
+    candidate_error_rounds more rounds take its mean at draws of the baseline's refit (covariance kept), so
+    a candidate's own rounds do not give it a likelihood the baseline was denied; without one, none."""
     from torchslide.diagnose import Budgets, pipeline
     from torchslide.diagnose.local_path import fit_model
 
-    ev = _plane_case(0.0)
+    ev = _with_fine_terrain(_plane_case(0.0))
     pilot, _ = fit_model(ev, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=20, log=lambda s: None)
+    # without a finer terrain (the finer runs interpolate the inversion DEM) there are no rounds
+    bare = _plane_case(0.0)
+    assert pipeline.error_rounds(bare, Budgets()) == 0 and pipeline.error_rounds(ev, Budgets()) == 2
+    assert pipeline._local_baseline(bare, pilot, Budgets(model_error_runs=3, local_max_iter=20),
+                                    log=lambda s: None)[2]["rounds"] == []
     for rounds in (0, 1):
         bud = Budgets(model_error_runs=3, candidate_error_rounds=rounds, local_max_iter=20)
         ev_me, f, s = pipeline._local_baseline(ev, pilot, bud, log=lambda s: None)

@@ -195,6 +195,7 @@ def test_harness_terrain_variants(tmp_path, monkeypatch):
     assert n_r > 3 * n_n  # release radius 120 m against 60 m
     assert shape_f == (25, 40) and g_f == ["g1", "g2", "g3"] and g_n == ["g1", "g2"]
     assert H.thresholds_file("fan").name == "thresholds_fan.json" and H.thresholds_file("narrow") == H.THRESHOLDS_FILE
+    assert H.thresholds_file("fan", fine_terrain=True).name == "thresholds_fan_fine.json"
     assert th_f == H.load_thresholds(H.thresholds_file("fan")) != th_n == H.load_thresholds()
     with pytest.raises(ValueError, match="unknown variant 'wide'"):
         S.use_terrain("wide")

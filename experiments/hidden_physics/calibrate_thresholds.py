@@ -12,8 +12,9 @@ on them is what discretisation and noise alone buy. The rule (torchslide.diagnos
   Bonferroni over the observables);
 * waic_min = margin_min = 6, explain_min = 0.5, ess_min = 2, z_threshold = 3, fixed a priori.
 
-Writes ``FILE`` (default: the null cases' terrain's file, experiments/hidden_physics/thresholds.json for
-the narrow channel, thresholds_<terrain>.json for the others; the harness reads it for that terrain).
+Writes ``FILE`` (default: the null cases' design's file, experiments/hidden_physics/thresholds.json for
+the narrow channel, thresholds_<terrain>.json for the others, "_fine" added for --fine-terrain cases; the
+harness reads it for that design).
 ``--apply DIR2`` then re-decides every saved case in DIR2 with the new thresholds (the verdict is a
 pure function of a case's saved statistics and the thresholds, so this equals re-running it); the
 decision it was run with is kept as ``decision_as_run``.
@@ -93,12 +94,13 @@ def main(argv=None) -> int:
     st = null_statistics(a.results)
     if not st["cases"]:
         p.error(f"--results {a.results}: no null cases (null_s<seed>.json)")
-    terrains = {json.loads(f.read_text()).get("terrain", "narrow") for f in Path(a.results).glob("null_s*.json")}
-    if len(terrains) > 1:
-        p.error(f"--results {a.results}: null cases of several terrains {sorted(terrains)}")
+    designs = {(c.get("terrain", "narrow"), bool(c.get("fine_terrain")))
+               for c in (json.loads(f.read_text()) for f in Path(a.results).glob("null_s*.json"))}
+    if len(designs) > 1:
+        p.error(f"--results {a.results}: null cases of several designs (terrain, fine terrain) {sorted(designs)}")
     from .harness import thresholds_file
 
-    out = a.out or thresholds_file(terrains.pop())
+    out = a.out or thresholds_file(*designs.pop())
     th = thresholds_from_null(st, st["fit_rows"] or None)
     write_json(out, {"rule": RULE, "null_cases": st["cases"], "fit_null_cases": len(st["fit_rows"]),
                        "thresholds": th})

@@ -103,7 +103,7 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
     # the harness' order: deposit map, gauge series, scalars (the data vector's order)
     order = {"deposit_map": 0, "gauge_series": 1}
     obs_tables.sort(key=lambda d: order.get(d["kind"], 2))
-    th = load_thresholds(thresholds_file or thresholds_file_of(scenarios.TERRAIN)).to_json()
+    th = load_thresholds(thresholds_file or thresholds_file_of(scenarios.TERRAIN, fine_terrain)).to_json()
     bud = dict(HARNESS_BUDGETS)
     if fine_terrain:
         dem_f, rel_f, erod_f = fine_terrain_grids(cellsize)

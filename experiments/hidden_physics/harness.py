@@ -9,9 +9,9 @@ with the before/after maps and gauge series), and refresh DIR/summary.json (summ
 saved are skipped, so an interrupted run resumes; a case being run is marked DIR/<case>.running, so
 several processes can share one DIR.
 
-Decision thresholds: ``--thresholds`` (default: the terrain's file next to this one, thresholds.json for
-the narrow channel and thresholds_<terrain>.json for the others, written by calibrate_thresholds.py from
-null seeds that are not reported). Any other design (cell size, sigmas, budgets) needs thresholds from
+Decision thresholds: ``--thresholds`` (default: the design's file next to this one, thresholds.json for
+the narrow channel and thresholds_<terrain>.json for the others, ``_fine`` added with ``--fine-terrain``;
+written by calibrate_thresholds.py from null seeds that are not reported). Any other design (cell size, sigmas, budgets) needs thresholds from
 its own null seeds.
 """
 from __future__ import annotations
@@ -40,9 +40,11 @@ HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_i
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
 
 
-def thresholds_file(terrain: str = "narrow") -> Path:
-    """The harness' thresholds file of ``terrain`` (each terrain's are set on its own null seeds)."""
-    return THRESHOLDS_FILE if terrain == "narrow" else THRESHOLDS_FILE.with_name(f"thresholds_{terrain}.json")
+def thresholds_file(terrain: str = "narrow", fine_terrain: bool = False) -> Path:
+    """The harness' thresholds file of ``terrain`` (each design's are set on its own null seeds; with
+    ``fine_terrain`` the diagnosis runs its grid-error rounds, another design: "_fine")."""
+    stem = ("thresholds" if terrain == "narrow" else f"thresholds_{terrain}") + ("_fine" if fine_terrain else "")
+    return THRESHOLDS_FILE.with_name(f"{stem}.json")
 
 
 def load_thresholds(path=THRESHOLDS_FILE) -> Thresholds:
@@ -240,7 +242,7 @@ def _case(a, budgets: dict, th: Thresholds, item: tuple) -> tuple:
 def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
     """Every case of seeds x strengths x scenarios: one after another, or as tasks of a Dask cluster
     (--workers / --scheduler; the cases' files and claims are on this machine's ``out``)."""
-    path = Path(a.thresholds) if a.thresholds else thresholds_file(a.terrain)
+    path = Path(a.thresholds) if a.thresholds else thresholds_file(a.terrain, a.fine_terrain)
     if not path.exists():
         print(f"=== {path} does not exist: the cases are decided with the default thresholds (set this terrain's "
               f"on its null seeds with calibrate_thresholds.py)", flush=True)

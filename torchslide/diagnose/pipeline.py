@@ -81,10 +81,11 @@ class Budgets:
                                        # interval, those with the largest 2 ln BF (0: off); a profile point
                                        # that beats the fit restarts the fit from there
     profile_restarts: int = 2          # local path: restarts from a profile point that beats the fit, at most
-    candidate_error_rounds: int = 2    # local path: rounds in which the grid's mean error of the baseline and
-                                       # of the profile_top candidates is taken at draws of their own fit
-                                       # (model_error_runs run pairs each) and the model refitted with it
-                                       # (0: off); the covariance stays the first sample's
+    candidate_error_rounds: int = 2    # local path, with a finer terrain (fine_terrain): rounds in which the
+                                       # grid's mean error of the baseline and of the profile_top candidates
+                                       # is taken at draws of their own fit (model_error_runs run pairs each)
+                                       # and the model refitted with it (0: off); the covariance stays the
+                                       # first sample's. Without a finer terrain no rounds (error_rounds)
     candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
     candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
     candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
@@ -96,6 +97,13 @@ class Budgets:
                                        # approximation error (None: seed); fixing it holds the likelihood
                                        # constant while seed changes the rest of the inference
     mcmc_steps: int = 1500             # emulator MCMC steps per chain (p > 2 refits)
+
+
+def error_rounds(evaluator, bud: Budgets) -> int:
+    """The grid-error rounds this diagnosis runs: ``candidate_error_rounds`` when the finer runs use a finer
+    terrain (``fine_terrain``), 0 when they interpolate the inversion DEM: the error the interpolated grid
+    measures is not the recordings' own, and the rounds would converge to its fit (docs/diagnosis.md)."""
+    return bud.candidate_error_rounds if getattr(evaluator, "fine_terrain", None) is not None else 0
 
 
 def check_candidates(candidates) -> list[str]:
@@ -579,7 +587,7 @@ def _local_baseline(evaluator, pilot, bud: Budgets, log):
     # the same rounds as the candidates get (_candidate_grid_error): the mean error taken again where the
     # baseline now fits, the covariance kept, so that no model's fit gains from more rounds than another's
     s["rounds"] = []
-    for k in range(bud.candidate_error_rounds):
+    for k in range(error_rounds(evaluator, bud)):
         x = f.draws(bud.model_error_runs, evaluator.prior.bounds.numpy().astype(np.float64), seed=seed + 6 + k)
         try:
             eps = approximation_error(evaluator, x, bud.model_error_factor)
@@ -651,7 +659,7 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
     sig = np.asarray(evaluator.sigma, dtype=np.float64)
     for row in ranked:
         c, history = row["name"], []
-        for k in range(bud.candidate_error_rounds):
+        for k in range(error_rounds(evaluator, bud)):
             cf = fits[c]
             x = cf.fit.draws(bud.model_error_runs, cf.evaluator.prior.bounds.numpy().astype(np.float64), seed=seed + k)
             try:
@@ -743,7 +751,7 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     cand_out += [_not_refit(c, scr, "screening score below the top_k") for c in candidates
                  if c not in scr.ranking[: bud.top_k]]
     lap("refit_s")
-    if model_error is not None and bud.candidate_error_rounds > 0:
+    if model_error is not None and error_rounds(evaluator, bud) > 0:
         _candidate_grid_error(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
         lap("candidate_model_error_s")
     _local_profiles(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
