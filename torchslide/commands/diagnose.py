@@ -52,8 +52,9 @@ and a [diagnose] section::
     profile_top = 2              # local path: candidates (largest 2 ln BF) profiled at the ends of their
                                  #     switch's 90 % interval (a profile point beating the fit restarts it); 0: off
     profile_restarts = 2         # local path: restarts from a profile point that beats the fit, at most
-    candidate_error_rounds = 2   # local path: rounds in which the grid's mean error of the profile_top candidates
-                                 #     is taken at draws of their own fit and the candidate refitted with it (0: off)
+    candidate_error_rounds = 2   # local path, with a finer terrain (fine_terrain or cellsize = "auto"): rounds in
+                                 #     which the grid's mean error of the baseline and the profile_top candidates is
+                                 #     taken at draws of their own fit and the model refitted with it (0: off)
     candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
     candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)
