@@ -72,6 +72,8 @@ def confusion(rows: list[dict]) -> tuple[list[str], list[str], np.ndarray]:
 
 def describe(settings: dict) -> str:
     s = f"{settings['terrain']} terrain, {settings['cellsize']:g} m cells"
+    if settings.get("fine_terrain"):
+        s += ", the recording grid's terrain for the grid-error runs (and their rounds)"
     if settings.get("sigmas", "harness") != "harness":
         s += ", likelihood sigmas = the noise drawn"
     if settings.get("budgets"):
@@ -84,6 +86,8 @@ def command(summary: dict) -> str:
     strengths and seeds (e.g. the strength-1 seeds, extra null seeds, a ladder of strengths), joined by "; "."""
     settings = summary["settings"]
     base = f"python -m experiments.hidden_physics.harness --terrain {settings['terrain']} --cellsize {settings['cellsize']:g}"
+    if settings.get("fine_terrain"):
+        base += " --fine-terrain"
     if settings.get("sigmas", "harness") != "harness":
         base += f" --sigmas {settings['sigmas']}"
     for k, v in (settings.get("budgets") or {}).items():
