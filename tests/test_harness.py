@@ -471,3 +471,8 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     assert lad[("entrainment", 1.0)]["named"] == 5 and lad[("curvature", 1.0)]["quiet"] == 5
     assert "| entrainment | 0.5 | - | 0/1 | 0/1 | 0/1 | 1/1 |" in page
     assert "Null seeds (0, 1, 2, 3, 4): nothing missing in 4 of 5, a library term named (false naming) in 0" in page
+    # a run with the recording grid's terrain says so, and its command carries --fine-terrain
+    fine = {"settings": {"terrain": "fan", "cellsize": 40.0, "fine_terrain": True},
+            "cases": [{"scenario": "null", "seed": 0, "strength": 1.0}]}
+    assert "--terrain fan --cellsize 40 --fine-terrain" in make_page.command(fine)
+    assert "the recording grid's terrain" in make_page.describe(fine["settings"])
