@@ -566,6 +566,24 @@ def _pilot_stage(evaluator, bud: Budgets, baseline, log):
     return f
 
 
+def _error_at_fit(evaluator, runner, fit, reference, bud: Budgets, seed: int):
+    """One grid-error round (module doc of _candidate_grid_error): (ModelError whose mean is the grid's
+    error at ``model_error_runs`` draws of ``fit`` (a LocalFit of ``runner``'s model) and whose covariance
+    is ``reference``'s, {observable: rms shift of the mean in ``evaluator``'s sigmas}, run pairs), or None
+    when fewer than 2 run pairs succeeded."""
+    from .model_error import approximation_error
+
+    x = fit.draws(bud.model_error_runs, runner.prior.bounds.numpy().astype(np.float64), seed=seed)
+    try:
+        eps = approximation_error(runner, x, reference.factor)
+    except RuntimeError:
+        return None
+    shift = eps.mean - reference.mean
+    sig = np.asarray(evaluator.sigma, dtype=np.float64)
+    moved = {b.name: float(np.sqrt(np.mean((shift[b.slice] / sig[b.slice]) ** 2))) for b in evaluator.blocks}
+    return dataclasses.replace(reference, samples=reference.samples + shift), moved, len(eps.samples)
+
+
 def _local_baseline(evaluator, pilot, bud: Budgets, log):
     """(evaluator, baseline fit, model-error summary): with model_error_runs > 0 the grid's approximation
     error at draws of the pilot's Laplace posterior enters the likelihood and the baseline is refitted;
@@ -588,19 +606,14 @@ def _local_baseline(evaluator, pilot, bud: Budgets, log):
     # baseline now fits, the covariance kept, so that no model's fit gains from more rounds than another's
     s["rounds"] = []
     for k in range(error_rounds(evaluator, bud)):
-        x = f.draws(bud.model_error_runs, evaluator.prior.bounds.numpy().astype(np.float64), seed=seed + 6 + k)
-        try:
-            eps = approximation_error(evaluator, x, bud.model_error_factor)
-        except RuntimeError as e:
-            log(f"[diagnose] baseline: the grid's error at its fit could not be sampled ({e})")
+        got = _error_at_fit(evaluator, evaluator, f, evaluator.model_error, bud, seed + 6 + k)
+        if got is None:
+            log("[diagnose] baseline: the grid's error at its fit could not be sampled (fewer than 2 run pairs)")
             break
-        me_k = evaluator.model_error
-        shift = eps.mean - me_k.mean
-        evaluator = evaluator.with_model_error(dataclasses.replace(me_k, samples=me_k.samples + shift))
+        me_k, moved, _ = got
+        evaluator = evaluator.with_model_error(me_k)
         f, _ = fit_model(evaluator, n_lhs=0, extra_starts=f.x[None], rel_step=bud.local_rel_step,
                          max_iter=bud.local_max_iter, log=log)
-        sig = np.asarray(evaluator.sigma, dtype=np.float64)
-        moved = {b.name: float(np.sqrt(np.mean((shift[b.slice] / sig[b.slice]) ** 2))) for b in evaluator.blocks}
         s["rounds"].append(moved)
         log(f"[diagnose] baseline, round {k + 1}: the grid's error at its fit moved by " +
             ", ".join(f"{b} {v:.2g}" for b, v in moved.items()) + " sigma; ln L " + f"{f.log_like:.1f}")
@@ -651,35 +664,30 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
     again there); the row's ``grid_error_at_fit`` lists per round the shift of eps_bar per observable (rms,
     in the likelihood's sigmas), the 2 ln BF and the switch."""
     from .local_path import refit_with_error
-    from .model_error import approximation_error
 
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
     me0 = evaluator.model_error
     seed = (bud.seed if bud.model_error_seed is None else bud.model_error_seed) + 7
-    sig = np.asarray(evaluator.sigma, dtype=np.float64)
     for row in ranked:
         c, history = row["name"], []
         for k in range(error_rounds(evaluator, bud)):
             cf = fits[c]
-            x = cf.fit.draws(bud.model_error_runs, cf.evaluator.prior.bounds.numpy().astype(np.float64), seed=seed + k)
-            try:
-                eps = approximation_error(cf.evaluator, x, me0.factor)
-            except RuntimeError as e:       # fewer than 2 run pairs succeeded: the error stays as it is
-                log(f"[diagnose] {c}: the grid's error at its fit could not be sampled ({e})")
+            got = _error_at_fit(evaluator, cf.evaluator, cf.fit, me0, bud, seed + k)
+            if got is None:                 # fewer than 2 run pairs succeeded: the error stays as it is
+                log(f"[diagnose] {c}: the grid's error at its fit could not be sampled (fewer than 2 run pairs)")
                 break
-            shift = eps.mean - me0.mean
-            new_cf = refit_with_error(cf, dataclasses.replace(me0, samples=me0.samples + shift), f0, bud, log)
+            me_c, moved, n_pairs = got
+            new_cf = refit_with_error(cf, me_c, f0, bud, log)
             fits[c] = new_cf
             refits[c], new = _local_candidate(evaluator, new_cf, base, scr, bud, log)
-            moved = {b.name: float(np.sqrt(np.mean((shift[b.slice] / sig[b.slice]) ** 2))) for b in evaluator.blocks}
             i = list(new_cf.evaluator.prior.names).index(row["param"])
-            history.append({"n": int(len(eps.samples)), "mean_shift_sigma": moved, "two_ln_bf": new["two_ln_bf"],
+            history.append({"n": int(n_pairs), "mean_shift_sigma": moved, "two_ln_bf": new["two_ln_bf"],
                             row["param"]: float(new_cf.fit.x[i])})
-            log(f"[diagnose] {c}, round {k + 1}: the grid's error at its own fit ({len(eps.samples)} run pairs) "
+            log(f"[diagnose] {c}, round {k + 1}: the grid's error at its own fit ({n_pairs} run pairs) "
                 f"is {', '.join(f'{b} {v:.2g}' for b, v in moved.items())} sigma from the baseline's; 2 ln BF "
                 f"{row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}, {row['param']} {cf.fit.x[i]:.4g} -> "
                 f"{new_cf.fit.x[i]:.4g}")
-            runs = new["n_runs"] + (row["n_runs"] - cf.n_runs) + 2 * len(x)   # the fits' runs, counted once
+            runs = new["n_runs"] + (row["n_runs"] - cf.n_runs) + 2 * bud.model_error_runs   # the fits' runs, once
             row.clear()
             row.update(new, n_runs=runs, grid_error_at_fit=history)
 

@@ -100,12 +100,11 @@ def choose_grid(ev, max_cells: int = 20000, n_sets: int = 4, seed: int = 0, fact
     whose error is below the stated noise in every block, else the finest within ``max_cells`` (module
     doc). The report lists every grid tried: cellsize, cells, per-block ratio, seconds, and why it was
     passed over."""
-    from scipy.stats import qmc
-
+    from ..active import maximin_lhs
     from .model_error import approximation_error
 
     lo, hi = (b.numpy() for b in ev.prior.bounds)
-    x = lo + qmc.LatinHypercube(d=len(lo), optimization="random-cd", seed=seed).random(n_sets) * (hi - lo)
+    x = lo + maximin_lhs(n_sets, len(lo), seed=seed) * (hi - lo)
     tried, chosen = [], None
     for f in sorted(factors, reverse=True):
         cs = ev.dem.cellsize * f
