@@ -407,6 +407,26 @@ def test_strict_success_is_the_blind_tests_target():
     patch = _case("low_friction_patch", "entrainment or yield_stress")
     patch["diagnosis"]["decision"]["alternatives"] = ["entrainment", "yield_stress"]
     assert not strict_success(patch)
+    # a release larger than stated: no library name (entrainment above all), its own name or none
+    for found, ok in (("none", True), ("unexplained", True), ("release_volume", True), ("entrainment", False)):
+        assert strict_success(_case("release_volume", found)) is ok, found
+
+
+def test_the_release_volume_scenario_records_a_release_a_quarter_larger():
+    """The release_volume scenario: the same recording as the null of its seed but from a release 1.25 times as
+    large (the final volume recorded 1.25 times the null's up to its noise), truth labelled "release_volume"."""
+    from experiments.hidden_physics import scenarios as S
+    from experiments.hidden_physics.summary import case_row
+
+    null, big = S.make_recording("null", 3), S.make_recording("release_volume", 3)
+    assert big.truth["term"] == "release_volume" and big.truth["release_scale"] == 0.25
+    assert big.volume_factor == null.volume_factor
+    v0, v1 = (next(o.value for o in r.observations if o.kind == "final_volume") for r in (null, big))
+    assert abs(v1 / v0 - 1.25) < 0.05
+    assert float(big.fine_h_final.sum()) > 1.2 * float(null.fine_h_final.sum())
+    c = _case("release_volume", "none")
+    c["truth"] = big.truth
+    assert case_row(c)["true"] == "release_volume" and case_row(c)["true_switch"] is None
 
 
 def test_success_against_detectability():
@@ -457,12 +477,12 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     s = make_page.load_runs(runs)
     counts = make_page.scenario_counts(make_page.evaluation_rows(s["full"]))
     assert counts["entrainment"] == (5, 5) and counts["curvature"] == (0, 5) and counts["null"] == (4, 5)
-    assert make_page.targets_met(counts) == (6, 7)
+    assert make_page.targets_met(counts) == (7, 8)
     true, found, M = make_page.confusion(make_page.evaluation_rows(s["full"]))
-    assert M[true.index("curvature"), found.index("none")] == 5 and M.sum() == 35
+    assert M[true.index("curvature"), found.index("none")] == 5 and M.sum() == 40
     page = make_page.build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
-    assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 6 of 7 |" in page
-    assert "| 3/3 | - | partial run: 1 scenario, seeds 0-2 |" in page
+    assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 7 of 8 |" in page
+    assert "| 3/3 | - | - | partial run: 1 scenario, seeds 0-2 |" in page
     assert "--strengths 0.5 --seed-list 0 --scenarios entrainment --out DIR" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()
     # the ladder: per term and strength, named / another term / nothing missing; the null seeds' false naming
     lad = {(r["term"], r["strength"]): r for r in make_page.ladder_rows(s["full"])}

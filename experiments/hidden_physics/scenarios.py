@@ -16,7 +16,8 @@ Terrains (``SITES``; select with :func:`terrain_variant`, the harness' ``--terra
 The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of ``cellsize /
 fine_factor`` (same analytic surface), their deposit map block-averaged onto the inversion grid.
 The true release volume differs from the nominal one by a factor U(0.9, 1.1) (unknown to the
-inversion; its final_volume sigma is 10 % of the nominal volume).
+inversion; its final_volume sigma is 10 % of the nominal volume); the ``release_volume`` scenario makes it
+(1 + 0.25 x strength) times that.
 """
 from __future__ import annotations
 
@@ -45,7 +46,8 @@ SOLVER = dict(stop_ke_fraction=2e-3, stop_quiet_time=0.0, output_interval=1.0)  
 GAUGE_ERRORS = {"h": (0.5, 0.2), "speed": (2.0, 0.5)}
 DEPOSIT_NOISE = 0.3
 
-# scenario -> (true library term or None / "outside", hidden parameters at strength 1)
+# scenario -> (true library term, None, "outside" (a friction patch) or "release_volume" (a release 25 % larger than
+# stated, an input error: not the harness' library's), hidden parameters at strength 1)
 SCENARIOS = {
     "null": (None, {}),
     "entrainment": ("entrainment", {"kappa": 0.0015}),
@@ -54,6 +56,7 @@ SCENARIOS = {
     "yield_stress": ("yield_stress", {"tau_y": 3.0}),
     "mu_i": ("mu_i", {"mu_i": 0.2}),
     "low_friction_patch": ("outside", {}),
+    "release_volume": ("release_volume", {"release_scale": 0.25}),
 }
 SWITCH = {"entrainment": "kappa", "curvature": "curvature", "earth_pressure": "earth_pressure",
           "yield_stress": "tau_y", "mu_i": "mu_i"}

@@ -8,7 +8,7 @@ writes it after every case, so a partial run has one too. The results page
 A case is a *strict success* (the target of the blind test, >= 4 of 5 seeds per scenario):
 
 * null scenario: the verdict "nothing missing";
-* out-of-library term (a low-friction patch): no library term named;
+* out-of-library term (a low-friction patch) or a release larger than stated: no library term named;
 * a library term: that term named, with 2 ln BF >= 6 over the runner-up, its switch's 90 % interval
   covering the truth, and the misfit reduced by the refit; or named in an "A or B" verdict (the
   evidence does not separate the alternatives) with its interval covering the truth.
@@ -35,7 +35,8 @@ _SETTINGS = {"terrain": "narrow", "cellsize": 40.0, "sigmas": "harness", "fine_f
 
 
 def true_label(case: dict) -> str:
-    """The hidden term of a case: "none", a library term, or "unexplained" (out of the library)."""
+    """The hidden term of a case: "none", a library term, "unexplained" (the out-of-library patch) or
+    "release_volume" (a release larger than stated)."""
     t = case["truth"]["term"]
     return "none" if t is None else ("unexplained" if t == "outside" else t)
 
@@ -54,8 +55,8 @@ def strict_success(case: dict) -> bool:
     tl = true_label(case)
     if tl == "none":
         return j["verdict"] == "no_missing_physics"
-    if tl == "unexplained":
-        return j["missing_physics"] is None
+    if tl in ("unexplained", "release_volume"):
+        return j["missing_physics"] in (None, "release_volume")
     alts = j["decision"].get("alternatives") or []
     if j["verdict"] == "missing_physics" and len(alts) > 1:
         return tl in alts and bool(case.get("true_term_covered_hdr90"))
@@ -68,10 +69,10 @@ def strict_success(case: dict) -> bool:
 
 def detectability(case: dict) -> tuple[float | None, float | None]:
     """(true switch, the smallest switch the case's recordings can reveal) of a library term, else (None, None)."""
-    term = case["truth"]["term"]
-    if term is None or term == "outside":
-        return None, None
     from .scenarios import SWITCH
+    term = case["truth"]["term"]
+    if term not in SWITCH:
+        return None, None
     det = ((case["diagnosis"].get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
     truth = case["truth"].get(SWITCH[term])
     return (None if truth is None else float(truth)), (None if not det or det.get("switch") is None else float(det["switch"]))
