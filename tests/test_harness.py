@@ -74,9 +74,10 @@ def test_harness_cli_refuses_bad_options(tmp_path):
     assert not (tmp_path / "never").exists()
 
 
-def test_harness_refits_every_library_candidate():
-    from experiments.hidden_physics.harness import HARNESS_BUDGETS, LIBRARY
-    assert HARNESS_BUDGETS["top_k"] >= len(LIBRARY)
+def test_harness_refits_every_library_candidate_and_weighs_the_release_volume():
+    from experiments.hidden_physics.harness import CANDIDATE_NAMES, HARNESS_BUDGETS, LIBRARY
+    assert set(LIBRARY) < set(CANDIDATE_NAMES) and "release_volume" in CANDIDATE_NAMES
+    assert HARNESS_BUDGETS["top_k"] >= len(CANDIDATE_NAMES)
 
 
 def test_apply_thresholds_redecides_saved_cases(tmp_path):

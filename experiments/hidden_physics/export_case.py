@@ -33,7 +33,7 @@ import numpy as np
 from torchslide.terrain.io import write_asc
 
 from . import scenarios
-from .harness import HARNESS_BUDGETS, LIBRARY, load_thresholds, out_of_range, thresholds_file as thresholds_file_of
+from .harness import CANDIDATE_NAMES, HARNESS_BUDGETS, load_thresholds, out_of_range, thresholds_file as thresholds_file_of
 from .scenarios import (SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges, make_recording, release,
                         terrain)
 
@@ -126,7 +126,7 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
         L += _table("observations", d, array=True)
     L += _table("prior", {"mu": [0.12, 0.4], "xi": [150.0, 1500.0]})
     L += _table("calibration", cal)
-    L += _table("diagnose", {"candidates": list(LIBRARY), "seed": int(seed), **bud,
+    L += _table("diagnose", {"candidates": list(CANDIDATE_NAMES), "seed": int(seed), **bud,
                              **{k: ({n: float(x) for n, x in v.items()} if isinstance(v, dict) else float(v))
                                 for k, v in th.items() if v is not None}})
     cfg = out / "diagnose.toml"

@@ -34,8 +34,11 @@ from .scenarios import (SCENARIOS, SIGMAS, SWITCH, TERRAINS, make_evaluator, mak
 from .summary import summarise, write_json
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
+CANDIDATE_NAMES = LIBRARY + ["release_volume"]
+"""What the diagnosis weighs in every case: the library's terms and, as the CLI's defaults do, a release larger
+than stated (an input error that a term adding mass could be mistaken for)."""
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
-                       baseline_n_initial=10, baseline_n_total=16, batch_size=8, top_k=len(LIBRARY),
+                       baseline_n_initial=10, baseline_n_total=16, batch_size=8, top_k=len(CANDIDATE_NAMES),
                        n_perm=49)
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
 
@@ -109,7 +112,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     ev = make_evaluator(rec, cellsize=cellsize, fine_terrain=fine_terrain, device=device, max_batch=max_batch,
                         compile_solver=compile_solver)
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
-    d = diagnose(ev, candidates or LIBRARY, bud, thresholds or load_thresholds(), log=log)
+    d = diagnose(ev, candidates or CANDIDATE_NAMES, bud, thresholds or load_thresholds(), log=log)
     j = d.to_json()
     cover, cover_eq = coverage(j, rec.truth)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
