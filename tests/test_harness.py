@@ -120,6 +120,30 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert (j["verdict"], j["missing_physics"]) == ("missing_physics", "curvature or earth_pressure")
 
 
+def test_a_thresholds_file_records_the_candidates_its_null_cases_weighed(tmp_path):
+    """calibrate_thresholds writes the candidates of its null cases; the harness says when a thresholds file
+    was set with other candidates than its cases weigh."""
+    import json
+    from experiments.hidden_physics import calibrate_thresholds
+    from experiments.hidden_physics.harness import CANDIDATE_NAMES, other_candidates
+
+    nulls = tmp_path / "nulls"
+    nulls.mkdir()
+    for seed in (100, 101, 102):
+        case = {"terrain": "fan", "fine_terrain": True,
+                "diagnosis": {"candidates": [_cand(n, -3.0 + seed - 100) for n in CANDIDATE_NAMES], "located": [],
+                              "decision": {}}}
+        (nulls / f"null_s{seed}.json").write_text(json.dumps(case))
+    out = tmp_path / "th.json"
+    assert calibrate_thresholds.main(["--results", str(nulls), "--out", str(out)]) == 0
+    t = json.loads(out.read_text())
+    assert t["candidates"] == sorted(CANDIDATE_NAMES) and t["thresholds"]["bf_min"] == 6.0
+    assert other_candidates(out) is None and other_candidates(tmp_path / "none.json") is None
+    t["candidates"] = [n for n in CANDIDATE_NAMES if n != "release_volume"]
+    out.write_text(json.dumps(t))
+    assert "set it again" in other_candidates(out)
+
+
 def test_harness_skips_strengths_beyond_a_switch_range():
     from experiments.hidden_physics.harness import out_of_range
     assert out_of_range("earth_pressure", 2.0) and "earth_pressure = 2" in out_of_range("earth_pressure", 2.0)
@@ -497,3 +521,10 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
             "cases": [{"scenario": "null", "seed": 0, "strength": 1.0}]}
     assert "--terrain fan --cellsize 40 --fine-terrain" in make_page.command(fine)
     assert "the recording grid's terrain" in make_page.describe(fine["settings"])
+    assert "a larger release weighed" in make_page.describe({**fine["settings"], "candidates": ["release_volume"]})
+    weighed = tmp_path / "weighed"
+    weighed.mkdir()
+    c = _case("null", "none")
+    c["diagnosis"]["candidates"] = [_cand("mu_i", 1.0), _cand("release_volume", 2.0)]
+    (weighed / "null_s0.json").write_text(json.dumps(c))
+    assert summarise(weighed)["settings"]["candidates"] == ["mu_i", "release_volume"]

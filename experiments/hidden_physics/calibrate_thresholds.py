@@ -33,12 +33,13 @@ HERE = Path(__file__).parent
 
 
 def null_statistics(results) -> dict:
-    """{"bf": [...], "located": [...], "fit_rows": [{observable: Z_fit}], "cases": [...]} of the null cases
-    in ``results``: per case the largest lower-bound 2 ln BF of a refitted candidate, the largest located
-    |score| and the calibrated baseline's Z_fit per observable."""
-    bf, loc, fit_rows, rows = [], [], [], []
+    """{"bf": [...], "located": [...], "fit_rows": [{observable: Z_fit}], "cases": [...], "candidates": [...]}
+    of the null cases in ``results``: per case the largest lower-bound 2 ln BF of a refitted candidate, the
+    largest located |score| and the calibrated baseline's Z_fit per observable; the candidates they weighed."""
+    bf, loc, fit_rows, rows, names = [], [], [], [], set()
     for p in sorted(Path(results).glob("null_s*.json")):
         j = json.loads(p.read_text())["diagnosis"]
+        names.update(c["name"] for c in j["candidates"])
         b = [c["two_ln_bf_lower"] for c in j["candidates"] if c.get("two_ln_bf_lower") is not None]
         l = [abs(x["standardised_residual"]) for x in j["located"]]
         bf.append(max(b, default=float("-inf")))
@@ -47,7 +48,7 @@ def null_statistics(results) -> dict:
         if z:
             fit_rows.append(z)
         rows.append({"case": p.stem, "max_two_ln_bf_lower": bf[-1], "max_located": loc[-1]})
-    return {"bf": bf, "located": loc, "fit_rows": fit_rows, "cases": rows}
+    return {"bf": bf, "located": loc, "fit_rows": fit_rows, "cases": rows, "candidates": sorted(names)}
 
 
 def apply_thresholds(results, th: dict, force: bool = False) -> int:
@@ -102,8 +103,8 @@ def main(argv=None) -> int:
 
     out = a.out or thresholds_file(*designs.pop())
     th = thresholds_from_null(st, st["fit_rows"] or None)
-    write_json(out, {"rule": RULE, "null_cases": st["cases"], "fit_null_cases": len(st["fit_rows"]),
-                       "thresholds": th})
+    write_json(out, {"rule": RULE, "candidates": st["candidates"], "null_cases": st["cases"],
+                     "fit_null_cases": len(st["fit_rows"]), "thresholds": th})
     print(json.dumps(th))
     if a.apply:
         n = apply_thresholds(a.apply, th, force=a.force)

@@ -58,6 +58,20 @@ def load_thresholds(path=THRESHOLDS_FILE) -> Thresholds:
     return Thresholds(**json.loads(path.read_text())["thresholds"])
 
 
+def other_candidates(path) -> str | None:
+    """Why the thresholds file ``path`` does not fit the harness' cases: its null cases weighed other
+    candidates than CANDIDATE_NAMES (a thresholds file holds for the candidates it was set with); None when
+    they are the same or the file does not exist."""
+    path = Path(path)
+    if not path.exists():
+        return None
+    set_on = json.loads(path.read_text()).get("candidates")
+    if sorted(set_on or ()) == sorted(CANDIDATE_NAMES):
+        return None
+    return (f"{path} was set on null cases that weighed {', '.join(set_on) if set_on else 'candidates not recorded'}; "
+            f"the cases weigh {', '.join(CANDIDATE_NAMES)}: set it again on their null seeds (calibrate_thresholds.py)")
+
+
 def out_of_range(scenario: str, strength: float) -> str | None:
     """Why ``scenario`` cannot be recorded at ``strength`` (its scaled switch beyond the switch's range,
     e.g. earth pressure or curvature above 1), else None."""
@@ -250,6 +264,8 @@ def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
         print(f"=== {path} does not exist: the cases are decided with the default thresholds (set this terrain's "
               f"on its null seeds with calibrate_thresholds.py)", flush=True)
     th = load_thresholds(path)
+    if other_candidates(path):
+        print(f"=== {other_candidates(path)}", flush=True)
     items = []
     for seed in seeds:
         for strength in strengths:

@@ -76,6 +76,8 @@ def describe(settings: dict) -> str:
     s = f"{settings['terrain']} terrain, {settings['cellsize']:g} m cells"
     if settings.get("fine_terrain"):
         s += ", the recording grid's terrain for the grid-error runs (and their rounds)"
+    if "release_volume" in settings.get("candidates", ()):
+        s += ", a larger release weighed"
     if settings.get("sigmas", "harness") != "harness":
         s += ", likelihood sigmas = the noise drawn"
     if settings.get("budgets"):

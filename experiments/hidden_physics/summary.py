@@ -113,6 +113,7 @@ def summarise(folder) -> dict:
         raise ValueError(f"{folder}: no harness case files (<scenario>_s<seed>.json)")
     first = cases[0]
     settings = {k: default if first.get(k) is None else first[k] for k, default in _SETTINGS.items()}
+    settings["candidates"] = sorted(c["name"] for c in first["diagnosis"].get("candidates", ()))
     return {"settings": settings,
             "thresholds": first["diagnosis"]["thresholds"],
             "cases": [case_row(c) for c in cases]}
