@@ -275,6 +275,10 @@ def test_coverage_counts_a_truth_at_the_prior_bound(tmp_path):
         "mean": 2.4, "hdr90": [2.1, 2.8], "hdi90": [2.1, 2.8], "profile90": [1.9, 3.2]}}}]}
     assert coverage(prof, {"term": "yield_stress", "tau_y": 3.0}) == (True, False)
     assert coverage(diag, {"term": None}) == (None, None)
+    # a larger release: its excess over the stated release, the case's drawn release error included
+    big = {"candidates": [{"name": "release_volume", "parameters": {"release_scale": {"hdr90": [0.2, 0.3]}}}]}
+    larger = {"term": "release_volume", "release_scale": 0.25}
+    assert coverage(big, larger) == (True, True) and coverage(big, larger, 1.08) == (False, False)
     case = {"truth": truth, "true_term_covered_hdr90": False, "true_term_covered_equal_tailed90": False,
             "diagnosis": diag}
     (tmp_path / "earth_pressure_s0.json").write_text(json.dumps(case))

@@ -67,7 +67,8 @@ def apply_thresholds(results, th: dict, force: bool = False) -> int:
             continue
         j = case["diagnosis"]
         if "truth" in case:
-            case["true_term_covered_hdr90"], case["true_term_covered_equal_tailed90"] = coverage(j, case["truth"])
+            case["true_term_covered_hdr90"], case["true_term_covered_equal_tailed90"] = coverage(
+                j, case["truth"], case.get("volume_factor", 1.0))
         if j["thresholds"] != th or force:
             cands = [c for c in j["candidates"] if c.get("log_bayes_factor") is not None]
             fit_z = (j.get("decision") or {}).get("fit_z") or {}

@@ -85,22 +85,25 @@ def out_of_range(scenario: str, strength: float) -> str | None:
     return None
 
 
-def coverage(diag: dict, truth: dict) -> tuple:
+def coverage(diag: dict, truth: dict, volume_factor: float = 1.0) -> tuple:
     """(true switch in the 90 % interval the diagnosis reports: the profile-likelihood interval where it was
     profiled, else the HDI; true switch in the 'hdr90' interval) of the true term's refit in a
     report.json-style ``diag``; (None, None) when the scenario has no library term or it was not refitted.
+    A larger release's true switch is its excess over the stated release, (1 + release_scale) x
+    ``volume_factor`` - 1 (the case's drawn release error included).
     The HDI is taken on the prior range (it may include a prior bound, e.g. earth pressure = 1), with a
     tolerance of 1e-9 of the prior width for a grid's last cell edge."""
     term = truth["term"]
-    if term not in SWITCH:
+    param = {**SWITCH, "release_volume": "release_scale"}.get(term)
+    if param is None:
         return None, None
     c = next((c for c in diag["candidates"] if c["name"] == term), None)
-    par = c["parameters"].get(SWITCH[term]) if c else None
+    par = c["parameters"].get(param) if c else None
     if not par:
         return None, None
     lo_p, hi_p = CANDIDATES[term].prior
     tol = 1e-9 * (hi_p - lo_p)
-    v = truth[SWITCH[term]]
+    v = truth[param] if term != "release_volume" else (1.0 + truth[param]) * volume_factor - 1.0
     lo, hi = par.get("profile90") or par.get("hdi90", par["hdr90"])
     lo_e, hi_e = par["hdr90"]
     return bool(lo - tol <= v <= hi + tol), bool(lo_e - tol <= v <= hi_e + tol)
@@ -128,7 +131,7 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     bud = Budgets(**{**HARNESS_BUDGETS, **(budgets or {}), "seed": seed})
     d = diagnose(ev, candidates or CANDIDATE_NAMES, bud, thresholds or load_thresholds(), log=log)
     j = d.to_json()
-    cover, cover_eq = coverage(j, rec.truth)
+    cover, cover_eq = coverage(j, rec.truth, rec.volume_factor)
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
             "fine_terrain": fine_terrain, "fine_factor": fine_factor, "sigmas": sigmas, "device": str(device),
             "compile_solver": compile_solver, "budgets": budgets or {}, "truth": rec.truth,
