@@ -99,11 +99,25 @@ def test_decide_ambiguous_and_null_like():
     # the runner-up explains the located mismatch better: evidence and location disagree -> "A or B", no
     # single name
     better = {"items": [{"before": 9.0, "after": 0.5}], "max_after": 0.5, "explained": 0.99}
-    d = decide([_cand("earth_pressure", 60.0), _cand("yield_stress", -10.0, located_rescored=better)],
-               loc, base, 100.0, th)
+    part = {"items": [{"before": 9.0, "after": 5.0}], "max_after": 5.0, "explained": 0.7}
+    d = decide([_cand("earth_pressure", 60.0, located_rescored=part),
+                _cand("yield_stress", -10.0, located_rescored=better)], loc, base, 100.0, th)
     assert d["verdict"] == "missing_physics" and d["missing_physics"] == "earth_pressure or yield_stress"
     assert d["ambiguous"] and d["competitors"] == ["yield_stress"]
     assert d["alternatives"] == ["earth_pressure", "yield_stress"]
+    # ... but not when both remove nearly all of it (0.99 against 0.98 is no disagreement): the evidence,
+    # 2 ln BF 14 apart, names the term
+    most = {"items": [{"before": 9.0, "after": 0.9}], "max_after": 0.9, "explained": 0.98}
+    d = decide([_cand("release_volume", 38.0, located_rescored=most),
+                _cand("entrainment", 24.0, located_rescored=better)], loc, base, 100.0, th)
+    assert d["missing_physics"] == "release_volume" and not d["ambiguous"]
+    assert decide([_cand("release_volume", 38.0, located_rescored=most),
+                   _cand("entrainment", 24.0, located_rescored=better)], loc, base, 100.0,
+                  Thresholds(bf_min=20.0, explain_margin=0.0))["missing_physics"] == "release_volume or entrainment"
+    # candidates without located items to rescore (explained None) never contest a name
+    d = decide([_cand("release_volume", 38.0, located_rescored=None), _cand("entrainment", 24.0, located_rescored=None)],
+               loc, base, 100.0, th)
+    assert not d.get("ambiguous") and "or" not in (d["missing_physics"] or "")
     # two candidates pass every check within margin_min: "A or B"
     d = decide([_cand("earth_pressure", 60.0), _cand("curvature", 57.0)], loc, base, 100.0, th)
     assert d["missing_physics"] == "earth_pressure or curvature" and d["ambiguous"]

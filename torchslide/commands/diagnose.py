@@ -69,6 +69,7 @@ and a [diagnose] section::
     explain_min = 0.5            # fraction of the located structure a named term must remove (0..1)
     explain_partial_min = 0.25   # ... or this fraction, when it passes every other check: named with what it
                                  #     leaves unexplained
+    explain_margin = 0.1         # another candidate contests that name only when it removes this much more
     ess_min = 2.0                # importance-sampling ESS a verified evidence needs (>= 1)
     z_threshold = 3.0            # per-value / cluster / window detection level
     lr_alpha = 0.01              # local path: a candidate's likelihood ratio must reach this boundary-corrected p-value
@@ -107,7 +108,8 @@ _INT_KEYS = ("n_posterior_samples", "n_posterior_samples_after", "n_initial", "n
              "model_error_runs", "model_error_factor", "profile_top", "top_k", "batch_size", "n_perm",
              "local_lhs", "local_starts", "local_max_iter", "candidate_lhs", "candidate_starts", "profile_restarts",
              "candidate_error_rounds")
-_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "explain_partial_min", "ess_min",
+_THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_min", "explain_partial_min",
+                   "explain_margin", "ess_min",
                    "z_threshold", "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
               "cellsize", "max_cells", *_INT_KEYS, *_THRESHOLD_KEYS}
@@ -176,7 +178,7 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
         if c[k] < 0:
             raise ConfigError(f"{path}: [diagnose] {k} must be >= 0 (a candidate must do at least as well as "
                               f"the baseline), got {c[k]!r}")
-    for k in ("explain_min", "explain_partial_min"):
+    for k in ("explain_min", "explain_partial_min", "explain_margin"):
         if not 0.0 <= c[k] <= 1.0:
             raise ConfigError(f"{path}: [diagnose] {k} is a fraction in [0, 1], got {c[k]!r}")
     if not 0.0 < c["lr_alpha"] < 1.0:

@@ -28,8 +28,8 @@ Rules:
    * no other candidate that also passes ``evidence`` is within ``margin_min`` of its 2 ln BF (the
      blind test's "2 ln BF >= 6 over the runner-up"; a close runner-up that fails another check, e.g. its
      Savage-Dickey sign, still means the evidence does not separate the two), and
-   * no other candidate that passes ``explains`` explains a larger fraction of the located mismatch
-     (the evidence and the located structure must point at the same term).
+   * no other candidate that passes ``explains`` explains a fraction of the located mismatch larger by
+     ``explain_margin`` or more (the evidence and the located structure must point at the same term).
    Otherwise "missing_physics" with ``missing_physics`` = "A or B" (``alternatives`` [A, B, ...],
    ``ambiguous`` = True, the competitors listed): never a guess between terms that the data do not
    separate, and never a single name (the pipeline adds ``separate``: the observations where the
@@ -76,6 +76,8 @@ class Thresholds:
     explain_min: float = 0.5    # fraction of the located structure (sum of squared scores) a named term must remove
     explain_partial_min: float = 0.25  # a term that passes every other check and removes this fraction is named
                                        # with the rest of the located mismatch reported as unexplained
+    explain_margin: float = 0.1  # how much more of the located structure another candidate must remove to contest
+                                 # the best-supported term's name ("A or B"; 0.99 against 0.98 does not)
     ess_min: float = 2.0        # importance-sampling ESS (draws) for a verified evidence to count
     z_threshold: float = 3.0    # per-value / cluster / window detection level (localisation)
     fit_max: float | dict | None = None  # Z_fit of an observable above which its fit is a mismatch (None: off)
@@ -193,7 +195,7 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                      if out["checks"][c["name"]]["evidence"]
                      and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
-                      and _explained(c) > ex_best]
+                      and _explained(c) > ex_best and _explained(c) >= ex_best + th.explain_margin]
             if close or better:
                 why = []
                 if close:
