@@ -509,6 +509,8 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     assert make_page.targets_met(counts) == (7, 8)
     true, found, M = make_page.confusion(make_page.evaluation_rows(s["full"]))
     assert M[true.index("curvature"), found.index("none")] == 5 and M.sum() == 40
+    either = make_page.confusion([{"true": "mu_i", "found": "yield_stress or earth_pressure"}])
+    assert either[1] == ["mu_i", "A or B"] and either[2].tolist() == [[0, 1]]
     page = make_page.build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
     assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 7 of 8 |" in page
     assert "| 3/3 | - | - | partial run: 1 scenario, seeds 0-2 |" in page

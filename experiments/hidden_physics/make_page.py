@@ -24,7 +24,8 @@ LABELS = ["none", "entrainment", "curvature", "earth_pressure", "yield_stress", 
           "release_volume"]
 TRUE_NAMES = {"none": "none (null)", "unexplained": "low-friction patch", "release_volume": "release +25 %"}
 NOT_LIBRARY = ("none", "unexplained", "release_volume")   # true labels that are no library term
-FOUND_NAMES = {"none": "nothing missing"}
+EITHER = "A or B"
+FOUND_NAMES = {"none": "nothing missing", EITHER: "\"A or B\""}
 """How the confusion matrix labels the hidden terms and the verdicts."""
 N_SEEDS = 5
 TARGET = 4
@@ -62,13 +63,18 @@ def targets_met(counts: dict) -> tuple[int, int]:
     return sum(counts[k][0] >= TARGET for k in full), len(full)
 
 
+def _found(row: dict) -> str:
+    """A row's verdict label; every "A or B" verdict is one column."""
+    return EITHER if " or " in row["found"] else row["found"]
+
+
 def confusion(rows: list[dict]) -> tuple[list[str], list[str], np.ndarray]:
     """(true labels, found labels, counts (len(true), len(found))) of ``rows``."""
     true = [l for l in LABELS if any(r["true"] == l for r in rows)]
-    found = [l for l in LABELS if any(r["found"] == l for r in rows) or l in true]
+    found = [l for l in LABELS + [EITHER] if any(_found(r) == l for r in rows) or l in true]
     M = np.zeros((len(true), len(found)), int)
     for r in rows:
-        M[true.index(r["true"]), found.index(r["found"])] += 1
+        M[true.index(r["true"]), found.index(_found(r))] += 1
     return true, found, M
 
 
