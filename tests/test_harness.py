@@ -42,7 +42,7 @@ def test_harness_case_end_to_end(tmp_path):
     runs.mkdir()
     (runs / "tiny.json").write_text(json.dumps(summary))
     page = build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
-    assert "| `tiny`: narrow terrain, 40 m cells, budgets n_posterior_samples=8," in page
+    assert "| `tiny`: narrow terrain, 40 m cells, a larger release weighed, budgets n_posterior_samples=8," in page
     assert (tmp_path / "page" / "figures" / "confusion_tiny.png").exists()
 
 
