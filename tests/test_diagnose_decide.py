@@ -117,7 +117,7 @@ def test_decide_ambiguous_and_null_like():
     # candidates without located items to rescore (explained None) never contest a name
     d = decide([_cand("release_volume", 38.0, located_rescored=None), _cand("entrainment", 24.0, located_rescored=None)],
                loc, base, 100.0, th)
-    assert not d.get("ambiguous") and "or" not in (d["missing_physics"] or "")
+    assert not d.get("ambiguous") and " or " not in (d["missing_physics"] or "")
     # two candidates pass every check within margin_min: "A or B"
     d = decide([_cand("earth_pressure", 60.0), _cand("curvature", 57.0)], loc, base, 100.0, th)
     assert d["missing_physics"] == "earth_pressure or curvature" and d["ambiguous"]

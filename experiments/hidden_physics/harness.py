@@ -94,9 +94,9 @@ def coverage(diag: dict, truth: dict, volume_factor: float = 1.0) -> tuple:
     The HDI is taken on the prior range (it may include a prior bound, e.g. earth pressure = 1), with a
     tolerance of 1e-9 of the prior width for a grid's last cell edge."""
     term = truth["term"]
-    param = {**SWITCH, "release_volume": "release_scale"}.get(term)
-    if param is None:
+    if term not in CANDIDATES:
         return None, None
+    param = CANDIDATES[term].param
     c = next((c for c in diag["candidates"] if c["name"] == term), None)
     par = c["parameters"].get(param) if c else None
     if not par:
