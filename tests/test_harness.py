@@ -68,7 +68,8 @@ def test_harness_cli_refuses_bad_options(tmp_path):
 
     for bad in (["--fine-factor", "0"], ["--max-batch", "0"], ["--budget", "local_max_iter"],
                 ["--budget", "no_such_field=1"], ["--budget", "top_k=two"], ["--scenarios", "null,landslide"],
-                ["--strengths", "x"], ["--terrain", "wide"]):
+                ["--strengths", "x"], ["--terrain", "wide"],
+                ["--budget", "model_error_runs=0"]):   # the release's error stated needs the grid-error runs
         with pytest.raises(SystemExit):
             harness_main(bad + ["--out", str(tmp_path / "never")])
     assert not (tmp_path / "never").exists()
@@ -120,17 +121,18 @@ def test_apply_thresholds_redecides_saved_cases(tmp_path):
     assert (j["verdict"], j["missing_physics"]) == ("missing_physics", "curvature or earth_pressure")
 
 
-def test_a_thresholds_file_records_the_candidates_its_null_cases_weighed(tmp_path):
-    """calibrate_thresholds writes the candidates of its null cases; the harness says when a thresholds file
-    was set with other candidates than its cases weigh."""
+def test_a_thresholds_file_records_the_design_its_null_cases_were_diagnosed_with(tmp_path):
+    """calibrate_thresholds writes the candidates and the release error of its null cases; the harness says when
+    a thresholds file was set with other candidates or another release error than its cases; null cases of
+    several release errors are refused."""
     import json
     from experiments.hidden_physics import calibrate_thresholds
-    from experiments.hidden_physics.harness import CANDIDATE_NAMES, other_candidates
+    from experiments.hidden_physics.harness import CANDIDATE_NAMES, HARNESS_BUDGETS, unlike_design
 
     nulls = tmp_path / "nulls"
     nulls.mkdir()
     for seed in (100, 101, 102):
-        case = {"terrain": "fan", "fine_terrain": True,
+        case = {"terrain": "fan", "fine_terrain": True, "release_volume_sd": 0.0577,
                 "diagnosis": {"candidates": [_cand(n, -3.0 + seed - 100) for n in CANDIDATE_NAMES], "located": [],
                               "decision": {}}}
         (nulls / f"null_s{seed}.json").write_text(json.dumps(case))
@@ -138,10 +140,16 @@ def test_a_thresholds_file_records_the_candidates_its_null_cases_weighed(tmp_pat
     assert calibrate_thresholds.main(["--results", str(nulls), "--out", str(out)]) == 0
     t = json.loads(out.read_text())
     assert t["candidates"] == sorted(CANDIDATE_NAMES) and t["thresholds"]["bf_min"] == 6.0
-    assert other_candidates(out) is None and other_candidates(tmp_path / "none.json") is None
+    assert t["release_volume_sd"] == 0.0577 == HARNESS_BUDGETS["release_volume_sd"]
+    assert unlike_design(out) is None and unlike_design(tmp_path / "none.json") is None
+    assert "stated release_volume_sd 0.0577 (the cases 0)" in unlike_design(out, 0.0)
     t["candidates"] = [n for n in CANDIDATE_NAMES if n != "release_volume"]
     out.write_text(json.dumps(t))
-    assert "set it again" in other_candidates(out)
+    assert "set it again" in unlike_design(out) and "release_volume_sd" not in unlike_design(out)
+    # a case saved before the field existed: the sd it was given as a budget, else 0
+    (nulls / "null_s103.json").write_text(json.dumps({**case, "release_volume_sd": None, "budgets": {}}))
+    with pytest.raises(SystemExit):
+        calibrate_thresholds.main(["--results", str(nulls), "--out", str(out)])
 
 
 def test_harness_skips_strengths_beyond_a_switch_range():
@@ -169,12 +177,13 @@ def test_harness_cli_passes_the_inversion_cellsize(tmp_path, monkeypatch):
     monkeypatch.setattr(H, "run_case", fake)
     assert H.main(["--cellsize", "20", "--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "a"),
                    "--device", "cuda", "--max-batch", "64", "--fine-terrain", "--fine-factor", "1",
-                   "--budget", "model_error_runs=0", "--budget", "local_max_iter=12",
+                   "--budget", "model_error_runs=0", "--budget", "release_volume_sd=0", "--budget", "local_max_iter=12",
                    "--budget", "local_lhs=30", "--budget", "profile_top=5", "--compile"]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert H.main(["--seed-list", "3", "--scenarios", "null", "--out", str(tmp_path / "b")]) == 0
     assert calls == [("null", 3, 20.0, "cuda", 64, True, 1,
-                      {"model_error_runs": 0, "local_max_iter": 12, "local_lhs": 30, "profile_top": 5},
+                      {"model_error_runs": 0, "release_volume_sd": 0.0, "local_max_iter": 12, "local_lhs": 30,
+                       "profile_top": 5},
                       True),
                      ("null", 3, 40.0, "cpu", 16, False, 2, None, False)]
     # a case another process holds (its .running claim) is skipped; the claim goes when a case ends
@@ -339,10 +348,12 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
         export_case.main(["earth_pressure", "0", "--strength", "2", "--out", str(tmp_path / "x")])
     text = (tmp_path / "diagnose.toml").read_text()
     assert "tau_y" not in text and not any("yield" in l for l in text.splitlines() if l.startswith("#"))
-    assert cfg.extra["diagnose"]["fine_terrain"] is None and bud.release_volume_sd == 0.0
+    # the release's error stated as the harness states it: the sd of the factor every recording draws
+    assert cfg.extra["diagnose"]["fine_terrain"] is None and bud.release_volume_sd == scenarios.RELEASE_VOLUME_SD
+    assert abs(scenarios.RELEASE_VOLUME_SD - np.diff(scenarios.RELEASE_FACTOR)[0] / 12 ** 0.5) < 5e-5
     # --fine-terrain / --release-volume-sd: the harness' --fine-terrain and --budget release_volume_sd
     out = tmp_path / "fine"
-    assert export_case.main(["null", "0", "--out", str(out), "--fine-terrain", "--release-volume-sd", "0.0577"]) == 0
+    assert export_case.main(["null", "0", "--out", str(out), "--fine-terrain", "--release-volume-sd", "0.05"]) == 0
     harness_ev = scenarios.make_evaluator(scenarios.make_recording("null", 0), fine_terrain=True)
     cfg = load_diagnose_config(out / "diagnose.toml")
     ft, hft = cli_evaluator(cfg).fine_terrain, harness_ev.fine_terrain
@@ -351,7 +362,7 @@ def test_export_case_gives_the_cli_the_harness_case(tmp_path):
     assert (ft.dem.xll, ft.dem.yll) == (hft.dem.xll, hft.dem.yll)
     assert np.array_equal(ft.release, hft.release) and np.array_equal(ft.erodible_depth, hft.erodible_depth)
     bud, _ = budgets_and_thresholds(cfg)
-    assert bud == Budgets(**HARNESS_BUDGETS, seed=0, release_volume_sd=0.0577)
+    assert bud == Budgets(**{**HARNESS_BUDGETS, "release_volume_sd": 0.05}, seed=0)
     for bad in ("-0.1", "0.5"):
         with pytest.raises(SystemExit, match=f"--release-volume-sd {bad}: must be a relative sd in"):
             export_case.main(["null", "0", "--out", str(out), "--release-volume-sd", bad])
@@ -526,6 +537,12 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     fine = {"settings": {"terrain": "fan", "cellsize": 40.0, "fine_terrain": True},
             "cases": [{"scenario": "null", "seed": 0, "strength": 1.0}]}
     assert "--terrain fan --cellsize 40 --fine-terrain" in make_page.command(fine)
+    # the release's error: the harness states it by default; a run that took the release as exact says so
+    assert "--budget release_volume_sd=0 " in make_page.command(fine)
+    stated = {**fine, "settings": {**fine["settings"], "release_volume_sd": 0.0577}}
+    assert "release_volume_sd" not in make_page.command(stated)
+    assert "the release's error stated (sd 0.0577)" in make_page.describe(stated["settings"])
+    assert "release's error" not in make_page.describe(fine["settings"])
     assert "the recording grid's terrain" in make_page.describe(fine["settings"])
     assert "a larger release weighed" in make_page.describe({**fine["settings"], "candidates": ["release_volume"]})
     weighed = tmp_path / "weighed"
@@ -534,3 +551,8 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     c["diagnosis"]["candidates"] = [_cand("mu_i", 1.0), _cand("release_volume", 2.0)]
     (weighed / "null_s0.json").write_text(json.dumps(c))
     assert summarise(weighed)["settings"]["candidates"] == ["mu_i", "release_volume"]
+    assert summarise(weighed)["settings"]["release_volume_sd"] == 0.0
+    c["budgets"] = {"release_volume_sd": 0.05, "top_k": 6}      # given as a budget: its own setting
+    (weighed / "null_s0.json").write_text(json.dumps(c))
+    st = summarise(weighed)["settings"]
+    assert st["release_volume_sd"] == 0.05 and st["budgets"] == {"top_k": 6}

@@ -27,18 +27,21 @@ from pathlib import Path
 
 from torchslide.diagnose.null import RULE, thresholds_from_null
 
-from .summary import write_json
+from .summary import release_sd, write_json
 
 HERE = Path(__file__).parent
 
 
 def null_statistics(results) -> dict:
-    """{"bf": [...], "located": [...], "fit_rows": [{observable: Z_fit}], "cases": [...], "candidates": [...]}
-    of the null cases in ``results``: per case the largest lower-bound 2 ln BF of a refitted candidate, the
-    largest located |score| and the calibrated baseline's Z_fit per observable; the candidates they weighed."""
-    bf, loc, fit_rows, rows, names = [], [], [], [], set()
+    """{"bf": [...], "located": [...], "fit_rows": [{observable: Z_fit}], "cases": [...], "candidates": [...],
+    "release_volume_sd": [...]} of the null cases in ``results``: per case the largest lower-bound 2 ln BF of a
+    refitted candidate, the largest located |score| and the calibrated baseline's Z_fit per observable; the
+    candidates and the release errors (summary.release_sd) they were diagnosed with."""
+    bf, loc, fit_rows, rows, names, sds = [], [], [], [], set(), set()
     for p in sorted(Path(results).glob("null_s*.json")):
-        j = json.loads(p.read_text())["diagnosis"]
+        case = json.loads(p.read_text())
+        j = case["diagnosis"]
+        sds.add(release_sd(case))
         names.update(c["name"] for c in j["candidates"])
         b = [c["two_ln_bf_lower"] for c in j["candidates"] if c.get("two_ln_bf_lower") is not None]
         l = [abs(x["standardised_residual"]) for x in j["located"]]
@@ -48,7 +51,8 @@ def null_statistics(results) -> dict:
         if z:
             fit_rows.append(z)
         rows.append({"case": p.stem, "max_two_ln_bf_lower": bf[-1], "max_located": loc[-1]})
-    return {"bf": bf, "located": loc, "fit_rows": fit_rows, "cases": rows, "candidates": sorted(names)}
+    return {"bf": bf, "located": loc, "fit_rows": fit_rows, "cases": rows, "candidates": sorted(names),
+            "release_volume_sd": sorted(sds)}
 
 
 def apply_thresholds(results, th: dict, force: bool = False) -> int:
@@ -100,11 +104,14 @@ def main(argv=None) -> int:
                for c in (json.loads(f.read_text()) for f in Path(a.results).glob("null_s*.json"))}
     if len(designs) > 1:
         p.error(f"--results {a.results}: null cases of several designs (terrain, fine terrain) {sorted(designs)}")
+    if len(st["release_volume_sd"]) > 1:
+        p.error(f"--results {a.results}: null cases stated several release errors {st['release_volume_sd']}")
     from .harness import thresholds_file
 
     out = a.out or thresholds_file(*designs.pop())
     th = thresholds_from_null(st, st["fit_rows"] or None)
-    write_json(out, {"rule": RULE, "candidates": st["candidates"], "null_cases": st["cases"],
+    write_json(out, {"rule": RULE, "candidates": st["candidates"], "release_volume_sd": st["release_volume_sd"][0],
+                     "null_cases": st["cases"],
                      "fit_null_cases": len(st["fit_rows"]), "thresholds": th})
     print(json.dumps(th))
     if a.apply:

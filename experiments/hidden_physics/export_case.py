@@ -34,7 +34,7 @@ from torchslide.terrain.io import write_asc
 
 from . import scenarios
 from .harness import CANDIDATE_NAMES, HARNESS_BUDGETS, load_thresholds, out_of_range, thresholds_file as thresholds_file_of
-from .scenarios import (SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges, make_recording, release,
+from .scenarios import (RELEASE_VOLUME_SD, SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges, make_recording, release,
                         terrain)
 
 EXACT = "%.17g"  # float64 round trip
@@ -60,13 +60,14 @@ def _table(name: str, d: dict, array: bool = False) -> list[str]:
 
 
 def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds_file=None,
-                cellsize: float = 40.0, fine_terrain: bool = False, release_volume_sd: float = 0.0) -> Path:
+                cellsize: float = 40.0, fine_terrain: bool = False,
+                release_volume_sd: float = RELEASE_VOLUME_SD) -> Path:
     """Write the case (module doc) for the current terrain variant (scenarios.use_terrain) to ``out``;
     returns the config's path. ``thresholds_file``: a thresholds JSON as calibrate_thresholds writes
     it (default: the harness file of the current terrain; the default thresholds where it has none). ``fine_terrain``: also write the terrain on the recording
     grid (``*_fine.asc``, scenarios.fine_terrain_grids) as ``[diagnose] fine_terrain``, as the harness'
-    ``--fine-terrain``; ``release_volume_sd`` > 0: write it under [diagnose], as the harness'
-    ``--budget release_volume_sd=...``."""
+    ``--fine-terrain``; ``release_volume_sd``: the release's relative sd under [diagnose] (default the harness'
+    HARNESS_BUDGETS, the error its recordings draw; 0: the release taken as exact)."""
     from torchslide.observe import Observation
     from torchslide.observe_series import SeriesObservation
 
@@ -110,8 +111,7 @@ def export_case(scenario: str, seed: int, out, strength: float = 1.0, thresholds
         for name, a in (("dem", dem_f.z), ("release", rel_f), ("erodible", erod_f)):
             write_asc(out / f"{name}_fine.asc", a, dem_f, fmt=EXACT)
         bud["fine_terrain"] = {k: f"{k}_fine.asc" for k in ("dem", "release", "erodible")}
-    if release_volume_sd > 0:
-        bud["release_volume_sd"] = float(release_volume_sd)
+    bud["release_volume_sd"] = float(release_volume_sd)
     cal = {"n_initial": bud.pop("baseline_n_initial"), "n_total": bud.pop("baseline_n_total"),
            "batch_size": bud["batch_size"], "max_batch": 16}
     L = ["# A blind hidden-physics harness case (the answer is in truth.json, which the diagnosis does not read),",
@@ -148,9 +148,9 @@ def main(argv=None) -> int:
     a.add_argument("--fine-terrain", action="store_true",
                    help="also write the recording grid's terrain (dem_fine.asc, release_fine.asc, erodible_fine.asc) "
                         "as [diagnose] fine_terrain, as the harness' --fine-terrain")
-    a.add_argument("--release-volume-sd", type=float, default=0.0,
-                   help="write [diagnose] release_volume_sd (the harness' recordings: 0.0577), as the harness' "
-                        "--budget release_volume_sd=...; default 0 (the release taken as exact)")
+    a.add_argument("--release-volume-sd", type=float, default=RELEASE_VOLUME_SD,
+                   help=f"[diagnose] release_volume_sd, as the harness' --budget release_volume_sd=... (default "
+                        f"{RELEASE_VOLUME_SD:g}, the error the recordings draw; 0: the release taken as exact)")
     args = a.parse_args(argv)
     if not (0.0 <= args.release_volume_sd < 0.5):   # as [diagnose] release_volume_sd
         raise SystemExit(f"--release-volume-sd {args.release_volume_sd:g}: must be a relative sd in [0, 0.5)")

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from torchslide.diagnose import Budgets, Thresholds, diagnose
+from torchslide.diagnose import Budgets, Thresholds, check_budgets, diagnose
 from torchslide.diagnose.candidates import CANDIDATES
 
 from . import scenarios
-from .scenarios import (SCENARIOS, SIGMAS, SWITCH, TERRAINS, make_evaluator, make_recording, noise_sigmas,
-                        terrain_variant)
+from .scenarios import (RELEASE_VOLUME_SD, SCENARIOS, SIGMAS, SWITCH, TERRAINS, make_evaluator, make_recording,
+                        noise_sigmas, terrain_variant)
 from .summary import summarise, write_json
 
 LIBRARY = ["entrainment", "curvature", "earth_pressure", "yield_stress", "mu_i"]
@@ -39,7 +39,8 @@ CANDIDATE_NAMES = LIBRARY + ["release_volume"]
 than stated (an input error that a term adding mass could be mistaken for)."""
 HARNESS_BUDGETS = dict(n_posterior_samples=16, n_posterior_samples_after=12, n_initial=12, n_total=24, n_total_max=36,
                        baseline_n_initial=10, baseline_n_total=16, batch_size=8, top_k=len(CANDIDATE_NAMES),
-                       n_perm=49)
+                       n_perm=49, release_volume_sd=RELEASE_VOLUME_SD)
+"""The diagnosis' budgets in every case; the release's error is stated as drawn (scenarios.RELEASE_VOLUME_SD)."""
 THRESHOLDS_FILE = Path(__file__).parent / "thresholds.json"
 
 
@@ -58,18 +59,25 @@ def load_thresholds(path=THRESHOLDS_FILE) -> Thresholds:
     return Thresholds(**json.loads(path.read_text())["thresholds"])
 
 
-def other_candidates(path) -> str | None:
-    """Why the thresholds file ``path`` does not fit the harness' cases: its null cases weighed other
-    candidates than CANDIDATE_NAMES (a thresholds file holds for the candidates it was set with); None when
-    they are the same or the file does not exist."""
+def unlike_design(path, release_volume_sd: float = RELEASE_VOLUME_SD) -> str | None:
+    """Why the thresholds file ``path`` does not fit the harness' cases: its null cases weighed other candidates
+    than CANDIDATE_NAMES, or stated another release error than ``release_volume_sd`` (a thresholds file holds
+    for the design it was set on); None when they match or the file does not exist."""
     path = Path(path)
     if not path.exists():
         return None
-    set_on = json.loads(path.read_text()).get("candidates")
-    if sorted(set_on or ()) == sorted(CANDIDATE_NAMES):
+    t = json.loads(path.read_text())
+    set_on, sd = t.get("candidates"), t.get("release_volume_sd")
+    why = []
+    if sorted(set_on or ()) != sorted(CANDIDATE_NAMES):
+        why.append(f"weighed {', '.join(set_on) if set_on else 'candidates not recorded'} (the cases weigh "
+                   f"{', '.join(CANDIDATE_NAMES)})")
+    if sd is None or abs(sd - release_volume_sd) > 1e-12:
+        why.append(f"stated release_volume_sd {'not recorded' if sd is None else f'{sd:g}'} (the cases "
+                   f"{release_volume_sd:g})")
+    if not why:
         return None
-    return (f"{path} was set on null cases that weighed {', '.join(set_on) if set_on else 'candidates not recorded'}; "
-            f"the cases weigh {', '.join(CANDIDATE_NAMES)}: set it again on their null seeds (calibrate_thresholds.py)")
+    return f"{path} was set on null cases that {' and '.join(why)}: set it again on their null seeds (calibrate_thresholds.py)"
 
 
 def out_of_range(scenario: str, strength: float) -> str | None:
@@ -135,7 +143,8 @@ def run_case(scenario: str, seed: int, out, cellsize: float = 40.0, strength: fl
     case = {"scenario": scenario, "seed": seed, "strength": strength, "cellsize": cellsize, "terrain": scenarios.TERRAIN,
             "fine_terrain": fine_terrain, "fine_factor": fine_factor, "sigmas": sigmas, "device": str(device),
             "compile_solver": compile_solver, "budgets": budgets or {}, "truth": rec.truth,
-            "volume_factor": rec.volume_factor, "true_term_covered_hdr90": cover,
+            "release_volume_sd": bud.release_volume_sd, "volume_factor": rec.volume_factor,
+            "true_term_covered_hdr90": cover,
             "true_term_covered_equal_tailed90": cover_eq, "wall_s": time.perf_counter() - t0, "diagnosis": j}
     tag = case_tag(scenario, seed, strength)
     out.mkdir(parents=True, exist_ok=True)
@@ -199,7 +208,8 @@ def main(argv=None) -> int:
     p.add_argument("--cellsize", type=float, default=40.0, help="inversion cell size, m (recordings on half of it)")
     p.add_argument("--fine-factor", type=int, default=2,
                    help="recording grid = inversion cells / this; 1 records on the inversion grid itself (the "
-                        "control without discretisation error, with --budget model_error_runs=0)")
+                        "control without discretisation error, with --budget model_error_runs=0 "
+                        "--budget release_volume_sd=0)")
     p.add_argument("--fine-terrain", action="store_true",
                    help="give the diagnosis the terrain on the recording grid for its model-error runs")
     p.add_argument("--sigmas", default="harness", choices=SIGMAS,
@@ -223,6 +233,7 @@ def main(argv=None) -> int:
         p.error(f"--fine-factor must be >= 1, got {a.fine_factor}")
     try:
         budgets = parse_budgets(a.budget)
+        check_budgets(Budgets(**{**HARNESS_BUDGETS, **budgets}))
         seeds = [int(v) for v in a.seed_list.split(",")] if a.seed_list else list(range(a.seeds))
         strengths = [float(s) for s in a.strengths.split(",")]
     except ValueError as e:
@@ -267,8 +278,9 @@ def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
         print(f"=== {path} does not exist: the cases are decided with the default thresholds (set this terrain's "
               f"on its null seeds with calibrate_thresholds.py)", flush=True)
     th = load_thresholds(path)
-    if other_candidates(path):
-        print(f"=== {other_candidates(path)}", flush=True)
+    unlike = unlike_design(path, {**HARNESS_BUDGETS, **budgets}["release_volume_sd"])
+    if unlike:
+        print(f"=== {unlike}", flush=True)
     items = []
     for seed in seeds:
         for strength in strengths:

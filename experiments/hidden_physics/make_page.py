@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .scenarios import SCENARIOS
+from .scenarios import RELEASE_VOLUME_SD, SCENARIOS
 from .summary import MARGIN_MIN
 
 HERE = Path(__file__).parent
@@ -84,6 +84,8 @@ def describe(settings: dict) -> str:
         s += ", the recording grid's terrain for the grid-error runs (and their rounds)"
     if "release_volume" in settings.get("candidates", ()):
         s += ", a larger release weighed"
+    if settings.get("release_volume_sd"):
+        s += f", the release's error stated (sd {settings['release_volume_sd']:g})"
     if settings.get("sigmas", "harness") != "harness":
         s += ", likelihood sigmas = the noise drawn"
     if settings.get("budgets"):
@@ -102,6 +104,8 @@ def command(summary: dict) -> str:
         base += f" --sigmas {settings['sigmas']}"
     for k, v in (settings.get("budgets") or {}).items():
         base += f" --budget {k}={v}"
+    if settings.get("release_volume_sd", 0.0) != RELEASE_VOLUME_SD:
+        base += f" --budget release_volume_sd={settings.get('release_volume_sd', 0.0):g}"
     groups: dict = {}
     for sc in SCENARIOS:
         rs = [r for r in summary["cases"] if r["scenario"] == sc]

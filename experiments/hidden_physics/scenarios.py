@@ -15,9 +15,9 @@ Terrains (``SITES``; select with :func:`terrain_variant`, the harness' ``--terra
 
 The inversion grid has ``cellsize`` m cells; the recordings are made on a grid of ``cellsize /
 fine_factor`` (same analytic surface), their deposit map block-averaged onto the inversion grid.
-The true release volume differs from the nominal one by a factor U(0.9, 1.1) (unknown to the
-inversion; its final_volume sigma is 10 % of the nominal volume); the ``release_volume`` scenario makes it
-(1 + 0.25 x strength) times that.
+The true release volume differs from the nominal one by a factor U(0.9, 1.1) (RELEASE_FACTOR; its
+final_volume sigma is 10 % of the nominal volume, the draw itself unknown to the inversion, its sd
+RELEASE_VOLUME_SD); the ``release_volume`` scenario makes it (1 + 0.25 x strength) times that.
 """
 from __future__ import annotations
 
@@ -38,6 +38,11 @@ from torchslide.terrain.synthetic import _bends, channel_with_bends, release_fro
 
 TRUE_BASE = {"mu": 0.25, "xi": 500.0}
 V_NOMINAL = 2.0e5
+RELEASE_FACTOR = (0.9, 1.1)
+"""Range of the uniform factor between the true and the stated release volume."""
+RELEASE_VOLUME_SD = 0.0577
+"""The relative sd of that factor, (1.1 - 0.9) / sqrt(12) to three figures: the release's error as a user who
+knows it states it ([diagnose] release_volume_sd)."""
 T_END = 90.0
 DT_OBS = 2.0
 SOLVER = dict(stop_ke_fraction=2e-3, stop_quiet_time=0.0, output_interval=1.0)   # the thresholds' stop rule
@@ -182,7 +187,7 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     rng = np.random.default_rng(1000 + seed)
     dem_c, erod_c = terrain(cellsize)
     dem_f, erod_f = terrain(cellsize / fine_factor)
-    vf = float(rng.uniform(0.9, 1.1))
+    vf = float(rng.uniform(*RELEASE_FACTOR))
     vals = dict(TRUE_BASE)
     for k, v in hidden.items():
         vals[k] = v * strength if k != "phi_int" else v

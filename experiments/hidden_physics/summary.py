@@ -34,6 +34,12 @@ _SETTINGS = {"terrain": "narrow", "cellsize": 40.0, "sigmas": "harness", "fine_f
 """The settings of a run (harness options) and their defaults."""
 
 
+def release_sd(case: dict) -> float:
+    """The release volume's relative sd that a saved case's diagnosis was told (0: the release taken as exact)."""
+    sd = case.get("release_volume_sd")
+    return float((case.get("budgets") or {}).get("release_volume_sd", 0.0) if sd is None else sd)
+
+
 def true_label(case: dict) -> str:
     """The hidden term of a case: "none", a library term, "unexplained" (the out-of-library patch) or
     "release_volume" (a release larger than stated)."""
@@ -114,6 +120,8 @@ def summarise(folder) -> dict:
     first = cases[0]
     settings = {k: default if first.get(k) is None else first[k] for k, default in _SETTINGS.items()}
     settings["candidates"] = sorted(c["name"] for c in first["diagnosis"].get("candidates", ()))
+    settings["release_volume_sd"] = release_sd(first)
+    settings["budgets"] = {k: v for k, v in settings["budgets"].items() if k != "release_volume_sd"}
     return {"settings": settings,
             "thresholds": first["diagnosis"]["thresholds"],
             "cases": [case_row(c) for c in cases]}

@@ -20,6 +20,6 @@
 """
 from .decide import Thresholds, decide
 from .evaluator import DiagnosisEvaluator
-from .pipeline import Budgets, Diagnosis, check_candidates, diagnose
+from .pipeline import Budgets, Diagnosis, check_budgets, check_candidates, diagnose
 
-__all__ = ["DiagnosisEvaluator", "Budgets", "Diagnosis", "Thresholds", "decide", "diagnose", "check_candidates"]
+__all__ = ["DiagnosisEvaluator", "Budgets", "Diagnosis", "Thresholds", "decide", "diagnose", "check_budgets", "check_candidates"]

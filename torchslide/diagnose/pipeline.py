@@ -335,7 +335,8 @@ class _Refit:
     history: list
 
 
-def _check_budgets(bud: Budgets, baseline) -> None:
+def check_budgets(bud: Budgets, baseline=None) -> None:
+    """ValueError naming the field when ``bud`` (with a given ``baseline``, or None) cannot be run."""
     if not 0 <= bud.release_volume_sd < 0.5:
         raise ValueError(f"release_volume_sd must be in [0, 0.5) (a relative sd), got {bud.release_volume_sd!r}")
     if bud.release_volume_sd > 0 and bud.model_error_runs < 2:
@@ -487,7 +488,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
         T[key] = time.perf_counter() - t0
         t0 = time.perf_counter()
 
-    _check_budgets(bud, baseline)
+    check_budgets(bud, baseline)
     path = None
     if bud.inference != "emulator":
         pilot = _pilot_stage(evaluator, bud, baseline, log)
