@@ -67,22 +67,23 @@ def test_a_strongly_supported_term_is_named_with_what_it_leaves_unexplained():
             "standardised_residual": -10.0}]
     part = {"items": [{"what": "final_volume", "before": 12.0, "after": 1.0},
                       {"what": "g2 speed below prediction", "before": -10.0, "after": -9.5}],
-            "max_after": 9.5, "explained": 0.38}
+            "max_after": 9.5}      # removes 1 - (1 + 9.5^2) / (12^2 + 10^2) = 63 % of the located mismatch
     little = {"items": [{"what": "final_volume", "before": 12.0, "after": 11.7}], "max_after": 11.7, "explained": 0.05}
     d = decide([_cand("entrainment", 500.0, located_rescored=part), _cand("curvature", 30.0, located_rescored=little)],
                loc, base, 100.0, th)
     assert d["verdict"] == "missing_physics" and d["missing_physics"] == "entrainment" and d["partial"]
-    assert d["explained_share"] == 0.38
+    assert d["explained_share"] == pytest.approx(1 - 91.25 / 244)
     assert d["remainder"] == [{"what": "g2 speed below prediction", "where": {"gauge": "g2", "t0": 20.0, "t1": 40.0},
                                "before": -10.0, "after": -9.5}]
-    assert "38 %" in d["reason"] and "g2 speed below prediction" in d["reason"]
+    assert "63 %" in d["reason"] and "g2 speed below prediction" in d["reason"]
     from torchslide.diagnose.report import _verdict_section
 
     text = "\n".join(_verdict_section({"verdict": d["verdict"], "missing_physics": d["missing_physics"], "decision": d,
                                        "candidates": []}))
-    assert "Partial: entrainment removes 38 %" in text and "| g2 speed below prediction |" in text
+    assert "Partial: entrainment removes 63 %" in text and "| g2 speed below prediction |" in text
     # a share below explain_partial_min, or another failed check beside it: not named
-    for bad in ({"located_rescored": dict(part, explained=0.2)}, {"located_rescored": part, "delta_waic": -5.0}):
+    little_share = {"items": [dict(part["items"][0], after=11.0), part["items"][1]], "max_after": 11.0}   # 13 %
+    for bad in ({"located_rescored": little_share}, {"located_rescored": part, "delta_waic": -5.0}):
         d = decide([_cand("entrainment", 500.0, **bad)], loc, base, 100.0, th)
         assert d["verdict"] == "unexplained" and d["missing_physics"] is None
     # a runner-up within the margin: "A or B", still with the remainder
@@ -129,10 +130,24 @@ def test_decide_ambiguous_and_null_like():
     # ... but one below the evidence threshold does not
     weak = [_cand("curvature", 24.0), _cand("earth_pressure", 19.0, two_ln_bf_lower=17.0)]
     assert decide(weak, loc, base, 100.0, th)["missing_physics"] == "curvature"
-    # evidence gain without a significant located mismatch and without explaining it: null-like
-    keep = {"items": [{"before": 7.0, "after": 6.9}], "max_after": 6.9, "explained": 0.03}
-    d = decide([_cand("curvature", 25.0, located_rescored=keep)], [{"standardised_residual": 7.0}], base, 100.0, th)
-    assert d["verdict"] == "no_missing_physics"
+    # a located mismatch at the noise's level (below located_min) is not one a term must remove: a term that
+    # passes every other check is named though it stays
+    keep = {"items": [{"before": 7.0, "after": 6.9}], "max_after": 6.9}
+    quiet = [{"standardised_residual": 7.0}]
+    d = decide([_cand("curvature", 25.0, located_rescored=keep)], quiet, base, 100.0, th)
+    assert d["missing_physics"] == "curvature" and not d.get("partial")
+    # ... but not one that turns it significant (nor "partial": there was nothing significant to remove)
+    worse = {"items": [{"before": 7.0, "after": 9.0}], "max_after": 9.0}
+    d = decide([_cand("curvature", 25.0, located_rescored=worse)], quiet, base, 100.0, th)
+    assert d["missing_physics"] is None and not d.get("partial")
+    # an evidence gain that fails another check where the baseline leaves no mismatch: null-like; with a fit
+    # flag (an observable beyond its null level): "unexplained"
+    d = decide([_cand("curvature", 25.0, located_rescored=keep, delta_waic=-5.0)], quiet, base, 100.0, th)
+    assert d["verdict"] == "no_missing_physics" and "null data" in d["reason"]
+    flagged = Thresholds(bf_min=20.0, located_min=8.0, waic_min=6.0, fit_max={"deposit": -30.0})
+    d = decide([_cand("curvature", 25.0, located_rescored=keep, delta_waic=-5.0)], quiet, base, 100.0, flagged,
+               fit_z={"deposit": -20.0})
+    assert d["verdict"] == "unexplained" and "deposit fits at Z_fit -20.0" in d["reason"]
 
 
 def test_fit_flags_turn_nothing_missing_into_unexplained():

@@ -14,9 +14,10 @@ are computed from *solver runs* at posterior draws, not from the emulator alone)
 * ``misfit``: the misfit of its posterior-predictive mean is below the baseline's;
 * ``within_range`` (candidates with an open range, e.g. release_volume): the switch's 90 % interval
   stays below the end of its range (a fit at the end: the data want more than the range allows);
-* ``explains``: the baseline's located mismatches, re-scored at the same places with the candidate's
-  predictive draws, lose >= ``explain_min`` of their sum of squared scores and none stays above
-  ``located_min`` (no located mismatch: passes).
+* ``explains``: the baseline's significant located mismatches (|score| >= ``located_min``), re-scored at
+  the same places with the candidate's predictive draws, lose >= ``explain_min`` of their sum of squared
+  scores, and no located mismatch stays above ``located_min`` (none significant: passes; a mismatch at
+  the noise's level is not one a term must remove).
 
 Rules:
 
@@ -38,11 +39,10 @@ Rules:
    structure is named the same way with ``partial`` = True: ``explained_share`` says how much it removes,
    ``remainder`` lists the located mismatches it leaves above ``located_min`` (what, where, score before
    and after), reported as unexplained (a recording that differs from the model in more than one way).
-2. Otherwise, when that candidate passes ``evidence`` and either the baseline left a located mismatch
-   with |score| >= ``located_min`` or the candidate does explain the located structure: "unexplained"
-   (located / supported, but no library term passes every check: never a forced label).
-   An evidence gain with no significant located mismatch that the candidate does not explain either
-   is what discretisation alone produces on null data: "no_missing_physics" (reason says so).
+2. Otherwise, when that candidate passes ``evidence`` and the baseline leaves a mismatch (a located one
+   with |score| >= ``located_min`` or a fit flag): "unexplained" (located / supported, but no library term
+   passes every check: never a forced label). An evidence gain that fails a check where the baseline
+   leaves no mismatch is what discretisation alone produces on null data: "no_missing_physics".
 3. Otherwise: "unexplained" when a located mismatch has |score| >= ``located_min``, else
    "no_missing_physics".
 
@@ -87,13 +87,22 @@ class Thresholds:
         return asdict(self)
 
 
-def _explained(c: dict) -> float:
-    ex = (c.get("located_rescored") or {}).get("explained")
-    return float(ex) if ex is not None and np.isfinite(ex) else float("-inf")
+def _significant_items(c: dict, th: Thresholds) -> list:
+    """The re-scored located mismatches of candidate ``c`` that were significant before (|score| >= located_min)."""
+    return [i for i in (c.get("located_rescored") or {}).get("items") or () if abs(i["before"]) >= th.located_min]
 
 
-def _has_items(c: dict) -> bool:
-    return bool((c.get("located_rescored") or {}).get("items"))
+def _explained(c: dict, th: Thresholds) -> float:
+    """The share of the significant located mismatches' sum of squared scores that ``c`` removes (1 - after /
+    before); 1 when none was significant; -inf when ``c`` was not re-scored where there were some."""
+    rs = c.get("located_rescored") or {}
+    if not rs.get("items"):
+        return float("-inf")
+    items = _significant_items(c, th)
+    if not items:
+        return 1.0
+    before = sum(i["before"] ** 2 for i in items)
+    return 1.0 - sum(i["after"] ** 2 for i in items) / before
 
 
 def remainder(c: dict, located_before: list, th: Thresholds) -> list:
@@ -145,11 +154,8 @@ def checks(c: dict, baseline: dict, misfit_before: float, th: Thresholds) -> dic
     if "at_range_end" in c:
         out["within_range"] = not c["at_range_end"]
     rs = c.get("located_rescored") or {}
-    if not rs.get("items"):
-        out["explains"] = True
-    else:
-        ex = rs.get("explained")
-        out["explains"] = bool(ex is not None and ex >= th.explain_min and rs["max_after"] < th.located_min)
+    out["explains"] = (not rs.get("items")
+                       or bool(_explained(c, th) >= th.explain_min and rs["max_after"] < th.located_min))
     return out
 
 
@@ -185,24 +191,25 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
             out["two_ln_bf_over_runner_up"] = tl
         ck = out["checks"][best["name"]]
         failed = [k for k, v in ck.items() if not v]
-        partial = failed == ["explains"] and _explained(best) >= th.explain_partial_min
+        partial = (failed == ["explains"] and bool(_significant_items(best, th))
+                   and _explained(best, th) >= th.explain_partial_min)
         if partial:
-            out.update(partial=True, explained_share=_explained(best),
+            out.update(partial=True, explained_share=_explained(best, th),
                        remainder=remainder(best, located_before, th))
         if not failed or partial:
-            ex_best = _explained(best)
+            ex_best = _explained(best, th)
             close = [c["name"] for c in scored[1:]
                      if out["checks"][c["name"]]["evidence"]
                      and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
-                      and _explained(c) > ex_best and _explained(c) >= ex_best + th.explain_margin]
+                      and _explained(c, th) > ex_best and _explained(c, th) >= ex_best + th.explain_margin]
             if close or better:
                 why = []
                 if close:
                     why.append(f"{', '.join(close)} also pass(es) the evidence check within 2 ln BF {th.margin_min}")
                 if better:
                     why.append(f"{', '.join(better)} explain(s) more of the located mismatch "
-                               f"({', '.join(f'{_explained(c):.2f}' for c in scored if c['name'] in better)} vs "
+                               f"({', '.join(f'{_explained(c, th):.2f}' for c in scored if c['name'] in better)} vs "
                                f"{ex_best:.2f})")
                 comp = close + [b for b in better if b not in close]
                 alts = [best["name"]] + comp
@@ -222,16 +229,16 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                                     if out["remainder"] else "no located mismatch stays above "
                                     f"{th.located_min:.1f}"))
             return _prefixed(out, aside)
-        if ck["evidence"] and (sig_before or flags or (ck["explains"] and _has_items(best))):
+        if ck["evidence"] and (sig_before or flags):
             out.update(verdict="unexplained",
                        reason=f"{best['name']} is supported by the evidence (2 ln BF = {tl:.1f}) but fails "
                               f"{', '.join(failed)}: not named" + (f" ({flagged})" if flags else ""))
             return _prefixed(out, aside)
         if ck["evidence"]:
             out.update(verdict="no_missing_physics",
-                       reason=f"{best['name']} gains evidence (2 ln BF = {tl:.1f}) but no located mismatch reaches "
-                              f"{th.located_min:.1f} and it does not explain the located structure (fails "
-                              f"{', '.join(failed)}): what discretisation alone gives on null data")
+                       reason=f"{best['name']} gains evidence (2 ln BF = {tl:.1f}) but fails {', '.join(failed)}, and "
+                              f"the baseline leaves no located mismatch above {th.located_min:.1f} and no observable "
+                              f"beyond its null level: what discretisation alone gives on null data")
             return _prefixed(out, aside)
     why = ("no candidate refitted" if best is None else
            f"best candidate {best['name']}: 2 ln BF lower bound "
