@@ -42,7 +42,8 @@ def test_harness_case_end_to_end(tmp_path):
     runs.mkdir()
     (runs / "tiny.json").write_text(json.dumps(summary))
     page = build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
-    assert "| `tiny`: narrow terrain, 40 m cells, a larger release weighed, budgets n_posterior_samples=8," in page
+    assert ("| `tiny`: narrow terrain, 40 m cells, a larger release weighed, the release taken as exact, "
+            "budgets n_posterior_samples=8,") in page
     assert (tmp_path / "page" / "figures" / "confusion_tiny.png").exists()
 
 
@@ -542,7 +543,7 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     stated = {**fine, "settings": {**fine["settings"], "release_volume_sd": 0.0577}}
     assert "release_volume_sd" not in make_page.command(stated)
     assert "the release's error stated (sd 0.0577)" in make_page.describe(stated["settings"])
-    assert "release's error" not in make_page.describe(fine["settings"])
+    assert "the release taken as exact" in make_page.describe(fine["settings"])
     assert "the recording grid's terrain" in make_page.describe(fine["settings"])
     assert "a larger release weighed" in make_page.describe({**fine["settings"], "candidates": ["release_volume"]})
     weighed = tmp_path / "weighed"

@@ -34,8 +34,8 @@ from torchslide.terrain.io import write_asc
 
 from . import scenarios
 from .harness import CANDIDATE_NAMES, HARNESS_BUDGETS, load_thresholds, out_of_range, thresholds_file as thresholds_file_of
-from .scenarios import (RELEASE_VOLUME_SD, SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges, make_recording, release,
-                        terrain)
+from .scenarios import (RELEASE_VOLUME_SD, SOLVER, T_END, TERRAINS, V_NOMINAL, fine_terrain_grids, gauges,
+                        make_recording, release, terrain)
 
 EXACT = "%.17g"  # float64 round trip
 

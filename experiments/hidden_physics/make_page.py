@@ -84,8 +84,8 @@ def describe(settings: dict) -> str:
         s += ", the recording grid's terrain for the grid-error runs (and their rounds)"
     if "release_volume" in settings.get("candidates", ()):
         s += ", a larger release weighed"
-    if settings.get("release_volume_sd"):
-        s += f", the release's error stated (sd {settings['release_volume_sd']:g})"
+    sd = settings.get("release_volume_sd", 0.0)
+    s += f", the release's error stated (sd {sd:g})" if sd else ", the release taken as exact"
     if settings.get("sigmas", "harness") != "harness":
         s += ", likelihood sigmas = the noise drawn"
     if settings.get("budgets"):
