@@ -151,6 +151,46 @@ def test_detectable_switch_is_the_linear_gaussian_threshold():
     assert d_m["per_unit"] < 1e-9 * a and not d_m["within_prior"]
 
 
+def test_detectable_switch_checks_the_re_tuned_baseline_on_the_solver():
+    """A term that is a shift of mu seen through a nonlinear response (as mu(I) is, far from the screening's
+    small mu step): the linear projection leaves it a large own effect, the baseline re-tuned by Gauss-Newton
+    steps on the model removes it, and the detectable switch moves beyond the prior; the linear value is kept
+    as per_unit_linear. A term with its own effect keeps (within 1 %) its linear threshold."""
+    from torchslide.bayes import GaussianLikelihood
+    from torchslide.diagnose.screen import detectable_switch, screen
+
+    rng = np.random.default_rng(5)
+    k = 40
+    b = rng.uniform(1.0, 4.0, k)
+    own = rng.standard_normal(k)
+    x0 = np.array([0.2, 500.0])
+    sig = np.full(k, 0.002)
+
+    class Ev:
+        prior = Prior({"mu": Uniform(0.05, 0.5), "xi": Uniform(100.0, 2000.0)})
+        fixed = {}
+        likelihood = GaussianLikelihood(np.zeros(k), sigma=sig)
+        data, sigma = np.zeros(k), sig
+
+        def __init__(self, own_effect):
+            self.own = own_effect
+            self.calls = 0
+
+        def run_values(self, v):     # y = exp(b (mu + 5 kappa)) - exp(b mu0) + own * kappa, xi inert
+            self.calls += 1
+            mu_eff = v["mu"][:, None] + 5.0 * v["kappa"][:, None]
+            return np.exp(b * mu_eff) - np.exp(b * x0[0]) + np.outer(v["kappa"], self.own), np.zeros(len(v["mu"]), bool)
+
+    ev = Ev(0.0 * own)
+    d = detectable_switch(screen(ev, x0, ["entrainment"]), ev, bf_min=10.0)["entrainment"]
+    assert d["per_unit_linear"] > 100.0 * d["per_unit"] and not d["within_prior"]
+    assert detectable_switch(screen(ev, x0, ["entrainment"]), ev, bf_min=10.0, retune_steps=0)["entrainment"][
+        "within_prior"]                                      # what the linear projection alone claimed
+    ev_own = Ev(own)
+    d_own = detectable_switch(screen(ev_own, x0, ["entrainment"]), ev_own, bf_min=10.0)["entrainment"]
+    assert d_own["within_prior"] and d_own["per_unit"] > 0.99 * d_own.get("per_unit_linear", d_own["per_unit"])
+
+
 def test_screen_linear_optimum_recovers_a_linear_model():
     """screen's linear_opt is the joint least-squares optimum of (baseline re-tune, switch): on a model
     that is linear in (mu, xi, kappa) it is the truth; a residual the switch can only make worse

@@ -380,7 +380,7 @@ def _screen_stage(evaluator, base: _Baseline, candidates, th: Thresholds, log) -
     unseen = [f"{c} (from {d['switch']:.3g}; prior up to {CANDIDATES[c].prior[1]:g})"
               for c, d in scr.detectable.items() if d and not d["within_prior"]]
     if unseen:
-        log("[diagnose] beyond what these data can detect on this grid (linearised): " + ", ".join(unseen))
+        log("[diagnose] beyond what these data can detect on this grid: " + ", ".join(unseen))
     return scr
 
 

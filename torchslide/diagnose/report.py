@@ -158,7 +158,7 @@ def _verdict_section(j: dict) -> list[str]:
     unseen = [c for c, v in ((j.get("screening") or {}).get("candidates") or {}).items()
               if v.get("detectable_switch") and not v["detectable_switch"].get("within_prior")]
     if unseen:
-        L += [f"Beyond what these data can detect on this grid at any strength in its prior (linearised; see "
+        L += [f"Beyond what these data can detect on this grid at any strength in its prior (see "
               f"Screening): {', '.join(unseen)}. The verdict says nothing about {'it' if len(unseen) == 1 else 'them'}.",
               ""]
     if j["decision"].get("partial"):
@@ -238,7 +238,8 @@ def _screening_section(scr: dict) -> list[str]:
          "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
          "smallest switch whose own effect (what re-tuning mu, xi cannot mimic, whitened by the likelihood's "
          "covariance, the grid's error included) would reach the evidence threshold bf_min, linearised over the "
-         "screening's step (screen.detectable_switch). Beyond the prior range: these data cannot name the term on "
+         "screening's step and checked on the solver with the baseline re-tuned there (screen.detectable_switch). "
+         "Beyond the prior range: these data cannot name the term on "
          "this grid at any strength, so 'nothing missing' does not rule it out. Within it: a weaker term, or one "
          "the grid biases or another term mimics, can still be missed.", "",
          "| candidate | screening score | mimic by mu, xi | detectable from | prior range |", "|---|---|---|---|---|"]
