@@ -174,10 +174,8 @@ def test_detectable_switch_checks_the_re_tuned_baseline_on_the_solver():
 
         def __init__(self, own_effect):
             self.own = own_effect
-            self.calls = 0
 
         def run_values(self, v):     # y = exp(b (mu + 5 kappa)) - exp(b mu0) + own * kappa, xi inert
-            self.calls += 1
             mu_eff = v["mu"][:, None] + 5.0 * v["kappa"][:, None]
             return np.exp(b * mu_eff) - np.exp(b * x0[0]) + np.outer(v["kappa"], self.own), np.zeros(len(v["mu"]), bool)
 

@@ -77,7 +77,8 @@ def unlike_design(path, release_volume_sd: float = RELEASE_VOLUME_SD) -> str | N
                    f"{release_volume_sd:g})")
     if not why:
         return None
-    return f"{path} was set on null cases that {' and '.join(why)}: set it again on their null seeds (calibrate_thresholds.py)"
+    return (f"{path} was set on null cases that {' and '.join(why)}: set it again on their null seeds "
+            f"(calibrate_thresholds.py)")
 
 
 def out_of_range(scenario: str, strength: float) -> str | None:

@@ -94,7 +94,7 @@ def _significant_items(c: dict, th: Thresholds) -> list:
 
 def _explained(c: dict, th: Thresholds) -> float:
     """The share of the significant located mismatches' sum of squared scores that ``c`` removes (1 - after /
-    before); 1 when none was significant; -inf when ``c`` was not re-scored where there were some."""
+    before); 1 when none was significant; -inf when ``c`` has no re-scored mismatches (it never contests)."""
     rs = c.get("located_rescored") or {}
     if not rs.get("items"):
         return float("-inf")

@@ -45,6 +45,7 @@ class ScreenResult:
     failed: list = field(default_factory=list)
     jacobian: np.ndarray | None = None   # (k, p) whitened d y / d x of the baseline parameters at x0
     residual: np.ndarray | None = None   # (k,) whitened residual (d - y(x0)) / sigma
+    y0: np.ndarray | None = None         # (k,) prediction at x0, raw units
 
     def to_json(self) -> dict:
         return {"x0": self.x0, "ranking": self.ranking,
@@ -122,7 +123,8 @@ def screen(evaluator, x0: np.ndarray, candidates, step_fraction: float = 0.3) ->
     return ScreenResult(x0=base, scores=scores, mimic=mimic, norms=norms, effects=effects, ranking=ranking,
                         linear_opt=lin, n_members=len(preds), steps={c: steps[c] for c in candidates},
                         failed=[int(i) for i in np.nonzero(failed)[0]],
-                        jacobian=None if failed[: 1 + len(names)].any() else A, residual=r)
+                        jacobian=None if failed[: 1 + len(names)].any() else A, residual=r,
+                        y0=None if failed[0] else y0)
 
 
 def _linear_opt(A: np.ndarray, Jc: np.ndarray, r: np.ndarray, names, base: dict, bounds: np.ndarray, cd):
@@ -183,7 +185,7 @@ def detectable_switch(scr: ScreenResult, evaluator, bf_min: float, retune_steps:
         a = float(np.linalg.norm(jcs[c] - Jb @ (Jbp @ jcs[c])))
         out[c] = _threshold(a, CANDIDATES[c].prior, bf_min)
     at = {c: min(d["switch"], CANDIDATES[c].prior[1]) for c, d in out.items() if d and d["per_unit"] > 0}
-    if retune_steps > 0 and at:
+    if retune_steps > 0 and at and scr.y0 is not None:
         remaining = retuned_effect(scr, evaluator, whiten, Jb, Jbp, jcs, at, retune_steps)
         for c, r2 in remaining.items():
             a_nl = math.sqrt(r2) / at[c]
@@ -207,29 +209,22 @@ def retuned_effect(scr: ScreenResult, evaluator, whiten, Jb: np.ndarray, Jbp: np
                    steps: int) -> dict:
     """{candidate: the smallest whitened |y(x0 + d, switch) - y(x0)|^2 over ``steps`` Gauss-Newton steps}: the
     term's effect at switch ``at[c]`` that re-tuning the baseline (d, kept in the prior box) leaves, run on
-    the solver (one batch of 1 + len(at) members a step). ``jcs``: whitened effect per unit switch (n,);
+    the solver against the screening's y(x0) (one batch of len(at) members a step). ``jcs``: whitened effect per unit switch (n,);
     ``Jb`` (n, p) and its pseudo-inverse ``Jbp``: the whitened baseline sensitivities. Failed members are
     left out."""
     names = list(evaluator.prior.names)
     lo, hi = evaluator.prior.bounds.numpy()
     x0 = np.array([scr.x0[n] for n in names])
     d = {c: -(Jbp @ jcs[c]) * s for c, s in at.items()}
-    best, y0 = {}, None
+    best = {}
     for _ in range(steps):
-        batch = [(1, {**evaluator.fixed, **scr.x0})]
-        for c, s in at.items():
-            x = np.clip(x0 + d[c], lo, hi)
-            batch.append((1, {**evaluator.fixed, **dict(zip(names, x)), CANDIDATES[c].param: s,
-                              **dict(CANDIDATES[c].fixed)}))
+        batch = [(1, {**evaluator.fixed, **dict(zip(names, np.clip(x0 + d[c], lo, hi))), CANDIDATES[c].param: s,
+                      **dict(CANDIDATES[c].fixed)}) for c, s in at.items()]
         preds, failed = evaluator.run_values(stack_values(batch))
-        if y0 is None:
-            if failed[0]:
-                return {}
-            y0 = preds[0]
         for i, c in enumerate(at):
-            if failed[1 + i]:
+            if failed[i]:
                 continue
-            r = whiten(preds[1 + i] - y0)
+            r = whiten(preds[i] - scr.y0)
             best[c] = min(best.get(c, math.inf), float(r @ r))
             d[c] = d[c] - Jbp @ r
     return best
