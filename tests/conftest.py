@@ -304,7 +304,7 @@ TINY_HARNESS_BUDGETS = dict(n_posterior_samples=8, n_posterior_samples_after=4, 
 def cand(name, two_ln_bf, **kw):
     c = {"name": name, "log_bayes_factor": two_ln_bf / 2, "two_ln_bf_lower": two_ln_bf - 2, "ess": 6.0,
          "two_ln_bf_savage_dickey": 8.0, "delta_waic": 30.0, "misfit_after": 50.0,
-         "located_rescored": {"items": [{"before": 9.0, "after": 1.0}], "max_after": 1.0, "explained": 0.9}}
+         "located_rescored": {"items": [{"before": 9.0, "after": 1.0}], "max_after": 1.0, "explained_all": 0.9}}
     c.update(kw)
     return c
 

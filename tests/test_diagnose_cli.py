@@ -138,6 +138,10 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     assert "the release volume's error (relative sd 0.05)" in md
     for key in ("missing_physics", "located", "candidates", "fit_before", "fit_after"):
         assert key in j
+    # each candidate's share of the significant located mismatch removed, in report.json and report.md's table
+    assert j["decision"]["explained_shares"]
+    for name, share in j["decision"]["explained_shares"].items():
+        assert share <= 1.0 and any(l.startswith(f"| {name} |") and f"| {share:.0%} |" in l for l in md.splitlines())
     for key in ("log_evidence", "misfit", "residuals"):
         assert key in j["fit_before"]
     # every vector observable's fit with the likelihood's own covariance, before and after

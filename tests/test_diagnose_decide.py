@@ -46,7 +46,7 @@ def test_decide_new_rules():
     d = decide([_cand("entrainment", 60.0), _cand("curvature", 10.0)], loc, base, 100.0, th)
     assert d["verdict"] == "missing_physics" and d["missing_physics"] == "entrainment" and not d["ambiguous"]
     # supported by the evidence but the located structure stays: out-of-library -> never a name
-    keep = {"items": [{"before": 9.0, "after": 8.5}], "max_after": 8.5, "explained": 0.1}
+    keep = {"items": [{"before": 9.0, "after": 8.5}], "max_after": 8.5, "explained_all": 0.1}
     d = decide([_cand("curvature", 60.0, located_rescored=keep)], loc, base, 100.0, th)
     assert d["verdict"] == "unexplained" and d["missing_physics"] is None
     # untrustworthy evidence, Savage-Dickey disagreeing, or no out-of-sample gain: not named
@@ -68,11 +68,16 @@ def test_a_strongly_supported_term_is_named_with_what_it_leaves_unexplained():
     part = {"items": [{"what": "final_volume", "before": 12.0, "after": 1.0},
                       {"what": "g2 speed below prediction", "before": -10.0, "after": -9.5}],
             "max_after": 9.5}      # removes 1 - (1 + 9.5^2) / (12^2 + 10^2) = 63 % of the located mismatch
-    little = {"items": [{"what": "final_volume", "before": 12.0, "after": 11.7}], "max_after": 11.7, "explained": 0.05}
+    little = {"items": [{"what": "final_volume", "before": 12.0, "after": 11.7}], "max_after": 11.7, "explained_all": 0.05}
     d = decide([_cand("entrainment", 500.0, located_rescored=part), _cand("curvature", 30.0, located_rescored=little)],
                loc, base, 100.0, th)
     assert d["verdict"] == "missing_physics" and d["missing_physics"] == "entrainment" and d["partial"]
     assert d["explained_share"] == pytest.approx(1 - 91.25 / 244)
+    assert d["explained_shares"] == pytest.approx({"entrainment": 1 - 91.25 / 244, "curvature": 1 - 11.7 ** 2 / 144})
+    # the verdict's share counts only the significant mismatches (|before| >= located_min); verify's counts all
+    quiet_too = {"items": part["items"] + [{"what": "g1 h", "before": 3.0, "after": 0.0}], "max_after": 9.5}
+    d2 = decide([_cand("entrainment", 500.0, located_rescored=quiet_too)], loc, base, 100.0, th)
+    assert d2["explained_shares"]["entrainment"] == pytest.approx(1 - 91.25 / 244)
     assert d["remainder"] == [{"what": "g2 speed below prediction", "where": {"gauge": "g2", "t0": 20.0, "t1": 40.0},
                                "before": -10.0, "after": -9.5}]
     assert "63 %" in d["reason"] and "g2 speed below prediction" in d["reason"]
@@ -99,8 +104,8 @@ def test_decide_ambiguous_and_null_like():
     loc = [{"standardised_residual": 9.0}]
     # the runner-up explains the located mismatch better: evidence and location disagree -> "A or B", no
     # single name
-    better = {"items": [{"before": 9.0, "after": 0.5}], "max_after": 0.5, "explained": 0.99}
-    part = {"items": [{"before": 9.0, "after": 5.0}], "max_after": 5.0, "explained": 0.7}
+    better = {"items": [{"before": 9.0, "after": 0.5}], "max_after": 0.5, "explained_all": 0.99}
+    part = {"items": [{"before": 9.0, "after": 5.0}], "max_after": 5.0, "explained_all": 0.7}
     d = decide([_cand("earth_pressure", 60.0, located_rescored=part),
                 _cand("yield_stress", -10.0, located_rescored=better)], loc, base, 100.0, th)
     assert d["verdict"] == "missing_physics" and d["missing_physics"] == "earth_pressure or yield_stress"
@@ -108,7 +113,7 @@ def test_decide_ambiguous_and_null_like():
     assert d["alternatives"] == ["earth_pressure", "yield_stress"]
     # ... but not when both remove nearly all of it (0.99 against 0.98 is no disagreement): the evidence,
     # 2 ln BF 14 apart, names the term
-    most = {"items": [{"before": 9.0, "after": 0.9}], "max_after": 0.9, "explained": 0.98}
+    most = {"items": [{"before": 9.0, "after": 0.9}], "max_after": 0.9, "explained_all": 0.98}
     d = decide([_cand("release_volume", 38.0, located_rescored=most),
                 _cand("entrainment", 24.0, located_rescored=better)], loc, base, 100.0, th)
     assert d["missing_physics"] == "release_volume" and not d["ambiguous"]
@@ -222,7 +227,7 @@ def test_rescore_gauge_window_uses_the_localisation_statistic():
     assert win, loc.located
     r = rescore(ev, win, before, after)
     assert abs(r["items"][0]["before"] - win[0]["standardised_residual"]) < 1e-9
-    assert abs(r["items"][0]["after"]) < 3.0 and r["explained"] > 0.8
+    assert abs(r["items"][0]["after"]) < 3.0 and r["explained_all"] > 0.8
 
 
 def test_chi2_score_is_a_normal_score_with_finite_tails():

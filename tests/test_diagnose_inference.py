@@ -63,7 +63,7 @@ def test_rescore_and_waic():
     after = before + np.where(np.arange(k) < 4, 2.0, 0.0)
     item = {"what": "excess cluster", "standardised_residual": 8.0, "_idx": [0, 1, 2, 3], "_f": 1.0, "_stat": "sum"}
     r = rescore(ev, [item], before, after)
-    assert r["max_before"] > 7.5 and r["max_after"] < 1 and r["explained"] > 0.99
+    assert r["max_before"] > 7.5 and r["max_after"] < 1 and r["explained_all"] > 0.99
     assert waic(ev, after)["elpd"] - waic(ev, before)["elpd"] > 20
 
 

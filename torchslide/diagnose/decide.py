@@ -163,7 +163,8 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
            fit_z: dict | None = None) -> dict:
     """candidates: refitted candidates with the verify statistics (see pipeline); baseline: the baseline's
     verified-evidence dict; fit_z: {observable: the baseline's Z_fit} for the fit flags (``th.fit_max``).
-    Returns {verdict, missing_physics, ambiguous, reason, checks, fit_flags, ...}."""
+    Returns {verdict, missing_physics, ambiguous, reason, checks, fit_flags, explained_shares (per candidate
+    with re-scored mismatches: the share of the significant ones it removes), ...}."""
     scored = sorted([c for c in candidates if c.get("log_bayes_factor") is not None
                      and np.isfinite(c["log_bayes_factor"])], key=lambda c: -c["log_bayes_factor"])
     sig_before = significant(located_before, th)
@@ -173,6 +174,7 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     flagged = "; ".join(f"{f['observable']} fits at Z_fit {f['Z_fit']:.1f} > {f['fit_max']:.1f}" for f in flags)
     for c in scored:
         out["checks"][c["name"]] = checks(c, baseline, misfit_before, th)
+    out["explained_shares"] = {c["name"]: _explained(c, th) for c in scored if np.isfinite(_explained(c, th))}
     # a fit at the end of a budget range explains the data only beyond the term's range: set aside (rule 0)
     ends = [c["name"] for c in scored if not out["checks"][c["name"]].get("within_range", True)]
     aside = ""

@@ -421,7 +421,7 @@ def _candidate_report(evaluator, c: str, r: _Refit, base: _Baseline, scr: Screen
            "n_runs": cal_c.n_runs, "best_x": cal_c.x[best_i].tolist()}
     log(f"[diagnose] refit {c}: 2 ln BF {2 * lbf:.1f} (lower {out['two_ln_bf_lower']:.1f}; emulator "
         f"{out['two_ln_bf_emulator']:.1f}; ESS {ver['ess']:.1f}), SD {sd['two_ln_bf']:.1f}, "
-        f"dWAIC {out['delta_waic']:.1f}, explained {rs.get('explained')}, misfit {misfit:.1f}")
+        f"dWAIC {out['delta_waic']:.1f}, explained (all located) {rs.get('explained_all')}, misfit {misfit:.1f}")
     return out
 
 
@@ -650,7 +650,7 @@ def _local_candidate(evaluator, cf, base: _Baseline, scr: ScreenResult, bud: Bud
            "at_range_end": at_range_end(c, _params(cal)),
            "n_runs": cf.n_runs + len(pred.x), "best_x": cf.fit.x.tolist(), "fit_message": cf.fit.message}
     log(f"[diagnose] local fit {c}: 2 ln BF {cf.two_ln_bf:.1f}, 2 ln LR {cf.lr:.1f} (p {cf.lr_pvalue:.2g}), "
-        f"SD {cf.two_ln_bf_savage_dickey:.1f}, dWAIC {row['delta_waic']:.1f}, explained {rs.get('explained')}")
+        f"SD {cf.two_ln_bf_savage_dickey:.1f}, dWAIC {row['delta_waic']:.1f}, explained (all located) {rs.get('explained_all')}")
     return r, row
 
 

@@ -129,7 +129,7 @@ def write_markdown(j: dict, figures: list[str]) -> str:
               ", ".join(f"{k} {v['rms_mean']:.3g} / {v['rms_sd']:.3g}" for k, v in me["blocks"].items()) + ").", ""]
     L += _located_section(j) + _consistency_section(j.get("subset_consistency"))
     L += _screening_section((j.get("screening") or {}).get("candidates") or {})
-    L += _candidates_section(j["candidates"]) + _fit_section(j)
+    L += _candidates_section(j["candidates"], j["decision"].get("explained_shares") or {}) + _fit_section(j)
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(L) + "\n"
 
@@ -254,19 +254,21 @@ def _screening_section(scr: dict) -> list[str]:
     return L
 
 
-def _candidates_section(candidates: list) -> list[str]:
+def _candidates_section(candidates: list, shares: dict) -> list[str]:
     L = ["", "## Candidates", "",
          "'refit check': on the local path, the likelihood ratio with its boundary-corrected p-value and the profile "
          "at the ends of the switch's 90 % interval; on the emulator path, whether the verified evidence converged. "
          "'90 % interval': where the candidate was profiled, the profile-likelihood interval (2 ln drop 2.71; "
-         "'open' where the drop stays below it up to the prior's bound), else the posterior's 90 % HDI.", "",
-         "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % interval | refit check |",
-         "|---|---|---|---|---|---|---|---|"]
+         "'open' where the drop stays below it up to the prior's bound), else the posterior's 90 % HDI. 'explains': "
+         "the share of the significant located mismatches' sum of squared scores that the refit removes.", "",
+         "| candidate | screening score | mimic by mu, xi | log Z | 2 ln BF vs baseline | switch mean | 90 % interval | "
+         "explains | refit check |",
+         "|---|---|---|---|---|---|---|---|---|"]
     for c in candidates:
         p = c["parameters"].get(c["param"], {}) if c["parameters"] else {}
         L.append(f"| {c['name']} | {_fmt(c['screening_score'], '{:.1f}')} | {_fmt(c.get('mimic'), '{:.2f}')} | "
                  f"{_fmt(c['log_evidence'], '{:.2f}')} | {_fmt(c['two_ln_bf'], '{:.1f}')} | {_fmt(p.get('mean'))} | "
-                 f"{_interval(p)} | {_refit_check(c)} |")
+                 f"{_interval(p)} | {_fmt(shares.get(c['name']), '{:.0%}')} | {_refit_check(c)} |")
     return L
 
 

@@ -223,10 +223,11 @@ def _moments(draws) -> tuple[np.ndarray, np.ndarray]:
 
 def rescore(evaluator, located: list, draws_before: np.ndarray, draws_after: np.ndarray) -> dict:
     """Located mismatches re-scored before / after (same places, same statistic). Returns per-item
-    scores, the largest |score| after, and the fraction of sum(score^2) removed (``explained``)."""
+    scores, the largest |score| after, and the fraction of sum(score^2) removed over every item
+    (``explained_all``; the verdict weighs the share over the significant items, decide.explained_share)."""
     items = [l for l in located if "_idx" in l]
     if not items:
-        return {"items": [], "max_after": 0.0, "max_before": 0.0, "explained": None}
+        return {"items": [], "max_after": 0.0, "max_before": 0.0, "explained_all": None}
     mb, vb = _moments(draws_before)
     ma, va = _moments(draws_after)
     rows = [{"what": l["what"], "before": located_statistic(evaluator, mb, vb, l),
@@ -234,4 +235,4 @@ def rescore(evaluator, located: list, draws_before: np.ndarray, draws_after: np.
     sb = sum(r["before"] ** 2 for r in rows)
     sa = sum(r["after"] ** 2 for r in rows)
     return {"items": rows, "max_after": max(abs(r["after"]) for r in rows),
-            "max_before": max(abs(r["before"]) for r in rows), "explained": (1 - sa / sb) if sb > 0 else None}
+            "max_before": max(abs(r["before"]) for r in rows), "explained_all": (1 - sa / sb) if sb > 0 else None}
