@@ -474,14 +474,15 @@ def test_merged_residuals_equal_each_model_run_alone():
 
 def test_a_candidates_grid_error_is_taken_where_it_fits(monkeypatch):
     """pipeline._candidate_grid_error: the profile_top candidate's grid error gets the mean of run pairs at
-    draws of its own fit and keeps the baseline's covariance; the candidate is refitted with it, and its
-    profile is taken in that likelihood (local_path.profile_drop)."""
+    draws of its own fit and keeps the baseline's grid covariance; the release volume's Jacobian is taken at
+    the same draws (entrainment grows a larger release more: the final volume's row exceeds the baseline's);
+    the candidate is refitted with it, and its profile is taken in that likelihood (local_path.profile_drop)."""
     from torchslide.diagnose import Budgets, pipeline
     from torchslide.diagnose.local_path import fit_candidates, fit_model, profile_drop
-    from torchslide.diagnose.model_error import approximation_error
+    from torchslide.diagnose.model_error import approximation_error, release_jacobian
 
     ev = _with_fine_terrain(_plane_case(0.001))
-    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]))
+    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]), release_sd=0.05)
     ev_me = ev.with_model_error(me0)
     bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, candidate_error_rounds=1)
     f0, _ = fit_model(ev_me, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=40, log=lambda s: None)
@@ -497,6 +498,10 @@ def test_a_candidates_grid_error_is_taken_where_it_fits(monkeypatch):
     x = cf.fit.draws(3, cf.evaluator.prior.bounds.numpy().astype(np.float64), seed=bud.seed + 7)
     np.testing.assert_allclose(me_c.mean, approximation_error(cf.evaluator, x).mean, rtol=1e-9, atol=1e-12)
     assert not np.allclose(me_c.mean, me0.mean)
+    J, _ = release_jacobian(cf.evaluator, x, 0.05)
+    np.testing.assert_allclose(me_c.release_jacobian, J, rtol=1e-9, atol=1e-12)
+    fv = ev.block("final_volume").slice
+    assert me_c.release_sd == 0.05 and me_c.release_jacobian[:, fv].mean() > 1.01 * me0.release_jacobian[:, fv].mean()
     (rnd,) = rows[0]["grid_error_at_fit"]
     assert rnd["n"] == 3 and set(rnd["mean_shift_sigma"]) == {b.name for b in ev.blocks}
     assert rnd["kappa"] == float(new.fit.x[2])

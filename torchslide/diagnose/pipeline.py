@@ -569,20 +569,24 @@ def _pilot_stage(evaluator, bud: Budgets, baseline, log):
 
 def _error_at_fit(evaluator, runner, fit, reference, bud: Budgets, seed: int):
     """One grid-error round (module doc of _candidate_grid_error): (ModelError whose mean is the grid's
-    error at ``model_error_runs`` draws of ``fit`` (a LocalFit of ``runner``'s model) and whose covariance
-    is ``reference``'s, {observable: rms shift of the mean in ``evaluator``'s sigmas}, run pairs), or None
-    when fewer than 2 run pairs succeeded."""
+    error at ``model_error_runs`` draws of ``fit`` (a LocalFit of ``runner``'s model), whose grid-error
+    covariance is ``reference``'s and whose release Jacobian (where ``reference`` states a release error) is
+    taken at the same draws, {observable: rms shift of the mean in ``evaluator``'s sigmas}, run pairs), or
+    None when fewer than 2 run pairs succeeded."""
     from .model_error import approximation_error
 
     x = fit.draws(bud.model_error_runs, runner.prior.bounds.numpy().astype(np.float64), seed=seed)
+    release_sd = reference.release_sd if reference.release_jacobian is not None else 0.0
     try:
-        eps = approximation_error(runner, x, reference.factor)
+        eps = approximation_error(runner, x, reference.factor, release_sd=release_sd)
     except RuntimeError:
         return None
     shift = eps.mean - reference.mean
     sig = np.asarray(evaluator.sigma, dtype=np.float64)
     moved = {b.name: float(np.sqrt(np.mean((shift[b.slice] / sig[b.slice]) ** 2))) for b in evaluator.blocks}
-    return dataclasses.replace(reference, samples=reference.samples + shift), moved, len(eps.samples)
+    J = reference.release_jacobian if eps.release_jacobian is None else eps.release_jacobian
+    return (dataclasses.replace(reference, samples=reference.samples + shift, release_jacobian=J), moved,
+            len(eps.samples))
 
 
 def _local_baseline(evaluator, pilot, bud: Budgets, log):
@@ -659,8 +663,10 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
     """The grid's approximation error where each of the ``profile_top`` candidates (largest 2 ln BF) fits:
     its mean eps_bar taken again from ``model_error_runs`` run pairs at draws of the candidate's Laplace
     posterior (a term changes where the flow goes, so the grid's error at the baseline's fit is not the
-    error at the candidate's), the covariance kept the baseline's (the evidences' normalisations stay
-    comparable), and the candidate refitted from its mode with it (local_path.refit_with_error), for
+    error at the candidate's), the grid error's covariance kept the baseline's (the evidences'
+    normalisations stay comparable), the release volume's Jacobian taken at the same draws (a term such as
+    entrainment amplifies a release error: on the narrow channel the whitened effect of the release at the
+    entrainment fit is 1.4-1.9 times the baseline's), and the candidate refitted from its mode with it (local_path.refit_with_error), for
     ``candidate_error_rounds`` rounds (a fixed-point iteration: the refit moves the fit, so the error is taken
     again there); the row's ``grid_error_at_fit`` lists per round the shift of eps_bar per observable (rms,
     in the likelihood's sigmas), the 2 ln BF and the switch."""
@@ -688,7 +694,8 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
                 f"is {', '.join(f'{b} {v:.2g}' for b, v in moved.items())} sigma from the baseline's; 2 ln BF "
                 f"{row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}, {row['param']} {cf.fit.x[i]:.4g} -> "
                 f"{new_cf.fit.x[i]:.4g}")
-            runs = new["n_runs"] + (row["n_runs"] - cf.n_runs) + 2 * bud.model_error_runs   # the fits' runs, once
+            pairs = 4 if me0.release_jacobian is not None else 2     # coarse, fine (and the release's two)
+            runs = new["n_runs"] + (row["n_runs"] - cf.n_runs) + pairs * bud.model_error_runs   # the fits' runs, once
             row.clear()
             row.update(new, n_runs=runs, grid_error_at_fit=history)
 
