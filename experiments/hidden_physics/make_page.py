@@ -200,7 +200,7 @@ def ladder_rows(summary: dict) -> list[dict]:
 def _ladder_section(summary: dict) -> list[str]:
     L = ["Detection against detectability: each library term at several strengths (multiples of its nominal "
          "switch); 'true / detectable' is the median over the seeds of the true switch over the smallest switch "
-         "the case's recordings can reveal (the screening's linearised detectable switch at the baseline).", "",
+         "the case's recordings can reveal (the screening's detectable switch at the baseline).", "",
          "| term | strength | true / detectable | named | strict successes | another term named | "
          "nothing missing or unexplained |", "|---|---|---|---|---|---|---|"]
     for r in ladder_rows(summary):
