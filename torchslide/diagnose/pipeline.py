@@ -665,8 +665,8 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
     posterior (a term changes where the flow goes, so the grid's error at the baseline's fit is not the
     error at the candidate's), the grid error's covariance kept the baseline's (the evidences'
     normalisations stay comparable), the release volume's Jacobian taken at the same draws (a term such as
-    entrainment amplifies a release error: on the narrow channel the whitened effect of the release at the
-    entrainment fit is 1.4-1.9 times the baseline's), and the candidate refitted from its mode with it (local_path.refit_with_error), for
+    entrainment amplifies a release error; docs/diagnosis.md), and the candidate refitted from its mode
+    with it (local_path.refit_with_error), for
     ``candidate_error_rounds`` rounds (a fixed-point iteration: the refit moves the fit, so the error is taken
     again there); the row's ``grid_error_at_fit`` lists per round the shift of eps_bar per observable (rms,
     in the likelihood's sigmas), the 2 ln BF and the switch."""
