@@ -174,7 +174,8 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     flagged = "; ".join(f"{f['observable']} fits at Z_fit {f['Z_fit']:.1f} > {f['fit_max']:.1f}" for f in flags)
     for c in scored:
         out["checks"][c["name"]] = checks(c, baseline, misfit_before, th)
-    out["explained_shares"] = {c["name"]: _explained(c, th) for c in scored if np.isfinite(_explained(c, th))}
+    shares = {c["name"]: _explained(c, th) for c in scored}
+    out["explained_shares"] = {n: v for n, v in shares.items() if np.isfinite(v)}
     # a fit at the end of a budget range explains the data only beyond the term's range: set aside (rule 0)
     ends = [c["name"] for c in scored if not out["checks"][c["name"]].get("within_range", True)]
     aside = ""

@@ -654,7 +654,8 @@ def _local_candidate(evaluator, cf, base: _Baseline, scr: ScreenResult, bud: Bud
            "at_range_end": at_range_end(c, _params(cal)),
            "n_runs": cf.n_runs + len(pred.x), "best_x": cf.fit.x.tolist(), "fit_message": cf.fit.message}
     log(f"[diagnose] local fit {c}: 2 ln BF {cf.two_ln_bf:.1f}, 2 ln LR {cf.lr:.1f} (p {cf.lr_pvalue:.2g}), "
-        f"SD {cf.two_ln_bf_savage_dickey:.1f}, dWAIC {row['delta_waic']:.1f}, explained (all located) {rs.get('explained_all')}")
+        f"SD {cf.two_ln_bf_savage_dickey:.1f}, dWAIC {row['delta_waic']:.1f}, "
+        f"explained (all located) {rs.get('explained_all')}")
     return r, row
 
 

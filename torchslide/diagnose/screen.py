@@ -209,9 +209,9 @@ def retuned_effect(scr: ScreenResult, evaluator, whiten, Jb: np.ndarray, Jbp: np
                    steps: int) -> dict:
     """{candidate: the smallest whitened |y(x0 + d, switch) - y(x0)|^2 over ``steps`` Gauss-Newton steps}: the
     term's effect at switch ``at[c]`` that re-tuning the baseline (d, kept in the prior box) leaves, run on
-    the solver against the screening's y(x0) (one batch of len(at) members a step). ``jcs``: whitened effect per unit switch (n,);
-    ``Jb`` (n, p) and its pseudo-inverse ``Jbp``: the whitened baseline sensitivities. Failed members are
-    left out."""
+    the solver against the screening's y(x0) (one batch of len(at) members a step). ``jcs``: whitened effect
+    per unit switch (n,); ``Jb`` (n, p) and its pseudo-inverse ``Jbp``: the whitened baseline sensitivities.
+    Failed members are left out."""
     names = list(evaluator.prior.names)
     lo, hi = evaluator.prior.bounds.numpy()
     x0 = np.array([scr.x0[n] for n in names])
