@@ -530,9 +530,12 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     # the ladder: per term and strength, named / another term / nothing missing; the null seeds' false naming
     lad = {(r["term"], r["strength"]): r for r in make_page.ladder_rows(s["full"])}
     assert lad[("entrainment", 0.5)] == {"term": "entrainment", "strength": 0.5, "n": 1, "ratio_median": None,
-                                         "named": 0, "strict": 0, "other_term": 0, "quiet": 1}
+                                         "named": 0, "in_either": 0, "strict": 0, "other_term": 0, "quiet": 1}
     assert lad[("entrainment", 1.0)]["named"] == 5 and lad[("curvature", 1.0)]["quiet"] == 5
-    assert "| entrainment | 0.5 | - | 0/1 | 0/1 | 0/1 | 1/1 |" in page
+    assert "| entrainment | 0.5 | - | 0/1 | 0/1 | 0/1 | 0/1 | 1/1 |" in page
+    either = make_page.ladder_rows({"cases": [{"true": "mu_i", "found": f, "strength": 1.0, "strict_success": s}
+                                              for f, s in (("yield_stress or mu_i", True), ("yield_stress", False))]})
+    assert (either[0]["named"], either[0]["in_either"], either[0]["other_term"]) == (0, 1, 1)
     assert "Null seeds (0, 1, 2, 3, 4): nothing missing in 4 of 5, a library term named (false naming) in 0" in page
     # a run with the recording grid's terrain says so, and its command carries --fine-terrain
     fine = {"settings": {"terrain": "fan", "cellsize": 40.0, "fine_terrain": True},

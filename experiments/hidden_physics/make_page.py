@@ -180,7 +180,8 @@ def _plot_strength(summary: dict, path: Path, title: str) -> None:
 
 def ladder_rows(summary: dict) -> list[dict]:
     """Per library term and strength: seeds, the median of true switch / detectable switch, and how many
-    seeds named the term, named another library term, or said "nothing missing" / "unexplained"."""
+    seeds named the term alone, in an "A or B" verdict, named other library terms only, or said "nothing
+    missing" / "unexplained"."""
     out = []
     rows = [r for r in summary["cases"] if r["true"] in LABELS and r["true"] not in NOT_LIBRARY]
     for term in [l for l in LABELS if any(r["true"] == l for r in rows)]:
@@ -191,8 +192,10 @@ def ladder_rows(summary: dict) -> list[dict]:
             out.append({"term": term, "strength": x, "n": len(rs),
                         "ratio_median": float(np.median(ratios)) if ratios else None,
                         "named": sum(r["found"] == term for r in rs),
+                        "in_either": sum(r["found"] != term and term in r["found"].split(" or ") for r in rs),
                         "strict": sum(bool(r["strict_success"]) for r in rs),
-                        "other_term": sum(r["found"] not in (term, "none", "unexplained") for r in rs),
+                        "other_term": sum(r["found"] not in ("none", "unexplained") and
+                                          term not in r["found"].split(" or ") for r in rs),
                         "quiet": sum(r["found"] in ("none", "unexplained") for r in rs)})
     return out
 
@@ -201,11 +204,12 @@ def _ladder_section(summary: dict) -> list[str]:
     L = ["Detection against detectability: each library term at several strengths (multiples of its nominal "
          "switch); 'true / detectable' is the median over the seeds of the true switch over the smallest switch "
          "the case's recordings can reveal (the screening's detectable switch at the baseline).", "",
-         "| term | strength | true / detectable | named | strict successes | another term named | "
-         "nothing missing or unexplained |", "|---|---|---|---|---|---|---|"]
+         "| term | strength | true / detectable | named | in \"A or B\" | strict successes | another term named | "
+         "nothing missing or unexplained |", "|---|---|---|---|---|---|---|---|"]
     for r in ladder_rows(summary):
         ratio = "-" if r["ratio_median"] is None else f"{r['ratio_median']:.2g}"
-        L.append(f"| {r['term']} | {r['strength']:g} | {ratio} | {r['named']}/{r['n']} | {r['strict']}/{r['n']} | "
+        L.append(f"| {r['term']} | {r['strength']:g} | {ratio} | {r['named']}/{r['n']} | {r['in_either']}/{r['n']} | "
+                 f"{r['strict']}/{r['n']} | "
                  f"{r['other_term']}/{r['n']} | {r['quiet']}/{r['n']} |")
     return L + [""]
 
