@@ -371,3 +371,22 @@ def test_cli_cellsize_auto_chooses_the_grid_and_reports_it(tmp_path):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["mu_i"]\n{extra}')
         with pytest.raises(ConfigError, match=msg):
             load_diagnose_config(q)
+
+
+def test_cli_finer_shift(tmp_path):
+    """[diagnose] finer_shift: the sigmas a grid-error round must move a candidate's error by before the
+    comparison is made on the finer grid (Budgets.finer_shift; 0: never); a negative or non-number is refused
+    naming the key."""
+    from torchslide.commands.diagnose import budgets_and_thresholds, load_diagnose_config
+    from torchslide.config import ConfigError
+    from torchslide.diagnose import Budgets
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]')
+    assert budgets_and_thresholds(load_diagnose_config(p))[0].finer_shift == Budgets().finer_shift == 1.0
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\nfiner_shift = 0')
+    assert budgets_and_thresholds(load_diagnose_config(p))[0].finer_shift == 0.0
+    for extra in ("finer_shift = -1", "finer_shift = 'x'"):
+        q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
+        with pytest.raises(ConfigError, match=r"finer_shift must be a number of sigmas >= 0"):
+            load_diagnose_config(q)

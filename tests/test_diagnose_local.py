@@ -567,3 +567,79 @@ def test_the_baseline_gets_as_many_grid_error_rounds_as_the_candidates():
     x = f_first.draws(3, ev.prior.bounds.numpy().astype(np.float64), seed=bud.seed + 6)
     from torchslide.diagnose.model_error import approximation_error
     np.testing.assert_allclose(me.mean, approximation_error(ev, x).mean, rtol=1e-9, atol=1e-12)
+
+
+def test_a_finer_grid_evaluator_runs_every_member_on_the_fine_terrain():
+    """DiagnosisEvaluator(finer_grid=True): its predictions are the fine terrain's runs seen on the inversion
+    cells (model_error.fine_predictions), for the same data; without a fine terrain it is refused; a batch
+    of the local path never mixes the two grids."""
+    from torchslide.diagnose.local_path import merged_residuals, problem
+    from torchslide.diagnose.model_error import fine_predictions
+
+    ev = _with_fine_terrain(_plane_case(0.0))
+    fine = ev._copy(finer_grid=True)
+    x = np.array([[0.3, 600.0], [0.33, 900.0]])
+    got, _ = fine.run_values({"mu": x[:, 0], "xi": x[:, 1]})
+    want, _ = fine_predictions(ev, x)
+    coarse, _ = ev.run_values({"mu": x[:, 0], "xi": x[:, 1]})
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert not np.allclose(got, coarse)
+    assert np.array_equal(fine.data, ev.data)
+    with pytest.raises(ValueError, match="finer_grid needs a fine_terrain"):
+        _plane_case(0.0)._copy(finer_grid=True)
+    with pytest.raises(ValueError, match="same grid"):
+        merged_residuals([(problem(ev), x), (problem(fine), x)])
+
+
+@pytest.mark.parametrize("moved, refitted", [(2.0, True), (0.5, False)])
+def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_finer_grid(moved, refitted):
+    """pipeline._finer_grid_stage: when a round moved the grid's mean error at a profile_top candidate's fit
+    by more than finer_shift sigma, the baseline and that candidate are fitted again on the finer grid; the
+    row's 2 ln BF is then the finer grid's (the candidate's Laplace evidence against the baseline's, both
+    there, the release error kept, no grid error) and the inversion grid's is kept beside it; below the
+    threshold nothing changes."""
+    from torchslide.diagnose import Budgets, pipeline
+    from torchslide.diagnose.local_path import fit_candidates, fit_model
+    from torchslide.diagnose.model_error import approximation_error
+    from torchslide.diagnose.screen import ScreenResult
+
+    ev = _with_fine_terrain(_plane_case(0.001))
+    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]), release_sd=0.05)
+    ev_me = ev.with_model_error(me0)
+    bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, n_posterior_samples_after=4)
+    f0, _ = fit_model(ev_me, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=40, log=lambda s: None)
+    fits = fit_candidates(ev_me, ["entrainment"], f0, {}, bud, log=lambda s: None)
+    cf = fits["entrainment"]
+    rows = [{"name": "entrainment", "param": "kappa", "two_ln_bf": cf.two_ln_bf, "n_runs": cf.n_runs,
+             "grid_error_at_fit": [{"mean_shift_sigma": {"deposit": 0.1, "g1:h": moved}}]}]
+    cal = pipeline.laplace_result(f0, ["mu", "xi"], ev.prior.bounds.numpy())
+    base = pipeline._Baseline(cal, pipeline.posterior_predictive(ev_me, cal.samples[:4]), pipeline._laplace_ver(f0))
+    pipeline._assess(ev_me, base, pipeline.Thresholds(), bud)
+    scr = ScreenResult(x0={}, scores={"entrainment": 1.0}, mimic={"entrainment": None}, norms={},
+                       ranking=["entrainment"])
+    out, fine = pipeline._finer_grid_stage(ev_me, rows, fits, {}, base, f0, scr, bud, log=lambda s: None,
+                                           before={"entrainment": cf.two_ln_bf})
+    if not refitted:
+        assert out is None and fine is None and fits["entrainment"] is cf and "finer_grid" not in rows[0]
+        return
+    new = fits["entrainment"]
+    assert new.evaluator.finer_grid and new.evaluator.model_error.release_sd == 0.05
+    assert np.allclose(new.evaluator.model_error.grid_covariance, 0.0)
+    row = rows[0]
+    assert row["two_ln_bf"] == pytest.approx(new.two_ln_bf)
+    assert row["finer_grid"]["two_ln_bf_inversion_grid"] == cf.two_ln_bf and row["finer_grid"]["moved_sigma"] == moved
+    fine0 = ev._copy(finer_grid=True, model_error=pipeline._release_only(me0))
+    f0_fine, _ = fit_model(fine0, n_lhs=0, extra_starts=f0.x[None], max_iter=40, log=lambda s: None)
+    assert new.two_ln_bf == pytest.approx(2 * (new.fit.log_evidence - f0_fine.log_evidence), abs=1e-6)
+    assert out["candidates"] == ["entrainment"] and out["baseline_log_evidence"] == pytest.approx(f0_fine.log_evidence)
+    assert fine[0].finer_grid and fine[1] is not f0 and fine[2].source.endswith("finer grid (Laplace)")
+    # profiled on the finer grid: the profile holds the switch in the candidate's own (finer) likelihood
+    pipeline._local_profiles(ev_me, rows, fits, {}, base, f0, scr, bud, log=lambda s: None, fine=fine)
+    assert "finer_grid" in row and row["profile_ends"]["two_ln_drop"][0] > 0
+    assert "profile90" in row["parameters"]["kappa"]
+    from torchslide.diagnose.report import _verdict_section
+    j = {"verdict": "missing_physics", "missing_physics": "entrainment", "candidates": rows,
+         "decision": {"reason": "-", "finer_grid": out}}
+    text = "\n".join(_verdict_section(j))
+    assert "fitted again on the finer grid" in text
+    assert f"| entrainment | {cf.two_ln_bf:.1f} | {row['two_ln_bf']:.1f} |" in text

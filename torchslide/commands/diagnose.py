@@ -55,6 +55,9 @@ and a [diagnose] section::
     candidate_error_rounds = 2   # local path, with a finer terrain (fine_terrain or cellsize = "auto"): rounds in
                                  #     which the grid's mean error of the baseline and the profile_top candidates is
                                  #     taken at draws of their own fit and the model refitted with it (0: off)
+    finer_shift = 1.0            # ... when a round moves a candidate's grid error by more than this (sigmas, rms
+                                 #     per observable), the baseline and the leading candidates are fitted again
+                                 #     on the finer grid and compared there (0: never)
     candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
     candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)
@@ -112,6 +115,7 @@ _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_m
                    "explain_margin", "ess_min",
                    "z_threshold", "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
+              "finer_shift",
               "cellsize", "max_cells", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
@@ -122,7 +126,7 @@ def diagnose_defaults() -> dict:
 
     b, t = Budgets(), Thresholds()
     return {"candidates": list(CANDIDATES), "seed": b.seed, "release_volume_sd": b.release_volume_sd,
-            "inference": b.inference, "local_max_fraction": b.local_max_fraction,
+            "inference": b.inference, "local_max_fraction": b.local_max_fraction, "finer_shift": b.finer_shift,
             **{k: getattr(b, k) for k in _INT_KEYS},
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 def parse_diagnose(table: Any, cfg: Config) -> dict:
@@ -151,6 +155,10 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     v = c["local_max_fraction"]
     if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v <= 1:
         raise ConfigError(f"{path}: [diagnose] local_max_fraction must be a share of the prior box in (0, 1], got {v!r}")
+    v = c["finer_shift"]
+    if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= 0:
+        raise ConfigError(f"{path}: [diagnose] finer_shift must be a number of sigmas >= 0 (0: never), got {v!r}")
+    c["finer_shift"] = float(v)
     if not isinstance(c["seed"], int) or isinstance(c["seed"], bool):
         raise ConfigError(f"{path}: [diagnose] seed must be an integer, got {c['seed']!r}")
     if c["n_total"] < c["n_initial"]:
@@ -329,7 +337,8 @@ def budgets_and_thresholds(cfg: Config):
     cal, dg = cfg.extra["calibration"], cfg.extra["diagnose"]
     bud = Budgets(baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
                   **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"],
-                  inference=dg["inference"], local_max_fraction=float(dg["local_max_fraction"]))
+                  inference=dg["inference"], local_max_fraction=float(dg["local_max_fraction"]),
+                  finer_shift=dg["finer_shift"])
     return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS}, fit_max=dg.get("fit_max"))
 
 

@@ -4,6 +4,7 @@ copies over other priors (the candidates' enlarged spaces)."""
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,16 +39,23 @@ class DiagnosisEvaluator(LandslideEvaluator):
 
     ``fine_terrain``: an optional torchslide.diagnose.model_error.FineTerrain, the terrain on finer cells
     for the model error's finer runs (validated here: an exact refinement of ``dem``).
+
+    ``finer_grid``: True runs every simulation on the fine terrain (model_error.fine_simulate), seen on
+    ``dem``'s cells, so the same data are compared with the finer grid's model (pipeline's finer-grid
+    stage); it needs ``fine_terrain``.
     """
 
     model_error: object = None
     fine_terrain: object = None
+    finer_grid: bool = False
 
     def __post_init__(self) -> None:
         if not self.observations:
             raise ValueError("at least one observation is needed")
         if self.fine_terrain is not None:
             self.fine_terrain.factor_for(self.dem)
+        elif self.finer_grid:
+            raise ValueError("finer_grid needs a fine_terrain (the terrain on finer cells)")
         names = [str(o.name) for o in self.observations]
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
@@ -64,6 +72,17 @@ class DiagnosisEvaluator(LandslideEvaluator):
         self.sigma = np.sqrt(np.diag(cov))
         self.sigma_raw = np.sqrt(self.sigma_raw**2 + np.diag(gamma))
         self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), covariance=torch.as_tensor(cov))
+
+    def simulate_params(self, p):
+        """LandslideEvaluator.simulate_params, on the fine terrain when ``finer_grid`` (class doc)."""
+        if not self.finer_grid:
+            return super().simulate_params(p)
+        from .model_error import fine_simulate
+
+        t0 = time.perf_counter()
+        res = fine_simulate(self, p, self.fine_terrain.factor_for(self.dem))
+        self.solver_seconds += time.perf_counter() - t0
+        return res
 
     def _copy(self, **changes) -> "DiagnosisEvaluator":
         """A new evaluator with the same inputs except ``changes`` (own, empty run records)."""

@@ -86,6 +86,8 @@ def merged_residuals(requests: list) -> list:
         e = prob.evaluator
         if e.dem is not runner.dem or e.observations is not runner.observations:
             raise ValueError("problems of one batch must share the terrain and the observations")
+        if getattr(e, "finer_grid", False) != getattr(runner, "finer_grid", False):
+            raise ValueError("problems of one batch must run on the same grid (finer_grid)")
     for prob, X in requests:
         prob.n_runs += len(X)
     preds, failed = runner.run_values(stack_values([(len(X), prob.values(X)) for prob, X in requests]))
@@ -283,10 +285,8 @@ def profile_drop(evaluator, cf: CandidateFit, value: float, bud, log=print,
     i = names.index(cd.param)
     if abs(value - fc.x[i]) <= 1e-12 * (bounds[1, i] - bounds[0, i]):
         return 0.0, 0, fc.x.copy()
-    me = getattr(cf.evaluator, "model_error", None)
-    if me is not getattr(evaluator, "model_error", None):     # the candidate's own grid error (refit_with_error)
-        evaluator = evaluator.with_model_error(me)
-    ev_s = evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(value)})
+    # the candidate's own likelihood (its grid error, its grid) over the baseline's parameters
+    ev_s = cf.evaluator.with_prior(evaluator.prior, fixed={**dict(cd.fixed), cd.param: float(value)})
     fs, n = fit_model(ev_s, n_lhs=0, extra_starts=np.delete(fc.x, i)[None], rel_step=bud.local_rel_step,
                       max_iter=bud.local_max_iter, log=log, lockstep=lockstep)
     return float(2 * (fc.log_like - fs.log_like)), n, np.insert(fs.x, i, float(value))

@@ -206,10 +206,16 @@ def _predictions(evaluator, x, run) -> tuple[np.ndarray, np.ndarray]:
 
 
 def fine_run(evaluator, x, factor: int = 2):
-    """One solver call for the (n, p) parameter sets ``x`` (n <= evaluator.max_batch) on the finer grid,
-    returned as seen on the evaluator's grid (:func:`coarsen_result`), so every observation predicts from
-    it as from an inversion run. With ``evaluator.fine_terrain`` (a FineTerrain) its terrain and fields
-    and its own factor (``factor`` must agree); else the coarse ones refined ``factor`` times."""
+    """One solver call for the (n, p) parameter sets ``x`` (n <= evaluator.max_batch) on the finer grid
+    (:func:`fine_simulate`)."""
+    return fine_simulate(evaluator, evaluator.params(x), factor)
+
+
+def fine_simulate(evaluator, p, factor: int = 2):
+    """One solver call of the members ``p`` (Params) on the finer grid, returned as seen on the evaluator's
+    grid (:func:`coarsen_result`), so every observation predicts from it as from an inversion run. With
+    ``evaluator.fine_terrain`` (a FineTerrain) its terrain and fields and its own factor (``factor`` must
+    agree); else the coarse ones refined ``factor`` times."""
     from ..solver import simulate
 
     ft = getattr(evaluator, "fine_terrain", None)
@@ -224,7 +230,7 @@ def fine_run(evaluator, x, factor: int = 2):
         rel_f = repeat_cells(evaluator.release, factor)
         erod_f = repeat_cells(evaluator.erodible_depth, factor)
         mus_f = repeat_cells(evaluator.mu_scale, factor)
-    res = simulate(dem_f, rel_f, evaluator.params(x), t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
+    res = simulate(dem_f, rel_f, p, t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
                    config=evaluator.solver_config, erodible_depth=erod_f, mu_scale=mus_f, dtype=evaluator.dtype,
                    device=evaluator.device, thickness=getattr(evaluator, "thickness", "normal"))
     return coarsen_result(res, evaluator.dem, factor)

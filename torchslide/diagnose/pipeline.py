@@ -40,12 +40,12 @@ from .consistency import subset_consistency
 from .decide import Thresholds, decide
 from .localise import Localisation, localise
 from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
-from .refit import calibrate_evaluator, refit
+from .refit import calibrate_evaluator, candidate_evaluator, refit
 from .resolution import removed_by_resolution
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
 from .screen import ScreenResult, detectable_switch, screen
-from .local_path import (choose_path, fit_candidates, fit_model, laplace_result, profile_ends, profile_interval90,
-                         refit_from)
+from .local_path import (candidate_fit, choose_path, fit_candidates, fit_model, laplace_result, profile_ends,
+                         profile_interval90, refit_from)
 
 
 @dataclass
@@ -86,6 +86,11 @@ class Budgets:
                                        # is taken at draws of their own fit (model_error_runs run pairs each)
                                        # and the model refitted with it (0: off); the covariance stays the
                                        # first sample's. Without a finer terrain no rounds (error_rounds)
+    finer_shift: float = 1.0           # local path, with a finer terrain: when a round moved the grid's mean error
+                                       # at one of the profile_top candidates' fits by more than this (rms over an
+                                       # observation's values, in its sigmas), the baseline and those candidates
+                                       # are fitted again on the finer grid and their evidence taken there
+                                       # (_finer_grid_stage; 0: off)
     candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
     candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
     candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
@@ -113,7 +118,8 @@ def check_candidates(candidates) -> list[str]:
     return list(candidates)
 
 
-DECISION_CONTEXT = ("fit_z", "fit_z_source", "baseline_verification", "elpd_waic_baseline", "inference", "resolution")
+DECISION_CONTEXT = ("fit_z", "fit_z_source", "baseline_verification", "elpd_waic_baseline", "inference", "resolution",
+                    "finer_grid")
 """What the pipeline adds to decide()'s output; kept when a saved case is decided again."""
 
 
@@ -701,30 +707,106 @@ def _candidate_grid_error(evaluator, rows: list, fits: dict, refits: dict, base:
             row.update(new, n_runs=runs, grid_error_at_fit=history)
 
 
+def _release_only(me):
+    """The release volume's part of a grid-error model (no grid part: the finer grid's runs are the model),
+    or None when it states no release error."""
+    from .model_error import ModelError
+
+    if me is None or me.release_jacobian is None:
+        return None
+    return ModelError(samples=np.zeros((2, me.samples.shape[1])), x=me.x[:2], factor=me.factor,
+                      release_jacobian=me.release_jacobian, release_sd=me.release_sd)
+
+
+def _largest_shift(row: dict) -> float:
+    """The largest move of the grid's mean error over a candidate's rounds (rms per observation, sigmas)."""
+    return max((v for h in row.get("grid_error_at_fit") or () for v in h["mean_shift_sigma"].values()), default=0.0)
+
+
+def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
+                      bud: Budgets, log, before: dict) -> tuple[dict | None, tuple | None]:
+    """Where the grid's error depends on the parameters more than the rounds can follow (a round at a
+    candidate's fit (_candidate_grid_error) moved its mean by more than ``finer_shift`` sigma: threshold terms
+    stop the flow in another cell on the finer grid), the comparison is made on the finer grid itself: the
+    baseline and every candidate with 2 ln BF > 0 on the inversion grid, after its rounds or ``before`` them
+    ({name: 2 ln BF}), fitted again there (finer_grid: every run on the fine terrain, seen on
+    the inversion cells; the same data and stated errors, the release volume's error kept, no grid error),
+    each from its fit on the inversion grid, their Laplace evidence replacing the inversion grid's in the
+    rows (``finer_grid`` in each row keeps the inversion grid's 2 ln BF and switch). Returns (the stage's
+    record, (the finer grid's evaluator, the baseline's LocalFit and _Baseline there)), or (None, None) when
+    no round moved the error that far."""
+    rounds = [r for r in rows if r["name"] in fits and r.get("grid_error_at_fit")]
+    if bud.finer_shift <= 0 or max((_largest_shift(r) for r in rounds), default=0.0) <= bud.finer_shift:
+        return None, None
+    # every candidate the inversion grid supported before or after its rounds (the rounds can sink the right one)
+    ranked = [r for r in rows if r["name"] in fits and max(r["two_ln_bf"], before.get(r["name"], -np.inf)) > 0]
+    moved = {r["name"]: _largest_shift(r) for r in ranked}
+    fine_ev = evaluator._copy(finer_grid=True, model_error=_release_only(evaluator.model_error),
+                              fixed=dict(evaluator.fixed))
+    log(f"[diagnose] the grid's error moved by up to {max(moved.values()):.2g} sigma at a candidate's fit (> "
+        f"{bud.finer_shift:g}): the baseline and {', '.join(moved)} are fitted again on the finer grid")
+    F0, n0 = fit_model(fine_ev, n_lhs=0, extra_starts=f0.x[None], rel_step=bud.local_rel_step,
+                       max_iter=bud.local_max_iter, log=log)
+    names = list(evaluator.prior.names)
+    cal0 = laplace_result(F0, names, evaluator.prior.bounds.numpy(), seed=bud.seed)
+    pred0 = posterior_predictive(fine_ev, cal0.samples[: bud.n_posterior_samples_after])
+    base_f = _Baseline(cal0, pred0, _laplace_ver(F0), loc=base.loc, elpd=waic(fine_ev, pred0.draws),
+                       misfit=fine_ev.misfit(pred0.mean), source="local fit on the finer grid (Laplace)")
+    log(f"[diagnose] finer grid, baseline: " + ", ".join(f"{k} {v:.4g}" for k, v in zip(names, F0.x)) +
+        f"; ln L {F0.log_like:.1f}")
+    runs = n0 + len(pred0.x)
+    for row in ranked:
+        c, cf = row["name"], fits[row["name"]]
+        ev_c = candidate_evaluator(fine_ev, c).with_model_error(_release_only(cf.evaluator.model_error))
+        fc, n = fit_model(ev_c, n_lhs=0, extra_starts=cf.fit.x[None], rel_step=bud.local_rel_step,
+                          max_iter=bud.local_max_iter, log=log)
+        new_cf = candidate_fit(c, ev_c, fc, F0, n)
+        refits[c], new = _local_candidate(fine_ev, new_cf, base_f, scr, bud, log)
+        fits[c] = new_cf
+        i = list(ev_c.prior.names).index(row["param"])
+        log(f"[diagnose] finer grid, {c}: 2 ln BF {row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}, {row['param']} "
+            f"{cf.fit.x[i]:.4g} -> {fc.x[i]:.4g}")
+        record = {"two_ln_bf_inversion_grid": row["two_ln_bf"], row["param"] + "_inversion_grid": float(cf.fit.x[i]),
+                  "moved_sigma": moved[c]}
+        new.update(n_runs=row["n_runs"] + new["n_runs"], grid_error_at_fit=row.get("grid_error_at_fit"),
+                   finer_grid=record)
+        row.clear()
+        row.update(new)
+    return ({"moved_sigma": moved, "threshold": bud.finer_shift, "candidates": list(moved),
+             "baseline_log_evidence": float(F0.log_evidence), "baseline_x": F0.x.tolist(), "n_runs_baseline": int(runs)},
+            (fine_ev, F0, base_f))
+
+
 def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
-                    bud: Budgets, log) -> None:
+                    bud: Budgets, log, fine: tuple | None = None) -> None:
     """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows. A profile
     point that beats a fit by more than 1 in 2 ln L restarts that fit from there (local_path.refit_from;
     ``restarted_from_profile`` counts the restarts); the restarted fit is profiled again, up to
-    ``profile_restarts`` times, and a fit that its profile still beats is marked unreliable."""
+    ``profile_restarts`` times, and a fit that its profile still beats is marked unreliable. Candidates
+    fitted on the finer grid (_finer_grid_stage) are profiled there, against its baseline (``fine``: the
+    stage's (evaluator, baseline LocalFit, _Baseline))."""
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
-    for row, (prof, n) in zip(ranked, profile_ends(evaluator, [fits[r["name"]] for r in ranked], bud, log)):
+    groups = [[r for r in ranked if ("finer_grid" in r) == fine] for fine in (False, True)]
+    ends = [e for g in groups if g for e in zip(g, profile_ends(evaluator, [fits[r["name"]] for r in g], bud, log))]
+    for row, (prof, n) in ends:
         c = row["name"]
+        ev_r, base_fit, base_r = fine if "finer_grid" in row else (evaluator, f0, base)
+        keep = {k: row[k] for k in ("finer_grid", "grid_error_at_fit") if k in row}
         row["profile_ends"], row["n_runs"] = prof, row["n_runs"] + n
         for _ in range(bud.profile_restarts):
             if min(prof["two_ln_drop"]) >= -1.0:    # the profile does not beat the fit
                 break
-            cf = refit_from(evaluator, fits[c], np.asarray(prof["lowest_point"]), f0, bud, log)
+            cf = refit_from(evaluator, fits[c], np.asarray(prof["lowest_point"]), base_fit, bud, log)
             if cf is fits[c]:                       # nothing better from there
                 break
             fits[c] = cf
-            refits[c], new = _local_candidate(evaluator, cf, base, scr, bud, log)
+            refits[c], new = _local_candidate(ev_r, cf, base_r, scr, bud, log)
             log(f"[diagnose] {c}: a profile point beat the fit by {-min(prof['two_ln_drop']):.1f}; fitted again "
                 f"from it: 2 ln BF {row['two_ln_bf']:.1f} -> {new['two_ln_bf']:.1f}")
             (prof, n2), = profile_ends(evaluator, [cf], bud, log)
             runs, k = row["n_runs"], row.get("restarted_from_profile", 0)
             row.clear()
-            row.update(new, profile_ends=prof, restarted_from_profile=k + 1, n_runs=runs + new["n_runs"] + n2)
+            row.update(new, **keep, profile_ends=prof, restarted_from_profile=k + 1, n_runs=runs + new["n_runs"] + n2)
         if min(prof["two_ln_drop"]) < -1.0:         # still beaten: the fit is not at its mode
             row["reliable"] = False
         else:
@@ -769,15 +851,21 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
                  if c not in scr.ranking[: bud.top_k]]
     lap("refit_s")
     if model_error is not None and error_rounds(evaluator, bud) > 0:
+        before = {r["name"]: r["two_ln_bf"] for r in cand_out if r["name"] in fits}
         _candidate_grid_error(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
         lap("candidate_model_error_s")
-    _local_profiles(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
+        finer, fine = _finer_grid_stage(evaluator, cand_out, fits, refits, base, f0, scr, bud, log, before)
+        lap("finer_grid_s")
+    else:
+        finer = fine = None
+    _local_profiles(evaluator, cand_out, fits, refits, base, f0, scr, bud, log, fine=fine)
     lap("profile_s")
     consistency = _consistency_stage(evaluator, scr, log)
     lap("consistency_s")
     fit_before = _fit(evaluator, base.pred, base.loc, base.ver["log_evidence"])
     dec = decide(cand_out, base.loc.located, base.ver, base.misfit, th, fit_z=fit_z)
     dec["resolution"] = base.resolution
+    dec["finer_grid"] = finer
     dec.update(fit_z=fit_z, fit_z_source="baseline local fit", baseline_verification=dict(base.ver, source=base.source),
                elpd_waic_baseline=base.elpd["elpd"],
                inference={"path": "local", "why": why, "baseline_converged": bool(f0.converged)})

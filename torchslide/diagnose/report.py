@@ -187,6 +187,16 @@ def _verdict_section(j: dict) -> list[str]:
               f"error), so they are not read as missing physics.", "",
               "| located mismatch (without the grid's error) | where | standardised residual |", "|---|---|---|"]
         L += [f"| {r['what']} | {r['where']} | {r['standardised_residual']:.1f} |" for r in res] + [""]
+    fg = j["decision"].get("finer_grid")
+    if fg:
+        rows = [c for c in j["candidates"] if c.get("finer_grid")]
+        L += [f"Finer grid: the grid's error at a candidate's fit moved by up to {max(fg['moved_sigma'].values()):.2g} "
+              f"sigma (more than {fg['threshold']:g}), more than a mean error per model can follow; the baseline and "
+              f"{', '.join(fg['candidates'])} were fitted again on the finer grid and their evidence is taken there.", "",
+              "| candidate | 2 ln BF, inversion grid | 2 ln BF, finer grid | switch, inversion grid | switch, finer grid |",
+              "|---|---|---|---|---|"]
+        L += [f"| {c['name']} | {c['finer_grid']['two_ln_bf_inversion_grid']:.1f} | {c['two_ln_bf']:.1f} | "
+              f"{c['finer_grid'][c['param'] + '_inversion_grid']:.4g} | {c['best_x'][-1]:.4g} |" for c in rows] + [""]
     g = j.get("grid")
     if g:
         L += [f"Inversion grid: {g['cellsize']:g} m, chosen by its own error (`cellsize = \"auto\"`): {g['reason']}.", "",
