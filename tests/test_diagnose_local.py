@@ -591,10 +591,11 @@ def test_a_finer_grid_evaluator_runs_every_member_on_the_fine_terrain():
         merged_residuals([(problem(ev), x), (problem(fine), x)])
 
 
-@pytest.mark.parametrize("moved, refitted", [(2.0, True), (0.5, False)])
-def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_finer_grid(moved, refitted):
+@pytest.mark.parametrize("moved, bf_min, refitted", [(2.0, np.inf, True), (0.5, np.inf, False), (0.5, 6.0, True)])
+def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_finer_grid(moved, bf_min, refitted):
     """pipeline._finer_grid_stage: when a round moved the grid's mean error at a profile_top candidate's fit
-    by more than finer_shift sigma, the baseline and that candidate are fitted again on the finer grid; the
+    by more than finer_shift sigma, or a candidate reaches bf_min (entrainment here: 2 ln BF in the hundreds),
+    the baseline and that candidate are fitted again on the finer grid; the
     row's 2 ln BF is then the finer grid's (the candidate's Laplace evidence against the baseline's, both
     there, the release error kept, no grid error) and the inversion grid's is kept beside it; below the
     threshold nothing changes."""
@@ -618,7 +619,7 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
     scr = ScreenResult(x0={}, scores={"entrainment": 1.0}, mimic={"entrainment": None}, norms={},
                        ranking=["entrainment"])
     out, fine = pipeline._finer_grid_stage(ev_me, rows, fits, {}, base, f0, scr, bud, log=lambda s: None,
-                                           before={"entrainment": cf.two_ln_bf})
+                                           before={"entrainment": cf.two_ln_bf}, bf_min=bf_min)
     if not refitted:
         assert out is None and fine is None and fits["entrainment"] is cf and "finer_grid" not in rows[0]
         return
@@ -628,10 +629,12 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
     row = rows[0]
     assert row["two_ln_bf"] == pytest.approx(new.two_ln_bf)
     assert row["finer_grid"]["two_ln_bf_inversion_grid"] == cf.two_ln_bf and row["finer_grid"]["moved_sigma"] == moved
+    assert cf.two_ln_bf >= 6.0
     fine0 = ev._copy(finer_grid=True, model_error=pipeline._release_only(me0))
     f0_fine, _ = fit_model(fine0, n_lhs=0, extra_starts=f0.x[None], max_iter=40, log=lambda s: None)
     assert new.two_ln_bf == pytest.approx(2 * (new.fit.log_evidence - f0_fine.log_evidence), abs=1e-6)
     assert out["candidates"] == ["entrainment"] and out["baseline_log_evidence"] == pytest.approx(f0_fine.log_evidence)
+    assert ("moved by up to" in out["why"]) == (moved > 1.0)
     assert fine[0].finer_grid and fine[1] is not f0 and fine[2].source.endswith("finer grid (Laplace)")
     # profiled on the finer grid: the profile holds the switch in the candidate's own (finer) likelihood
     pipeline._local_profiles(ev_me, rows, fits, {}, base, f0, scr, bud, log=lambda s: None, fine=fine)

@@ -56,8 +56,8 @@ and a [diagnose] section::
                                  #     which the grid's mean error of the baseline and the profile_top candidates is
                                  #     taken at draws of their own fit and the model refitted with it (0: off)
     finer_shift = 1.0            # ... when a round moves a candidate's grid error by more than this (sigmas, rms
-                                 #     per observable), the baseline and the leading candidates are fitted again
-                                 #     on the finer grid and compared there (0: never)
+                                 #     per observable) or a candidate reaches bf_min, the baseline and the supported
+                                 #     candidates are fitted again on the finer grid and compared there (0: never)
     candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
     candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)

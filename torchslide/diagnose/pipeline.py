@@ -88,9 +88,9 @@ class Budgets:
                                        # first sample's. Without a finer terrain no rounds (error_rounds)
     finer_shift: float = 1.0           # local path, with a finer terrain: when a round moved the grid's mean error
                                        # at one of the profile_top candidates' fits by more than this (rms over an
-                                       # observation's values, in its sigmas), the baseline and those candidates
-                                       # are fitted again on the finer grid and their evidence taken there
-                                       # (_finer_grid_stage; 0: off)
+                                       # observation's values, in its sigmas), or a candidate reaches bf_min, the
+                                       # baseline and the supported candidates are fitted again on the finer grid
+                                       # and their evidence taken there (_finer_grid_stage; 0: off)
     candidate_lhs: int = 8             # local path: a candidate's global starts, maximin-LHS points over its
     candidate_starts: int = 1          #     switch's prior range and candidate_box of each baseline parameter's
     candidate_box: float = 0.25        #     range around the baseline's mode; fits from the candidate_starts best
@@ -724,27 +724,34 @@ def _largest_shift(row: dict) -> float:
 
 
 def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
-                      bud: Budgets, log, before: dict) -> tuple[dict | None, tuple | None]:
+                      bud: Budgets, log, before: dict, bf_min: float = np.inf) -> tuple[dict | None, tuple | None]:
     """Where the grid's error depends on the parameters more than the rounds can follow (a round at a
     candidate's fit (_candidate_grid_error) moved its mean by more than ``finer_shift`` sigma: threshold terms
-    stop the flow in another cell on the finer grid), the comparison is made on the finer grid itself: the
+    stop the flow in another cell on the finer grid), or where a verdict would rest on a candidate (2 ln BF
+    >= ``bf_min`` on the inversion grid: a term that mimics the grid's error must not be named for it), the
+    comparison is made on the finer grid itself: the
     baseline and every candidate with 2 ln BF > 0 on the inversion grid, after its rounds or ``before`` them
-    ({name: 2 ln BF}), fitted again there (finer_grid: every run on the fine terrain, seen on
+    ({name: 2 ln BF}), or a positive screening score, fitted again there (finer_grid: every run on the fine terrain, seen on
     the inversion cells; the same data and stated errors, the release volume's error kept, no grid error),
     each from its fit on the inversion grid, their Laplace evidence replacing the inversion grid's in the
     rows (``finer_grid`` in each row keeps the inversion grid's 2 ln BF and switch). Returns (the stage's
     record, (the finer grid's evaluator, the baseline's LocalFit and _Baseline there)), or (None, None) when
     no round moved the error that far."""
     rounds = [r for r in rows if r["name"] in fits and r.get("grid_error_at_fit")]
-    if bud.finer_shift <= 0 or max((_largest_shift(r) for r in rounds), default=0.0) <= bud.finer_shift:
+    moved_far = max((_largest_shift(r) for r in rounds), default=0.0) > bud.finer_shift
+    supported = max((r["two_ln_bf"] for r in rows if r["name"] in fits), default=-np.inf) >= bf_min
+    if bud.finer_shift <= 0 or not (moved_far or supported):
         return None, None
-    # every candidate the inversion grid supported before or after its rounds (the rounds can sink the right one)
-    ranked = [r for r in rows if r["name"] in fits and max(r["two_ln_bf"], before.get(r["name"], -np.inf)) > 0]
+    # every candidate the inversion grid supported before or after its rounds (the rounds can sink the right
+    # one), or that the screening finds the data respond to (its fit there may have stopped short of its mode)
+    ranked = [r for r in rows if r["name"] in fits and (max(r["two_ln_bf"], before.get(r["name"], -np.inf)) > 0
+                                                        or (r.get("screening_score") or 0.0) > 0)]
     moved = {r["name"]: _largest_shift(r) for r in ranked}
     fine_ev = evaluator._copy(finer_grid=True, model_error=_release_only(evaluator.model_error),
                               fixed=dict(evaluator.fixed))
-    log(f"[diagnose] the grid's error moved by up to {max(moved.values()):.2g} sigma at a candidate's fit (> "
-        f"{bud.finer_shift:g}): the baseline and {', '.join(moved)} are fitted again on the finer grid")
+    why = (f"the grid's error moved by up to {max(_largest_shift(r) for r in rounds):.2g} sigma at a candidate's "
+           f"fit (> {bud.finer_shift:g})" if moved_far else f"a candidate reaches 2 ln BF >= {bf_min:g}")
+    log(f"[diagnose] {why}: the baseline and {', '.join(moved)} are fitted again on the finer grid")
     F0, n0 = fit_model(fine_ev, n_lhs=0, extra_starts=f0.x[None], rel_step=bud.local_rel_step,
                        max_iter=bud.local_max_iter, log=log)
     names = list(evaluator.prior.names)
@@ -772,7 +779,7 @@ def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Ba
                    finer_grid=record)
         row.clear()
         row.update(new)
-    return ({"moved_sigma": moved, "threshold": bud.finer_shift, "candidates": list(moved),
+    return ({"moved_sigma": moved, "threshold": bud.finer_shift, "why": why, "candidates": list(moved),
              "baseline_log_evidence": float(F0.log_evidence), "baseline_x": F0.x.tolist(), "n_runs_baseline": int(runs)},
             (fine_ev, F0, base_f))
 
@@ -854,7 +861,7 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
         before = {r["name"]: r["two_ln_bf"] for r in cand_out if r["name"] in fits}
         _candidate_grid_error(evaluator, cand_out, fits, refits, base, f0, scr, bud, log)
         lap("candidate_model_error_s")
-        finer, fine = _finer_grid_stage(evaluator, cand_out, fits, refits, base, f0, scr, bud, log, before)
+        finer, fine = _finer_grid_stage(evaluator, cand_out, fits, refits, base, f0, scr, bud, log, before, th.bf_min)
         lap("finer_grid_s")
     else:
         finer = fine = None

@@ -190,9 +190,9 @@ def _verdict_section(j: dict) -> list[str]:
     fg = j["decision"].get("finer_grid")
     if fg:
         rows = [c for c in j["candidates"] if c.get("finer_grid")]
-        L += [f"Finer grid: the grid's error at a candidate's fit moved by up to {max(fg['moved_sigma'].values()):.2g} "
-              f"sigma (more than {fg['threshold']:g}), more than a mean error per model can follow; the baseline and "
-              f"{', '.join(fg['candidates'])} were fitted again on the finer grid and their evidence is taken there.", "",
+        L += [f"Finer grid: {fg['why']}; the baseline and {', '.join(fg['candidates'])} were fitted again on the "
+              f"finer grid and their evidence is taken there (the inversion grid's error cannot then be read as a "
+              f"term).", "",
               "| candidate | 2 ln BF, inversion grid | 2 ln BF, finer grid | switch, inversion grid | switch, finer grid |",
               "|---|---|---|---|---|"]
         L += [f"| {c['name']} | {c['finer_grid']['two_ln_bf_inversion_grid']:.1f} | {c['two_ln_bf']:.1f} | "
