@@ -23,7 +23,9 @@ Rules:
 
 0. Candidates that fail ``within_range`` (a fit at the end of a budget range: the data want more of the
    term than its range allows, so it does not explain them as that term) are set aside (``set_aside``)
-   while another candidate remains; the rules below apply to the others.
+   while another candidate remains; the rules below apply to the others. One set aside with more
+   evidence than the candidate rule 1 would name stays an alternative to it ("A or B": the data do not
+   tell a term beyond its range from one within).
 1. The candidate with the largest verified 2 ln BF is named ("missing_physics") when it passes all
    checks and nothing else competes with it:
    * no other candidate that also passes ``evidence`` is within ``margin_min`` of its 2 ln BF (the
@@ -178,9 +180,10 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
     out["explained_shares"] = {n: v for n, v in shares.items() if np.isfinite(v)}
     # a fit at the end of a budget range explains the data only beyond the term's range: set aside (rule 0)
     ends = [c["name"] for c in scored if not out["checks"][c["name"]].get("within_range", True)]
-    aside = ""
+    aside, ends_lbf = "", {}
     if ends and len(ends) < len(scored):
         out["set_aside"] = ends
+        ends_lbf = {c["name"]: c["log_bayes_factor"] for c in scored if c["name"] in ends}
         scored = [c for c in scored if c["name"] not in ends]
         aside = f"{', '.join(ends)} fit(s) at the end of the range (fails within_range) and is set aside; "
     best = scored[0] if scored else None
@@ -206,15 +209,18 @@ def decide(candidates: list, located_before: list, baseline: dict, misfit_before
                      and 2 * (best["log_bayes_factor"] - c["log_bayes_factor"]) < th.margin_min]
             better = [c["name"] for c in scored[1:] if out["checks"][c["name"]]["explains"]
                       and _explained(c, th) > ex_best and _explained(c, th) >= ex_best + th.explain_margin]
-            if close or better:
+            beyond = [n for n, v in ends_lbf.items() if v > best["log_bayes_factor"]]
+            if close or better or beyond:
                 why = []
+                if beyond:
+                    why.append(f"{', '.join(beyond)}, set aside at the end of its range, has more evidence")
                 if close:
                     why.append(f"{', '.join(close)} also pass(es) the evidence check within 2 ln BF {th.margin_min}")
                 if better:
                     why.append(f"{', '.join(better)} explain(s) more of the located mismatch "
                                f"({', '.join(f'{_explained(c, th):.2f}' for c in scored if c['name'] in better)} vs "
                                f"{ex_best:.2f})")
-                comp = close + [b for b in better if b not in close]
+                comp = close + [b for b in better if b not in close] + beyond
                 alts = [best["name"]] + comp
                 out.update(verdict="missing_physics", missing_physics=" or ".join(alts), ambiguous=True,
                            competitors=comp, alternatives=alts,
