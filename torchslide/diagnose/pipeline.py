@@ -729,14 +729,13 @@ def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Ba
     candidate's fit (_candidate_grid_error) moved its mean by more than ``finer_shift`` sigma: threshold terms
     stop the flow in another cell on the finer grid), or where a verdict would rest on a candidate (2 ln BF
     >= ``bf_min`` on the inversion grid: a term that mimics the grid's error must not be named for it), the
-    comparison is made on the finer grid itself: the
-    baseline and every candidate with 2 ln BF > 0 on the inversion grid, after its rounds or ``before`` them
-    ({name: 2 ln BF}), or a positive screening score, fitted again there (finer_grid: every run on the fine terrain, seen on
-    the inversion cells; the same data and stated errors, the release volume's error kept, no grid error),
-    each from its fit on the inversion grid, their Laplace evidence replacing the inversion grid's in the
-    rows (``finer_grid`` in each row keeps the inversion grid's 2 ln BF and switch). Returns (the stage's
-    record, (the finer grid's evaluator, the baseline's LocalFit and _Baseline there)), or (None, None) when
-    no round moved the error that far."""
+    comparison is made on the finer grid itself: the baseline and every candidate with 2 ln BF > 0 on the
+    inversion grid, after its rounds or ``before`` them ({name: 2 ln BF}), or a positive screening score,
+    fitted again there (finer_grid: every run on the fine terrain, seen on the inversion cells; the same data
+    and stated errors, the release volume's error kept, no grid error), each from its fit on the inversion
+    grid, their Laplace evidence replacing the inversion grid's in the rows (``finer_grid`` in each row keeps
+    the inversion grid's 2 ln BF and switch). Returns (the stage's record, (the finer grid's evaluator, the
+    baseline's LocalFit and _Baseline there)), or (None, None) when neither holds."""
     rounds = [r for r in rows if r["name"] in fits and r.get("grid_error_at_fit")]
     moved_far = max((_largest_shift(r) for r in rounds), default=0.0) > bud.finer_shift
     supported = max((r["two_ln_bf"] for r in rows if r["name"] in fits), default=-np.inf) >= bf_min
@@ -793,7 +792,7 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
     fitted on the finer grid (_finer_grid_stage) are profiled there, against its baseline (``fine``: the
     stage's (evaluator, baseline LocalFit, _Baseline))."""
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
-    groups = [[r for r in ranked if ("finer_grid" in r) == fine] for fine in (False, True)]
+    groups = [[r for r in ranked if ("finer_grid" in r) == on_fine] for on_fine in (False, True)]
     ends = [e for g in groups if g for e in zip(g, profile_ends(evaluator, [fits[r["name"]] for r in g], bud, log))]
     for row, (prof, n) in ends:
         c = row["name"]
