@@ -472,21 +472,30 @@ def test_merged_residuals_equal_each_model_run_alone():
         merged_residuals([(probs[0], X[0]), (problem(_plane_case(0.0)), X[0])])
 
 
+def _entrainment_fit_with_grid_error(bud):
+    """(evaluator with a finer terrain, its grid error (3 run pairs, release sd 0.05), the evaluator with it,
+    the baseline's local fit, {"entrainment": CandidateFit}) on the plane case with entrainment hidden."""
+    from torchslide.diagnose.local_path import fit_candidates, fit_model
+    from torchslide.diagnose.model_error import approximation_error
+
+    ev = _with_fine_terrain(_plane_case(0.001))
+    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]), release_sd=0.05)
+    ev_me = ev.with_model_error(me0)
+    f0, _ = fit_model(ev_me, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=40, log=lambda s: None)
+    return ev, me0, ev_me, f0, fit_candidates(ev_me, ["entrainment"], f0, {}, bud, log=lambda s: None)
+
+
 def test_a_candidates_grid_error_is_taken_where_it_fits(monkeypatch):
     """pipeline._candidate_grid_error: the profile_top candidate's grid error gets the mean of run pairs at
     draws of its own fit and keeps the baseline's grid covariance; the release volume's Jacobian is taken at
     the same draws (entrainment grows a larger release more: the final volume's row exceeds the baseline's);
     the candidate is refitted with it, and its profile is taken in that likelihood (local_path.profile_drop)."""
     from torchslide.diagnose import Budgets, pipeline
-    from torchslide.diagnose.local_path import fit_candidates, fit_model, profile_drop
+    from torchslide.diagnose.local_path import profile_drop
     from torchslide.diagnose.model_error import approximation_error, release_jacobian
 
-    ev = _with_fine_terrain(_plane_case(0.001))
-    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]), release_sd=0.05)
-    ev_me = ev.with_model_error(me0)
     bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, candidate_error_rounds=1)
-    f0, _ = fit_model(ev_me, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=40, log=lambda s: None)
-    fits = fit_candidates(ev_me, ["entrainment"], f0, {}, bud, log=lambda s: None)
+    ev, me0, ev_me, f0, fits = _entrainment_fit_with_grid_error(bud)
     cf = fits["entrainment"]
     monkeypatch.setattr(pipeline, "_local_candidate", lambda e, c, base, scr, b, log: (
         "refit", {"name": c.name, "param": "kappa", "two_ln_bf": c.two_ln_bf, "n_runs": c.n_runs}))
@@ -600,16 +609,11 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
     there, the release error kept, no grid error) and the inversion grid's is kept beside it; below the
     threshold nothing changes."""
     from torchslide.diagnose import Budgets, pipeline
-    from torchslide.diagnose.local_path import fit_candidates, fit_model
-    from torchslide.diagnose.model_error import approximation_error
+    from torchslide.diagnose.local_path import fit_model
     from torchslide.diagnose.screen import ScreenResult
 
-    ev = _with_fine_terrain(_plane_case(0.001))
-    me0 = approximation_error(ev, np.array([[0.3, 600.0], [0.31, 640.0], [0.29, 560.0]]), release_sd=0.05)
-    ev_me = ev.with_model_error(me0)
     bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, n_posterior_samples_after=4)
-    f0, _ = fit_model(ev_me, n_lhs=0, extra_starts=np.array([[0.3, 600.0]]), max_iter=40, log=lambda s: None)
-    fits = fit_candidates(ev_me, ["entrainment"], f0, {}, bud, log=lambda s: None)
+    ev, me0, ev_me, f0, fits = _entrainment_fit_with_grid_error(bud)
     cf = fits["entrainment"]
     rows = [{"name": "entrainment", "param": "kappa", "two_ln_bf": cf.two_ln_bf, "n_runs": cf.n_runs,
              "grid_error_at_fit": [{"mean_shift_sigma": {"deposit": 0.1, "g1:h": moved}}]}]
