@@ -638,6 +638,7 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
     f0_fine, _ = fit_model(fine0, n_lhs=0, extra_starts=f0.x[None], max_iter=40, log=lambda s: None)
     assert new.two_ln_bf == pytest.approx(2 * (new.fit.log_evidence - f0_fine.log_evidence), abs=1e-6)
     assert out["candidates"] == ["entrainment"] and out["baseline_log_evidence"] == pytest.approx(f0_fine.log_evidence)
+    assert out["baseline_converged"] == f0_fine.converged and out["baseline_message"] == f0_fine.message
     assert ("moved by up to" in out["why"]) == (moved > 1.0)
     assert fine[0].finer_grid and fine[1] is not f0 and fine[2].source.endswith("finer grid (Laplace)")
     # profiled on the finer grid: the profile holds the switch in the candidate's own (finer) likelihood
@@ -648,5 +649,7 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
     j = {"verdict": "missing_physics", "missing_physics": "entrainment", "candidates": rows,
          "decision": {"reason": "-", "finer_grid": out}}
     text = "\n".join(_verdict_section(j))
-    assert "fitted again on the finer grid" in text
+    assert "fitted again on the finer grid" in text and "did not converge" not in text
+    j["decision"]["finer_grid"] = {**out, "baseline_converged": False, "baseline_message": "max_iter"}
+    assert "did not converge (max_iter)" in "\n".join(_verdict_section(j))
     assert f"| entrainment | {cf.two_ln_bf:.1f} | {row['two_ln_bf']:.1f} |" in text

@@ -759,7 +759,7 @@ def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Ba
     base_f = _Baseline(cal0, pred0, _laplace_ver(F0), loc=base.loc, elpd=waic(fine_ev, pred0.draws),
                        misfit=fine_ev.misfit(pred0.mean), source="local fit on the finer grid (Laplace)")
     log(f"[diagnose] finer grid, baseline: " + ", ".join(f"{k} {v:.4g}" for k, v in zip(names, F0.x)) +
-        f"; ln L {F0.log_like:.1f}")
+        f"; ln L {F0.log_like:.1f}" + ("" if F0.converged else f" (not converged: {F0.message})"))
     runs = n0 + len(pred0.x)
     for row in ranked:
         c, cf = row["name"], fits[row["name"]]
@@ -779,7 +779,8 @@ def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Ba
         row.clear()
         row.update(new)
     return ({"moved_sigma": moved, "threshold": bud.finer_shift, "why": why, "candidates": list(moved),
-             "baseline_log_evidence": float(F0.log_evidence), "baseline_x": F0.x.tolist(), "n_runs_baseline": int(runs)},
+             "baseline_log_evidence": float(F0.log_evidence), "baseline_x": F0.x.tolist(), "n_runs_baseline": int(runs),
+             "baseline_converged": bool(F0.converged), "baseline_message": str(F0.message)},
             (fine_ev, F0, base_f))
 
 

@@ -192,7 +192,8 @@ def _verdict_section(j: dict) -> list[str]:
         rows = [c for c in j["candidates"] if c.get("finer_grid")]
         L += [f"Finer grid: {fg['why']}; the baseline and {', '.join(fg['candidates'])} were fitted again on the "
               f"finer grid and their evidence is taken there (the inversion grid's error cannot then be read as a "
-              f"term).", "",
+              f"term)." + ("" if fg.get("baseline_converged", True) else f" The baseline's fit there did not "
+              f"converge ({fg.get('baseline_message')}): no candidate's evidence there counts as reliable."), "",
               "| candidate | 2 ln BF, inversion grid | 2 ln BF, finer grid | switch, inversion grid | switch, finer grid |",
               "|---|---|---|---|---|"]
         L += [f"| {c['name']} | {c['finer_grid']['two_ln_bf_inversion_grid']:.1f} | {c['two_ln_bf']:.1f} | "
