@@ -177,8 +177,9 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     assert j["model_error"]["release_sd"] == 0.05     # [diagnose] release_volume_sd reached the likelihood
     # every screened candidate has its detectable switch, and report.md its table
     dsw = j["screening"]["candidates"]["mu_i"]["detectable_switch"]
-    assert dsw is not None and set(dsw) == {"per_unit", "switch", "within_prior"}
-    assert "## Screening" in md and "detectable from" in md
+    assert dsw is not None and set(dsw) >= {"per_unit", "switch", "within_prior", "switch_power"}
+    assert dsw["switch_power"] > dsw["switch"]
+    assert "## Screening" in md and "detectable from" in md and "found 4 in 5 from" in md
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())
 

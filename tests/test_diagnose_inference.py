@@ -5,6 +5,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 import torch
 
 from torchslide.bayes import GaussianLikelihood, Prior, Uniform
@@ -139,6 +140,12 @@ def test_detectable_switch_is_the_linear_gaussian_threshold():
     assert abs(d["per_unit"] - a) < 1e-6 * a
     assert abs(d["switch"] - np.sqrt(10.0 + 2 * np.log(a * W / np.sqrt(2 * np.pi))) / a) < 1e-9
     assert d["within_prior"] == (d["switch"] <= W)
+    # with noise, the profiled fit's 2 ln BF is max(0, s a + z)^2 - occam: at switch_power it reaches bf_min in
+    # 80 % of the draws, at switch in half
+    occam = 2 * np.log(a * W / np.sqrt(2 * np.pi))
+    z = np.random.default_rng(0).standard_normal(200_000)
+    for s, share in ((d["switch_power"], 0.8), (d["switch"], 0.5)):
+        assert np.mean(np.maximum(0.0, s * a + z) ** 2 - occam >= 10.0) == pytest.approx(share, abs=0.005)
     # noise with extra variance along the candidate's own direction: it is harder to see
     u = Jc / np.linalg.norm(Jc)
     cov = np.diag(sig**2) + 4.0 * np.outer(u, u)

@@ -488,6 +488,12 @@ def test_success_against_detectability():
     assert detectability_success(det("curvature", "curvature", 1.0, 0.5))
     row = case_row(det("curvature", "none", 1.0, 4.6))
     assert row["true_switch"] == 1.0 and row["detectable_switch"] == 4.6 and row["detectability_success"]
+    assert row["power_switch"] is None                        # no whitened effect per unit recorded
+    # the switch found in four noise draws of five: (sqrt(bf_min + occam) + z_0.8) / a, prior width 1, bf_min 40
+    c = det("curvature", "curvature", 1.0, 0.5)
+    c["diagnosis"]["screening"]["candidates"]["curvature"]["detectable_switch"]["per_unit"] = 8.0
+    t = math.sqrt(40.0 + 2 * math.log(8.0 / math.sqrt(2 * math.pi)))
+    assert case_row(c)["power_switch"] == pytest.approx((t + 0.841621) / 8.0, rel=1e-6)
     assert detectability_success(_case("null", "none")) and not detectability_success(_case("null", "mu_i"))
 
 
@@ -525,6 +531,13 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     assert either[1] == ["mu_i", "A or B"] and either[2].tolist() == [[0, 1]]
     page = make_page.build_page(runs, tmp_path / "page", thresholds_file=tmp_path / "none.json").read_text()
     assert "| **4/5** | **5/5** | 0/5 | **4/5** |" in page and "| 7 of 8 |" in page
+    assert "strict successes above the 4-in-5 switch |" in page
+    mu_i = [r for r in s["full"]["cases"] if r["scenario"] == "mu_i" and r["strength"] == 1.0]
+    rows = [{**r, "true_switch": 0.2, "detectable_switch": 0.1, "power_switch": p}
+            for r, p in zip(mu_i, (0.15, 0.3, 0.18, 0.1, 0.5))]
+    assert len(rows) == 5 and [r["strict_success"] for r in rows] == [True] * 4 + [False]
+    sec = "\n".join(make_page._run_section("m", {**s["full"], "cases": rows}, tmp_path, tmp_path))
+    assert "| mu_i | 4/5 | mu_i 4, none 1 |" in sec and "| 4/5 | 3/3 |" in sec     # seeds 0, 2, 3 above it
     assert "| 3/3 | - | - | partial run: 1 scenario, seeds 0-2 |" in page
     assert "--strengths 0.5 --seed-list 0 --scenarios entrainment --out DIR" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()
     # the ladder: per term and strength, named / another term / nothing missing; the null seeds' false naming

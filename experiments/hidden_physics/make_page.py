@@ -243,18 +243,22 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
          + ", ".join(f"{k} {v:.3g}" for k, v in s["thresholds"].items() if isinstance(v, (int, float))) + ".", ""]
     if rows:
         L += ["| scenario | strict successes | verdicts (count) | true switch / detectable from (seeds) | "
-              "successes against detectability |", "|---|---|---|---|---|"]
+              "successes against detectability | strict successes above the 4-in-5 switch |", "|---|---|---|---|---|---|"]
         for sc, (k, n) in scenario_counts(rows).items():
             rs = [r for r in rows if r["scenario"] == sc]
             found = Counter(r["found"] for r in rs)
             det = ", ".join(f"{r['true_switch']:.3g} / {r['detectable_switch']:.3g}" for r in rs
                             if r.get("true_switch") is not None and r.get("detectable_switch") is not None) or "-"
             ds = sum(bool(r.get("detectability_success")) for r in rs)
+            above = [r for r in rs if r.get("power_switch") is not None and r["true_switch"] >= r["power_switch"]]
+            pw = f"{sum(bool(r['strict_success']) for r in above)}/{len(above)}" if above else "-"
             L.append(f"| {sc} | {k}/{n} | " + ", ".join(f"{f} {c}" for f, c in sorted(found.items()))
-                     + f" | {det} | {ds}/{n} |")
+                     + f" | {det} | {ds}/{n} | {pw} |")
         L += ["", "'Against detectability': below the smallest switch the recordings can reveal (the screening's "
               "detectable switch at the calibrated baseline), a case succeeds when no other library term is named; "
-              "above it, only a strict success counts (summary.py).", ""]
+              "above it, only a strict success counts (summary.py). There a term reaches bf_min in half the noise "
+              "draws; the last column counts the seeds whose true switch is at least the one it reaches in four of "
+              "five (summary.power_switch; '-' where none is, or the run's summary predates it).", ""]
         f = figdir / f"confusion_{name}.png"
         _plot_confusion(rows, f, f"{name}: strength 1, seeds 0-{N_SEEDS - 1}")
         L += ["", f"![confusion matrix, {name}]({f.relative_to(out).as_posix()})", ""]

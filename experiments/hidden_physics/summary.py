@@ -17,6 +17,8 @@ Measured against detectability (the issue's criterion): a library term whose tru
 smallest switch these recordings can reveal (the screening's detectable switch at the calibrated
 baseline, torchslide.diagnose.screen.detectable_switch) counts as a success when no *other* library term
 is named ("nothing missing" or "unexplained" are honest there); above it, only a strict success counts.
+At that switch a term reaches bf_min in half the noise draws; ``power_switch`` is the one where it does in
+four of five (screen._threshold), the strength above which the 4-of-5 target applies.
 """
 from __future__ import annotations
 
@@ -84,6 +86,19 @@ def detectability(case: dict) -> tuple[float | None, float | None]:
     return (None if truth is None else float(truth)), (None if not det or det.get("switch") is None else float(det["switch"]))
 
 
+def power_switch(case: dict) -> float | None:
+    """The switch a case's recordings reveal in four noise draws of five (screen._threshold from the screening's
+    whitened effect per unit switch, the case's prior range and bf_min); None for other scenarios."""
+    from torchslide.diagnose.candidates import CANDIDATES
+    from torchslide.diagnose.screen import _threshold
+    term = case["truth"]["term"]
+    j = case["diagnosis"]
+    det = ((j.get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
+    if term not in CANDIDATES or not det or det.get("per_unit") is None:
+        return None
+    return float(_threshold(det["per_unit"], CANDIDATES[term].prior, j["thresholds"]["bf_min"])["switch_power"])
+
+
 def detectability_success(case: dict) -> bool:
     """Success measured against detectability (module doc)."""
     truth, det = detectability(case)
@@ -105,6 +120,7 @@ def case_row(case: dict) -> dict:
             "misfit_before": j["fit_before"]["misfit"], "misfit_after": after,
             "inference": (d.get("inference") or {}).get("path", "emulator"), "wall_s": case.get("wall_s"),
             "true_switch": detectability(case)[0], "detectable_switch": detectability(case)[1],
+            "power_switch": power_switch(case),
             "detectability_success": detectability_success(case)}
 
 

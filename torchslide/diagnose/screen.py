@@ -25,6 +25,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats
 
 from .candidates import CANDIDATES
 from .evaluator import stack_values
@@ -159,8 +160,9 @@ def detectable_switch(scr: ScreenResult, evaluator, bf_min: float, retune_steps:
     steps; where its remaining effect is smaller than the linear one (a term that mu and xi mimic far
     from x0, as mu(I) does), a is taken from it and s_det set again ("per_unit_linear" keeps the linear
     value). A candidate whose s_det exceeds its prior range cannot be named from these data on this grid
-    whatever its strength; below it, a smaller true switch would go unseen. A guide, not a test: the
-    refits measure the real evidence. Failed members give None.
+    whatever its strength; below it, a smaller true switch would go unseen. ``switch_power``: the switch found
+    in a share POWER of noise draws (:func:`_threshold`). A guide, not a test: the refits measure the real
+    evidence. Failed members give None.
     """
     if scr.jacobian is None:
         return {c: None for c in scr.scores}
@@ -194,15 +196,24 @@ def detectable_switch(scr: ScreenResult, evaluator, bf_min: float, retune_steps:
     return out
 
 
+POWER = 0.8    # the share of noise draws in which a term at ``switch_power`` reaches bf_min
+
+
 def _threshold(a: float, prior: tuple, bf_min: float) -> dict:
-    """{per_unit: a, switch: s_det, within_prior} for a whitened effect ``a`` per unit switch (the formula of
-    :func:`detectable_switch`)."""
+    """{per_unit: a, switch: s_det, within_prior, switch_power} for a whitened effect ``a`` per unit switch (the
+    formula of :func:`detectable_switch`). With noise, the fitted switch's whitened size is s a + z (z ~ N(0, 1)),
+    so a term at s_det reaches bf_min in half the draws, one at
+
+        s_power = (sqrt(bf_min + occam) + Phi^-1(POWER)) / a
+
+    in a share ``POWER`` of them (the switch a design must exceed for the term to be found 4 times in 5)."""
     lo, hi = prior
     if a <= 0:
-        return {"per_unit": 0.0, "switch": math.inf, "within_prior": False}
+        return {"per_unit": 0.0, "switch": math.inf, "within_prior": False, "switch_power": math.inf}
     occam = 2.0 * math.log(a * (hi - lo) / math.sqrt(2.0 * math.pi))
-    s_det = math.sqrt(bf_min + max(occam, 0.0)) / a
-    return {"per_unit": a, "switch": s_det, "within_prior": bool(s_det <= hi)}
+    t = math.sqrt(bf_min + max(occam, 0.0))
+    return {"per_unit": a, "switch": t / a, "within_prior": bool(t / a <= hi),
+            "switch_power": (t + float(stats.norm.ppf(POWER))) / a}
 
 
 def retuned_effect(scr: ScreenResult, evaluator, whiten, Jb: np.ndarray, Jbp: np.ndarray, jcs: dict, at: dict,
