@@ -549,6 +549,14 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 6.0) ** 2]}
     out, _ = lp.profile_interval90(None, cf, prof, None, steps=6)
     assert out["closed"] == [True, False] and out["interval"][1] == 5.0
+    # steps that stop short of the bound: the bound itself is probed (still below 2.71: open there)
+    out, _ = lp.profile_interval90(None, cf, prof, None, steps=1)
+    assert out["closed"] == [True, False] and out["interval"][1] == 5.0
+    # ... and where the drop passes 2.71 before the bound, the crossing lies between the last step and the bound
+    monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print: (((v - 1.0) / (0.2 if v < 1 else 1.5)) ** 2, 4, None))
+    prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 1.5) ** 2]}
+    out, _ = lp.profile_interval90(None, cf, prof, None, steps=0)
+    assert out["closed"] == [True, True] and out["interval"][1] == pytest.approx(1.0 + 1.5 * z, rel=1e-9)
 
 
 def test_the_baseline_gets_as_many_grid_error_rounds_as_the_candidates():

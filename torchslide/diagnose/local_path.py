@@ -297,9 +297,9 @@ def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int 
     of candidate ``cf``'s switch, where the profile's 2 ln drop from the mode reaches chi2_1(0.9) = 2.71.
     From the ends of the Laplace interval and their drops (``prof``, profile_ends' record): a side whose
     drop is below 2.71 is stepped outward (the distance scaled by sqrt(2.71 / drop), at most 3 times, within
-    the prior range) up to ``steps`` times; the crossing is interpolated linearly in sqrt(drop) between the
-    last point below and the first at or above 2.71. A side that never reaches it is open ("closed" False):
-    the interval runs at least to its last point (the prior's bound, when it got there)."""
+    the prior range) up to ``steps`` times, then, still below it, probed at the prior's bound; the crossing is
+    interpolated linearly in sqrt(drop) between the last point below and the first at or above 2.71. A side
+    that never reaches it is open ("closed" False) at the prior's bound."""
     level = float(stats.chi2.ppf(0.9, 1))
     i = list(cf.evaluator.prior.names).index(CANDIDATES[cf.name].param)
     bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
@@ -307,12 +307,12 @@ def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int 
     out, closed, runs = [], [], 0
     for v_end, d_end, bound in zip(prof["interval90"], prof["two_ln_drop"], bounds):
         pts = [(m, 0.0), (float(v_end), float(d_end))]
-        for _ in range(steps):
+        for k in range(steps + 1):
             v, d = pts[-1]
             if d >= level or abs(v - bound) <= 1e-12 * (bounds[1] - bounds[0]) or v == m:
                 break
             grow = min(max(1.1 * math.sqrt(level / max(d, 0.25 * level)), 1.25), 3.0)
-            v_new = float(np.clip(m + (v - m) * grow, bounds[0], bounds[1]))
+            v_new = float(bound if k == steps else np.clip(m + (v - m) * grow, bounds[0], bounds[1]))
             d_new, n, _ = profile_drop(evaluator, cf, v_new, bud, log)
             runs += n
             pts.append((v_new, d_new))
