@@ -18,7 +18,7 @@ smallest switch these recordings can reveal (the screening's detectable switch a
 baseline, torchslide.diagnose.screen.detectable_switch) counts as a success when no *other* library term
 is named ("nothing missing" or "unexplained" are honest there); above it, only a strict success counts.
 At that switch a term reaches bf_min in half the noise draws; ``power_switch`` is the one where it does in
-four of five (screen._threshold), the strength above which the 4-of-5 target applies.
+four of five (screen.switch_threshold), the strength above which the 4-of-5 target applies.
 """
 from __future__ import annotations
 
@@ -87,16 +87,16 @@ def detectability(case: dict) -> tuple[float | None, float | None]:
 
 
 def power_switch(case: dict) -> float | None:
-    """The switch a case's recordings reveal in four noise draws of five (screen._threshold from the screening's
+    """The switch a case's recordings reveal in four noise draws of five (screen.switch_threshold from the screening's
     whitened effect per unit switch, the case's prior range and bf_min); None for other scenarios."""
     from torchslide.diagnose.candidates import CANDIDATES
-    from torchslide.diagnose.screen import _threshold
+    from torchslide.diagnose.screen import switch_threshold
     term = case["truth"]["term"]
     j = case["diagnosis"]
     det = ((j.get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
     if term not in CANDIDATES or not det or det.get("per_unit") is None:
         return None
-    return float(_threshold(det["per_unit"], CANDIDATES[term].prior, j["thresholds"]["bf_min"])["switch_power"])
+    return float(switch_threshold(det["per_unit"], CANDIDATES[term].prior, j["thresholds"]["bf_min"])["switch_power"])
 
 
 def detectability_success(case: dict) -> bool:

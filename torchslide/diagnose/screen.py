@@ -161,7 +161,7 @@ def detectable_switch(scr: ScreenResult, evaluator, bf_min: float, retune_steps:
     from x0, as mu(I) does), a is taken from it and s_det set again ("per_unit_linear" keeps the linear
     value). A candidate whose s_det exceeds its prior range cannot be named from these data on this grid
     whatever its strength; below it, a smaller true switch would go unseen. ``switch_power``: the switch found
-    in a share POWER of noise draws (:func:`_threshold`). A guide, not a test: the refits measure the real
+    in a share POWER of noise draws (:func:`switch_threshold`). A guide, not a test: the refits measure the real
     evidence. Failed members give None.
     """
     if scr.jacobian is None:
@@ -185,21 +185,21 @@ def detectable_switch(scr: ScreenResult, evaluator, bf_min: float, retune_steps:
             continue
         jcs[c] = whiten(np.asarray(eff) / scr.steps[c])
         a = float(np.linalg.norm(jcs[c] - Jb @ (Jbp @ jcs[c])))
-        out[c] = _threshold(a, CANDIDATES[c].prior, bf_min)
+        out[c] = switch_threshold(a, CANDIDATES[c].prior, bf_min)
     at = {c: min(d["switch"], CANDIDATES[c].prior[1]) for c, d in out.items() if d and d["per_unit"] > 0}
     if retune_steps > 0 and at and scr.y0 is not None:
         remaining = retuned_effect(scr, evaluator, whiten, Jb, Jbp, jcs, at, retune_steps)
         for c, r2 in remaining.items():
             a_nl = math.sqrt(r2) / at[c]
             if a_nl < out[c]["per_unit"]:
-                out[c] = {**_threshold(a_nl, CANDIDATES[c].prior, bf_min), "per_unit_linear": out[c]["per_unit"]}
+                out[c] = {**switch_threshold(a_nl, CANDIDATES[c].prior, bf_min), "per_unit_linear": out[c]["per_unit"]}
     return out
 
 
 POWER = 0.8    # the share of noise draws in which a term at ``switch_power`` reaches bf_min
 
 
-def _threshold(a: float, prior: tuple, bf_min: float) -> dict:
+def switch_threshold(a: float, prior: tuple, bf_min: float) -> dict:
     """{per_unit: a, switch: s_det, within_prior, switch_power} for a whitened effect ``a`` per unit switch (the
     formula of :func:`detectable_switch`). With noise, the fitted switch's whitened size is s a + z (z ~ N(0, 1)),
     so a term at s_det reaches bf_min in half the draws, one at
