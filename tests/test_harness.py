@@ -468,6 +468,10 @@ def test_the_release_volume_scenario_records_a_release_a_quarter_larger():
     c = _case("release_volume", "none")
     c["truth"] = big.truth
     assert case_row(c)["true"] == "release_volume" and case_row(c)["true_switch"] is None
+    # the screening's detectable switch of the release candidate gives no 4-in-5 switch without a true switch
+    c["diagnosis"]["screening"] = {"candidates": {"release_volume": {"detectable_switch": {"switch": 0.2,
+                                                                                          "per_unit": 12.0}}}}
+    assert case_row(c)["power_switch"] is None
 
 
 def test_success_against_detectability():

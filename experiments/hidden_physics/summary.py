@@ -88,13 +88,16 @@ def detectability(case: dict) -> tuple[float | None, float | None]:
 
 def power_switch(case: dict) -> float | None:
     """The switch a case's recordings reveal in four noise draws of five (screen.switch_threshold from the screening's
-    whitened effect per unit switch, the case's prior range and bf_min); None for other scenarios."""
+    whitened effect per unit switch, the case's prior range and bf_min); None where :func:`detectability` has no
+    true switch (null, patch, larger release)."""
     from torchslide.diagnose.candidates import CANDIDATES
     from torchslide.diagnose.screen import switch_threshold
+    if detectability(case)[0] is None:
+        return None
     term = case["truth"]["term"]
     j = case["diagnosis"]
     det = ((j.get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
-    if term not in CANDIDATES or not det or det.get("per_unit") is None:
+    if not det or det.get("per_unit") is None:
         return None
     return float(switch_threshold(det["per_unit"], CANDIDATES[term].prior, j["thresholds"]["bf_min"])["switch_power"])
 
