@@ -381,7 +381,9 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
                                                                        "reliable": True, "n_runs": 7,
                                                                        "parameters": {"a": {}}}))
     monkeypatch.setattr(pipeline, "profile_interval90",
-                        lambda ev, cf, prof, bud, log: ({"interval": [0.1, 0.9], "closed": [True, False]}, 3))
+                        lambda ev, cf, prof, bud, log: ({"interval": [0.1, 0.9], "closed": [True, False],
+                                                         "points": [[0.5, 0.0]]}, 3))
+    monkeypatch.setattr(pipeline, "profile_two_ln_bf", lambda cf, p90: {"a2": 47.5, "b": 21.0}[cf])
     rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None,
              "parameters": {n: {}}} for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
     fits, refits = {n: n for n in "abcd"}, {}
@@ -390,19 +392,24 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     by = {r["name"]: r for r in rows}
     assert by["c"]["profile_ends"] is None and by["b"]["profile_ends"] and by["b"]["reliable"]
     # a: fitted again from the profile point, the better fit's row, profiled again, reliable
-    assert by["a"]["restarted_from_profile"] == 1 and by["a"]["two_ln_bf"] == 45.0 and by["a"]["reliable"]
+    assert by["a"]["restarted_from_profile"] == 1 and by["a"]["two_ln_bf_laplace"] == 45.0 and by["a"]["reliable"]
     assert by["a"]["profile_ends"]["two_ln_drop"] == [2.7, 2.6] and fits["a"] == "a2" and refits["a"] == "refit"
     assert by["a"]["n_runs"] == 5 + 10 + 7 + 10 + 3
     # the profile-likelihood interval of every reliable profiled candidate; none for an unreliable one
     assert by["a"]["parameters"]["a"]["profile90"] == [0.1, 0.9] and by["b"]["parameters"]["b"]["profile90_closed"] == [
         True, False]
     assert "profile90" not in by["d"]["parameters"]["d"] and "profile90" not in by["c"]["parameters"]["c"]
+    # the evidence of a profiled candidate at its mode takes its switch's factor from the profile
+    assert (by["a"]["two_ln_bf"], by["a"]["two_ln_bf_laplace"], by["a"]["two_ln_bf_lower"]) == (47.5, 45.0, 47.5)
+    assert by["b"]["two_ln_bf"] == by["b"]["two_ln_bf_lower"] == 21.0 and by["b"]["log_bayes_factor"] == 10.5
+    assert by["d"]["two_ln_bf"] == 25.0 and "two_ln_bf_laplace" not in by["d"] and by["c"]["two_ln_bf"] == 10.0
     # d: the restart found nothing better: unreliable
     assert not by["d"]["reliable"] and "restarted_from_profile" not in by["d"]
     # e: its restarted fit is beaten again by its new profile: restarted once more (profile_restarts = 2), then
     # at its mode; with profile_restarts = 1 it stays unreliable
     drops.update(e=[-2.0, 2.0], e2=[2.5, -1.9], e3=[2.6, 2.5])
     monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"e": "e2", "e2": "e3"}.get(cf, cf))
+    monkeypatch.setattr(pipeline, "profile_two_ln_bf", lambda cf, p90: 30.0)
     for restarts, reliable, times in ((2, True, 2), (1, False, 1)):
         rows = [{"name": "e", "param": "e", "two_ln_bf": 30.0, "reliable": True, "n_runs": 5, "profile_ends": None,
                  "parameters": {"e": {}}}]

@@ -17,6 +17,9 @@ ln L(x) = c - |r(x)|^2 / 2 (c the Gaussian normaliser):
   the prior box; for a mode on the box's edge (e.g. a candidate's switch at 0) the Gaussian is centred
   where the quadratic model of ln L peaks, beyond the edge, and only its part inside the box counts.
   Exact for a linear model with a uniform prior.
+* ``profile_log_integral``: ln of the integral over a switch's range of exp(-D(s) / 2), D the profile
+  likelihood's 2 ln drop from the mode measured at a few points: the switch's factor of the evidence
+  where the profile is not the Laplace Gaussian (``profile_evidence_shift``).
 * ``detectability``: for a candidate's switch s with nuisance parameters theta (mu, xi), the Fisher
   information of s after theta is re-tuned is the Schur complement
   I_s = J_s^T J_s - J_s^T J_t (J_t^T J_t)^-1 J_t^T J_s, so a switch s moves 2 ln of the likelihood ratio
@@ -196,3 +199,39 @@ def detectable_switch(J: np.ndarray, switch: int, threshold: float = 6.0) -> flo
     sqrt(threshold / I_s) (inf when the data carry no information on it)."""
     info = switch_information(J, switch)
     return math.sqrt(threshold / info) if info > 0 else math.inf
+
+
+def profile_log_integral(points, bounds, n: int = 4001) -> float:
+    """ln of the integral over ``bounds`` (lo, hi) of exp(-D(s) / 2), the profile likelihood of a switch s
+    relative to its mode: D (the 2 ln drop from the mode) known at ``points`` [(s, D)], the mode one of them
+    (D = 0); sqrt(D) is interpolated linearly in s between the points of each side of the mode (a running
+    maximum outwards: the drop cannot fall again), continued past the outermost one along the secant from
+    the mode (a Gaussian tail as wide as that point says), on ``n`` points (trapezoid rule). Exact for a
+    quadratic profile (a Gaussian, even one of different widths on the two sides)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    lo, hi = float(bounds[0]), float(bounds[1])
+    m = float(pts[np.argmin(pts[:, 1]), 0])
+    s = np.linspace(lo, hi, n)
+    r = np.zeros_like(s)
+    for side in (-1.0, 1.0):
+        q = pts[(pts[:, 0] - m) * side > 0]
+        q = q[np.argsort(np.abs(q[:, 0] - m))]
+        dist = np.concatenate([[0.0], np.abs(q[:, 0] - m)])
+        root = np.maximum.accumulate(np.concatenate([[0.0], np.sqrt(np.maximum(q[:, 1], 0.0))]))
+        on = (s - m) * side >= 0
+        d = np.abs(s[on] - m)
+        tail = root[-1] / dist[-1] * d if dist[-1] > 0 else np.zeros_like(d)
+        r[on] = np.where(d <= dist[-1], np.interp(d, dist, root), tail)
+    return float(np.log(np.trapezoid(np.exp(-0.5 * r * r), s)))
+
+
+def profile_evidence_shift(points, centre: float, sd: float, bounds) -> float:
+    """ln Z_profile - ln Z_Laplace of a switch whose profile likelihood is measured at ``points`` [(s, D)]
+    (``profile_log_integral``): the Laplace evidence integrates the profile as the Gaussian of the switch's
+    marginal (``centre``, ``sd``; its Schur complement, det A = det A_bb I_s) over ``bounds``; the measured
+    profile replaces that factor, the nuisance parameters' Gaussian kept (their precision taken as constant
+    along the profile). 0 for a quadratic profile of that width."""
+    lo, hi = float(bounds[0]), float(bounds[1])
+    gauss = math.log(math.sqrt(2.0 * math.pi) * sd
+                     * max(stats.norm.cdf((hi - centre) / sd) - stats.norm.cdf((lo - centre) / sd), 1e-300))
+    return profile_log_integral(points, bounds) - gauss

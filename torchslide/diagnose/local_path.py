@@ -304,7 +304,7 @@ def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int 
     i = list(cf.evaluator.prior.names).index(CANDIDATES[cf.name].param)
     bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
     m = float(cf.fit.x[i])
-    out, closed, runs = [], [], 0
+    out, closed, runs, seen = [], [], 0, [[m, 0.0]]
     for v_end, d_end, bound in zip(prof["interval90"], prof["two_ln_drop"], bounds):
         pts = [(m, 0.0), (float(v_end), float(d_end))]
         for k in range(steps + 1):
@@ -316,6 +316,7 @@ def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int 
             d_new, n, _ = profile_drop(evaluator, cf, v_new, bud, log)
             runs += n
             pts.append((v_new, d_new))
+        seen += [[float(v), float(d)] for v, d in pts[1:]]
         hit = next((k for k in range(1, len(pts)) if pts[k][1] >= level), None)
         if hit is None:
             out.append(pts[-1][0])
@@ -325,7 +326,27 @@ def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int 
         s0, s1 = math.sqrt(max(d0, 0.0)), math.sqrt(d1)
         out.append(v0 + (math.sqrt(level) - s0) / (s1 - s0) * (v1 - v0) if s1 > s0 else v1)
         closed.append(True)
-    return {"interval": out, "closed": closed, "level": level}, runs
+    return {"interval": out, "closed": closed, "level": level, "points": sorted(seen)}, runs
+
+
+def profile_two_ln_bf(cf: CandidateFit, p90: dict) -> float:
+    """2 ln BF of candidate ``cf`` with its switch's factor taken from the measured profile likelihood
+    (local.profile_evidence_shift): the points of ``p90`` (profile_interval90) and, at the switch's null
+    value, the likelihood ratio 2 ln LR (the baseline is the profile there). The Laplace Gaussian of a
+    switch is set by finite differences at the mode; where the likelihood is not quadratic in the switch
+    (mu(I): sharper at its mode than the drop to 0 says) it misstates the Occam factor, which the profile
+    measures. A mode on the switch's lower bound keeps the Laplace value."""
+    from .local import profile_evidence_shift
+    cd = CANDIDATES[cf.name]
+    i = list(cf.evaluator.prior.names).index(cd.param)
+    lo, hi = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
+    if cf.fit.x[i] <= lo + 1e-9 * (hi - lo):
+        return cf.two_ln_bf
+    pts = [tuple(p) for p in p90["points"]]
+    if cf.lr > 0 and all(v > lo for v, _ in pts):
+        pts.append((float(lo), float(cf.lr)))
+    shift = profile_evidence_shift(pts, float(cf.fit.centre[i]), math.sqrt(float(cf.fit.covariance[i, i])), (lo, hi))
+    return float(cf.two_ln_bf + 2.0 * shift)
 
 
 def fit_candidates(evaluator, cands: list, base: LocalFit, starts: dict, bud, log=print) -> dict:

@@ -45,7 +45,7 @@ from .resolution import removed_by_resolution
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
 from .screen import ScreenResult, detectable_switch, screen
 from .local_path import (candidate_fit, choose_path, fit_candidates, fit_model, laplace_result, profile_ends,
-                         profile_interval90, refit_from)
+                         profile_interval90, profile_two_ln_bf, refit_from)
 
 
 @dataclass
@@ -789,7 +789,9 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
     """profile_ends of the ``profile_top`` candidates with the largest 2 ln BF, into their rows. A profile
     point that beats a fit by more than 1 in 2 ln L restarts that fit from there (local_path.refit_from;
     ``restarted_from_profile`` counts the restarts); the restarted fit is profiled again, up to
-    ``profile_restarts`` times, and a fit that its profile still beats is marked unreliable. Candidates
+    ``profile_restarts`` times, and a fit that its profile still beats is marked unreliable. A profiled
+    candidate at its mode gets its 90 % profile-likelihood interval and its 2 ln BF with the switch's factor
+    from the profile (local_path.profile_two_ln_bf; ``two_ln_bf_laplace`` keeps the Laplace value). Candidates
     fitted on the finer grid (_finer_grid_stage) are profiled there, against its baseline (``fine``: the
     stage's (evaluator, baseline LocalFit, _Baseline))."""
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
@@ -821,6 +823,11 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
             row["n_runs"] += n3
             row["parameters"][row["param"]]["profile90"] = p90["interval"]
             row["parameters"][row["param"]]["profile90_closed"] = p90["closed"]
+            bf = profile_two_ln_bf(fits[c], p90)
+            log(f"[diagnose] {c}: 2 ln BF {row['two_ln_bf']:.1f} (Laplace) -> {bf:.1f} with the switch's profile "
+                f"likelihood at {len(p90['points'])} points")
+            row.update(two_ln_bf_laplace=row["two_ln_bf"], two_ln_bf=bf, two_ln_bf_lower=bf, log_bayes_factor=0.5 * bf,
+                       profile_points=p90["points"])
             log(f"[diagnose] {c}: 90 % profile-likelihood interval of {row['param']} "
                 f"{[round(v, 5) for v in p90['interval']]}" + ("" if all(p90["closed"]) else " (open: the drop "
                 "stays below 2.71 up to there)"))
