@@ -270,6 +270,10 @@ def test_report_cell_says_how_each_candidate_was_checked():
     cell = _refit_check({"log_evidence": -110.0, "inference": "laplace", "likelihood_ratio": 12.3, "lr_pvalue": 2.3e-4,
                          "profile_ends": {"two_ln_drop": [2.5, 3.1], "gaussian": 2.71}})
     assert cell.startswith("local fit (Laplace); 2 ln LR 12.3, p 0.00023") and "2.50 / 3.10 (Gaussian 2.71)" in cell
+    assert "profile (Laplace" not in cell
+    cell = _refit_check({"log_evidence": -109.0, "inference": "laplace", "likelihood_ratio": 12.3, "lr_pvalue": 2.3e-4,
+                         "profile_ends": {"two_ln_drop": [0.8, 0.5], "gaussian": 2.71}, "two_ln_bf_laplace": 5.2})
+    assert cell.endswith("log Z with the switch's profile (Laplace: 2 ln BF 5.2)")
 
 
 def test_cli_design_ranks_where_a_new_gauge_reveals_each_candidate(tmp_path, capsys):

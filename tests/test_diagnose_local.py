@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import stats
 from scipy.special import logsumexp
 
 from torchslide.diagnose.local import detectable_switch, fit, switch_information
@@ -378,14 +379,14 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"a": "a2"}.get(cf, cf))
     monkeypatch.setattr(pipeline, "_local_candidate",
                         lambda ev, cf, base, scr, bud, log: ("refit", {"name": "a", "param": "a", "two_ln_bf": 45.0,
-                                                                       "reliable": True, "n_runs": 7,
+                                                                       "log_evidence": -80.0, "reliable": True, "n_runs": 7,
                                                                        "parameters": {"a": {}}}))
     monkeypatch.setattr(pipeline, "profile_interval90",
                         lambda ev, cf, prof, bud, log: ({"interval": [0.1, 0.9], "closed": [True, False],
                                                          "points": [[0.5, 0.0]]}, 3))
     monkeypatch.setattr(pipeline, "profile_two_ln_bf", lambda cf, p90: {"a2": 47.5, "b": 21.0}[cf])
-    rows = [{"name": n, "param": n, "two_ln_bf": bf, "reliable": True, "n_runs": 5, "profile_ends": None,
-             "parameters": {n: {}}} for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
+    rows = [{"name": n, "param": n, "two_ln_bf": bf, "log_evidence": -100.0 + bf / 2, "reliable": True, "n_runs": 5,
+             "profile_ends": None, "parameters": {n: {}}} for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
     fits, refits = {n: n for n in "abcd"}, {}
     pipeline._local_profiles(None, rows, fits, refits, None, None, None, pipeline.Budgets(profile_top=3),
                              log=lambda s: None)
@@ -402,6 +403,7 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     # the evidence of a profiled candidate at its mode takes its switch's factor from the profile
     assert (by["a"]["two_ln_bf"], by["a"]["two_ln_bf_laplace"], by["a"]["two_ln_bf_lower"]) == (47.5, 45.0, 47.5)
     assert by["b"]["two_ln_bf"] == by["b"]["two_ln_bf_lower"] == 21.0 and by["b"]["log_bayes_factor"] == 10.5
+    assert (by["b"]["log_evidence"], by["b"]["log_evidence_laplace"]) == (-100.0 + 10.5, -100.0 + 10.0)
     assert by["d"]["two_ln_bf"] == 25.0 and "two_ln_bf_laplace" not in by["d"] and by["c"]["two_ln_bf"] == 10.0
     # d: the restart found nothing better: unreliable
     assert not by["d"]["reliable"] and "restarted_from_profile" not in by["d"]
@@ -411,8 +413,8 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
     monkeypatch.setattr(pipeline, "refit_from", lambda ev, cf, x, f0, bud, log: {"e": "e2", "e2": "e3"}.get(cf, cf))
     monkeypatch.setattr(pipeline, "profile_two_ln_bf", lambda cf, p90: 30.0)
     for restarts, reliable, times in ((2, True, 2), (1, False, 1)):
-        rows = [{"name": "e", "param": "e", "two_ln_bf": 30.0, "reliable": True, "n_runs": 5, "profile_ends": None,
-                 "parameters": {"e": {}}}]
+        rows = [{"name": "e", "param": "e", "two_ln_bf": 30.0, "log_evidence": -85.0, "reliable": True, "n_runs": 5,
+                 "profile_ends": None, "parameters": {"e": {}}}]
         fits = {"e": "e"}
         pipeline._local_profiles(None, rows, fits, {}, None, None, None,
                                  pipeline.Budgets(profile_top=1, profile_restarts=restarts), log=lambda s: None)
@@ -551,6 +553,10 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     out, runs = lp.profile_interval90(None, cf, prof, None)
     assert out["closed"] == [True, True] and runs > 0
     np.testing.assert_allclose(out["interval"], [1.0 - 0.2 * z, 1.0 + 0.6 * z], rtol=1e-9)
+    # every point of the profile, the mode's included, for the evidence (profile_two_ln_bf)
+    pts = np.array(out["points"])
+    assert [1.0, 0.0] in out["points"] and len(pts) == 3 + runs // 4 and np.all(np.diff(pts[:, 0]) > 0)
+    np.testing.assert_allclose(pts[:, 1], [drop(None, None, v, None)[0] for v in pts[:, 0]], rtol=1e-12)
     # the upper side reaches the prior's bound 5 still below 2.71 (sd 6 there): open at the bound
     monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print: (((v - 1.0) / (0.2 if v < 1 else 6.0)) ** 2, 4, None))
     prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 6.0) ** 2]}
@@ -564,6 +570,39 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 1.5) ** 2]}
     out, _ = lp.profile_interval90(None, cf, prof, None, steps=0)
     assert out["closed"] == [True, True] and out["interval"][1] == pytest.approx(1.0 + 1.5 * z, rel=1e-9)
+
+
+def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian_is_not():
+    """local_path.profile_two_ln_bf: a switch whose likelihood is skewed (sd 0.05 below its mode 0.16, 0.1 above,
+    as mu(I)'s on the fan terrain, where the Laplace Gaussian from the curvature at the mode is narrower still,
+    sd 0.025) gets the exact 2 ln BF of its profile, lambda + 2 ln((1 / W) int exp(-D / 2) ds), from the
+    profile's points and the likelihood ratio at 0; the Laplace value misses it by 2 ln of the width ratio.
+    A quadratic profile of the Laplace width leaves the Laplace value, and a mode on the switch's lower bound
+    keeps it."""
+    from types import SimpleNamespace
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.diagnose import local_path as lp
+    from torchslide.diagnose.local import profile_evidence_shift
+
+    m, lo_sd, hi_sd, W = 0.16, 0.05, 0.1, 0.4
+    D = lambda v: ((v - m) / (lo_sd if v < m else hi_sd)) ** 2
+    lam, sd_lap = D(0.0), 0.025
+    exact = lam + 2 * math.log(math.sqrt(2 * math.pi) / W * (lo_sd * (0.5 - stats.norm.cdf(-m / lo_sd))
+                                                             + hi_sd * (stats.norm.cdf((W - m) / hi_sd) - 0.5)))
+    laplace = lam + 2 * math.log(math.sqrt(2 * math.pi) * sd_lap / W * (stats.norm.cdf((W - m) / sd_lap)
+                                                                       - stats.norm.cdf(-m / sd_lap)))
+    ev = SimpleNamespace(prior=Prior({"mu": Uniform(0.1, 0.4), "mu_i": Uniform(0.0, W)}))
+    fit = SimpleNamespace(x=np.array([0.25, m]), centre=np.array([0.25, m]), covariance=np.diag([1e-4, sd_lap ** 2]))
+    cf = SimpleNamespace(name="mu_i", evaluator=ev, fit=fit, two_ln_bf=laplace, lr=lam)
+    pts = [[v, D(v)] for v in (m, m - 0.041, m + 0.041, m - 0.08, m + 0.16)]
+    assert lp.profile_two_ln_bf(cf, {"points": pts}) == pytest.approx(exact, abs=1e-3)
+    assert exact - laplace == pytest.approx(2 * math.log(0.075 / 0.025), abs=0.05)
+    # a quadratic profile of the Laplace Gaussian's own width: nothing to correct
+    q = [[v, ((v - m) / sd_lap) ** 2] for v in (m, m - 0.041, m + 0.041)]
+    assert profile_evidence_shift(q, m, sd_lap, (0.0, W)) == pytest.approx(0.0, abs=1e-6)
+    # a fit whose switch sits at 0 (its lower bound) keeps the Laplace value
+    cf0 = SimpleNamespace(**{**vars(cf), "fit": SimpleNamespace(**{**vars(fit), "x": np.array([0.25, 0.0])})})
+    assert lp.profile_two_ln_bf(cf0, {"points": pts}) == laplace
 
 
 def test_the_baseline_gets_as_many_grid_error_rounds_as_the_candidates():

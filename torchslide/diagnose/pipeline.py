@@ -827,7 +827,8 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
             log(f"[diagnose] {c}: 2 ln BF {row['two_ln_bf']:.1f} (Laplace) -> {bf:.1f} with the switch's profile "
                 f"likelihood at {len(p90['points'])} points")
             row.update(two_ln_bf_laplace=row["two_ln_bf"], two_ln_bf=bf, two_ln_bf_lower=bf, log_bayes_factor=0.5 * bf,
-                       profile_points=p90["points"])
+                       log_evidence_laplace=row["log_evidence"],
+                       log_evidence=row["log_evidence"] + 0.5 * (bf - row["two_ln_bf"]), profile_points=p90["points"])
             log(f"[diagnose] {c}: 90 % profile-likelihood interval of {row['param']} "
                 f"{[round(v, 5) for v in p90['interval']]}" + ("" if all(p90["closed"]) else " (open: the drop "
                 "stays below 2.71 up to there)"))

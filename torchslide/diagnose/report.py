@@ -116,6 +116,8 @@ def _local_check(c: dict) -> str:
     if pe:
         out += ("; profile 2 ln drop at the 90 % ends " + " / ".join(f"{v:.2f}" for v in pe["two_ln_drop"])
                 + f" (Gaussian {pe['gaussian']:.2f})")
+    if c.get("two_ln_bf_laplace") is not None:
+        out += f"; log Z with the switch's profile (Laplace: 2 ln BF {c['two_ln_bf_laplace']:.1f})"
     return out
 
 
