@@ -582,7 +582,7 @@ def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian
     from types import SimpleNamespace
     from torchslide.bayes import Prior, Uniform
     from torchslide.diagnose import local_path as lp
-    from torchslide.diagnose.local import profile_evidence_shift
+    from torchslide.diagnose.local import profile_evidence_shift, profile_log_integral
 
     m, lo_sd, hi_sd, W = 0.16, 0.05, 0.1, 0.4
     D = lambda v: ((v - m) / (lo_sd if v < m else hi_sd)) ** 2
@@ -600,6 +600,9 @@ def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian
     # a quadratic profile of the Laplace Gaussian's own width: nothing to correct
     q = [[v, ((v - m) / sd_lap) ** 2] for v in (m, m - 0.041, m + 0.041)]
     assert profile_evidence_shift(q, m, sd_lap, (0.0, W)) == pytest.approx(0.0, abs=1e-6)
+    # a point a little above the fit (a negative drop within the fit's tolerance) counts as the mode's level
+    assert profile_log_integral(pts + [[m + 1e-3, -0.3]], m, (0.0, W)) == pytest.approx(
+        profile_log_integral(pts, m, (0.0, W)), abs=1e-3)
     # a fit whose switch sits at 0 (its lower bound) keeps the Laplace value
     cf0 = SimpleNamespace(**{**vars(cf), "fit": SimpleNamespace(**{**vars(fit), "x": np.array([0.25, 0.0])})})
     assert lp.profile_two_ln_bf(cf0, {"points": pts}) == laplace

@@ -201,16 +201,16 @@ def detectable_switch(J: np.ndarray, switch: int, threshold: float = 6.0) -> flo
     return math.sqrt(threshold / info) if info > 0 else math.inf
 
 
-def profile_log_integral(points, bounds, n: int = 4001) -> float:
+def profile_log_integral(points, mode: float, bounds, n: int = 4001) -> float:
     """ln of the integral over ``bounds`` (lo, hi) of exp(-D(s) / 2), the profile likelihood of a switch s
-    relative to its mode: D (the 2 ln drop from the mode) known at ``points`` [(s, D)], the mode one of them
-    (D = 0); sqrt(D) is interpolated linearly in s between the points of each side of the mode (a running
+    relative to its ``mode``: D (the 2 ln drop from the mode, negative values, a point within the fit's
+    tolerance above it, taken as 0) known at ``points`` [(s, D)]; sqrt(D) is interpolated linearly in s between the points of each side of the mode (a running
     maximum outwards: the drop cannot fall again), continued past the outermost one along the secant from
     the mode (a Gaussian tail as wide as that point says), on ``n`` points (trapezoid rule). Exact for a
     quadratic profile (a Gaussian, even one of different widths on the two sides)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     lo, hi = float(bounds[0]), float(bounds[1])
-    m = float(pts[np.argmin(pts[:, 1]), 0])
+    m = float(mode)
     s = np.linspace(lo, hi, n)
     r = np.zeros_like(s)
     for side in (-1.0, 1.0):
@@ -227,11 +227,11 @@ def profile_log_integral(points, bounds, n: int = 4001) -> float:
 
 def profile_evidence_shift(points, centre: float, sd: float, bounds) -> float:
     """ln Z_profile - ln Z_Laplace of a switch whose profile likelihood is measured at ``points`` [(s, D)]
-    (``profile_log_integral``): the Laplace evidence integrates the profile as the Gaussian of the switch's
-    marginal (``centre``, ``sd``; its Schur complement, det A = det A_bb I_s) over ``bounds``; the measured
+    (``profile_log_integral``, about the mode ``centre``): the Laplace evidence integrates the profile as the
+    Gaussian of the switch's marginal (``centre``, ``sd``; its Schur complement, det A = det A_bb I_s) over ``bounds``; the measured
     profile replaces that factor, the nuisance parameters' Gaussian kept (their precision taken as constant
     along the profile). 0 for a quadratic profile of that width."""
     lo, hi = float(bounds[0]), float(bounds[1])
     gauss = math.log(math.sqrt(2.0 * math.pi) * sd
                      * max(stats.norm.cdf((hi - centre) / sd) - stats.norm.cdf((lo - centre) / sd), 1e-300))
-    return profile_log_integral(points, bounds) - gauss
+    return profile_log_integral(points, centre, bounds) - gauss
