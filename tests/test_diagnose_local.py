@@ -578,7 +578,7 @@ def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian
     sd 0.025) gets the exact 2 ln BF of its profile, lambda + 2 ln((1 / W) int exp(-D / 2) ds), from the
     profile's points and the likelihood ratio at 0; the Laplace value misses it by 2 ln of the width ratio.
     A quadratic profile of the Laplace width leaves the Laplace value, and a mode on the switch's lower bound
-    keeps it."""
+    keeps it, as does one at the range's end."""
     from types import SimpleNamespace
     from torchslide.bayes import Prior, Uniform
     from torchslide.diagnose import local_path as lp
@@ -604,8 +604,9 @@ def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian
     assert profile_log_integral(pts + [[m + 1e-3, -0.3]], m, (0.0, W)) == pytest.approx(
         profile_log_integral(pts, m, (0.0, W)), abs=1e-3)
     # a fit whose switch sits at 0 (its lower bound) keeps the Laplace value
-    cf0 = SimpleNamespace(**{**vars(cf), "fit": SimpleNamespace(**{**vars(fit), "x": np.array([0.25, 0.0])})})
-    assert lp.profile_two_ln_bf(cf0, {"points": pts}) == laplace
+    for edge in (0.0, W):     # ... and so does one at the range's end
+        cf0 = SimpleNamespace(**{**vars(cf), "fit": SimpleNamespace(**{**vars(fit), "x": np.array([0.25, edge])})})
+        assert lp.profile_two_ln_bf(cf0, {"points": pts}) == laplace
 
 
 def test_the_baseline_gets_as_many_grid_error_rounds_as_the_candidates():

@@ -203,11 +203,12 @@ def detectable_switch(J: np.ndarray, switch: int, threshold: float = 6.0) -> flo
 
 def profile_log_integral(points, mode: float, bounds, n: int = 4001) -> float:
     """ln of the integral over ``bounds`` (lo, hi) of exp(-D(s) / 2), the profile likelihood of a switch s
-    relative to its ``mode``: D (the 2 ln drop from the mode, negative values, a point within the fit's
-    tolerance above it, taken as 0) known at ``points`` [(s, D)]; sqrt(D) is interpolated linearly in s between the points of each side of the mode (a running
-    maximum outwards: the drop cannot fall again), continued past the outermost one along the secant from
-    the mode (a Gaussian tail as wide as that point says), on ``n`` points (trapezoid rule). Exact for a
-    quadratic profile (a Gaussian, even one of different widths on the two sides)."""
+    relative to its ``mode``: D (the 2 ln drop from the mode; a negative one, a point within the fit's
+    tolerance above it, taken as 0) known at ``points`` [(s, D)]; sqrt(D) is interpolated linearly in s
+    between the points of each side of the mode (a running maximum outwards: the drop cannot fall again),
+    continued past the outermost one along the secant from the mode (a Gaussian tail as wide as that point
+    says), on ``n`` points (trapezoid rule). Exact for a quadratic profile, even one of different widths on
+    the two sides."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     lo, hi = float(bounds[0]), float(bounds[1])
     m = float(mode)
@@ -228,9 +229,9 @@ def profile_log_integral(points, mode: float, bounds, n: int = 4001) -> float:
 def profile_evidence_shift(points, centre: float, sd: float, bounds) -> float:
     """ln Z_profile - ln Z_Laplace of a switch whose profile likelihood is measured at ``points`` [(s, D)]
     (``profile_log_integral``, about the mode ``centre``): the Laplace evidence integrates the profile as the
-    Gaussian of the switch's marginal (``centre``, ``sd``; its Schur complement, det A = det A_bb I_s) over ``bounds``; the measured
-    profile replaces that factor, the nuisance parameters' Gaussian kept (their precision taken as constant
-    along the profile). 0 for a quadratic profile of that width."""
+    Gaussian of the switch's marginal (``centre``, ``sd``: 1 / sd^2 is its Schur complement, det A = det A_bb
+    / sd^2) over ``bounds``; the measured profile replaces that factor, the nuisance parameters' Gaussian
+    kept (their precision taken as constant along the profile). 0 for a quadratic profile of that width."""
     lo, hi = float(bounds[0]), float(bounds[1])
     gauss = math.log(math.sqrt(2.0 * math.pi) * sd
                      * max(stats.norm.cdf((hi - centre) / sd) - stats.norm.cdf((lo - centre) / sd), 1e-300))

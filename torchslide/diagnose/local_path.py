@@ -41,7 +41,7 @@ from ..active import maximin_lhs
 from ..calibration import CalibrationResult
 from .candidates import CANDIDATES
 from .evaluator import stack_values
-from .local import LocalFit, fit
+from .local import LocalFit, fit, profile_evidence_shift
 from .lockstep import Lockstep
 from .refit import candidate_evaluator
 from .verify import hdi_interval
@@ -335,12 +335,12 @@ def profile_two_ln_bf(cf: CandidateFit, p90: dict) -> float:
     value, the likelihood ratio 2 ln LR (the baseline is the profile there). The Laplace Gaussian of a
     switch is set by finite differences at the mode; where the likelihood is not quadratic in the switch
     (mu(I): sharper at its mode than the drop to 0 says) it misstates the Occam factor, which the profile
-    measures. A mode on the switch's lower bound keeps the Laplace value."""
-    from .local import profile_evidence_shift
+    measures. A mode on a bound of the switch's range keeps the Laplace value (its Gaussian is centred
+    beyond the bound there)."""
     cd = CANDIDATES[cf.name]
     i = list(cf.evaluator.prior.names).index(cd.param)
     lo, hi = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
-    if cf.fit.x[i] <= lo + 1e-9 * (hi - lo):
+    if not lo + 1e-9 * (hi - lo) < cf.fit.x[i] < hi - 1e-9 * (hi - lo):
         return cf.two_ln_bf
     pts = [tuple(p) for p in p90["points"]]
     if cf.lr > 0 and all(v > lo for v, _ in pts):
