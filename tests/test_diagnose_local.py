@@ -597,6 +597,9 @@ def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian
     pts = [[v, D(v)] for v in (m, m - 0.041, m + 0.041, m - 0.08, m + 0.16)]
     assert lp.profile_two_ln_bf(cf, {"points": pts}) == pytest.approx(exact, abs=1e-3)
     assert exact - laplace == pytest.approx(2 * math.log(0.075 / 0.025), abs=0.05)
+    # the likelihood ratio is the profile's point at 0: a steeper drop there narrows the lower side
+    steep = SimpleNamespace(**{**vars(cf), "lr": 4 * lam})
+    assert lp.profile_two_ln_bf(steep, {"points": pts}) < exact - 0.3
     # a quadratic profile of the Laplace Gaussian's own width: nothing to correct
     q = [[v, ((v - m) / sd_lap) ** 2] for v in (m, m - 0.041, m + 0.041)]
     assert profile_evidence_shift(q, m, sd_lap, (0.0, W)) == pytest.approx(0.0, abs=1e-6)
