@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-solver-gpu bench-triton-profile bench-inference bench-executor clean
+.PHONY: venv demo diagnose-demo test test-all test-gpu bench bench-solver bench-solver-gpu bench-triton-profile bench-inference bench-executor bench-diagnose clean
 
 venv: $(STAMP)
 
@@ -39,7 +39,7 @@ test-all: $(STAMP)
 test-gpu: $(STAMP)
 	$(PY) -m pytest -q tests/test_gpu.py -m "" --timeout=1800 --durations=10
 
-bench: bench-solver bench-triton-profile bench-inference bench-executor
+bench: bench-solver bench-triton-profile bench-inference bench-executor bench-diagnose
 
 bench-solver: $(STAMP)
 	$(PY) -m bench.bench_solver --out bench/results/solver.json --batches 1,8,32 --repeats 3 --t-short 5 \
@@ -67,6 +67,11 @@ bench-inference: $(STAMP)
 # a 256-run sweep in this process and on a Dask LocalCluster of 1 and 2 workers (one torch thread each)
 bench-executor: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) -m bench.bench_executor --out bench/results/executor.json
+
+# one `torchslide diagnose` case as a user runs it (40 m, deposit map, 2 gauges): wall time and report.json's
+# time per stage, a null and an entrainment case, on 2 torch threads unless OMP_NUM_THREADS says otherwise
+bench-diagnose: $(STAMP)
+	OMP_NUM_THREADS=$${OMP_NUM_THREADS:-2} $(PY) -m bench.bench_diagnose --out bench/results/diagnose_case.json
 
 clean:
 	rm -rf $(VENV) demo_out diagnose_demo .pytest_cache
