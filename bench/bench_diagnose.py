@@ -58,6 +58,9 @@ def main(argv=None) -> None:
     ap.add_argument("--cases", default=DEFAULT_CASES, help="comma-separated SCENARIO:SEED:TERRAIN")
     ap.add_argument("--repeats", type=int, default=1)
     a = ap.parse_args(argv)
+    bad = [spec for spec in a.cases.split(",") if len(spec.split(":")) != 3]
+    if bad:
+        raise SystemExit(f"--cases {bad[0]!r}: each case must be SCENARIO:SEED:TERRAIN, e.g. null:0:fan")
     work = Path(tempfile.mkdtemp(prefix="bench_diagnose_"))
     rows = [run_case(spec, work, a.repeats) for spec in a.cases.split(",")]
     res = {"what": "torchslide diagnose on one exported harness case (40 m, deposit map, 2 gauges)",
