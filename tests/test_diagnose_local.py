@@ -664,23 +664,44 @@ def test_a_finer_grid_evaluator_runs_every_member_on_the_fine_terrain():
         merged_residuals([(problem(ev), x), (problem(fine), x)])
 
 
-@pytest.mark.parametrize("moved, bf_min, refitted", [(2.0, np.inf, True), (0.5, np.inf, False), (0.5, 6.0, True)])
-def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_finer_grid(moved, bf_min, refitted):
+def _shifted_row(moved: float, two_ln_bf: float) -> dict:
+    """A candidate's row whose grid-error round at its fit moved the mean error by ``moved`` sigma."""
+    return {"name": "entrainment", "param": "kappa", "two_ln_bf": two_ln_bf,
+            "grid_error_at_fit": [{"mean_shift_sigma": {"deposit": 0.1, "g1:h": moved}}]}
+
+
+@pytest.mark.parametrize("moved, two_ln_bf, bf_min, finer_shift, why", [
+    (2.0, 3.0, np.inf, 1.0, "moved by up to 2 sigma"), (0.5, 300.0, 6.0, 1.0, "reaches 2 ln BF >= 6"),
+    (0.5, 300.0, np.inf, 1.0, None), (0.5, 3.0, 6.0, 1.0, None), (2.0, 300.0, 6.0, 0.0, None)])
+def test_the_comparison_moves_to_the_finer_grid_when_the_grid_error_moves_or_a_candidate_is_supported(
+        moved, two_ln_bf, bf_min, finer_shift, why):
+    """pipeline._finer_grid_reason: a round that moved the grid's mean error at a fitted candidate by more
+    than finer_shift sigma, or a fitted candidate at 2 ln BF >= bf_min, sends the comparison to the finer
+    grid, with the reason; otherwise, or with finer_shift 0, it stays; an unfitted row never counts."""
+    from torchslide.diagnose import Budgets, pipeline
+
+    bud = Budgets(finer_shift=finer_shift)
+    rows = [_shifted_row(moved, two_ln_bf)]
+    got = pipeline._finer_grid_reason(rows, {"entrainment": None}, bud, bf_min)
+    assert (got is None) == (why is None) and (why is None or why in got)
+    assert pipeline._finer_grid_reason(rows, {}, bud, bf_min) is None
+
+
+def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_finer_grid():
     """pipeline._finer_grid_stage: when a round moved the grid's mean error at a profile_top candidate's fit
-    by more than finer_shift sigma, or a candidate reaches bf_min (entrainment here: 2 ln BF in the hundreds),
-    the baseline and that candidate are fitted again on the finer grid; the
-    row's 2 ln BF is then the finer grid's (the candidate's Laplace evidence against the baseline's, both
-    there, the release error kept, no grid error) and the inversion grid's is kept beside it; below the
-    threshold nothing changes."""
+    by more than finer_shift sigma (the test above: or a candidate reaches bf_min), the baseline and that
+    candidate are fitted again on the finer grid; the row's 2 ln BF is then the finer grid's (the
+    candidate's Laplace evidence against the baseline's, both there, the release error kept, no grid
+    error) and the inversion grid's is kept beside it; the profile is then taken on the finer grid."""
     from torchslide.diagnose import Budgets, pipeline
     from torchslide.diagnose.local_path import fit_model
     from torchslide.diagnose.screen import ScreenResult
 
+    moved, bf_min = 2.0, np.inf
     bud = Budgets(model_error_runs=3, profile_top=1, candidate_lhs=0, local_max_iter=40, n_posterior_samples_after=4)
     ev, me0, ev_me, f0, fits = _entrainment_fit_with_grid_error(bud)
     cf = fits["entrainment"]
-    rows = [{"name": "entrainment", "param": "kappa", "two_ln_bf": cf.two_ln_bf, "n_runs": cf.n_runs,
-             "grid_error_at_fit": [{"mean_shift_sigma": {"deposit": 0.1, "g1:h": moved}}]}]
+    rows = [{**_shifted_row(moved, cf.two_ln_bf), "n_runs": cf.n_runs}]
     cal = pipeline.laplace_result(f0, ["mu", "xi"], ev.prior.bounds.numpy())
     base = pipeline._Baseline(cal, pipeline.posterior_predictive(ev_me, cal.samples[:4]), pipeline._laplace_ver(f0))
     pipeline._assess(ev_me, base, pipeline.Thresholds(), bud)
@@ -688,9 +709,6 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
                        ranking=["entrainment"])
     out, fine = pipeline._finer_grid_stage(ev_me, rows, fits, {}, base, f0, scr, bud, log=lambda s: None,
                                            before={"entrainment": cf.two_ln_bf}, bf_min=bf_min)
-    if not refitted:
-        assert out is None and fine is None and fits["entrainment"] is cf and "finer_grid" not in rows[0]
-        return
     new = fits["entrainment"]
     assert new.evaluator.finer_grid and new.evaluator.model_error.release_sd == 0.05
     assert np.allclose(new.evaluator.model_error.grid_covariance, 0.0)
@@ -703,7 +721,7 @@ def test_candidates_whose_grid_error_moves_beyond_the_noise_are_compared_on_the_
     assert new.two_ln_bf == pytest.approx(2 * (new.fit.log_evidence - f0_fine.log_evidence), abs=1e-6)
     assert out["candidates"] == ["entrainment"] and out["baseline_log_evidence"] == pytest.approx(f0_fine.log_evidence)
     assert out["baseline_converged"] == f0_fine.converged and out["baseline_message"] == f0_fine.message
-    assert ("moved by up to" in out["why"]) == (moved > 1.0)
+    assert "moved by up to 2 sigma" in out["why"]
     assert fine[0].finer_grid and fine[1] is not f0 and fine[2].source.endswith("finer grid (Laplace)")
     # profiled on the finer grid: the profile holds the switch in the candidate's own (finer) likelihood
     pipeline._local_profiles(ev_me, rows, fits, {}, base, f0, scr, bud, log=lambda s: None, fine=fine)

@@ -109,15 +109,17 @@ def test_the_dod_is_an_elevation_change_observation_of_its_surveyed_cells(msh):
 
 def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
     """The example's calibrate.toml (impact and deposit areas and the DoD as an elevation_change map) runs
-    through calibrate, predict and sweep on a small budget: the map's 224 values are in runs.csv, the
-    best run's fit reports the map as a whole, predict reports the share of its values inside their
-    intervals."""
+    through calibrate, predict and sweep on a small budget and the emulator's path (the fit on the solver
+    that "auto" chooses for a sharp posterior is tested in test_calibrate_cli): the map's 224 values are in
+    runs.csv, the best run's fit reports the map as a whole, predict reports the share of its values
+    inside their intervals."""
     import json
     import re
 
     cfg = (msh / "calibrate.toml").read_text().replace("t_end = 300.0", "t_end = 60.0")
     for k, v in {"n_initial": "4", "n_total": "6", "batch_size": "2"}.items():
         cfg = re.sub(rf"^{k} = .*$", f"{k} = {v}", cfg, flags=re.M)
+    cfg = cfg.replace("[calibration]\n", '[calibration]\ninference = "emulator"\n')
     (msh / "small.toml").write_text(cfg)
     cal, pred, sw = tmp_path / "cal", tmp_path / "pred", tmp_path / "sweep"
     assert main(["calibrate", str(msh / "small.toml"), "--out", str(cal), "--quiet"]) == 0
@@ -126,6 +128,7 @@ def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
     post = json.loads((cal / "posterior.json").read_text())
     dod = next(o for o in post["best_run_fit"]["observations"] if o["name"] == "dod")
     assert dod["n"] == 224 and dod["rms_standardised_residual"] > 0
+    assert post["inference"]["path"] == "emulator"
     assert next(o for o in post["observations"] if o["name"] == "dod")["n"] == 224
     assert main(["predict", str(msh / "small.toml"), "--calibration", str(cal), "--out", str(pred), "--n", "3",
                  "--quiet"]) in (0, 1)

@@ -723,6 +723,21 @@ def _largest_shift(row: dict) -> float:
     return max((v for h in row.get("grid_error_at_fit") or () for v in h["mean_shift_sigma"].values()), default=0.0)
 
 
+def _finer_grid_reason(rows: list, fits: dict, bud: Budgets, bf_min: float) -> str | None:
+    """Why the comparison moves to the finer grid (_finer_grid_stage), or None where it stays: a round at a
+    fitted candidate moved the grid's mean error by more than ``finer_shift`` sigma, or a fitted candidate
+    reaches 2 ln BF >= ``bf_min``; never with ``finer_shift`` <= 0."""
+    rounds = [r for r in rows if r["name"] in fits and r.get("grid_error_at_fit")]
+    shift = max((_largest_shift(r) for r in rounds), default=0.0)
+    if bud.finer_shift <= 0:
+        return None
+    if shift > bud.finer_shift:
+        return f"the grid's error moved by up to {shift:.2g} sigma at a candidate's fit (> {bud.finer_shift:g})"
+    if max((r["two_ln_bf"] for r in rows if r["name"] in fits), default=-np.inf) >= bf_min:
+        return f"a candidate reaches 2 ln BF >= {bf_min:g}"
+    return None
+
+
 def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Baseline, f0, scr: ScreenResult,
                       bud: Budgets, log, before: dict, bf_min: float = np.inf) -> tuple[dict | None, tuple | None]:
     """Where the grid's error depends on the parameters more than the rounds can follow (a round at a
@@ -736,10 +751,8 @@ def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Ba
     grid, their Laplace evidence replacing the inversion grid's in the rows (``finer_grid`` in each row keeps
     the inversion grid's 2 ln BF and switch). Returns (the stage's record, (the finer grid's evaluator, the
     baseline's LocalFit and _Baseline there)), or (None, None) when neither holds."""
-    rounds = [r for r in rows if r["name"] in fits and r.get("grid_error_at_fit")]
-    moved_far = max((_largest_shift(r) for r in rounds), default=0.0) > bud.finer_shift
-    supported = max((r["two_ln_bf"] for r in rows if r["name"] in fits), default=-np.inf) >= bf_min
-    if bud.finer_shift <= 0 or not (moved_far or supported):
+    why = _finer_grid_reason(rows, fits, bud, bf_min)
+    if why is None:
         return None, None
     # every candidate the inversion grid supported before or after its rounds (the rounds can sink the right
     # one), or that the screening finds the data respond to (its fit there may have stopped short of its mode)
@@ -748,8 +761,6 @@ def _finer_grid_stage(evaluator, rows: list, fits: dict, refits: dict, base: _Ba
     moved = {r["name"]: _largest_shift(r) for r in ranked}
     fine_ev = evaluator._copy(finer_grid=True, model_error=_release_only(evaluator.model_error),
                               fixed=dict(evaluator.fixed))
-    why = (f"the grid's error moved by up to {max(_largest_shift(r) for r in rounds):.2g} sigma at a candidate's "
-           f"fit (> {bud.finer_shift:g})" if moved_far else f"a candidate reaches 2 ln BF >= {bf_min:g}")
     log(f"[diagnose] {why}: the baseline and {', '.join(moved)} are fitted again on the finer grid")
     F0, n0 = fit_model(fine_ev, n_lhs=0, extra_starts=f0.x[None], rel_step=bud.local_rel_step,
                        max_iter=bud.local_max_iter, log=log)
