@@ -54,7 +54,7 @@ NUM_WARPS = 4
 
 INTERPRETED_BLOCK = 2048
 """Cells per program under Triton's interpreter (the tests on the CPU), whose cost is mostly per program:
-2048 ran the bitwise case of tests/test_solver_triton.py (ten members) in 31-35 s against 50-55 s at 1024,
+2048 ran the bitwise case of tests/test_solver_triton.py (eight members) in 31-35 s against 50-55 s at 1024,
 the two-member cases alike. The same arithmetic per cell as any BLOCK; only the per-block partial sums
 (mass, kinetic energy, outflow) add in another order."""
 
