@@ -130,10 +130,42 @@ SETTINGS = {"flushed_float32": {"TORCHSLIDE_FLUSH_SUBNORMALS": "1"}}
 """Environment of the cases that need one (read when torchslide.solver.fused_triton is imported)."""
 
 
+def _patch_language_once() -> None:
+    """Triton's interpreter patches triton.language again at every call of a @triton.jit helper inside a
+    kernel (a third of an interpreted step's time); the kernel's launch has patched it already, so a call
+    from the kernel's own module skips it (the same patched functions either way). Where the interpreter's
+    internals differ, it is left as it is."""
+    from triton.runtime import interpreter
+
+    if not (callable(getattr(interpreter, "_patch_lang", None)) and hasattr(interpreter, "GridExecutor")):
+        return
+    patch_lang, launch = interpreter._patch_lang, interpreter.GridExecutor.__call__
+    state = {"launch": False, "patched": None}     # patched: the globals of the running kernel, once patched
+
+    def patch_once(fn):
+        if state["patched"] is fn.__globals__:
+            return None                            # a helper's call: the scope is not used
+        scope = patch_lang(fn)
+        if state["launch"] and state["patched"] is None:
+            state["patched"] = fn.__globals__
+        return scope
+
+    def run(self, *args, **kwargs):
+        state.update(launch=True, patched=None)
+        try:
+            return launch(self, *args, **kwargs)
+        finally:
+            state.update(launch=False, patched=None)
+
+    interpreter._patch_lang, interpreter.GridExecutor.__call__ = patch_once, run
+
+
 def main(name: str) -> None:
     if os.environ.get("TRITON_INTERPRET") != "1":
         raise SystemExit("run with TRITON_INTERPRET=1")
     from torchslide.solver import fused_triton
+
+    _patch_language_once()
 
     calls = []
     make = fused_triton.triton_step

@@ -54,8 +54,8 @@ NUM_WARPS = 4
 
 INTERPRETED_BLOCK = 2048
 """Cells per program under Triton's interpreter (the tests on the CPU), whose cost is mostly per program:
-2048 ran the bitwise case of tests/test_solver_triton.py (eight members) in 31-35 s against 50-55 s at 1024,
-the two-member cases alike. The same arithmetic per cell as any BLOCK; only the per-block partial sums
+2048 ran the bitwise case of tests/test_solver_triton.py (eight members) in 19-21 s against 34-36 s at 1024,
+the two-member nodata case alike (23-31 s, the spread of a loaded machine). The same arithmetic per cell as any BLOCK; only the per-block partial sums
 (mass, kinetic energy, outflow) add in another order."""
 
 FAST_FLOAT32 = os.environ.get("TORCHSLIDE_EXACT_FLOAT32", "0") != "1"
