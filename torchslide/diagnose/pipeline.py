@@ -727,10 +727,9 @@ def _finer_grid_reason(rows: list, fits: dict, bud: Budgets, bf_min: float) -> s
     """Why the comparison moves to the finer grid (_finer_grid_stage), or None where it stays: a round at a
     fitted candidate moved the grid's mean error by more than ``finer_shift`` sigma, or a fitted candidate
     reaches 2 ln BF >= ``bf_min``; never with ``finer_shift`` <= 0."""
-    rounds = [r for r in rows if r["name"] in fits and r.get("grid_error_at_fit")]
-    shift = max((_largest_shift(r) for r in rounds), default=0.0)
     if bud.finer_shift <= 0:
         return None
+    shift = max((_largest_shift(r) for r in rows if r["name"] in fits), default=0.0)
     if shift > bud.finer_shift:
         return f"the grid's error moved by up to {shift:.2g} sigma at a candidate's fit (> {bud.finer_shift:g})"
     if max((r["two_ln_bf"] for r in rows if r["name"] in fits), default=-np.inf) >= bf_min:

@@ -55,8 +55,8 @@ NUM_WARPS = 4
 INTERPRETED_BLOCK = 2048
 """Cells per program under Triton's interpreter (the tests on the CPU), whose cost is mostly per program:
 2048 ran the bitwise case of tests/test_solver_triton.py (eight members) in 19-21 s against 34-36 s at 1024,
-the two-member nodata case alike (23-31 s, the spread of a loaded machine). The same arithmetic per cell as any BLOCK; only the per-block partial sums
-(mass, kinetic energy, outflow) add in another order."""
+the two-member nodata case alike (23-31 s, the spread of a loaded machine). The same arithmetic per cell
+as any BLOCK; only the per-block partial sums (mass, kinetic energy, outflow) add in another order."""
 
 FAST_FLOAT32 = os.environ.get("TORCHSLIDE_EXACT_FLOAT32", "0") != "1"
 """float32 on the fast paths: Triton's approximate division (2 ulp) and square root and fused multiply-add
