@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from experiments.hidden_physics import export_case
+from bench import write_result
 from torchslide.cli import main as cli
 
 DEFAULT_CASES = "null:0:fan,entrainment:0:narrow"
@@ -66,9 +67,7 @@ def main(argv=None) -> None:
     res = {"what": "torchslide diagnose on one exported harness case (40 m, deposit map, 2 gauges)",
            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(), "repeats": a.repeats,
            "cases": rows, "slowest_wall_s": max(r["wall_s"] for r in rows)}
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=2))
-    print(json.dumps(res, indent=2))
+    write_result(a.out, res)
     shutil.rmtree(work, ignore_errors=True)
 
 

@@ -11,7 +11,6 @@ as a user pays it) and the speed-up of 2 workers over 1 and over the local run.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import statistics
@@ -21,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import write_result
 from torchslide.cli import main as cli
 
 
@@ -60,9 +60,7 @@ def main(argv=None) -> None:
            "wall_s": wall, "speedup_2_workers_over_1": wall["dask, 1 worker"] / wall["dask, 2 workers"],
            "speedup_2_workers_over_local": wall["local"] / wall["dask, 2 workers"],
            "results_identical": identical, "repeats": a.repeats}
-    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps(res, indent=2))
-    print(json.dumps(res, indent=2))
+    write_result(a.out, res)
     shutil.rmtree(work, ignore_errors=True)
 
 

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import write_result
+
 CHANGED = 0.1   # m: a cell whose surface moved by more is in a model's footprint
 
 
@@ -69,9 +71,7 @@ def main(argv=None) -> int:
     out = {"torchslide": {"mu": a.mu, "xi": a.xi, **compare(dod, r.elevation_change[0].numpy(), source_top, dem.cellsize)},
            "MassWastingRunout": {"parameters": "landlab tutorial's (bench.mwr_run)", **compare(dod, mwr, source_top, dem.cellsize)},
            "survey": compare(dod, survey, source_top, dem.cellsize)}
-    a.out.parent.mkdir(parents=True, exist_ok=True)
-    a.out.write_text(json.dumps(out, indent=1))
-    print(json.dumps(out, indent=1))
+    write_result(a.out, out, indent=1)
     return 0
 
 
