@@ -498,6 +498,12 @@ def test_success_against_detectability():
     c["diagnosis"]["screening"]["candidates"]["curvature"]["detectable_switch"]["per_unit"] = 8.0
     t = math.sqrt(40.0 + 2 * math.log(8.0 / math.sqrt(2 * math.pi)))
     assert case_row(c)["power_switch"] == pytest.approx((t + 0.841621) / 8.0, rel=1e-6)
+    # the 2 ln LR the screening predicts at the true switch, (a s)^2, against the true term's fitted one
+    assert (case_row(c)["lr_predicted"], case_row(c)["lr_found"]) == (pytest.approx(64.0), None)
+    c["diagnosis"]["candidates"] = [{"name": "mu_i", "likelihood_ratio": 90.0},
+                                    {"name": "curvature", "likelihood_ratio": 16.0}]
+    assert case_row(c)["lr_found"] == 16.0
+    assert case_row(_case("null", "none"))["lr_predicted"] is None
     assert detectability_success(_case("null", "none")) and not detectability_success(_case("null", "mu_i"))
 
 
@@ -541,7 +547,10 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
             for r, p in zip(mu_i, (0.15, 0.3, 0.18, 0.1, 0.5))]
     assert len(rows) == 5 and [r["strict_success"] for r in rows] == [True] * 4 + [False]
     sec = "\n".join(make_page._run_section("m", {**s["full"], "cases": rows}, tmp_path, tmp_path))
-    assert "| mu_i | 4/5 | mu_i 4, none 1 |" in sec and "| 4/5 | 3/3 |" in sec     # seeds 0, 2, 3 above it
+    assert "| mu_i | 4/5 | mu_i 4, none 1 |" in sec and "| 4/5 | 3/3 | - |" in sec     # seeds 0, 2, 3 above it
+    lr = [{**r, "lr_predicted": 16.0, "lr_found": f} for r, f in zip(rows, (4.0, 8.0, 16.0, 32.0, None))]
+    sec = "\n".join(make_page._run_section("m", {**s["full"], "cases": lr}, tmp_path, tmp_path))
+    assert "| 3/3 | 0.75 (0.25-2.00) |" in sec                   # the median of the four seeds with both
     assert "| 3/3 | - | - | partial run: 1 scenario, seeds 0-2 |" in page
     assert "--strengths 0.5 --seed-list 0 --scenarios entrainment --out DIR" in page and (tmp_path / "page" / "figures" / "detection_vs_strength_full.png").exists()
     # the ladder: per term and strength, named / another term / nothing missing; the null seeds' false naming

@@ -235,6 +235,12 @@ def _overview(runs: dict) -> list[str]:
     return L
 
 
+def _lr_ratio(rows: list[dict]) -> str:
+    """The median over ``rows`` of the fitted 2 ln LR over the predicted one, with its range; '-' where none has both."""
+    q = [r["lr_found"] / r["lr_predicted"] for r in rows if r.get("lr_found") is not None and r.get("lr_predicted")]
+    return f"{np.median(q):.2f} ({min(q):.2f}-{max(q):.2f})" if q else "-"
+
+
 def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
     rows = evaluation_rows(s)
     strengths = sorted({r["strength"] for r in s["cases"]})
@@ -243,7 +249,8 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
          + ", ".join(f"{k} {v:.3g}" for k, v in s["thresholds"].items() if isinstance(v, (int, float))) + ".", ""]
     if rows:
         L += ["| scenario | strict successes | verdicts (count) | true switch / detectable from (seeds) | "
-              "successes against detectability | strict successes above the 4-in-5 switch |", "|---|---|---|---|---|---|"]
+              "successes against detectability | strict successes above the 4-in-5 switch | 2 ln LR found / predicted "
+              "(median) |", "|---|---|---|---|---|---|---|"]
         for sc, (k, n) in scenario_counts(rows).items():
             rs = [r for r in rows if r["scenario"] == sc]
             found = Counter(r["found"] for r in rs)
@@ -253,12 +260,15 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
             above = [r for r in rs if r.get("power_switch") is not None and r["true_switch"] >= r["power_switch"]]
             pw = f"{sum(bool(r['strict_success']) for r in above)}/{len(above)}" if above else "-"
             L.append(f"| {sc} | {k}/{n} | " + ", ".join(f"{f} {c}" for f, c in sorted(found.items()))
-                     + f" | {det} | {ds}/{n} | {pw} |")
+                     + f" | {det} | {ds}/{n} | {pw} | {_lr_ratio(rs)} |")
         L += ["", "'Against detectability': below the smallest switch the recordings can reveal (the screening's "
               "detectable switch at the calibrated baseline), a case succeeds when no other library term is named; "
               "above it, only a strict success counts (summary.py). There a term reaches bf_min in half the noise "
               "draws; the last column counts the seeds whose true switch is at least the one it reaches in four of "
-              "five (summary.power_switch; '-' where none is, or the run's summary predates it).", ""]
+              "five (summary.power_switch; '-' where none is, or the run's summary predates it). Both rest on the "
+              "screening's prediction of the term's 2 ln likelihood ratio at the true switch; the last column is the "
+              "median over the seeds of the fitted one over it (summary.lr_predicted_and_found): below 1, the "
+              "recordings reveal the term less than the report's 'detectable from' promises.", ""]
         f = figdir / f"confusion_{name}.png"
         _plot_confusion(rows, f, f"{name}: strength 1, seeds 0-{N_SEEDS - 1}")
         L += ["", f"![confusion matrix, {name}]({f.relative_to(out).as_posix()})", ""]

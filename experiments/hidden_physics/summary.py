@@ -18,7 +18,8 @@ smallest switch these recordings can reveal (the screening's detectable switch a
 baseline, torchslide.diagnose.screen.detectable_switch) counts as a success when no *other* library term
 is named ("nothing missing" or "unexplained" are honest there); above it, only a strict success counts.
 At that switch a term reaches bf_min in half the noise draws; ``power_switch`` is the one where it does in
-four of five (screen.switch_threshold), the strength above which the 4-of-5 target applies.
+four of five (screen.switch_threshold), the strength above which the 4-of-5 target applies. Both rest on the
+screening's linearised prediction; ``lr_predicted`` / ``lr_found`` measure it against the fits.
 """
 from __future__ import annotations
 
@@ -102,6 +103,23 @@ def power_switch(case: dict) -> float | None:
     return float(switch_threshold(det["per_unit"], CANDIDATES[term].prior, j["thresholds"]["bf_min"])["switch_power"])
 
 
+def lr_predicted_and_found(case: dict) -> tuple[float | None, float | None]:
+    """(the 2 ln likelihood ratio the screening predicts for the hidden library term at its true switch, the one its
+    fit found): (a s)^2, a the whitened effect per unit switch after re-tuning the baseline
+    (screen.detectable_switch), s the true switch, against the fitted candidate's 2 ln (L_c / L_0). Their ratio
+    measures the power the report's 'detectable from' promises; (None, None) where there is no true switch,
+    either is None where it was not recorded."""
+    truth = detectability(case)[0]
+    if truth is None:
+        return None, None
+    term = case["truth"]["term"]
+    j = case["diagnosis"]
+    det = ((j.get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch") or {}
+    fit = next((c for c in j.get("candidates") or () if c.get("name") == term), {})
+    a, lr = det.get("per_unit"), fit.get("likelihood_ratio")
+    return (None if a is None else float(a * truth) ** 2), (None if lr is None else float(lr))
+
+
 def detectability_success(case: dict) -> bool:
     """Success measured against detectability (module doc)."""
     truth, det = detectability(case)
@@ -124,6 +142,7 @@ def case_row(case: dict) -> dict:
             "inference": (d.get("inference") or {}).get("path", "emulator"), "wall_s": case.get("wall_s"),
             "true_switch": detectability(case)[0], "detectable_switch": detectability(case)[1],
             "power_switch": power_switch(case),
+            "lr_predicted": lr_predicted_and_found(case)[0], "lr_found": lr_predicted_and_found(case)[1],
             "detectability_success": detectability_success(case)}
 
 
