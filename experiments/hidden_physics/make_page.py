@@ -264,7 +264,7 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
         L += ["", "'Against detectability': below the smallest switch the recordings can reveal (the screening's "
               "detectable switch at the calibrated baseline), a case succeeds when no other library term is named; "
               "above it, only a strict success counts (summary.py). There a term reaches bf_min in half the noise "
-              "draws; the last column counts the seeds whose true switch is at least the one it reaches in four of "
+              "draws; the sixth column counts the seeds whose true switch is at least the one it reaches in four of "
               "five (summary.power_switch; '-' where none is, or the run's summary predates it). Both rest on the "
               "screening's prediction of the term's 2 ln likelihood ratio at the true switch; the last column is the "
               "median over the seeds of the fitted one over it (summary.lr_predicted_and_found): below 1, the "

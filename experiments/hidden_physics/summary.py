@@ -133,6 +133,7 @@ def case_row(case: dict) -> dict:
     j = case["diagnosis"]
     d = j.get("decision") or {}
     after = (j.get("fit_after") or {}).get("misfit")
+    lr_predicted, lr_found = lr_predicted_and_found(case)
     return {"scenario": case["scenario"], "seed": int(case["seed"]), "strength": float(case.get("strength", 1.0)),
             "true": true_label(case), "found": found_label(case), "verdict": j["verdict"],
             "strict_success": strict_success(case), "two_ln_bf": d.get("two_ln_bf"),
@@ -142,7 +143,7 @@ def case_row(case: dict) -> dict:
             "inference": (d.get("inference") or {}).get("path", "emulator"), "wall_s": case.get("wall_s"),
             "true_switch": detectability(case)[0], "detectable_switch": detectability(case)[1],
             "power_switch": power_switch(case),
-            "lr_predicted": lr_predicted_and_found(case)[0], "lr_found": lr_predicted_and_found(case)[1],
+            "lr_predicted": lr_predicted, "lr_found": lr_found,
             "detectability_success": detectability_success(case)}
 
 
