@@ -498,12 +498,18 @@ def test_success_against_detectability():
     c["diagnosis"]["screening"]["candidates"]["curvature"]["detectable_switch"]["per_unit"] = 8.0
     t = math.sqrt(40.0 + 2 * math.log(8.0 / math.sqrt(2 * math.pi)))
     assert case_row(c)["power_switch"] == pytest.approx((t + 0.841621) / 8.0, rel=1e-6)
-    # the 2 ln LR the screening predicts at the true switch, (a s)^2, against the true term's fitted one
+    # the 2 ln LR the linearised screening predicts at the true switch, (a s)^2, against the true term's fitted one
     assert (case_row(c)["lr_predicted"], case_row(c)["lr_found"]) == (pytest.approx(64.0), None)
     c["diagnosis"]["candidates"] = [{"name": "mu_i", "likelihood_ratio": 90.0},
                                     {"name": "curvature", "likelihood_ratio": 16.0}]
     assert case_row(c)["lr_found"] == 16.0
     assert case_row(_case("null", "none"))["lr_predicted"] is None
+    # measured on the solver (power.detectable_switch): its four-in-five switch as stored, and the 2 ln LR at the
+    # true switch from the power law through the measured points (the nearest one as reference)
+    c["diagnosis"]["screening"]["candidates"]["curvature"]["detectable_switch"].update(
+        switch_power=0.7, measured=[[0.5, 10.0], [0.7, 22.0]], exponent=2.5)
+    assert case_row(c)["power_switch"] == 0.7
+    assert case_row(c)["lr_predicted"] == pytest.approx(22.0 * (1.0 / 0.7) ** 2.5)
     assert detectability_success(_case("null", "none")) and not detectability_success(_case("null", "mu_i"))
 
 

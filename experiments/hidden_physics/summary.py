@@ -18,8 +18,8 @@ smallest switch these recordings can reveal (the screening's detectable switch a
 baseline, torchslide.diagnose.screen.detectable_switch) counts as a success when no *other* library term
 is named ("nothing missing" or "unexplained" are honest there); above it, only a strict success counts.
 At that switch a term reaches bf_min in half the noise draws; ``power_switch`` is the one where it does in
-four of five (screen.switch_threshold), the strength above which the 4-of-5 target applies. Both rest on the
-screening's linearised prediction; ``lr_predicted`` / ``lr_found`` measure it against the fits.
+four of five, the strength above which the 4-of-5 target applies. Both are measured on the solver
+(torchslide.diagnose.power); ``lr_predicted`` / ``lr_found`` compare the prediction with the fits.
 """
 from __future__ import annotations
 
@@ -87,37 +87,43 @@ def detectability(case: dict) -> tuple[float | None, float | None]:
     return (None if truth is None else float(truth)), (None if not det or det.get("switch") is None else float(det["switch"]))
 
 
+def _detectable(case: dict) -> dict:
+    """The screening's detectable-switch entry of a case's hidden library term ({} where there is none)."""
+    term = case["truth"]["term"]
+    return ((case["diagnosis"].get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch") or {}
+
+
 def power_switch(case: dict) -> float | None:
-    """The switch a case's recordings reveal in four noise draws of five (screen.switch_threshold from the screening's
-    whitened effect per unit switch, the case's prior range and bf_min); None where :func:`detectability` has no
-    true switch (null, patch, larger release)."""
+    """The switch a case's recordings reveal in four noise draws of five (power.detectable_switch's
+    ``switch_power``; from its whitened effect per unit switch, power.switch_threshold, where a case file has
+    only that); None where :func:`detectability` has no true switch (null, patch, larger release)."""
     from torchslide.diagnose.candidates import CANDIDATES
-    from torchslide.diagnose.screen import switch_threshold
+    from torchslide.diagnose.power import switch_threshold
     if detectability(case)[0] is None:
         return None
-    term = case["truth"]["term"]
-    j = case["diagnosis"]
-    det = ((j.get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
-    if not det or det.get("per_unit") is None:
+    det = _detectable(case)
+    if det.get("switch_power") is not None:
+        return float(det["switch_power"])
+    if det.get("per_unit") is None:
         return None
+    term, j = case["truth"]["term"], case["diagnosis"]
     return float(switch_threshold(det["per_unit"], CANDIDATES[term].prior, j["thresholds"]["bf_min"])["switch_power"])
 
 
 def lr_predicted_and_found(case: dict) -> tuple[float | None, float | None]:
-    """(the 2 ln likelihood ratio the screening predicts for the hidden library term at its true switch, the one its
-    fit found): (a s)^2, a the whitened effect per unit switch after re-tuning the baseline
-    (screen.detectable_switch), s the true switch, against the fitted candidate's 2 ln (L_c / L_0). Their ratio
-    measures the power the report's 'detectable from' promises; (None, None) where there is no true switch,
-    either is None where it was not recorded."""
+    """(the noise-free 2 ln likelihood ratio the screening gives the hidden library term at its true switch, the
+    one its fit found): power.lr_at (measured on the solver, or (a s)^2 in case files from the linearised
+    prediction), against the fitted candidate's 2 ln (L_c / L_0). Their ratio measures the power the report's
+    'detectable from' promises; (None, None) where there is no true switch, either is None where it was not
+    recorded."""
+    from torchslide.diagnose.power import lr_at
     truth = detectability(case)[0]
     if truth is None:
         return None, None
-    term = case["truth"]["term"]
-    j = case["diagnosis"]
-    det = ((j.get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch") or {}
-    fit = next((c for c in j.get("candidates") or () if c.get("name") == term), {})
-    a, lr = det.get("per_unit"), fit.get("likelihood_ratio")
-    return (None if a is None else float(a * truth) ** 2), (None if lr is None else float(lr))
+    det = _detectable(case)
+    fit = next((c for c in case["diagnosis"].get("candidates") or () if c.get("name") == case["truth"]["term"]), {})
+    lr = fit.get("likelihood_ratio")
+    return (None if det.get("per_unit") is None else lr_at(det, truth)), (None if lr is None else float(lr))
 
 
 def detectability_success(case: dict) -> bool:

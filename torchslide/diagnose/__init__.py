@@ -8,6 +8,7 @@
 * predictive: posterior samples and posterior-predictive runs
 * localise: standardised residuals, p-values, Getis-Ord map clusters (permutation + BH FDR), gauge windows
 * screen: one-batch finite-difference screening with the baseline directions projected out
+* power: the smallest switch of each candidate the recordings reveal, predicted and measured on the solver
 * local: least squares on the solver, Laplace evidence, switch information (the local path's maths)
 * local_path: the local path's models: baseline and candidate fits, path choice, likelihood ratio, profile
 * lockstep: several fits advanced together, their solver runs merged into one batched call per round

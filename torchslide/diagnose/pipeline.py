@@ -43,7 +43,8 @@ from .predictive import Predictive, posterior_mode, posterior_predictive, poster
 from .refit import calibrate_evaluator, candidate_evaluator, refit
 from .resolution import removed_by_resolution
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
-from .screen import ScreenResult, detectable_switch, screen
+from .power import detectable_switch
+from .screen import ScreenResult, screen
 from .local_path import (candidate_fit, choose_path, fit_candidates, fit_model, laplace_result, profile_ends,
                          profile_interval90, profile_two_ln_bf, refit_from)
 
@@ -378,9 +379,9 @@ def _assess(evaluator, base: _Baseline, th: Thresholds, bud: Budgets) -> None:
         base.resolution = removed_by_resolution(significant(raw.located), significant(base.loc.located))
 
 
-def _screen_stage(evaluator, base: _Baseline, candidates, th: Thresholds, log) -> ScreenResult:
-    """One-batch screening at the baseline's posterior mode, with each candidate's detectable switch."""
-    scr = screen(evaluator, posterior_mode(base.calibration), candidates)
+def _screen_stage(evaluator, x0: np.ndarray, candidates, th: Thresholds, log) -> ScreenResult:
+    """One-batch screening at the baseline's posterior mode x0 (p,), with each candidate's detectable switch."""
+    scr = screen(evaluator, x0, candidates)
     scr.detectable = detectable_switch(scr, evaluator, th.bf_min)
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
     unseen = [f"{c} (from {d['switch']:.3g}; prior up to {CANDIDATES[c].prior[1]:g})"
@@ -388,6 +389,17 @@ def _screen_stage(evaluator, base: _Baseline, candidates, th: Thresholds, log) -
     if unseen:
         log("[diagnose] beyond what these data can detect on this grid: " + ", ".join(unseen))
     return scr
+
+
+def baseline_screening(evaluator, candidates, budgets: Budgets, thresholds: Thresholds, log=print) -> ScreenResult:
+    """The local path's screening as :func:`diagnose` computes it (the baseline's pilot fit, the grid's error
+    rounds and refits, the screening at its mode with each candidate's detectable switch), without the
+    candidates' fits: what a saved diagnosis' detectable switches are measured again from."""
+    pilot = _pilot_stage(evaluator, budgets, None, log)
+    if pilot is None:
+        raise RuntimeError("the baseline cannot be fitted locally (see the log)")
+    evaluator, f0, _ = _local_baseline(evaluator, pilot, budgets, log)
+    return _screen_stage(evaluator, f0.x, candidates, thresholds, log)
 
 
 def _refit_stage(evaluator, top: list, bud: Budgets, workdir: Path, log) -> dict:
@@ -522,7 +534,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     fit_z = {b: i["Z_fit"] for b, i in base.loc.blocks.items() if i.get("Z_fit") is not None}
     lap("predictive_s")
     log(f"[diagnose] located {base.loc.n_located} mismatch(es); max |score| {base.loc.max_abs():.2f}")
-    scr = _screen_stage(evaluator, base, candidates, th, log)
+    scr = _screen_stage(evaluator, posterior_mode(base.calibration), candidates, th, log)
     lap("screen_s")
     top = scr.ranking[: bud.top_k]
     refits = _refit_stage(evaluator, top, bud, workdir, log)
@@ -859,7 +871,7 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     fit_z = {b: i["Z_fit"] for b, i in base.loc.blocks.items() if i.get("Z_fit") is not None}
     log(f"[diagnose] located {base.loc.n_located} mismatch(es); max |score| {base.loc.max_abs():.2f}")
     lap("predictive_s")
-    scr = _screen_stage(evaluator, base, candidates, th, log)
+    scr = _screen_stage(evaluator, posterior_mode(base.calibration), candidates, th, log)
     lap("screen_s")
     refits, cand_out, fits = {}, [], {}
     for c, cf in fit_candidates(evaluator, scr.ranking[: bud.top_k], f0, scr.linear_opt, bud, log).items():

@@ -250,15 +250,13 @@ def _screening_section(scr: dict) -> list[str]:
     from .candidates import CANDIDATES
     L = ["", "## Screening", "",
          "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
-         "smallest switch whose own effect (what re-tuning mu, xi cannot mimic, whitened by the likelihood's "
-         "covariance, the grid's error included) would reach the evidence threshold bf_min, linearised over the "
-         "screening's step and checked on the solver with the baseline re-tuned there (screen.detectable_switch). "
+         "smallest switch at which noise-free data of the candidate's model would give the baseline, refitted to "
+         "them, a 2 ln likelihood ratio reaching the evidence threshold bf_min (the likelihood's covariance, the "
+         "grid's error included), measured on the solver near that switch (torchslide/diagnose/power.py). "
          "Beyond the prior range: these data cannot name the term on "
          "this grid at any strength, so 'nothing missing' does not rule it out. Within it: a weaker term, or one "
          "the grid biases or another term mimics, can still be missed. At 'detectable from' a term reaches bf_min "
-         "in half the noise draws; 'found 4 in 5 from': in four of five. Both are linearised predictions: on the "
-         "project's blind tests the fits' 2 ln likelihood ratio was, in the median per term and terrain, 0.5 "
-         "(mu_i) to 3 (the threshold terms) times the predicted one (docs/diagnosis.md).", "",
+         "in half the noise draws; 'found 4 in 5 from': in four of five.", "",
          "| candidate | screening score | mimic by mu, xi | detectable from | found 4 in 5 from | prior range |",
          "|---|---|---|---|---|---|"]
     for c, v in scr.items():

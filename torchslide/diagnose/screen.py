@@ -25,7 +25,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import stats
 
 from .candidates import CANDIDATES
 from .evaluator import stack_values
@@ -42,7 +41,7 @@ class ScreenResult:
     linear_opt: dict = field(default_factory=dict)
     n_members: int = 0
     steps: dict = field(default_factory=dict)   # the switch step of every candidate's member
-    detectable: dict = field(default_factory=dict)  # detectable_switch() (set by the pipeline)
+    detectable: dict = field(default_factory=dict)  # power.detectable_switch() (set by the pipeline)
     failed: list = field(default_factory=list)
     jacobian: np.ndarray | None = None   # (k, p) whitened d y / d x of the baseline parameters at x0
     residual: np.ndarray | None = None   # (k,) whitened residual (d - y(x0)) / sigma
@@ -139,104 +138,3 @@ def _linear_opt(A: np.ndarray, Jc: np.ndarray, r: np.ndarray, names, base: dict,
     out = {n: float(np.clip(base[n] + sol[j], bounds[0, j], bounds[1, j])) for j, n in enumerate(names)}
     out[cd.param] = float(min(beta, cd.prior[1]))
     return out
-
-
-def detectable_switch(scr: ScreenResult, evaluator, bf_min: float, retune_steps: int = 3) -> dict:
-    """{candidate: smallest switch value these data could detect on this grid}.
-
-    The screening's sensitivities (baseline J_b = A sigma, candidate J_c = effect / step, raw units) are
-    whitened by the likelihood's own covariance (its Cholesky factor L when it has one: the grid's
-    approximation error is correlated, which the screening's diagonal sigmas ignore), and
-    a = |P L^-1 J_c| (P: the part re-tuning the baseline parameters cannot mimic) is the whitened size
-    of the term's own effect per unit switch. In the linear-Gaussian model with a uniform prior of
-    width W on the switch, the baseline parameters profiled out, a switch s gives
-
-        2 ln BF ~ s^2 a^2 - 2 ln(a W / sqrt(2 pi))        (Laplace; the second term is the Occam factor)
-
-    so the decision threshold ``bf_min`` is reached from s_det = sqrt(bf_min + 2 ln(a W / sqrt(2 pi))) / a
-    (an Occam term below 0, a prior narrower than the likelihood, is taken as 0: the fit's gain s^2 a^2
-    must reach bf_min in any case). The baseline's re-tuning is then checked on the solver
-    (:func:`retuned_effect`): the term at that switch, the baseline moved by ``retune_steps`` Gauss-Newton
-    steps; where its remaining effect is smaller than the linear one (a term that mu and xi mimic far
-    from x0, as mu(I) does), a is taken from it and s_det set again ("per_unit_linear" keeps the linear
-    value). A candidate whose s_det exceeds its prior range cannot be named from these data on this grid
-    whatever its strength; below it, a smaller true switch would go unseen. ``switch_power``: the switch found
-    in a share POWER of noise draws (:func:`switch_threshold`). A guide, not a test: the refits measure the real
-    evidence. Failed members give None.
-    """
-    if scr.jacobian is None:
-        return {c: None for c in scr.scores}
-    lik = evaluator.likelihood
-    chol = None if getattr(lik, "chol", None) is None else lik.chol.detach().cpu().numpy()
-
-    def whiten(v: np.ndarray) -> np.ndarray:
-        if chol is None:
-            return v / np.asarray(evaluator.sigma).reshape((-1,) + (1,) * (v.ndim - 1))
-        from scipy.linalg import solve_triangular
-        return solve_triangular(chol, v, lower=True)
-
-    Jb = whiten(scr.jacobian * np.asarray(evaluator.sigma)[:, None])
-    Jbp = np.linalg.pinv(Jb)
-    out, jcs = {}, {}
-    for c in scr.scores:
-        eff = scr.effects.get(c)
-        if eff is None or c not in scr.steps:
-            out[c] = None
-            continue
-        jcs[c] = whiten(np.asarray(eff) / scr.steps[c])
-        a = float(np.linalg.norm(jcs[c] - Jb @ (Jbp @ jcs[c])))
-        out[c] = switch_threshold(a, CANDIDATES[c].prior, bf_min)
-    at = {c: min(d["switch"], CANDIDATES[c].prior[1]) for c, d in out.items() if d and d["per_unit"] > 0}
-    if retune_steps > 0 and at and scr.y0 is not None:
-        remaining = retuned_effect(scr, evaluator, whiten, Jb, Jbp, jcs, at, retune_steps)
-        for c, r2 in remaining.items():
-            a_nl = math.sqrt(r2) / at[c]
-            if a_nl < out[c]["per_unit"]:
-                out[c] = {**switch_threshold(a_nl, CANDIDATES[c].prior, bf_min), "per_unit_linear": out[c]["per_unit"]}
-    return out
-
-
-POWER = 0.8    # the share of noise draws in which a term at ``switch_power`` reaches bf_min
-
-
-def switch_threshold(a: float, prior: tuple, bf_min: float) -> dict:
-    """{per_unit: a, switch: s_det, within_prior, switch_power} for a whitened effect ``a`` per unit switch (the
-    formula of :func:`detectable_switch`). With noise, the fitted switch's whitened size is s a + z (z ~ N(0, 1)),
-    so a term at s_det reaches bf_min in half the draws, one at
-
-        s_power = (sqrt(bf_min + occam) + Phi^-1(POWER)) / a
-
-    in a share ``POWER`` of them (the switch a design must exceed for the term to be found 4 times in 5)."""
-    lo, hi = prior
-    if a <= 0:
-        return {"per_unit": 0.0, "switch": math.inf, "within_prior": False, "switch_power": math.inf}
-    occam = 2.0 * math.log(a * (hi - lo) / math.sqrt(2.0 * math.pi))
-    t = math.sqrt(bf_min + max(occam, 0.0))
-    return {"per_unit": a, "switch": t / a, "within_prior": bool(t / a <= hi),
-            "switch_power": (t + float(stats.norm.ppf(POWER))) / a}
-
-
-def retuned_effect(scr: ScreenResult, evaluator, whiten, Jb: np.ndarray, Jbp: np.ndarray, jcs: dict, at: dict,
-                   steps: int) -> dict:
-    """{candidate: the smallest whitened |y(x0 + d, switch) - y(x0)|^2 over ``steps`` Gauss-Newton steps}: the
-    term's effect at switch ``at[c]`` that re-tuning the baseline (d, kept in the prior box) leaves, run on
-    the solver against the screening's y(x0) (one batch of len(at) members a step). ``jcs``: whitened effect
-    per unit switch (n,); ``Jb`` (n, p) and its pseudo-inverse ``Jbp``: the whitened baseline sensitivities.
-    Failed members are left out."""
-    names = list(evaluator.prior.names)
-    lo, hi = evaluator.prior.bounds.numpy()
-    x0 = np.array([scr.x0[n] for n in names])
-    d = {c: -(Jbp @ jcs[c]) * s for c, s in at.items()}
-    best = {}
-    for _ in range(steps):
-        batch = [(1, {**evaluator.fixed, **dict(zip(names, np.clip(x0 + d[c], lo, hi))), CANDIDATES[c].param: s,
-                      **dict(CANDIDATES[c].fixed)}) for c, s in at.items()]
-        preds, failed = evaluator.run_values(stack_values(batch))
-        for i, c in enumerate(at):
-            if failed[i]:
-                continue
-            r = whiten(preds[i] - scr.y0)
-            best[c] = min(best.get(c, math.inf), float(r @ r))
-            d[c] = d[c] - Jbp @ r
-    return best
-
