@@ -592,3 +592,60 @@ def test_page_counts_strict_successes_per_scenario_and_run(tmp_path):
     (weighed / "null_s0.json").write_text(json.dumps(c))
     st = summarise(weighed)["settings"]
     assert st["release_volume_sd"] == 0.05 and st["budgets"] == {"top_k": 6}
+
+
+def test_redetect_updates_a_case_whose_baseline_it_reproduces(tmp_path, monkeypatch):
+    """redetect: the case's screening entries replaced by what baseline_screening measures when its baseline mode
+    is the saved one; a case whose mode differs is left as it was (and the CLI says so with exit code 1)."""
+    import json
+    from types import SimpleNamespace
+    from experiments.hidden_physics import redetect as R
+
+    new = {"mu_i": {"switch": 0.3, "switch_power": 0.4, "per_unit": 9.0, "measured": [[0.4, 22.0]], "exponent": 2.0}}
+    seen = {}
+
+    def fake(ev, cands, bud, th, log=print):
+        seen.update(cands=cands, seed=bud.seed, bf_min=th.bf_min)
+        return SimpleNamespace(x0={"mu": 0.25, "xi": 500.0}, detectable=new)
+
+    monkeypatch.setattr(R, "baseline_screening", fake)
+    monkeypatch.setattr(R, "make_evaluator", lambda rec, **kw: None)
+    monkeypatch.setattr(R, "make_recording", lambda *a, **kw: None)
+    case = _case("mu_i", "none", seed=2)
+    case.update(cellsize=40.0, fine_factor=2, terrain="narrow", fine_terrain=False, budgets={"top_k": 2})
+    case["diagnosis"]["screening"] = {"x0": {"mu": 0.25, "xi": 500.0},
+                                      "candidates": {"mu_i": {"score": 1.0, "detectable_switch": {"switch": 0.1}}}}
+    (tmp_path / "mu_i_s2.json").write_text(json.dumps(case))
+    assert R.main([str(tmp_path)]) == 0
+    saved = json.loads((tmp_path / "mu_i_s2.json").read_text())["diagnosis"]["screening"]["candidates"]["mu_i"]
+    assert saved == {"score": 1.0, "detectable_switch": new["mu_i"]}
+    assert seen == {"cands": ["mu_i"], "seed": 2, "bf_min": 40.0}
+    case["diagnosis"]["screening"]["x0"]["mu"] = 0.26
+    (tmp_path / "mu_i_s2.json").write_text(json.dumps(case))
+    assert R.main([str(tmp_path)]) == 1
+    assert json.loads((tmp_path / "mu_i_s2.json").read_text()) == case
+    # --from-measured: the switches derived again from the measured points alone (no solver)
+    from torchslide.diagnose.power import measured_threshold
+    pts = [[0.3, 40.0], [0.1, 2.0], [0.15, 5.0]]
+    case["diagnosis"]["screening"]["candidates"]["mu_i"]["detectable_switch"] = {
+        "switch": 9.0, "measured": pts, "per_unit_linear": 20.0}
+    (tmp_path / "mu_i_s2.json").write_text(json.dumps(case))
+    assert R.main([str(tmp_path), "--from-measured"]) == 0
+    d = json.loads((tmp_path / "mu_i_s2.json").read_text())["diagnosis"]["screening"]["candidates"]["mu_i"]
+    assert d["detectable_switch"] == measured_threshold(pts, (0.0, 0.4), 40.0, 20.0)
+    assert d["detectable_switch"]["exponent"] == pytest.approx(math.log(5.0 / 2.0) / math.log(1.5))
+
+
+@pytest.mark.slow
+def test_redetect_reproduces_a_local_path_case(tmp_path):
+    """A harness case on the local path, then redetect on its file: the baseline's mode is found again (the
+    same stages as the diagnosis') and the detectable switches are measured on the solver."""
+    import json
+    from experiments.hidden_physics.harness import run_case
+    from experiments.hidden_physics.redetect import redetect
+
+    bud = dict(TINY_HARNESS_BUDGETS, inference="local", profile_top=0)
+    run_case("entrainment", 0, tmp_path, budgets=bud, candidates=["entrainment"], log=lambda s: None)
+    assert redetect(tmp_path / "entrainment_s0.json")
+    d = json.loads((tmp_path / "entrainment_s0.json").read_text())["diagnosis"]["screening"]["candidates"]
+    assert d["entrainment"]["detectable_switch"]["measured"]

@@ -266,9 +266,10 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
               "above it, only a strict success counts (summary.py). There a term reaches bf_min in half the noise "
               "draws; the sixth column counts the seeds whose true switch is at least the one it reaches in four of "
               "five (summary.power_switch; '-' where none is, or the run's summary predates it). Both rest on the "
-              "screening's prediction of the term's 2 ln likelihood ratio at the true switch; the last column is the "
-              "median over the seeds of the fitted one over it (summary.lr_predicted_and_found): below 1, the "
-              "recordings reveal the term less than the report's 'detectable from' promises.", ""]
+              "2 ln likelihood ratio that noise-free data of the term's model give against the refitted baseline, "
+              "measured on the solver near those switches (torchslide/diagnose/power.py); the last column is the "
+              "median over the seeds of the fitted one at the true switch over it (summary.lr_predicted_and_found): "
+              "below 1, the recordings reveal the term less than the report's 'detectable from' promises.", ""]
         f = figdir / f"confusion_{name}.png"
         _plot_confusion(rows, f, f"{name}: strength 1, seeds 0-{N_SEEDS - 1}")
         L += ["", f"![confusion matrix, {name}]({f.relative_to(out).as_posix()})", ""]

@@ -7,6 +7,8 @@ the harness settings it was run with), repeats the diagnosis' baseline stages up
 screening's ``detectable_switch`` entries in the case file (atomically). The verdicts are not touched: the
 detectable switches only say which strengths a case is scored against (summary.detectability). A case whose
 baseline mode is not the saved one (other code for the stages before the screening) is left as it was.
+``--from-measured``: no solver runs; the switches are derived again from the [switch, nc] points the entries
+measured (torchslide.diagnose.power.measured_threshold), after a change in how they are read.
 """
 from __future__ import annotations
 
@@ -20,6 +22,7 @@ import numpy as np
 from torchslide.diagnose import Budgets, Thresholds
 from torchslide.diagnose.candidates import CANDIDATES
 from torchslide.diagnose.pipeline import baseline_screening
+from torchslide.diagnose.power import measured_threshold
 
 from .harness import HARNESS_BUDGETS
 from .scenarios import make_evaluator, make_recording, noise_sigmas, terrain_variant
@@ -54,10 +57,30 @@ def redetect(path, log=print) -> bool:
     return True
 
 
+def rethreshold(path) -> bool:
+    """The detectable switches of the case file ``path`` derived again from their measured points (module doc);
+    whether it had any."""
+    path = Path(path)
+    case = json.loads(path.read_text())
+    j = case["diagnosis"]
+    done = False
+    for c, v in ((j.get("screening") or {}).get("candidates") or {}).items():
+        d = v.get("detectable_switch") or {}
+        if d.get("measured") and c in CANDIDATES:
+            v["detectable_switch"] = measured_threshold([tuple(p) for p in d["measured"]], CANDIDATES[c].prior,
+                                                        j["thresholds"]["bf_min"], d["per_unit_linear"])
+            done = True
+    if done:
+        write_json(path, case)
+    return done
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="measure the detectable switches of saved harness cases again")
     p.add_argument("folder", help="folder of the case files")
     p.add_argument("--scenarios", default=None, help="comma-separated scenarios (default: all)")
+    p.add_argument("--from-measured", action="store_true",
+                   help="derive the switches again from the points measured, without solver runs")
     a = p.parse_args(argv)
     want = None if a.scenarios is None else set(a.scenarios.split(","))
     files = sorted(f for f in Path(a.folder).glob("*_s*.json")
@@ -66,7 +89,7 @@ def main(argv=None) -> int:
         p.error(f"{a.folder}: no case files" + ("" if want is None else f" of {sorted(want)}"))
     done = 0
     for f in files:
-        ok = redetect(f)
+        ok = rethreshold(f) if a.from_measured else redetect(f)
         done += ok
         print(f"{f.name}: {'updated' if ok else 'left'}", flush=True)
     print(f"{done} of {len(files)} case files updated")

@@ -68,8 +68,9 @@ def _t(a: float, prior: tuple, bf_min: float) -> float:
 
 def lr_at(det: dict, s: float) -> float:
     """The noise-free 2 ln LR nc(s) (module doc) at switch ``s`` from a :func:`detectable_switch` entry: the
-    power law through its ``measured`` points (the one nearest s in log switch as reference), else (a s)^2."""
-    pts = det.get("measured") or []
+    power law through the last two of its ``measured`` points (the one nearer s in log switch as reference),
+    else (a s)^2."""
+    pts = (det.get("measured") or [])[-2:]
     if not pts:
         return float(det["per_unit"] * s) ** 2
     s_ref, nc_ref = min(pts, key=lambda p: abs(math.log(p[0] / s)))
@@ -85,9 +86,9 @@ def _exponent(pts: list) -> float:
 
 
 def switch_for(pts: list, k: float, target: float) -> float:
-    """The switch where the power law nc(s) = nc_ref (s / s_ref)^k reaches ``target``, the measured point with
-    nc nearest the target (in log) as reference; inf where every measured nc is 0."""
-    pos = [p for p in pts if p[1] > 0]
+    """The switch where the power law nc(s) = nc_ref (s / s_ref)^k reaches ``target``, the one of the last two
+    measured points with nc nearer the target (in log) as reference; inf where neither nc is above 0."""
+    pos = [p for p in pts[-2:] if p[1] > 0]
     if not pos:
         return math.inf
     s_ref, nc_ref = min(pos, key=lambda p: abs(math.log(p[1] / target)))
@@ -95,11 +96,13 @@ def switch_for(pts: list, k: float, target: float) -> float:
 
 
 def measured_threshold(pts: list, prior: tuple, bf_min: float, a_linear: float) -> dict:
-    """switch_threshold's entry from the measured (switch, nc) points: the power law's switches for t^2 and
-    (t + Phi^-1(POWER))^2, the Occam term at the effective per-unit effect of the point used; ``per_unit``
-    is sqrt(nc) / s at the four-in-five switch, ``per_unit_linear`` the screening's a."""
+    """switch_threshold's entry from the measured (switch, nc) points, in the order measured: the switches for
+    t^2 and (t + Phi^-1(POWER))^2 of the power law through the last two (the newest, nearest the target; an
+    earlier refit that stopped short of its minimum drops out), the Occam term at the last one's effective
+    per-unit effect; ``per_unit`` is sqrt(nc) / s at the four-in-five switch, ``per_unit_linear`` the
+    screening's a."""
     k = _exponent(pts)
-    pos = [p for p in pts if p[1] > 0]
+    pos = [p for p in pts[-2:] if p[1] > 0]
     if not pos:
         return {**switch_threshold(0.0, prior, bf_min), "per_unit_linear": a_linear, "exponent": k,
                 "measured": [list(p) for p in pts]}
