@@ -493,6 +493,7 @@ def test_success_against_detectability():
     row = case_row(det("curvature", "none", 1.0, 4.6))
     assert row["true_switch"] == 1.0 and row["detectable_switch"] == 4.6 and row["detectability_success"]
     assert row["power_switch"] is None                        # no whitened effect per unit recorded
+    assert row["detectability_measured"] is False and case_row(_case("null", "none"))["detectability_measured"] is None
     # the switch found in four noise draws of five: (sqrt(bf_min + occam) + z_0.8) / a, prior width 1, bf_min 40
     c = det("curvature", "curvature", 1.0, 0.5)
     c["diagnosis"]["screening"]["candidates"]["curvature"]["detectable_switch"]["per_unit"] = 8.0
@@ -508,7 +509,7 @@ def test_success_against_detectability():
     # true switch from the power law through the measured points (the nearest one as reference)
     c["diagnosis"]["screening"]["candidates"]["curvature"]["detectable_switch"].update(
         switch_power=0.7, measured=[[0.5, 10.0], [0.7, 22.0]], exponent=2.5)
-    assert case_row(c)["power_switch"] == 0.7
+    assert case_row(c)["power_switch"] == 0.7 and case_row(c)["detectability_measured"]
     assert case_row(c)["lr_predicted"] == pytest.approx(22.0 * (1.0 / 0.7) ** 2.5)
     assert detectability_success(_case("null", "none")) and not detectability_success(_case("null", "mu_i"))
 

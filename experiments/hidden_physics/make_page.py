@@ -289,6 +289,12 @@ def _run_section(name: str, s: dict, figdir: Path, out: Path) -> list[str]:
     L += ["Inference (torchslide/diagnose/pipeline.py): " + ", ".join(
         f"{'local fits on the solver' if k == 'local' else 'GP emulator'} in {v} of {len(s['cases'])} cases"
         for k, v in sorted(paths.items())) + ".", ""]
+    lib = [r for r in s["cases"] if r.get("detectability_measured") is not None]     # none in older summaries
+    if lib:
+        m = sum(bool(r.get("detectability_measured")) for r in lib)
+        L += [f"Detectable switches measured on the solver (torchslide/diagnose/power.py; saved cases measured again "
+              f"by `python -m experiments.hidden_physics.redetect`) in {m} of the {len(lib)} cases with a hidden "
+              f"library term; the others are the screening's linearised prediction.", ""]
     walls = [r["wall_s"] for r in s["cases"] if r.get("wall_s") is not None]
     if walls:
         L += [f"Wall time per case: median {np.median(walls):.0f} s, range {min(walls):.0f}-{max(walls):.0f} s "

@@ -148,7 +148,8 @@ def case_row(case: dict) -> dict:
             "misfit_before": j["fit_before"]["misfit"], "misfit_after": after,
             "inference": (d.get("inference") or {}).get("path", "emulator"), "wall_s": case.get("wall_s"),
             "true_switch": detectability(case)[0], "detectable_switch": detectability(case)[1],
-            "power_switch": power_switch(case),
+            "power_switch": power_switch(case), "detectability_measured": bool(_detectable(case).get("measured"))
+            if detectability(case)[0] is not None else None,
             "lr_predicted": lr_predicted, "lr_found": lr_found,
             "detectability_success": detectability_success(case)}
 
