@@ -15,9 +15,9 @@ and switch s, against the baseline refitted to them (the noncentrality of the fi
   mispredicted by factors of 2 or more.
 * Measured (:func:`baseline_gap`): nc on the solver, the baseline fitted by trust-region least squares
   in its prior box with Broyden's Jacobian (:func:`broyden_mode`, one member a step), all candidates in
-  lockstep: first at the predicted
-  four-in-five switch, then (up to PASSES times, until it moves by less than 5 %) at the one the
-  measurements so far give, nc(s) being the power law through the last two (:func:`lr_at`).
+  lockstep: first at the predicted four-in-five switch, then (PASSES measurements at most, until the
+  switch moves by less than 5 %) at the one the measurements so far give, nc(s) being the power law
+  through the last two (:func:`lr_at`).
 
 With a uniform prior of width W on the switch and the baseline profiled out, a switch s gives
 
@@ -52,11 +52,10 @@ EXPONENT_RANGE = (0.5, 8.0)
 def switch_threshold(a: float, prior: tuple, bf_min: float) -> dict:
     """{per_unit: a, switch: s_det, within_prior, switch_power} for nc(s) = (a s)^2 (module doc):
     s_det = t / a and s_power = (t + Phi^-1(POWER)) / a."""
-    lo, hi = prior
     if a <= 0:
         return {"per_unit": 0.0, "switch": math.inf, "within_prior": False, "switch_power": math.inf}
     t = _t(a, prior, bf_min)
-    return {"per_unit": a, "switch": t / a, "within_prior": bool(t / a <= hi),
+    return {"per_unit": a, "switch": t / a, "within_prior": bool(t / a <= prior[1]),
             "switch_power": (t + float(stats.norm.ppf(POWER))) / a}
 
 
