@@ -635,6 +635,12 @@ def test_redetect_updates_a_case_whose_baseline_it_reproduces(tmp_path, monkeypa
     d = json.loads((tmp_path / "mu_i_s2.json").read_text())["diagnosis"]["screening"]["candidates"]["mu_i"]
     assert d["detectable_switch"] == measured_threshold(pts, (0.0, 0.4), 40.0, 20.0)
     assert d["detectable_switch"]["exponent"] == pytest.approx(math.log(5.0 / 2.0) / math.log(1.5))
+    # the law through the last two points (the first, an outlier, drops out): at the four-in-five switch,
+    # sqrt(nc) = sqrt(bf_min + Occam) + Phi^-1(0.8), the Occam term at the last point's effect per unit
+    t = math.sqrt(40.0 + max(0.0, 2 * math.log(math.sqrt(5.0) / 0.15 * 0.4 / math.sqrt(2 * math.pi))))
+    k = math.log(5.0 / 2.0) / math.log(1.5)
+    assert d["detectable_switch"]["switch_power"] == pytest.approx(0.15 * ((t + 0.841621) ** 2 / 5.0) ** (1 / k),
+                                                                   rel=1e-5)
 
 
 @pytest.mark.slow

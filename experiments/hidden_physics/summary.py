@@ -82,9 +82,9 @@ def detectability(case: dict) -> tuple[float | None, float | None]:
     term = case["truth"]["term"]
     if term not in SWITCH:
         return None, None
-    det = ((case["diagnosis"].get("screening") or {}).get("candidates") or {}).get(term, {}).get("detectable_switch")
+    det = _detectable(case)
     truth = case["truth"].get(SWITCH[term])
-    return (None if truth is None else float(truth)), (None if not det or det.get("switch") is None else float(det["switch"]))
+    return (None if truth is None else float(truth)), (None if det.get("switch") is None else float(det["switch"]))
 
 
 def _detectable(case: dict) -> dict:

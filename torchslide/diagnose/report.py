@@ -258,7 +258,7 @@ def _screening_section(scr: dict) -> list[str]:
          "the grid biases or another term mimics, can still be missed. At 'detectable from' a term reaches bf_min "
          "in half the noise draws; 'found 4 in 5 from': in four of five. On the project's blind tests the fits' "
          "2 ln likelihood ratio at the true switch was, in the median per term and terrain, 0.9 to 2.3 times the "
-         "measured one (more where the grid's error looks like the term; docs/diagnosis.md).", "",
+         "measured one (more where the grid's own error can resemble the term; docs/diagnosis.md).", "",
          "| candidate | screening score | mimic by mu, xi | detectable from | found 4 in 5 from | prior range |",
          "|---|---|---|---|---|---|"]
     for c, v in scr.items():
