@@ -297,7 +297,7 @@ def tiny_budgets(extra: str = "") -> str:
 TINY_HARNESS_BUDGETS = dict(n_posterior_samples=8, n_posterior_samples_after=4, n_initial=6, n_total=8, n_total_max=8,
                             baseline_n_initial=6, baseline_n_total=8, batch_size=8, top_k=1,
                             n_perm=19, mcmc_steps=200, model_error_runs=0, release_volume_sd=0.0,
-                            inference="emulator")
+                            inference="emulator", detectability="linearised")
 
 
 

@@ -395,3 +395,20 @@ def test_cli_finer_shift(tmp_path):
         q, _ = _setup(tmp_path, grid=dem.shape, candidates=f'["entrainment"]\n{extra}')
         with pytest.raises(ConfigError, match=r"finer_shift must be a number of sigmas >= 0"):
             load_diagnose_config(q)
+
+
+def test_cli_detectability(tmp_path):
+    """[diagnose] detectability: "measured" (default) or "linearised" reaches Budgets; anything else is
+    refused naming the key and the value."""
+    from torchslide.commands.diagnose import budgets_and_thresholds, load_diagnose_config
+    from torchslide.config import ConfigError
+    from torchslide.terrain.synthetic import inclined_plane
+    dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]')
+    assert budgets_and_thresholds(load_diagnose_config(p))[0].detectability == "measured"
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\ndetectability = "linearised"')
+    assert budgets_and_thresholds(load_diagnose_config(p))[0].detectability == "linearised"
+    q, _ = _setup(tmp_path, grid=dem.shape, candidates='["entrainment"]\ndetectability = "linear"')
+    with pytest.raises(ConfigError, match=r"diag.toml: \[diagnose\] detectability must be \"measured\" or "
+                                          r"\"linearised\", got 'linear'"):
+        load_diagnose_config(q)

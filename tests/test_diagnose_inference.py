@@ -197,6 +197,13 @@ def test_detectable_switch_checks_the_re_tuned_baseline_on_the_solver():
     ev_own = Ev(own)
     d_own = detectable_switch(screen(ev_own, x0, ["entrainment"]), ev_own, bf_min=10.0)["entrainment"]
     assert d_own["within_prior"] and d_own["per_unit"] > 0.99 * d_own.get("per_unit_linear", d_own["per_unit"])
+    # the report's screening table says how its switches were found ([diagnose] detectability)
+    from torchslide.diagnose.report import _screening_section
+    for measure, says in ((True, "measured on the solver near that switch"), (False, "linearised over the screening")):
+        scr = screen(ev_own, x0, ["entrainment"])
+        scr.detectable = detectable_switch(scr, ev_own, bf_min=10.0, measure=measure)
+        assert ("measured" in scr.detectable["entrainment"]) == measure
+        assert says in "\n".join(_screening_section(scr.to_json()["candidates"]))
 
 
 def test_detectable_switch_measures_a_nonlinear_effect_on_the_solver():

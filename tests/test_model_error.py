@@ -221,6 +221,8 @@ def test_release_volume_sd_needs_the_model_error_runs(tmp_path):
         diagnose(ev, ["mu_i"], Budgets(model_error_runs=0, release_volume_sd=0.05), workdir=tmp_path)
     with pytest.raises(ValueError, match=r"release_volume_sd must be in \[0, 0.5\)"):
         diagnose(ev, ["mu_i"], Budgets(release_volume_sd=-0.1), workdir=tmp_path)
+    with pytest.raises(ValueError, match=r"detectability must be \"measured\" or \"linearised\", got 'linear'"):
+        diagnose(ev, ["mu_i"], Budgets(detectability="linear"), workdir=tmp_path)
 
 
 def test_the_gauge_figure_shows_the_recording_as_given(tmp_path):

@@ -44,7 +44,8 @@ def redetect(path, log=print) -> bool:
         if case.get("sigmas") == "noise":
             rec = dataclasses.replace(rec, observations=noise_sigmas(rec.observations))
         ev = make_evaluator(rec, cellsize=case["cellsize"], fine_terrain=case.get("fine_terrain", False))
-        bud = Budgets(**{**HARNESS_BUDGETS, **(case.get("budgets") or {}), "seed": case["seed"]})
+        bud = Budgets(**{**HARNESS_BUDGETS, **(case.get("budgets") or {}), "seed": case["seed"],
+                         "detectability": "measured"})
         scr = baseline_screening(ev, [c for c in saved if c in CANDIDATES], bud, Thresholds(**j["thresholds"]),
                                  log=lambda s: None)
     x0, x_saved = np.array(list(scr.x0.values())), np.array([j["screening"]["x0"][n] for n in scr.x0])

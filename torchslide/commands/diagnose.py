@@ -61,6 +61,9 @@ and a [diagnose] section::
     candidate_lhs = 8            # local path: a candidate's global starts (maximin LHS over its switch's range and
     candidate_starts = 1         #     the baseline's mode +- 25 % of each range); fits from the best of them too
     top_k = 2                    # candidates fitted (by screening rank)
+    detectability = "measured"   # each candidate's detectable switch in the report: measured on the solver (tens
+                                 #     of seconds) or "linearised" from the screening alone (off 2-3 times for
+                                 #     threshold and saturating terms)
     batch_size = 8
     n_perm = 99                  # permutations for the map cluster p-values
     seed = 0
@@ -115,7 +118,7 @@ _THRESHOLD_KEYS = ("bf_min", "margin_min", "located_min", "waic_min", "explain_m
                    "explain_margin", "ess_min",
                    "z_threshold", "lr_alpha")
 _DIAG_KEYS = {"candidates", "seed", "fine_terrain", "release_volume_sd", "fit_max", "inference", "local_max_fraction",
-              "finer_shift",
+              "finer_shift", "detectability",
               "cellsize", "max_cells", *_INT_KEYS, *_THRESHOLD_KEYS}
 
 
@@ -127,6 +130,7 @@ def diagnose_defaults() -> dict:
     b, t = Budgets(), Thresholds()
     return {"candidates": list(CANDIDATES), "seed": b.seed, "release_volume_sd": b.release_volume_sd,
             "inference": b.inference, "local_max_fraction": b.local_max_fraction, "finer_shift": b.finer_shift,
+            "detectability": b.detectability,
             **{k: getattr(b, k) for k in _INT_KEYS},
             **{k: getattr(t, k) for k in _THRESHOLD_KEYS}}
 def parse_diagnose(table: Any, cfg: Config) -> dict:
@@ -152,6 +156,9 @@ def parse_diagnose(table: Any, cfg: Config) -> dict:
     if c["inference"] not in ("auto", "local", "emulator"):
         raise ConfigError(f"{path}: [diagnose] inference must be \"auto\", \"local\" or \"emulator\", got "
                           f"{c['inference']!r}")
+    if c["detectability"] not in ("measured", "linearised"):
+        raise ConfigError(f"{path}: [diagnose] detectability must be \"measured\" or \"linearised\", got "
+                          f"{c['detectability']!r}")
     v = c["local_max_fraction"]
     if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v <= 1:
         raise ConfigError(f"{path}: [diagnose] local_max_fraction must be a share of the prior box in (0, 1], got {v!r}")
@@ -338,7 +345,7 @@ def budgets_and_thresholds(cfg: Config):
     bud = Budgets(baseline_n_initial=cal["n_initial"], baseline_n_total=cal["n_total"],
                   **{k: dg[k] for k in _INT_KEYS}, release_volume_sd=dg["release_volume_sd"], seed=dg["seed"],
                   inference=dg["inference"], local_max_fraction=float(dg["local_max_fraction"]),
-                  finer_shift=dg["finer_shift"])
+                  finer_shift=dg["finer_shift"], detectability=dg["detectability"])
     return bud, Thresholds(**{k: dg[k] for k in _THRESHOLD_KEYS}, fit_max=dg.get("fit_max"))
 
 

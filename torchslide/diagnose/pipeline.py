@@ -103,6 +103,10 @@ class Budgets:
                                        # approximation error (None: seed); fixing it holds the likelihood
                                        # constant while seed changes the rest of the inference
     mcmc_steps: int = 1500             # emulator MCMC steps per chain (p > 2 refits)
+    detectability: str = "measured"    # each candidate's detectable switch: "measured" on the solver with the
+                                       # baseline refitted (power.py; tens of seconds), or "linearised" from
+                                       # the screening alone (no runs; off by a factor 2-3 for threshold and
+                                       # saturating terms)
 
 
 def error_rounds(evaluator, bud: Budgets) -> int:
@@ -351,6 +355,8 @@ def check_budgets(bud: Budgets, baseline=None) -> None:
                          f"taken at the pilot's posterior draws), got model_error_runs = {bud.model_error_runs}")
     if bud.inference not in ("auto", "local", "emulator"):
         raise ValueError(f"inference must be \"auto\", \"local\" or \"emulator\", got {bud.inference!r}")
+    if bud.detectability not in ("measured", "linearised"):
+        raise ValueError(f"detectability must be \"measured\" or \"linearised\", got {bud.detectability!r}")
     if bud.model_error_runs > 0 and baseline is not None:
         raise ValueError("model_error_runs > 0 changes the likelihood: the baseline must be calibrated here, not given")
 
@@ -379,10 +385,11 @@ def _assess(evaluator, base: _Baseline, th: Thresholds, bud: Budgets) -> None:
         base.resolution = removed_by_resolution(significant(raw.located), significant(base.loc.located))
 
 
-def _screen_stage(evaluator, x0: np.ndarray, candidates, th: Thresholds, log) -> ScreenResult:
-    """One-batch screening at the baseline's posterior mode x0 (p,), with each candidate's detectable switch."""
+def _screen_stage(evaluator, x0: np.ndarray, candidates, th: Thresholds, bud: Budgets, log) -> ScreenResult:
+    """One-batch screening at the baseline's posterior mode x0 (p,), with each candidate's detectable switch
+    (measured or linearised: ``bud.detectability``)."""
     scr = screen(evaluator, x0, candidates)
-    scr.detectable = detectable_switch(scr, evaluator, th.bf_min)
+    scr.detectable = detectable_switch(scr, evaluator, th.bf_min, measure=bud.detectability == "measured")
     log("[diagnose] screening: " + ", ".join(f"{c} {scr.scores[c]:.1f}" for c in scr.ranking))
     unseen = [f"{c} (from {d['switch']:.3g}; prior up to {CANDIDATES[c].prior[1]:g})"
               for c, d in scr.detectable.items() if d and not d["within_prior"]]
@@ -399,7 +406,7 @@ def baseline_screening(evaluator, candidates, budgets: Budgets, thresholds: Thre
     if pilot is None:
         raise RuntimeError("the baseline cannot be fitted locally (see the log)")
     evaluator, f0, _ = _local_baseline(evaluator, pilot, budgets, log)
-    return _screen_stage(evaluator, f0.x, candidates, thresholds, log)
+    return _screen_stage(evaluator, f0.x, candidates, thresholds, budgets, log)
 
 
 def _refit_stage(evaluator, top: list, bud: Budgets, workdir: Path, log) -> dict:
@@ -534,7 +541,7 @@ def _diagnose(evaluator, candidates, bud, th, baseline, log, workdir) -> Diagnos
     fit_z = {b: i["Z_fit"] for b, i in base.loc.blocks.items() if i.get("Z_fit") is not None}
     lap("predictive_s")
     log(f"[diagnose] located {base.loc.n_located} mismatch(es); max |score| {base.loc.max_abs():.2f}")
-    scr = _screen_stage(evaluator, posterior_mode(base.calibration), candidates, th, log)
+    scr = _screen_stage(evaluator, posterior_mode(base.calibration), candidates, th, bud, log)
     lap("screen_s")
     top = scr.ranking[: bud.top_k]
     refits = _refit_stage(evaluator, top, bud, workdir, log)
@@ -871,7 +878,7 @@ def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Th
     fit_z = {b: i["Z_fit"] for b, i in base.loc.blocks.items() if i.get("Z_fit") is not None}
     log(f"[diagnose] located {base.loc.n_located} mismatch(es); max |score| {base.loc.max_abs():.2f}")
     lap("predictive_s")
-    scr = _screen_stage(evaluator, posterior_mode(base.calibration), candidates, th, log)
+    scr = _screen_stage(evaluator, posterior_mode(base.calibration), candidates, th, bud, log)
     lap("screen_s")
     refits, cand_out, fits = {}, [], {}
     for c, cf in fit_candidates(evaluator, scr.ranking[: bud.top_k], f0, scr.linear_opt, bud, log).items():

@@ -248,11 +248,15 @@ def _screening_section(scr: dict) -> list[str]:
     if not any("detectable_switch" in v for v in scr.values()):
         return []
     from .candidates import CANDIDATES
+    measured = any((v.get("detectable_switch") or {}).get("measured") for v in scr.values())
+    how = ("measured on the solver near that switch (torchslide/diagnose/power.py)" if measured else
+           "linearised over the screening's step ([diagnose] detectability = \"linearised\": not measured on the "
+           "solver, and off by a factor 2-3 for threshold and saturating terms)")
     L = ["", "## Screening", "",
          "One batched solver call at the baseline's mode (torchslide/diagnose/screen.py). 'Detectable from': the "
          "smallest switch at which noise-free data of the candidate's model would give the baseline, refitted to "
          "them, a 2 ln likelihood ratio reaching the evidence threshold bf_min (the likelihood's covariance, the "
-         "grid's error included), measured on the solver near that switch (torchslide/diagnose/power.py). "
+         f"grid's error included), {how}. "
          "Beyond the prior range: these data cannot name the term on "
          "this grid at any strength, so 'nothing missing' does not rule it out. Within it: a weaker term, or one "
          "the grid biases or another term mimics, can still be missed. At 'detectable from' a term reaches bf_min "
