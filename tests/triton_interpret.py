@@ -29,7 +29,7 @@ def terms():
     dem, rel, gauges = _channel()
     params = {"mu": [0.2, 0.25], "xi": 800.0, "tau_y": [2.0, 0.0], "earth_pressure": [1.0, 0.0], "phi_int": 35.0,
               "curvature": [1.0, 0.0], "mu_i": [0.3, 0.0]}
-    _compare(dem, rel, params, SolverConfig(), gauges, t_end=6.0)
+    _compare(dem, rel, params, SolverConfig(), gauges, t_end=4.0)
 
 
 def moving_bed():
@@ -37,7 +37,7 @@ def moving_bed():
     dem, rel, gauges = _channel()
     erod = np.full(dem.shape, 0.5)
     params = {"mu": [0.2, 0.25], "xi": 800.0, "kappa": [0.004, 0.0], "deposition": [0.3, 0.0]}
-    ref = _compare(dem, rel, params, SolverConfig(), gauges, t_end=6.0, erodible_depth=erod)
+    ref = _compare(dem, rel, params, SolverConfig(), gauges, t_end=4.0, erodible_depth=erod)
     assert float(ref.entrained_volume[0]) > 0
 
 
@@ -48,7 +48,7 @@ def nodata():
     outside[:8, 4:10] = True
     dem = DEM(dem.z, dem.cellsize, outside=outside)
     lost = {rule: _compare(dem, rel, {"mu": [0.15, 0.25], "xi": 1500.0}, SolverConfig(nodata=rule),
-                           t_end=6.0).outflow_volume for rule in ("outflow", "wall")}
+                           t_end=4.0).outflow_volume for rule in ("outflow", "wall")}
     assert float(lost["outflow"].min()) > 0 and float(lost["wall"].max()) == 0    # the flow reached the band
 
 
@@ -63,7 +63,7 @@ def plane():
 
 def float32():
     dem, rel, gauges = _channel()
-    _compare(dem, rel, {"mu": [0.2, 0.3], "xi": [500.0, 2000.0]}, SolverConfig(), gauges, t_end=6.0,
+    _compare(dem, rel, {"mu": [0.2, 0.3], "xi": [500.0, 2000.0]}, SolverConfig(), gauges, t_end=4.0,
              dtype=torch.float32, rtol=1e-5)
 
 
