@@ -318,7 +318,7 @@ def test_a_diagnosis_killed_after_each_final_write_resumes_to_every_file(tmp_pat
 
     from .conftest import killed_after_write
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
-    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets())
+    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets('detectability = "linearised"'))
     ref = tmp_path / "ref"
     assert main(["diagnose", str(p), "--out", str(ref), "--quiet"]) == 0
     done = json.loads((ref / "finished.json").read_text())["files"]
@@ -358,7 +358,8 @@ def test_cli_cellsize_auto_chooses_the_grid_and_reports_it(tmp_path):
     from torchslide.config import ConfigError
     from torchslide.terrain.synthetic import inclined_plane
     dem = inclined_plane(30.0, 50.0, slope_length=500.0, runout_length=700.0, width=300.0)
-    p, _ = _setup(tmp_path, grid=dem.shape, candidates=tiny_budgets('cellsize = "auto"\nmax_cells = 150'))
+    p, _ = _setup(tmp_path, grid=dem.shape,
+                  candidates=tiny_budgets('cellsize = "auto"\nmax_cells = 150\ndetectability = "linearised"'))
     out = tmp_path / "out"
     assert main(["diagnose", str(p), "--out", str(out), "--quiet"]) == 0
     j = json.loads((out / "report.json").read_text())
