@@ -179,6 +179,7 @@ def test_cli_diagnose_end_to_end_writes_the_report(tmp_path, monkeypatch):
     dsw = j["screening"]["candidates"]["mu_i"]["detectable_switch"]
     assert dsw is not None and set(dsw) >= {"per_unit", "switch", "within_prior", "switch_power"}
     assert dsw["switch_power"] > dsw["switch"]
+    assert dsw["measured"] and "measured on the solver near that switch" in md      # the default: measured
     assert "## Screening" in md and "detectable from" in md and "found 4 in 5 from" in md
     assert (out / "posteriors.png").exists() and any(f.suffix == ".png" and f.name.startswith("gauge_")
                                                      for f in out.iterdir())

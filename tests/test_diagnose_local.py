@@ -300,7 +300,7 @@ def test_a_release_larger_than_stated_is_not_named_entrainment(release_scale, ka
 
     ev = _plane_case(kappa, release_scale)
     bud = Budgets(model_error_runs=0, n_posterior_samples=8, n_posterior_samples_after=6, top_k=3, n_perm=9,
-                  local_lhs=8, local_starts=1, profile_top=1)
+                  local_lhs=8, local_starts=1, profile_top=1, detectability="linearised")
     d = diagnose(ev, ["entrainment", "release_volume", "mu_i"], bud, Thresholds(), log=lambda s: None)
     assert d.verdict == "missing_physics" and d.missing_physics == named
     by = {c["name"]: c for c in d.candidates}
