@@ -115,7 +115,11 @@ def test_null_calibration_sets_thresholds_resumes_and_redecides(tmp_path, monkey
     bud = _tiny()
     th0 = Thresholds(bf_min=6.0, located_min=8.0, waic_min=5.0)
     d = diagnose(ev, ["mu_i"], bud, th0, log=lambda s: None, workdir=tmp_path / "data")
+    seen, run = [], pipeline.diagnose
+    monkeypatch.setattr(pipeline, "diagnose",
+                        lambda ev, c, b, *a, **k: seen.append(b.detectability) or run(ev, c, b, *a, **k))
     nc = null_calibration(ev, ["mu_i"], bud, th0, d.predictive.x, 3, tmp_path / "null", log=lambda s: None)
+    assert seen == ["linearised"] * 3            # the null cases' detectable switches are not used
     cases = nc["cases"]
     assert nc["n"] == 3 and len(cases) == 3 and len({tuple(c["theta"]) for c in cases}) == 3
     pool = {tuple(x) for x in d.predictive.x.tolist()}

@@ -19,7 +19,8 @@ on each:
        d_i = y_{h/f}(theta_i; V (1 + delta_i)) + e_i,   e_i ~ N(0, Sigma_stated)
 
    delta_i and e_i from a random stream of their own per i (seed, i);
-3. the diagnosis (pipeline.diagnose, same candidates and budgets, seed + 101 + i) on each d_i, recording
+3. the diagnosis (pipeline.diagnose, same candidates and budgets, seed + 101 + i, the detectable switches
+   linearised: no statistic below uses them) on each d_i, recording
    the largest lower-bound 2 ln BF of any refitted candidate, the largest located |score| and every
    observable's Z_fit of the calibrated baseline;
 4. thresholds by the rule :data:`RULE` (:func:`thresholds_from_null`; the blind test's calibrate_thresholds uses it too):
@@ -209,7 +210,7 @@ def null_calibration(evaluator, candidates, budgets, thresholds, posterior_draws
         d_i, vf = null_recordings(evaluator, theta[i:i + 1], budgets.model_error_factor, budgets.release_volume_sd,
                                   seed=budgets.seed + 98, start=i)
         log(f"[null] case {i + 1}/{n}: theta {np.round(theta[i], 4).tolist()}, release x{vf[0]:.3f}")
-        bud_i = dataclasses.replace(budgets, seed=budgets.seed + 101 + i)
+        bud_i = dataclasses.replace(budgets, seed=budgets.seed + 101 + i, detectability="linearised")
         d = diagnose(with_data(evaluator, d_i[0]), candidates, bud_i, thresholds, log=lambda s: None,
                      workdir=_case_workdir(workdir / f"case_{i}", d_i[0], candidates, bud_i))
         c = dict(null_case_statistics(d), theta=theta[i].tolist(), release_factor=float(vf[0]),
