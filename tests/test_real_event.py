@@ -244,3 +244,34 @@ def test_bad_survey_inputs_are_one_line_errors(msh, tmp_path, capsys, edit, matc
     assert main(["calibrate", str(case / "bad.toml"), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and match in err[0] and "Traceback" not in err[0]
+
+
+def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
+    """experiments.msh2021's page from a diagnosis report.json: the time is the sum of its stages' (a
+    resumed diagnosis reports the run's, not the resume's), the located mismatches and each candidate's
+    detectable switch, said to be measured or linearised as the report's entries are."""
+    from experiments.msh2021.__main__ import diagnosis_summary, write_page
+
+    det = {"entrainment": {"switch": 0.00045, "within_prior": True, "measured": [[0.0006, 20.0]]},
+           "curvature": {"switch": 4.69, "within_prior": False, "measured": [[1.0, 0.3]]}}
+    rep = {"verdict": "unexplained", "decision": {"reason": "r"}, "timings": {"pilot_s": 400.0, "screen_s": 600.5},
+           "located": [{"what": "dod deficit cluster", "where": [1.0, 2.0, 3.0, 4.0], "standardised_residual": -14.0}],
+           "candidates": [{"name": "curvature", "two_ln_bf": 1.8}],
+           "screening": {"candidates": {c: {"score": 0.0, "detectable_switch": d} for c, d in det.items()}}}
+    d = diagnosis_summary(rep)
+    assert d["seconds"] == 1000.5 and d["candidates"] == {"curvature": 1.8}
+    post = {k: {"mu": 0.31, "xi": 738.0} for k in ("mean", "sd")} | {"hdr90": {"mu": [0.3, 0.32], "xi": [650, 820]}}
+    two = {"run": 1.0, "survey": 2.0}
+    out = {"posterior": post, "inference": "local", "median_run": {"mu": 0.31, "xi": 730.0}, "footprint_jaccard": 0.4,
+           "share_of_mapped_reached": 0.6, "share_of_reached_unmapped": 0.5,
+           "share_of_mapped_cells_with_p_impact_ge_0.5": 0.6, "deposition_m3": two, "erosion_m3": two, "rmse_m": 1.9,
+           "runout_m": two, "diagnosis": d, "wall_s": 1200.0}
+    write_page(out, tmp_path / "README.md")
+    page = (tmp_path / "README.md").read_text()
+    assert "1000 s in its stages): verdict **unexplained**" in page
+    assert "| dod deficit cluster | 1 - 3 | 2 - 4 | -14.0 |" in page
+    assert ("(the screening's detectable switch, measured on the solver: a term this strong reaches bf_min in half "
+            "the noise draws): entrainment from 0.00045, curvature from 4.69 (beyond its range).") in page
+    del det["entrainment"]["measured"]
+    write_page(dict(out, diagnosis=diagnosis_summary(rep)), tmp_path / "README.md")
+    assert "detectable switch, linearised:" in (tmp_path / "README.md").read_text()

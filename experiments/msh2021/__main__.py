@@ -12,8 +12,8 @@
 5. ``torchslide diagnose`` on the same files: where the calibrated model and the survey disagree, which
    candidate term explains it, if any.
 
-Writes under --work (default experiments/msh2021/_work; rerunning resumes the calibration) and regenerates
-experiments/msh2021/README.md and its figures.
+Writes under --work (default experiments/msh2021/_work; rerunning resumes the calibration and the diagnosis)
+and regenerates experiments/msh2021/README.md and its figures.
 """
 from __future__ import annotations
 
@@ -100,11 +100,16 @@ def plot_dod(dem, hillshade_file: Path, dod: np.ndarray, dz: np.ndarray, path: P
     plt.close(fig)
 
 
-def diagnosis_summary(rep: dict, seconds: float) -> dict:
-    """What the page reports of a diagnosis report.json: the verdict and why, where the baseline disagrees
-    with the survey, each refitted candidate's 2 ln BF."""
+def diagnosis_summary(rep: dict) -> dict:
+    """What the page reports of a diagnosis report.json: the verdict and why, its time (the sum of its
+    stages'), where the baseline disagrees with the survey, each refitted candidate's 2 ln BF, each
+    candidate's detectable switch."""
+    det = {c: v["detectable_switch"] for c, v in rep["screening"]["candidates"].items() if v.get("detectable_switch")}
     return {"verdict": rep["verdict"], "missing_physics": rep.get("missing_physics"),
-            "reason": rep["decision"].get("reason", ""), "seconds": seconds,
+            "reason": rep["decision"].get("reason", ""), "seconds": sum(rep["timings"].values()),
+            "stages_s": rep["timings"],
+            "detectable": {c: {"switch": d["switch"], "within_prior": d["within_prior"],
+                               "measured": bool(d.get("measured"))} for c, d in det.items()},
             "located": [{"what": m["what"], "where": m["where"], "z": m["standardised_residual"]} for m in rep["located"]],
             "candidates": {c["name"]: c.get("two_ln_bf") for c in rep["candidates"] if c.get("two_ln_bf") is not None},
             "at_range_end": {c["name"]: {"param": c["param"], "hdr90": c["parameters"][c["param"]]["hdr90"],
@@ -150,7 +155,7 @@ def write_page(out: dict, path: Path) -> None:
     if "diagnosis" in out:
         d = out["diagnosis"]
         lines += [f"Diagnosis (`torchslide diagnose diagnose.toml`, with a 1.2 m erodible regolith for the entrainment "
-                  f"candidate; {d['seconds']:.0f} s): verdict **{d['verdict']}**"
+                  f"candidate; {d['seconds']:.0f} s in its stages): verdict **{d['verdict']}**"
                   + (f" ({d['missing_physics']})" if d.get("missing_physics") else "") + f": {d['reason']}.", "",
                   "Where the calibrated model and the survey disagree (clusters of the DoD's standardised residuals):", "",
                   "| mismatch | x (m) | y (m) | standardised residual |", "|---|---|---|---|"]
@@ -158,6 +163,13 @@ def write_page(out: dict, path: Path) -> None:
                   f"| {m['z']:+.1f} |" for m in d["located"]]
         lines += ["", "Refitted candidates, 2 ln Bayes factor against the baseline: "
                   + ", ".join(f"{k} {v:+.1f}" for k, v in d["candidates"].items()) + ".", ""]
+        det = d.get("detectable", {})
+        if det:
+            how = "measured on the solver" if all(e["measured"] for e in det.values()) else "linearised"
+            lines += [f"What these data can reveal on this grid (the screening's detectable switch, {how}: a term "
+                      "this strong reaches bf_min in half the noise draws): "
+                      + ", ".join(f"{c} from {e['switch']:.3g}" + ("" if e["within_prior"] else " (beyond its range)")
+                                  for c, e in det.items()) + ".", ""]
         for name, e in d.get("at_range_end", {}).items():
             base = ", ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in e["baseline"].items())
             lines += [f"{name} fits best but at the end of its range ({e['param']} 90 % interval {e['hdr90'][0]:.3g}-"
@@ -202,10 +214,9 @@ def main(argv=None) -> int:
     shutil.copyfile(pred / "impact_probability.png", figs / "impact_probability.png")
     shutil.copyfile(cal / "posterior.png", figs / "posterior.png")
     if not a.no_diagnose:
-        t1 = time.perf_counter()
-        _cli(["diagnose", case / "diagnose.toml", "--out", diag, "--quiet"])
-        rep = json.loads((diag / "report.json").read_text())
-        out["diagnosis"] = diagnosis_summary(rep, time.perf_counter() - t1)
+        resume = ["--resume"] if (diag / "diagnosis.pkl").exists() else []
+        _cli(["diagnose", case / "diagnose.toml", "--out", diag, "--quiet", *resume])
+        out["diagnosis"] = diagnosis_summary(json.loads((diag / "report.json").read_text()))
     out["wall_s"] = time.perf_counter() - t0
     (w / "summary.json").write_text(json.dumps(out, indent=1))
     write_page(out, HERE / "README.md")
