@@ -265,11 +265,12 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     out = {"posterior": post, "inference": "local", "median_run": {"mu": 0.31, "xi": 730.0}, "footprint_jaccard": 0.4,
            "share_of_mapped_reached": 0.6, "share_of_reached_unmapped": 0.5,
            "share_of_mapped_cells_with_p_impact_ge_0.5": 0.6, "deposition_m3": two, "erosion_m3": two, "rmse_m": 1.9,
-           "runout_m": two, "diagnosis": d, "wall_s": 1200.0}
+           "runout_m": two, "diagnosis": d, "wall_s": 339.0}
     write_page(out, tmp_path / "README.md")
     page = (tmp_path / "README.md").read_text()
     assert "1000 s in its stages): verdict **unexplained**" in page
     assert "| dod deficit cluster | 1 - 3 | 2 - 4 | -14.0 |" in page
+    assert "Calibration, prediction and the survey's figures: 339 s on the 2-core machine." in page
     assert ("(the screening's detectable switch, measured on the solver: a term this strong reaches bf_min in half "
             "the noise draws): entrainment from 0.00045, curvature from 4.69 (beyond its range).") in page
     del det["entrainment"]["measured"]
