@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import sys
 import time
@@ -165,10 +166,11 @@ def write_page(out: dict, path: Path) -> None:
                   + ", ".join(f"{k} {v:+.1f}" for k, v in d["candidates"].items()) + ".", ""]
         det = d.get("detectable", {})
         if det:
-            how = "measured on the solver" if all(e["measured"] for e in det.values()) else "linearised"
+            how = "measured on the solver" if any(e["measured"] for e in det.values()) else "linearised"  # report.md
             lines += [f"What these data can reveal on this grid (the screening's detectable switch, {how}: a term "
                       "this strong reaches bf_min in half the noise draws): "
-                      + ", ".join(f"{c} from {e['switch']:.3g}" + ("" if e["within_prior"] else " (beyond its range)")
+                      + ", ".join(f"{c} never (no own effect)" if not math.isfinite(e["switch"]) else
+                                  f"{c} from {e['switch']:.3g}" + ("" if e["within_prior"] else " (beyond its range)")
                                   for c, e in det.items()) + ".", ""]
         for name, e in d.get("at_range_end", {}).items():
             base = ", ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in e["baseline"].items())
