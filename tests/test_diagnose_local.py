@@ -282,7 +282,8 @@ def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
         p_lo, p_hi = ent["parameters"]["kappa"]["profile90"]
         assert ent["parameters"]["kappa"]["profile90_closed"] == [True, True] and p_lo <= kappa <= p_hi
         assert 0.3 < (p_hi - p_lo) / (hi - lo) < 3
-        assert ent["lr_pvalue"] < 1e-6 and ent["two_ln_bf"] > 20
+        assert ent["lr_pvalue"] < 1e-6 and ent["two_ln_bf"] > 10   # (> 20 with the stated errors alone: the learnt
+        # discrepancy counts the baseline's misfit by its logarithm)
         assert d.verdict == "missing_physics" and d.missing_physics == "entrainment"
     else:
         assert ent["two_ln_bf"] < 0 and ent["lr_pvalue"] > 0.01
@@ -294,7 +295,7 @@ def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
 @pytest.mark.parametrize("release_scale, kappa, named", [(0.25, 0.0, "release_volume"), (0.0, 0.001, "entrainment")])
 def test_a_release_larger_than_stated_is_not_named_entrainment(release_scale, kappa, named):
     """Recordings from a release 25 % larger than stated (no entrainment) name the release volume, with the
-    truth in its 90 % interval, not entrainment, which alone would have been named (2 ln BF about 700);
+    truth in its 90 % interval, not entrainment, which alone would have been named;
     with entrainment hidden and the release as stated, entrainment is still named."""
     from torchslide.diagnose import Budgets, Thresholds, diagnose
 
@@ -307,7 +308,9 @@ def test_a_release_larger_than_stated_is_not_named_entrainment(release_scale, ka
     if named == "release_volume":
         lo, hi = by["release_volume"]["parameters"]["release_scale"]["hdr90"]
         assert lo <= release_scale <= hi
-        assert by["entrainment"]["two_ln_bf"] > 100     # what would have named entrainment without the candidate
+        # what would have named entrainment without the candidate (about 700 with the stated errors alone; the
+        # learnt discrepancy counts the baseline's misfit by its logarithm)
+        assert by["entrainment"]["two_ln_bf"] > Thresholds().bf_min + Thresholds().margin_min
         from torchslide.diagnose.report import write_markdown
         assert "Not a physics term" in write_markdown(d.to_json(), [])
 

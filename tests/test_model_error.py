@@ -50,7 +50,9 @@ def test_coarsened_fine_run_conserves_volume_and_matches_the_coarse_layout():
     assert torch.equal(c.arrival_time[0, 0, 0], res.arrival_time[0, :2, :2].min())
 
 
-def _evaluator(model_error=None):
+def _evaluator(model_error=None, discrepancy="none"):
+    """The grid's error alone in the likelihood (the Gaussian it shifts and widens); ``discrepancy`` "learnt" adds
+    the model's own error over it."""
     dem, rel = _case()
     g = [("g1", 700.0, 160.0)]
     t = np.arange(2.0, 40.0, 2.0)
@@ -59,7 +61,7 @@ def _evaluator(model_error=None):
            Observation("final_volume", 2.0e4, 2.0e3, name="final_volume")]
     prior = Prior({"mu": Uniform(0.2, 0.45), "xi": Uniform(200.0, 1500.0)})
     return DiagnosisEvaluator(dem=dem, release=rel, observations=obs, prior=prior, t_end=40.0, gauges=g,
-                              solver_config=SolverConfig(), model_error=model_error)
+                              solver_config=SolverConfig(), model_error=model_error, discrepancy=discrepancy)
 
 
 def test_model_error_likelihood_is_the_shifted_gaussian_with_the_added_covariance():
@@ -78,6 +80,10 @@ def test_model_error_likelihood_is_the_shifted_gaussian_with_the_added_covarianc
     ref = -0.5 * (quad + logdet + k * math.log(2 * math.pi))
     assert np.allclose(ev2.likelihood.log_likelihood(torch.as_tensor(y)).numpy(), ref, rtol=1e-9)
     assert np.all(ev2.sigma > ev.sigma) and np.all(ev2.sigma_raw >= ev.sigma_raw)
+    # with the learnt discrepancy the same Gaussian is its base (its normaliser and whitening)
+    ev3 = _evaluator(discrepancy="learnt").with_model_error(me)
+    assert ev3.likelihood.log_norm == pytest.approx(ev2.likelihood.log_norm, rel=1e-12)
+    assert np.allclose(ev3.likelihood.whiten(torch.as_tensor(y)).numpy(), ev2.likelihood.whiten(torch.as_tensor(y)).numpy())
     # the candidate copies keep it
     from torchslide.diagnose.refit import candidate_evaluator
     assert candidate_evaluator(ev2, "mu_i").model_error is me

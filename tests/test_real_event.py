@@ -110,7 +110,8 @@ def test_the_dod_is_an_elevation_change_observation_of_its_surveyed_cells(msh):
 
 
 def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
-    """The example's calibrate.toml (impact and deposit areas and the DoD as an elevation_change map) runs
+    """The example's calibrate.toml (impact and deposit areas, the run-out measured on the DoD and the DoD as an
+    elevation_change map) runs
     through calibrate, predict and sweep on a small budget and the emulator's path (the fit on the solver
     that "auto" chooses for a sharp posterior is tested in test_calibrate_cli): the map's 224 values are in
     runs.csv, the best run's fit reports the map as a whole, predict reports the share of its values
@@ -135,8 +136,11 @@ def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
     assert main(["predict", str(msh / "small.toml"), "--calibration", str(cal), "--out", str(pred), "--n", "3",
                  "--quiet"]) in (0, 1)
     info = json.loads((pred / "predictive.json").read_text())
-    assert info["maps_and_series"]["dod"]["n"] == 224 and len(info["values"]) == 2 + 224 + 1123   # + the outline
-    assert [o["name"] for o in info["observations"]] == ["impact", "deposit"]
+    assert info["maps_and_series"]["dod"]["n"] == 224 and len(info["values"]) == 3 + 224 + 1123   # + the outline
+    assert [o["name"] for o in info["observations"]] == ["impact", "deposit", "runout"]
+    runout = next(o for o in info["observations"] if o["name"] == "runout")
+    assert runout["value"] == pytest.approx(info["against_observations"]["dod"]["runout_m"]["mapped"], rel=1e-12)
+    assert runout["value"] > 700 and "interval90_model_error" in runout
     j = info["against_observations"]["dod"]["footprint_jaccard"]
     assert 0 <= j["q05"] <= j["median"] <= j["q95"] <= 1
     assert info["against_observations"]["dod"]["deposition_m3"]["survey"] == pytest.approx(22542.77, rel=1e-6)
@@ -251,7 +255,8 @@ def test_bad_survey_inputs_are_one_line_errors(msh, tmp_path, capsys, edit, matc
 def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     """experiments.msh2021's page from a diagnosis report.json: the time is the sum of its stages' (a
     resumed diagnosis reports the run's, not the resume's), the located mismatches and each candidate's
-    detectable switch, said to be measured or linearised as the report's entries are."""
+    detectable switch, said to be measured or linearised as the report's entries are; the trade-offs, the
+    learnt discrepancy and the predictions with and without the grid's and the model's own error."""
     from experiments.msh2021.__main__ import diagnosis_summary, write_page
 
     det = {"entrainment": {"switch": 0.00045, "within_prior": True, "measured": [[0.0006, 20.0]]},
@@ -264,15 +269,29 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     assert d["seconds"] == 1000.5 and d["candidates"] == {"curvature": 1.8}
     post = {k: {"mu": 0.31, "xi": 738.0} for k in ("mean", "sd")} | {"hdr90": {"mu": [0.3, 0.32], "xi": [650, 820]}}
     two = {"run": 1.0, "survey": 2.0}
+    q = {"q05": 0.3, "median": 0.4, "q95": 0.5}
+    pred = {"figures": {"runout_m": {"q05": 200.0, "median": 300.0, "q95": 400.0,
+                                     "with_grid_error": {"q05": 150.0, "q95": 420.0, "shift": -40.0}},
+                        "impact_area_m2": {"q05": 1e4, "median": 2e4, "q95": 3e4}},
+            "observations": [{"name": "runout", "value": 786.0, "interval90": [150.0, 450.0],
+                              "interval90_model_error": [0.0, 1100.0]},
+                             {"name": "impact", "value": 22400.0, "interval90": [1e4, 3e4]}],
+            "against": {k: q for k in ("footprint_jaccard", "share_of_mapped_reached", "share_of_reached_unmapped",
+                                       "rmse_m")}}
     out = {"posterior": post, "inference": "local", "median_run": {"mu": 0.31, "xi": 730.0}, "footprint_jaccard": 0.4,
            "share_of_mapped_reached": 0.6, "share_of_reached_unmapped": 0.5,
            "share_of_mapped_cells_with_p_impact_ge_0.5": 0.6, "deposition_m3": two, "erosion_m3": two, "rmse_m": 1.9,
-           "runout_m": two, "diagnosis": d, "wall_s": 339.0}
+           "runout_m": two, "diagnosis": d, "wall_s": 339.0, "calibrate_s": 52.0, "h_over_l": 0.3, "predictive": pred,
+           "tradeoffs": ["no run meets impact and runout together: ..."],
+           "discrepancy": [{"observation": "runout", "discrepancy_sd_over_sigma": 25.4}]}
     write_page(out, tmp_path / "README.md")
     page = (tmp_path / "README.md").read_text()
-    assert "1000 s in its stages): verdict **unexplained**" in page
+    assert "1000 s in its stages: verdict **unexplained**" in page
     assert "| dod deficit cluster | 1 - 3 | 2 - 4 | -14.0 |" in page
-    assert "Calibration, prediction and the survey's figures: 339 s on the 2-core machine." in page
+    assert "Calibration, prediction and the figures: 339 s on the 2-core machine (calibration 52 s)." in page
+    assert "- no run meets impact and runout together: ...." in page and "runout 25 x its sigma" in page
+    assert "| run-out from the release's crown, m | 200 - 400 | 150 - 420 (shift -40) | 786 |" in page
+    assert "| runout | 786 | 150 - 450 | 0 - 1,100 |" in page and "| impact | 22,400 | 10,000 - 30,000 | - |" in page
     assert ("(the screening's detectable switch, measured on the solver: a term this strong reaches bf_min in half "
             "the noise draws): entrainment from 0.00045, curvature from 4.69 (beyond its range).") in page
     for e in det.values():

@@ -65,6 +65,13 @@ def maximin_lhs(n: int, dim: int, seed: int = 0, n_candidates: int = 100) -> np.
     return best
 
 
+def initial_design(bounds, n: int, seed: int) -> torch.Tensor:
+    """(n, p) the loop's initial design in parameter units: the seeded maximin LHS scaled to the box
+    (2, p), point for point the runs ``ActiveLearner.initialise`` makes (a pilot may run them first)."""
+    b = check_bounds(bounds)
+    return b[0] + torch.from_numpy(maximin_lhs(n, b.shape[1], seed)).to(b) * (b[1] - b[0])
+
+
 @dataclass
 class ActiveConfig:
     """Settings of the loop (all stored in the checkpoint)."""
@@ -290,8 +297,7 @@ class ActiveLearner:
                                  failed=torch.empty(0, dtype=torch.bool), reasons=[],
                                  is_initial=torch.empty(0, dtype=torch.bool))
         if x0 is None:
-            x0 = self.emulator.from_unit(torch.from_numpy(maximin_lhs(self.config.n_initial, self.dim,
-                                                                      self.config.seed)))
+            x0 = initial_design(self.bounds, self.config.n_initial, self.config.seed)
         x0 = torch.as_tensor(x0, dtype=torch.float64).reshape(-1, self.dim)
         self._append(x0, self.evaluate(x0), initial=True)
         self._save()

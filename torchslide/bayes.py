@@ -280,6 +280,10 @@ class GaussianLikelihood:
             return r / self.sigma.to(y)
         return torch.linalg.solve_triangular(self.chol.to(y), r.T, upper=False).T
 
+    def residuals(self, simulated: torch.Tensor) -> torch.Tensor:
+        """The least-squares form of ln L = log_norm - |r|^2 / 2: the whitened residuals (n, k)."""
+        return self.whiten(simulated)
+
     def log_likelihood(self, simulated: torch.Tensor) -> torch.Tensor:
         """simulated: (n, k) model outputs -> (n,) ln L (Eq. 6). Non-finite outputs give nan."""
         w = self.whiten(simulated)

@@ -58,6 +58,8 @@ class CalibrationResult:
     stopped_reason: str = ""
     timings: dict = field(default_factory=dict)
     emulator: object = None
+    inference: dict = field(default_factory=lambda: {"path": "emulator", "why": "a log-posterior function"})
+    discrepancy_factors: dict = field(default_factory=dict)
 
     @property
     def n_runs(self) -> int:
@@ -75,7 +77,8 @@ class CalibrationResult:
                     "stopped_reason": self.stopped_reason,
                     "bounds": {n: [float(self.bounds[0, i]), float(self.bounds[1, i])] for i, n in enumerate(self.names)},
                     "tv_history": [[int(n), float(t)] for n, t in self.tv_history],
-                    "timings": self.timings, "runs": runs})
+                    "timings": self.timings, "inference": self.inference,
+                    "discrepancy_factors": self.discrepancy_factors, "runs": runs})
         return out
 
     def save(self, directory: str | os.PathLike) -> Path:
@@ -128,7 +131,8 @@ class CalibrationResult:
                    posterior_grid=arrays.get("posterior_grid"), log_evidence=float(info["log_evidence"]),
                    tv_history=[tuple(r) for r in arrays["tv_history"].tolist()], summary=summary,
                    samples=arrays.get("samples"), stopped_reason=info.get("stopped_reason", ""),
-                   timings=info.get("timings", {}))
+                   timings=info.get("timings", {}), inference=info.get("inference", {}),
+                   discrepancy_factors=info.get("discrepancy_factors", {}))
 
 
 def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int = 120, batch_size: int = 1,
@@ -137,12 +141,16 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
               tv_threshold: float | None = None, names: Sequence[str] | None = None, progress: bool = True,
               clip_range: float | None = 1000.0, tv_lag: int = 10, tv_patience: int = 3,
               num_restarts: int = 8, raw_samples: int = 256, mcmc_steps: int = 4000,
-              mcmc_chains: int = 8) -> CalibrationResult:
+              mcmc_chains: int = 8, inference: str = "auto", local_max_fraction: float = 0.05,
+              log=None) -> CalibrationResult:
     """Calibrate parameters in a box by Bayesian active learning (Algorithm 1).
 
     Args:
         log_posterior: maps an (n, p) float64 tensor of parameter points to z (n,), or to (z, failed_mask),
-            or to a torchslide.bayes.EvaluationResult. One call gets a whole batch.
+            or to a torchslide.bayes.EvaluationResult. One call gets a whole batch. A
+            torchslide.evaluator.LandslideEvaluator (the solver's) also learns its discrepancy's correlation
+            from the initial design first (``learn_discrepancy``) and can be fitted on the solver
+            (``inference``).
         bounds: (2, p) [lows; highs], or {name: (low, high)} (which also names the parameters).
         n_initial: b0, maximin-LHS initial runs. n_total: total run budget.
         batch_size: q points per iteration (kriging believer).
@@ -153,9 +161,16 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
         log_dir: TensorBoard log dir (optional).
         tv_threshold: stop when TV(p_i, p_{i-tv_lag}) < threshold for tv_patience iterations.
         clip_range: GP training values are capped at max(z) - clip_range (None: off).
+        inference: for a LandslideEvaluator, "auto" (the mode fitted on the solver and its Laplace posterior
+            when the emulator's 90 % region fills less than ``local_max_fraction`` of the box), "local"
+            (always) or "emulator" (never); torchslide.diagnose.local_path.local_calibration. Other
+            log-posteriors take the emulator's posterior. The result's ``inference`` says which and why.
+        log: a callable(str) for the local fit's messages (None: silent).
     """
     if isinstance(bounds, dict):
         names = list(bounds) if names is None else names
+    if names is None and isinstance(getattr(log_posterior, "names", None), list):
+        names = list(log_posterior.names)      # a LandslideEvaluator's calibrated parameters
     b = check_bounds(bounds, names)
     p = b.shape[1]
     names = list(names) if names is not None else [f"x{i}" for i in range(p)]
@@ -163,6 +178,14 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
                        grid_size=grid_size, acquisition=acquisition, tv_threshold=tv_threshold, tv_lag=tv_lag,
                        tv_patience=tv_patience, clip_range=clip_range, num_restarts=num_restarts,
                        raw_samples=raw_samples)
+    solver = hasattr(log_posterior, "learn_discrepancy")
+    factors = {}
+    if solver and log_posterior.discrepancy_factors is None:   # (a diagnosis' candidates keep the baseline's)
+        from .active import initial_design
+
+        factors = log_posterior.learn_discrepancy(initial_design(b, n_initial, seed).numpy())
+    elif solver:
+        factors = dict(log_posterior.discrepancy_factors)
     learner = ActiveLearner(log_posterior, b, cfg, checkpoint=checkpoint, log_dir=log_dir, progress=progress,
                             names=names)
     s = learner.run()
@@ -180,8 +203,18 @@ def calibrate(log_posterior: Callable, bounds, n_initial: int = 40, n_total: int
         axes, dens = None, None
     timings = {"fit_s_median": float(np.median(s.fit_seconds)) if s.fit_seconds else None,
                "acquisition_s_median": float(np.median(s.acq_seconds)) if s.acq_seconds else None}
-    return CalibrationResult(names=names, bounds=b.numpy(), x=s.x.numpy(), z=s.z.numpy(), failed=s.failed.numpy(),
-                             reasons=list(s.reasons), n_initial=int(s.is_initial.sum()), grid_axes=axes,
-                             posterior_grid=dens, log_evidence=float(log_z), tv_history=list(s.tv_history),
-                             summary=summ.to_dict(), samples=samples, stopped_reason=s.stopped_reason,
-                             timings=timings, emulator=em)
+    res = CalibrationResult(names=names, bounds=b.numpy(), x=s.x.numpy(), z=s.z.numpy(), failed=s.failed.numpy(),
+                            reasons=list(s.reasons), n_initial=int(s.is_initial.sum()), grid_axes=axes,
+                            posterior_grid=dens, log_evidence=float(log_z), tv_history=list(s.tv_history),
+                            summary=summ.to_dict(), samples=samples, stopped_reason=s.stopped_reason,
+                            timings=timings, emulator=em, discrepancy_factors=factors)
+    if not solver:
+        return res
+    from .diagnose.local_path import local_calibration   # the local fit on the solver (its residuals)
+
+    res, info = local_calibration(log_posterior, res, inference, local_max_fraction, seed=seed,
+                                  log=log or (lambda m: None))
+    if info["path"] == "local":     # the mode's run joins the records: the best run is the mode's
+        log_posterior.evaluate(np.array([[res.summary["map"][n] for n in names]]))
+    res.inference, res.discrepancy_factors = info, factors
+    return res

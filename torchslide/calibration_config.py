@@ -42,7 +42,7 @@ from .config import Config, ConfigError, check_keys, load_config
 from .observe import Observation
 
 _CAL_KEYS = {"n_initial", "n_total", "batch_size", "seed", "grid_size", "acquisition", "tv_threshold",
-             "max_batch", "clip_range", "truth", "inference", "local_max_fraction"}
+             "max_batch", "clip_range", "truth", "inference", "local_max_fraction", "discrepancy"}
 _PRIOR_DISTS = {
     "uniform": ({"low", "high"}, set()),
     "truncnormal": ({"low", "high", "mean", "sd"}, set()),
@@ -168,20 +168,51 @@ def parse_observations(table: Any, cfg: Config) -> list:
 
 
 def with_path(d: dict, cfg: Config) -> dict:
-    """A runout_length observation's polyline from ``path = "name"`` (a [[paths]] entry, or a synthetic
-    case's "thalweg", the default when the case has one); its max_offset comes along."""
-    if d.get("kind") != "runout_length" or "thalweg" in d:
+    """A runout_length observation's geometry and, from ``map = FILE``, its value.
+
+    The geometry: the polyline of ``path = "name"`` (a [[paths]] entry, or a synthetic case's "thalweg", the
+    default when the case has one; its max_offset comes along), else the point it is measured from: x, y
+    as given, or the release's crown (torchslide.survey.crown_point). ``map``: a mapped footprint or a DEM
+    of difference (a raster on the DEM file's grid, its finite non-zero cells mapped; or an outline's
+    polygons): the value is the run-out of the mapped cells (survey.mapped_runout)."""
+    if d.get("kind") != "runout_length":
         return d
+    from .survey import crown_point, mapped_runout
+
+    source = d.pop("map", None)
     paths = {p.name: p for p in cfg.run_out_paths()}
-    name = d.pop("path", "thalweg" if "thalweg" in paths else None)
-    if name is None:
-        raise ValueError("kind 'runout_length' needs path = \"name\" of a [[paths]] entry (or a thalweg polyline)")
-    if name not in paths:
-        raise ValueError(f"path {name!r} is not a [[paths]] name (known: {sorted(paths)})")
-    d["thalweg"] = paths[name].xy.tolist()
-    if paths[name].max_offset is not None:
-        d["options"] = dict(d.get("options", {}), max_offset=paths[name].max_offset)
+    name = d.pop("path", "thalweg" if "thalweg" in paths and "thalweg" not in d else None)
+    if name is not None:
+        if name not in paths:
+            raise ValueError(f"path {name!r} is not a [[paths]] name (known: {sorted(paths)})")
+        d["thalweg"] = paths[name].xy.tolist()
+        if paths[name].max_offset is not None:
+            d["options"] = dict(d.get("options", {}), max_offset=paths[name].max_offset)
+    elif "thalweg" not in d and ("x" not in d or "y" not in d):
+        d["x"], d["y"] = crown_point(cfg.terrain.dem, cfg.terrain.release)
+    if source is None:
+        return d
+    if "value" in d:
+        raise ValueError(f"give the run-out's value or the map it is measured on (map = {source!r}), not both")
+    grid = cfg.terrain.source_dem or cfg.terrain.dem
+    mapped = _mapped_cells(cfg.resolve(source), grid)
+    d["value"] = mapped_runout(mapped, grid, point=(d.get("x"), d.get("y")), thalweg=d.get("thalweg"),
+                               max_offset=d.get("options", {}).get("max_offset"))
+    d.setdefault("name", "runout")
+    d["options"] = dict(d.get("options", {}), map=str(source))
     return d
+
+
+def _mapped_cells(path, grid) -> np.ndarray:
+    """(ny, nx) bool: the finite non-zero cells of a raster on ``grid`` (a footprint's 1s, a DoD's changed
+    cells), or the inside of an outline's polygons."""
+    from .observe_series import read_map
+    from .terrain.vector import is_vector, rasterize_outline
+
+    if is_vector(path):
+        return rasterize_outline(path, grid) >= 0.5
+    a = read_map(path, grid, what="runout map")
+    return np.isfinite(a) & (a != 0)
 
 
 def check_unique_names(observations, path) -> None:
@@ -198,7 +229,7 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
     check_keys(table, _CAL_KEYS, "[calibration]", path)
     c = {"n_initial": 40, "n_total": 120, "batch_size": 1, "seed": 0, "grid_size": 100,
          "acquisition": "entropy", "tv_threshold": None, "max_batch": 32, "clip_range": 1000.0,
-         "inference": "auto", "local_max_fraction": 0.05}
+         "inference": "auto", "local_max_fraction": 0.05, "discrepancy": "learnt"}
     c.update(table)
     for k in ("n_initial", "n_total", "batch_size", "grid_size", "max_batch"):
         if not isinstance(c[k], int) or isinstance(c[k], bool) or c[k] < 1:
@@ -230,6 +261,11 @@ def parse_calibration(table: Any, cfg: Config) -> dict:
     if not isinstance(v, (int, float)) or isinstance(v, bool) or not 0 < v <= 1:
         raise ConfigError(f"{path}: [calibration] local_max_fraction must be a share of the prior box in (0, 1], "
                           f"got {v!r}")
+    from .discrepancy import MODELS
+
+    if c["discrepancy"] not in MODELS:
+        raise ConfigError(f"{path}: [calibration] discrepancy must be " + " or ".join(f'"{m}"' for m in MODELS)
+                          + f", got {c['discrepancy']!r}")
     if c["acquisition"] not in ("entropy", "expvar"):
         raise ConfigError(f"{path}: [calibration] acquisition must be 'entropy' or 'expvar', got {c['acquisition']!r}")
     return c
@@ -268,7 +304,8 @@ def make_evaluator(cfg: Config):
         dem=cfg.terrain.dem, release=cfg.terrain.release, observations=cfg.extra["observations"], prior=prior,
         fixed=fixed, t_end=cfg.run.t_end, gauges=gauges, erodible_depth=cfg.terrain.erodible_depth,
         solver_config=cfg.solver_config(), dtype=cfg.run.torch_dtype, device=cfg.run.device,
-        max_batch=cfg.extra["calibration"]["max_batch"], thickness=cfg.terrain.thickness)
+        max_batch=cfg.extra["calibration"]["max_batch"], thickness=cfg.terrain.thickness,
+        discrepancy=cfg.extra["calibration"]["discrepancy"])
 
 
 def load_calibration(directory, prior):
@@ -305,6 +342,7 @@ def case_fingerprint(ev) -> dict:
     return {"observations": [obs(o) for o in ev.observations],
             "prior": {n: repr(c) for n, c in ev.prior.components.items()},
             "fixed": {k: float(v) for k, v in ev.fixed.items()},
+            "discrepancy": getattr(ev, "discrepancy", "none"),
             "terrain": {"dem": digest(ev.dem.z), "cellsize": float(ev.dem.cellsize),
                         "origin": [float(ev.dem.xll), float(ev.dem.yll)], "release": digest(ev.release),
                         "erodible_depth": digest(ev.erodible_depth)},

@@ -18,6 +18,7 @@ with the effective standard deviations (k,) (sigma sqrt(f) for correlated maps a
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -35,34 +36,43 @@ from .terrain.grid import DEM
 
 @dataclass
 class RunRecord:
-    """One evaluated parameter point: x (p,), predicted observables (k,), z, failure reason ('' if fine)."""
+    """One evaluated parameter point: x (p,), predicted observables (k,), z, failure reason ('' if fine),
+    and where the observations map a footprint the run's figures against it (torchslide.survey.run_figures:
+    {observation name: {footprint_jaccard, share_of_reached_unmapped, runout_m, ...}}, else None)."""
 
     x: np.ndarray
     predictions: np.ndarray
     z: float
     failed: bool
     reason: str = ""
+    figures: dict | None = None
 
 
 def save_records(records: list, path) -> None:
     """Write run records to ``path`` (.npz) atomically, so that a resumed calibration knows every run's
     predictions, not only those of its own invocation."""
+    import json
+
     from .files import atomic_path
 
     with atomic_path(path) as tmp:
         np.savez(tmp, x=np.array([r.x for r in records]), predictions=np.array([r.predictions for r in records]),
                  z=np.array([r.z for r in records]), failed=np.array([r.failed for r in records]),
-                 reasons=np.array([r.reason for r in records]))
+                 reasons=np.array([r.reason for r in records]),
+                 figures=np.array([json.dumps(r.figures) for r in records]))
 
 
 def load_records(path) -> list:
     """The run records :func:`save_records` wrote (FileStateError when the file is unreadable)."""
+    import json
+
     from .files import FileStateError
 
     try:
         with np.load(path) as f:
-            return [RunRecord(x.copy(), p.copy(), float(z), bool(b), str(r))
-                    for x, p, z, b, r in zip(f["x"], f["predictions"], f["z"], f["failed"], f["reasons"])]
+            figs = [json.loads(str(v)) for v in f["figures"]] if "figures" in f.files else [None] * len(f["z"])
+            return [RunRecord(x.copy(), p.copy(), float(z), bool(b), str(r), g)
+                    for x, p, z, b, r, g in zip(f["x"], f["predictions"], f["z"], f["failed"], f["reasons"], figs)]
     except Exception as e:  # noqa: BLE001 - numpy raises several kinds for a truncated file
         raise FileStateError(f"run records {path} are corrupt or truncated ({type(e).__name__}); delete the "
                              "output folder to start again") from None
@@ -120,6 +130,10 @@ class LandslideEvaluator:
         thickness: convention of the release and erodible depths, "normal" (to the slope) or "vertical".
         executor: where the chunks of max_batch members run (torchslide.executor; None: here, one after
             another). The evaluator is sent to workers without its records, executor and progress bar.
+        discrepancy: "learnt" (the model's own error, one per observation, learnt with the parameters:
+            torchslide.discrepancy) or "none" (the stated errors only).
+        discrepancy_factors: {map or series name: F / f}, how much farther its residual is correlated
+            than its stated errors (``learn_discrepancy``); None: as stated.
     """
 
     dem: DEM
@@ -142,6 +156,8 @@ class LandslideEvaluator:
     records_file: object = None
     thickness: str = "normal"
     executor: object = field(default=None, repr=False)
+    discrepancy: str = "learnt"
+    discrepancy_factors: dict | None = None
 
     def __getstate__(self) -> dict:
         """What a worker needs to run chunks: everything but the run records, the executor and the progress bar."""
@@ -185,9 +201,68 @@ class LandslideEvaluator:
         self.sigma_raw = np.concatenate(s_raw)  # per-value measurement sigma
         values = torch.as_tensor(self.data)
         if self.covariance is not None:
-            self.likelihood = GaussianLikelihood(values, covariance=self.covariance)
+            self.likelihood = self.with_discrepancy(GaussianLikelihood(values, covariance=self.covariance))
         else:
-            self.likelihood = GaussianLikelihood(values, sigma=torch.as_tensor(self.sigma))
+            self.likelihood = self.with_discrepancy(GaussianLikelihood(values, sigma=torch.as_tensor(self.sigma)))
+
+    def with_discrepancy(self, gaussian: GaussianLikelihood):
+        """The likelihood of the stated errors ``gaussian`` with this evaluator's model of the model's own error
+        (``discrepancy``: torchslide.discrepancy over the observation blocks, or the Gaussian itself)."""
+        from .discrepancy import MODELS, DiscrepancyLikelihood, groups_of_blocks
+
+        if self.discrepancy not in MODELS:
+            raise ValueError(f"discrepancy must be one of {MODELS}, got {self.discrepancy!r}")
+        if self.discrepancy == "none":
+            return gaussian
+        return DiscrepancyLikelihood(gaussian, groups_of_blocks(self.blocks, lambda b: b.obs.n_eff,
+                                                                self.discrepancy_factors))
+
+    def learn_discrepancy(self, x_pilot) -> dict:
+        """Learn how far each map's and series' discrepancy is correlated, from pilot runs (the first step of
+        a calibration: its initial design): the pilot points (n, p) are evaluated (or taken from the
+        records), and for the best of them (largest z) each vector observation's standardised residual
+        gives its correlation factor F (torchslide.discrepancy.correlation_factor, over the values where the
+        discrepancy's weights put it: flow recorded or simulated); the likelihood then
+        divides that observation's misfit and effective count by max(1, F / f) (f: its stated errors'),
+        and every record's z is scored again. Returns {name: factor} (also ``discrepancy_factors``)."""
+        if self.discrepancy != "learnt":
+            return {}
+        x_pilot = np.atleast_2d(np.asarray(x_pilot, dtype=np.float64))
+        self.evaluate(x_pilot)
+        keys = {tuple(np.round(x, 12)) for x in x_pilot}
+        pilot = [r for r in self.records if tuple(np.round(r.x, 12)) in keys and not r.failed and np.isfinite(r.z)]
+        if not pilot:
+            return {}
+        return self.learn_discrepancy_from(max(pilot, key=lambda r: r.z).predictions)
+
+    def learn_discrepancy_from(self, predictions) -> dict:
+        """``learn_discrepancy``'s factors from one run's predictions (k,) (the best pilot run's, or a fitted
+        mode's), set in the likelihood; {name: factor}."""
+        from .discrepancy import correlation_factor
+
+        factors = {}
+        for b in self.blocks:
+            if not b.is_vector:
+                continue
+            y, d = np.asarray(predictions)[b.slice], self.data[b.slice]
+            res = (y - d) / self.sigma_raw[b.slice]
+            # where the discrepancy lives (its weights, torchslide.discrepancy): the values with flow recorded or
+            # simulated, at least a tenth of the observation's mean square
+            m2 = (0.5 * (np.abs(y) + np.abs(d))) ** 2
+            res = np.where(m2 >= 0.1 * m2.mean(), res, np.nan) if m2.mean() > 0 else res
+            F = correlation_factor(b.obs.to_grid(res) if b.obs.is_map else res)
+            factors[b.name] = float(max(1.0, F / b.obs.factor()))
+        self.set_discrepancy_factors(factors)
+        return factors
+
+    def set_discrepancy_factors(self, factors: dict | None) -> None:
+        """Use ``factors`` ({name: F / f}, learn_discrepancy's) in the likelihood and score every record again."""
+        self.discrepancy_factors = dict(factors) if factors else None
+        self.likelihood = self.with_discrepancy(getattr(self.likelihood, "gaussian", self.likelihood))
+        for r in self.records:
+            if not r.failed:
+                x = torch.as_tensor(np.atleast_2d(r.x))
+                r.z = float(self.likelihood.log_likelihood(torch.as_tensor(r.predictions[None])) + self.prior.log_prob(x))
 
     @property
     def k(self) -> int:
@@ -285,8 +360,30 @@ class LandslideEvaluator:
             yield self.values_chunk(v)[3]
 
     def _predictions_chunk(self, values: dict) -> tuple:
-        preds, failed, why, _, sec = self.values_chunk(values)
-        return preds, failed, why, sec
+        """One chunk's (predictions (n, k), failed (n,), reasons, figures (n dicts or Nones), seconds)."""
+        preds, failed, why, res, sec = self.values_chunk(values)
+        return preds, failed, why, self.survey_figures(res), sec
+
+    @property
+    def reach_threshold(self) -> float:
+        """h_max above which a cell counts as reached in the survey's figures: the first threshold of a
+        footprint, impact map, impact area or run-out observation (0.5 m without one)."""
+        from .observe import DEFAULT_THRESHOLD
+
+        kinds = ("footprint", "impact_map", "impact_area", "runout_length")
+        return next((float(o.threshold) for o in self.observations if o.kind in kinds), DEFAULT_THRESHOLD)
+
+    def survey_figures(self, result: SimulationResult) -> list:
+        """Per member of ``result``, its figures against the mapped footprints among the observations
+        (torchslide.survey.run_figures), or None for each member when no observation maps one."""
+        from .survey import FOOTPRINT_KINDS, run_figures
+
+        if not any(getattr(o, "kind", None) in FOOTPRINT_KINDS for o in self.observations):
+            return [None] * result.batch_size
+        h = result.h_max.detach().cpu().double().numpy()
+        dz = None if result.elevation_change is None else result.elevation_change.detach().cpu().double().numpy()
+        return [run_figures(h[b], None if dz is None else dz[b], self.observations, self.dem.z, self.release,
+                            self.dem.cellsize, self.reach_threshold) for b in range(result.batch_size)]
 
     def maps_chunk(self, values: dict) -> tuple:
         """One chunk of ``value_chunks`` for maps: (predictions (n, k), failed (n,), reasons, {"h_max", "v_max",
@@ -322,16 +419,26 @@ class LandslideEvaluator:
         return preds, failed, reasons
 
     def evaluate(self, x: torch.Tensor) -> tuple[EvaluationResult, torch.Tensor]:
-        """(EvaluationResult, predictions (n, k)) for (n, p) points, in chunks of max_batch on the executor."""
+        """(EvaluationResult, predictions (n, k)) for (n, p) points, in chunks of max_batch on the executor;
+        points that the records already hold (a pilot's, a resumed run's) are not run again."""
         x = torch.as_tensor(x, dtype=torch.float64).reshape(-1, len(self.names))
-        out = self.map_chunks(self._predictions_chunk,
-                              self.value_chunks({n: x[:, i].numpy() for i, n in enumerate(self.names)}))
-        preds = torch.cat([o[0] for o in out])
+        held = {tuple(np.round(r.x, 12)): r for r in self.records}
+        known = [held.get(tuple(np.round(xi, 12))) for xi in x.numpy()]
+        new = [i for i, r in enumerate(known) if r is None]
+        if new:
+            xn = x[new]
+            out = self.map_chunks(self._predictions_chunk,
+                                  self.value_chunks({n: xn[:, i].numpy() for i, n in enumerate(self.names)}))
+            fresh = zip(torch.cat([o[0] for o in out]), torch.cat([o[1] for o in out]),
+                        [r for o in out for r in o[2]], [f for o in out for f in o[3]])
+            for i, (p, f, why, fig) in zip(new, fresh):
+                known[i] = RunRecord(x[i].numpy().copy(), p.numpy().copy(), math.nan, bool(f), why, fig)
+        preds = torch.as_tensor(np.stack([r.predictions for r in known]))
         out = EvaluationResult(self.likelihood.log_likelihood(preds) + self.prior.log_prob(x),
-                               torch.cat([o[1] for o in out]), [r for o in out for r in o[2]])
-        for i in range(x.shape[0]):
-            self.records.append(RunRecord(x[i].numpy().copy(), preds[i].numpy().copy(), float(out.z[i]),
-                                          bool(out.failed[i]), out.reasons[i]))
+                               torch.as_tensor([r.failed for r in known]), [r.reason for r in known])
+        for i in new:
+            known[i].z = float(out.z[i])
+            self.records.append(known[i])
         if self.records_file is not None:
             save_records(self.records, self.records_file)
         return out, preds

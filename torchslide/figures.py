@@ -173,3 +173,31 @@ def plot_predictive_check(checks: list, path):
     save_figure(fig, path, 120)
     plt.close(fig)
     return Path(path)
+
+
+def plot_front(front: dict, path, draws: dict | None = None, peers: dict | None = None,
+               title: str | None = None):
+    """The trade-off a mapped event shows: each run's run-out from the release's crown (m) against the share
+    of its reached cells outside the mapped footprint (torchslide.tradeoff.front), grey; the posterior's
+    draws (``draws``: the same keys) in red; the survey at (its mapped run-out, 0) as a star; ``peers``
+    {name: (run-out m, share)} as labelled squares (another model's run on the same event)."""
+    fig, ax = plt.subplots(figsize=(6.0, 4.3))
+    ax.scatter(front["runout_m"], front["share_of_reached_unmapped"], s=14, color="0.55",
+               label=f"calibration runs ({len(front['runout_m'])})")
+    if draws is not None and draws.get("runout_m"):
+        ax.scatter(draws["runout_m"], draws["share_of_reached_unmapped"], s=16, color="tab:red",
+                   label=f"posterior draws ({len(draws['runout_m'])})")
+    ax.plot([front["mapped_runout_m"]], [0.0], "*", color="black", ms=14, label="survey")
+    for name, (r, share) in (peers or {}).items():
+        ax.plot([r], [share], "s", color="tab:blue", ms=7)
+        ax.annotate(name, (r, share), textcoords="offset points", xytext=(6, 4), fontsize=8, color="tab:blue")
+    ax.set_xlabel("run-out from the release's crown (m)")
+    ax.set_ylabel("share of reached cells outside the map")
+    ax.set_ylim(-0.03, 1.0)
+    ax.set_title(title or f"what the model can meet together (footprint: {front['footprint']})", fontsize=10)
+    ax.legend(loc="upper left", fontsize=7)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    save_figure(fig, path, 120)
+    plt.close(fig)
+    return Path(path)

@@ -63,3 +63,54 @@ def plot_hmax_map(dem: DEM, h_max: np.ndarray, path, *, points: dict | None = No
     not coloured."""
     return plot_field_map(dem, h_max, path, points=points, title=title, label="h_max (m)", threshold=threshold,
                           release=release)
+
+
+def plot_outlines(dem: DEM, mapped: np.ndarray, outlines: dict, path, *, title: str = "", dpi: int = 110,
+                  background=None) -> Path:
+    """Save a PNG of a mapped footprint against simulated ones over the hillshade: the mapped cells (bool
+    (ny, nx)) filled grey with a black outline, each of ``outlines`` {label: bool (ny, nx)} outlined in its
+    own colour, and the cells reached but not mapped hatched per outline, so that what a run wets outside the
+    map is as visible as what it misses. ``background``: (array, extent) of a finer hillshade to draw
+    instead of the DEM's. The view is cut to the cells shown, with a margin of 5 cells."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    xmin, ymin, xmax, ymax = dem.extent
+    extent = (xmin, xmax, ymin, ymax)
+    shown = np.asarray(mapped, bool).copy()
+    for m in outlines.values():
+        shown |= np.asarray(m, bool)
+    rows, cols = np.nonzero(shown) if shown.any() else (np.array([0, dem.ny - 1]), np.array([0, dem.nx - 1]))
+    x0, x1 = dem.xll + (cols.min() - 5) * dem.cellsize, dem.xll + (cols.max() + 6) * dem.cellsize
+    y0, y1 = dem.yll + (rows.min() - 5) * dem.cellsize, dem.yll + (rows.max() + 6) * dem.cellsize
+    fig, ax = plt.subplots(figsize=(6.5, max(3.0, 6.5 * (y1 - y0) / max(x1 - x0, 1.0))))
+    if background is not None:
+        ax.imshow(background[0], cmap="gray", origin="lower", extent=background[1])
+    else:
+        ax.imshow(hillshade(dem.z, dem.cellsize), cmap="gray", origin="lower", extent=extent, vmin=0, vmax=1)
+    xc, yc = dem.x_centres(), dem.y_centres()
+    ax.imshow(np.ma.masked_where(~np.asarray(mapped, bool), np.ones(dem.shape)), cmap="Greys", vmin=0, vmax=2.5,
+              origin="lower", extent=extent, alpha=0.55)
+    ax.contour(xc, yc, np.asarray(mapped, float), levels=[0.5], colors="black", linewidths=1.6)
+    handles = [plt.Line2D([], [], color="black", lw=1.6, label=f"mapped ({int(np.sum(mapped))} cells)")]
+    colours = ["tab:red", "tab:blue", "tab:orange", "tab:green"]
+    for (name, m), c in zip(outlines.items(), colours):
+        m = np.asarray(m, bool)
+        ax.contour(xc, yc, m.astype(float), levels=[0.5], colors=c, linewidths=1.3)
+        outside = m & ~np.asarray(mapped, bool)
+        ax.contourf(xc, yc, outside.astype(float), levels=[0.5, 1.5], colors="none", hatches=["////"])
+        handles.append(plt.Line2D([], [], color=c, lw=1.3, label=f"{name} ({int(m.sum())} cells, "
+                                  f"{int(outside.sum())} outside the map)"))
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.legend(handles=handles, loc="best", fontsize=7)
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    save_figure(fig, path, dpi)
+    plt.close(fig)
+    return path

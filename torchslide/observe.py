@@ -18,10 +18,15 @@ and volumes are normal thickness times the surface area of each cell.
   contains the point (``method="cell"``, the default: the finite-volume value is a cell average), or
   bilinear interpolation between the four nearest cell centres (``method="bilinear"``; clamped at the
   grid edge).
-* runout_length:  along a thalweg polyline (N, 2) in map m: every cell centre is projected onto the
-  nearest point of the polyline; the run-out is the largest distance along the polyline (from its
-  first vertex) among cells with h_max > threshold (0 when no cell exceeds it). ``max_offset`` (m)
-  optionally ignores cells farther than that from the polyline.
+* runout_length:  the largest distance d of a reached cell, d either along a thalweg polyline (N, 2) in
+  map m (every cell centre projected onto the nearest point of the polyline, d the distance along it
+  from its first vertex; ``max_offset`` (m) optionally ignores cells farther than that from the
+  polyline) or, without a polyline, the horizontal distance from a point (x, y), the release's crown
+  (a mapped run-out measured from the crown, torchslide.survey). As an observation it is continuous in
+  the parameters (``runout_reach``): a cell counts 2 r d while its reach r = h_max^4 / (h_max^4 +
+  threshold^4) is below 1/2 and d + cellsize (r - 1/2) above, so the farthest cell with h_max at the
+  threshold gives d, as the sharp ``runout_length`` does, and the value moves with the front instead of
+  stepping a cell at a time (for the local fits' finite differences and the emulator alike).
 * gauge_series:   the (B, T) series of a named gauge (h, u, v or speed).
 
 Observations (:class:`Observation`) tie a kind to a measured value and its standard deviation; the
@@ -50,7 +55,9 @@ __all__ = [
     "deposit_height",
     "point_value",
     "runout_length",
+    "runout_reach",
     "thalweg_distance_map",
+    "point_distance_map",
     "gauge_series",
     "Observation",
     "ObservationKind",
@@ -180,6 +187,44 @@ def runout_length(result: SimulationResult, thalweg, threshold: float = DEFAULT_
     return vals.amax(dim=(-2, -1)).clamp_min(0.0)
 
 
+def point_distance_map(dem: DEM, x: float, y: float) -> np.ndarray:
+    """(ny, nx) horizontal distance, m, of every cell centre from the map point (x, y)."""
+    X, Y = np.meshgrid(dem.x_centres(), dem.y_centres())
+    return np.hypot(X - x, Y - y)
+
+
+def runout_reach(result: SimulationResult, distance: np.ndarray, threshold: float = DEFAULT_THRESHOLD,
+                 mask: np.ndarray | None = None) -> torch.Tensor:
+    """(B,) the run-out, m, continuous in the parameters (module doc): max over the cells (of ``mask``
+    (ny, nx) bool, all if None) of 2 r d where r <= 1/2, d + cellsize (r - 1/2) above, r = h_max^4 /
+    (h_max^4 + threshold^4), d = ``distance`` (ny, nx) m; 0 where no cell is reached at all."""
+    h = result.h_max
+    d = torch.as_tensor(distance, dtype=h.dtype, device=h.device)
+    h4, t4 = h**4, float(threshold) ** 4
+    r = h4 / (h4 + t4) if t4 > 0 else (h > 0).to(h)
+    c = torch.where(r <= 0.5, 2.0 * r * d, d + result.dem.cellsize * (r - 0.5))
+    if mask is not None:
+        c = torch.where(torch.as_tensor(mask, device=h.device), c, torch.zeros_like(c))
+    return c.amax(dim=(-2, -1)).clamp_min(0.0)
+
+
+def _runout_observed(r: SimulationResult, o: "Observation") -> torch.Tensor:
+    """runout_length of an observation: along its thalweg, or from its point (x, y) (module doc)."""
+    if o.thalweg is not None:
+        s, dist = thalweg_distance_map(r.dem, o.thalweg)
+        off = o.options.get("max_offset")
+        return runout_reach(r, s, o.threshold, None if off is None else dist <= off)
+    return runout_reach(r, point_distance_map(r.dem, float(o.x), float(o.y)), o.threshold)
+
+
+def _check_runout(o: "Observation", dem: DEM | None) -> None:
+    if o.thalweg is None and (o.x is None or o.y is None):
+        raise ValueError(f"observation {o.name!r}: kind 'runout_length' needs a thalweg polyline (path = \"name\" "
+                         "of a [[paths]] entry) or the point it is measured from (x, y: the release's crown)")
+    if o.thalweg is None and dem is not None and not dem.contains(float(o.x), float(o.y)):
+        raise ValueError(f"observation {o.name!r}: its run-out is measured from x={o.x}, y={o.y}, outside the DEM")
+
+
 def gauge_series(result: SimulationResult, name: str, quantity: str = "h") -> torch.Tensor:
     """(B, T) series of gauge ``name``: quantity "h" (m), "u", "v" or "speed" (m/s); times in result.gauges[name].t."""
     if name not in result.gauges:
@@ -243,10 +288,9 @@ register_kind("max_height", lambda r, o: max_height(r, o.x, o.y, o.method), unit
               nonnegative=True, description="h_max at a point")
 register_kind("deposit_height", lambda r, o: deposit_height(r, o.x, o.y, o.method), unit="m", needs_point=True,
               nonnegative=True, description="h_final at a point")
-register_kind("runout_length",
-              lambda r, o: runout_length(r, o.thalweg, o.threshold, o.options.get("max_offset")),
-              unit="m", needs_thalweg=True, uses_threshold=True, nonnegative=True,
-              description="distance along the thalweg of the farthest cell with h_max > threshold")
+register_kind("runout_length", _runout_observed, unit="m", uses_threshold=True, nonnegative=True,
+              validate=_check_runout,
+              description="distance of the farthest reached cell along a thalweg or from a point (the crown)")
 
 
 # ---------------------------------------------------------------------------------------- Observation
@@ -323,9 +367,9 @@ class Observation:
                     f"{label}: point x={self.x}, y={self.y} is outside the DEM "
                     f"(x in [{xmin:g}, {xmax:g}), y in [{ymin:g}, {ymax:g}))"
                 )
-        if spec.needs_thalweg:
-            if self.thalweg is None:
-                raise ValueError(f"{label}: kind {self.kind!r} needs a thalweg polyline ((N, 2) x, y in m)")
+        if spec.needs_thalweg and self.thalweg is None:
+            raise ValueError(f"{label}: kind {self.kind!r} needs a thalweg polyline ((N, 2) x, y in m)")
+        if self.thalweg is not None:
             P = np.asarray(self.thalweg, dtype=np.float64)
             if P.ndim != 2 or P.shape[1] != 2 or P.shape[0] < 2 or not np.isfinite(P).all():
                 raise ValueError(f"{label}: thalweg must be an (N >= 2, 2) array of finite x, y, got shape {P.shape}")

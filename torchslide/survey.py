@@ -7,7 +7,8 @@ reached; ``elevation_change``: the surveyed cells whose surface changed), a run'
 - ``share_of_mapped_reached``: the share of the mapped cells the run reaches;
 - ``share_of_reached_unmapped``: the share of the reached cells outside the mapped footprint;
 - ``runout_m``: {"run", "mapped"}: the horizontal distance from the release's highest cell (the crown) to
-  the farthest reached / mapped cell centre, m;
+  the farthest reached / mapped cell centre, m (``mapped_runout`` measures a map's, as the observation
+  ``runout_length`` with ``map = FILE`` takes it);
 - for ``elevation_change`` also ``deposition_m3`` and ``erosion_m3`` ({"run", "survey"}: volumes of the
   vertical surface rise and fall, m^3; the run's over the whole grid, the survey's over its cells) and
   ``rmse_m`` (the simulated against the surveyed change over the surveyed cells, m).
@@ -27,14 +28,46 @@ def mapped_footprint(obs) -> np.ndarray:
     return np.nan_to_num(grid) >= 0.5
 
 
+def crown_cell(z: np.ndarray, release: np.ndarray) -> tuple[int, int]:
+    """(row, col) of the release's highest cell (the crown), on a grid of elevations z (ny, nx) m."""
+    if not (np.asarray(release) > 0).any():
+        raise ValueError("the release has no cell with a positive thickness: it has no crown")
+    zr = np.where(np.asarray(release) > 0, z, -np.inf)
+    r0, c0 = np.unravel_index(np.argmax(zr), zr.shape)
+    return int(r0), int(c0)
+
+
+def crown_point(dem, release: np.ndarray) -> tuple[float, float]:
+    """Map coordinates (x, y), m, of the centre of the release's highest cell on ``dem``."""
+    r0, c0 = crown_cell(dem.z, release)
+    return float(dem.xll + (c0 + 0.5) * dem.cellsize), float(dem.yll + (r0 + 0.5) * dem.cellsize)
+
+
 def runout_from_crown(z: np.ndarray, release: np.ndarray, mask: np.ndarray, cellsize: float) -> float:
     """Horizontal distance, m, from the release's highest cell to the farthest cell of ``mask`` (0 if empty)."""
     if not mask.any() or not (release > 0).any():
         return 0.0
-    zr = np.where(release > 0, z, -np.inf)
-    r0, c0 = np.unravel_index(np.argmax(zr), z.shape)
+    r0, c0 = crown_cell(z, release)
     rows, cols = np.nonzero(mask)
     return float(np.hypot(rows - r0, cols - c0).max() * cellsize)
+
+
+def mapped_runout(mapped: np.ndarray, dem, point: tuple | None = None, thalweg=None,
+                  max_offset: float | None = None) -> float:
+    """The run-out of a mapped footprint (``mapped`` (ny, nx) bool on ``dem``'s grid), m: the largest horizontal
+    distance of a mapped cell centre from ``point`` (x, y) (the crown), or its largest distance along
+    ``thalweg`` (torchslide.observe.thalweg_distance_map; cells farther than ``max_offset`` from it left out)."""
+    from .observe import point_distance_map, thalweg_distance_map
+
+    if not mapped.any():
+        raise ValueError("the map has no mapped cell (finite and non-zero)")
+    if thalweg is not None:
+        s, dist = thalweg_distance_map(dem, thalweg)
+        keep = mapped if max_offset is None else mapped & (dist <= max_offset)
+        if not keep.any():
+            raise ValueError(f"no mapped cell lies within max_offset = {max_offset:g} m of the path")
+        return float(s[keep].max())
+    return float(point_distance_map(dem, *point)[mapped].max())
 
 
 def footprint_figures(reached: np.ndarray, mapped: np.ndarray) -> dict:

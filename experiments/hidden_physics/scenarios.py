@@ -173,6 +173,7 @@ class Recording:
     volume_factor: float
     observations: list
     fine_h_final: np.ndarray
+    fine_h_max: np.ndarray | None = None
 
 
 def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: float = 1.0,
@@ -215,7 +216,7 @@ def make_recording(scenario: str, seed: int, cellsize: float = 40.0, strength: f
     obs.append(Observation("final_volume", fv + 0.02 * V_NOMINAL * rng.standard_normal(), 0.1 * V_NOMINAL,
                            name="final_volume"))
     truth = {"term": term, **vals}
-    return Recording(scenario, seed, strength, truth, vf, obs, hf)
+    return Recording(scenario, seed, strength, truth, vf, obs, hf, res.h_max[0].numpy())
 
 
 SIGMAS = ("harness", "noise")   # the likelihood's sigmas: the harness' (make_recording) or noise_sigmas'

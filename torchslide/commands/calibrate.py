@@ -9,9 +9,12 @@ runs.csv, a checkpoint (so ``--resume`` continues an interrupted run without rep
 run), TensorBoard logs under DIR/tensorboard and, last, finished.json (a resume of a calibration killed
 before it writes whatever result file is missing). posterior.json's ``best_run_fit`` gives each
 observation's standardised residual on the best run, and calibrate warns (stderr) about every
-observation that even the best run misses by more than 3 sigma. A posterior too sharp for the emulator
-(``[calibration] inference``, diagnose.local_path.local_calibration) is fitted on the solver and described
-by its Laplace approximation; posterior.json's ``inference`` says which path was taken and why.
+observation that even the best run misses by more than 3 sigma and about every pair of data that no run
+meets together (``tradeoffs``: torchslide.tradeoff). ``discrepancy`` gives the model's own error as learnt
+with the parameters (torchslide.discrepancy; ``[calibration] discrepancy = "none"`` leaves it out). A
+posterior too sharp for the emulator (``[calibration] inference``, diagnose.local_path.local_calibration)
+is fitted on the solver and described by its Laplace approximation; posterior.json's ``inference`` says
+which path was taken and why.
 """
 from __future__ import annotations
 
@@ -94,6 +97,18 @@ def misfit_warnings(fit: dict, z_max: float = FIT_WARN_Z) -> list[str]:
     return out
 
 
+def model_error_summary(ev) -> dict:
+    """posterior.json's ``discrepancy``: the model of the model's own error (``[calibration] discrepancy``), the
+    correlation factors it learnt, and per observation at the best run its misfit per value and the learnt
+    discrepancy's sd over the stated one (torchslide.discrepancy.DiscrepancyLikelihood.describe)."""
+    out = {"model": ev.discrepancy, "correlation_factors": ev.discrepancy_factors or {}}
+    ok = [r for r in ev.records if not r.failed and np.isfinite(r.z)]
+    if ev.discrepancy == "learnt" and ok:
+        best = max(ok, key=lambda r: r.z)
+        out["at_best_run"] = ev.likelihood.describe(best.predictions)
+    return out
+
+
 FINISHED = "finished.json"
 """Written last, when every result file of a calibration is in place: {"n_runs", "files"}."""
 
@@ -163,22 +178,18 @@ def _run(args: argparse.Namespace) -> int:
     ev.records_file = out / "records.npz"      # every run's predictions, kept across a resume
     if ckpt.exists() and ev.records_file.exists():
         ev.records = load_records(ev.records_file)
-    from ..diagnose.local_path import local_calibration
-
     with executor_for(args, cfg, ev):
         res = calibrate(ev, prior.bounds, n_initial=cal["n_initial"], n_total=cal["n_total"],
                         batch_size=cal["batch_size"], seed=cal["seed"], grid_size=cal["grid_size"],
                         acquisition=cal["acquisition"], checkpoint=ckpt, log_dir=out / "tensorboard",
                         tv_threshold=cal["tv_threshold"], names=prior.names, progress=not args.quiet,
-                        clip_range=cal["clip_range"])
-        res, inference = local_calibration(ev, res, cal["inference"], cal["local_max_fraction"], seed=cal["seed"],
-                                           log=lambda s: None if args.quiet else print(s, file=sys.stderr))
-        if inference["path"] == "local":    # the mode's run joins the records: best_run_fit is the mode's fit
-            ev.evaluate(np.array([[res.summary["map"][n] for n in prior.names]]))
+                        clip_range=cal["clip_range"], inference=cal["inference"],
+                        local_max_fraction=cal["local_max_fraction"],
+                        log=lambda s: None if args.quiet else print(s, file=sys.stderr))
+    inference = res.inference
     ev.records = unique_records(ev.records)
     res.save(out)
     info = json.loads((out / "posterior.json").read_text())
-    info["inference"] = inference
     info["observations"] = [{"name": o.name, "kind": o.kind, "n": int(o.m), "file": o.source}
                             if b.is_vector else {"name": o.name, "kind": o.kind, "value": float(o.value),
                                                  "sigma": float(o.sigma), "x": o.x, "y": o.y}
@@ -188,12 +199,16 @@ def _run(args: argparse.Namespace) -> int:
     fit = ev.best_fit()
     if fit is not None:
         info["best_run_fit"] = fit
+    info["discrepancy"] = model_error_summary(ev)
+    from ..tradeoff import conflicts, lines
+
+    info["tradeoffs"] = conflicts(ev.records, ev)
     truth = cal.get("truth")
     if truth is not None:
         info["truth"] = {n: float(truth[n]) for n in prior.names}
     write_text_atomic(out / "posterior.json", json.dumps(info, indent=2))
     write_runs_csv(out / "runs.csv", res, ev.observation_names, ev.records)
-    for w in unreached_warnings(ev) + (misfit_warnings(fit) if fit is not None else []):
+    for w in unreached_warnings(ev) + (misfit_warnings(fit) if fit is not None else []) + lines(info["tradeoffs"]):
         print(f"torchslide: warning: {w}", file=sys.stderr)
     plot_posterior_any(res, out / "posterior.png", truth=None if truth is None else [truth[n] for n in prior.names])
     files = ["posterior.json", "posterior.npz", "runs.csv", "posterior.png"]

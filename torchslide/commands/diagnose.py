@@ -302,7 +302,8 @@ def make_evaluator(cfg: Config):
             fixed=fixed, t_end=cfg.run.t_end, gauges=[(g.name, g.x, g.y) for g in cfg.gauges],
             erodible_depth=cfg.terrain.erodible_depth, solver_config=cfg.solver_config(), dtype=cfg.run.torch_dtype,
             device=cfg.run.device, max_batch=cfg.extra["calibration"]["max_batch"],
-            fine_terrain=cfg.extra["diagnose"].get("fine_terrain"))
+            fine_terrain=cfg.extra["diagnose"].get("fine_terrain"), thickness=cfg.terrain.thickness,
+            discrepancy=cfg.extra["calibration"]["discrepancy"])
     except ValueError as e:
         if type(e).__name__ == "TerrainError":
             raise

@@ -25,7 +25,8 @@ MassWastingRunout tutorial data, MIT licence; SOURCE.md and LICENSE.md beside th
     DIR/erodible.asc       a regolith 1.2 m deep (the depth landlab's tutorial uses), for the entrainment candidate
     DIR/footprint.asc      the mapped outline: 1 on the 224 changed cells, 0 within 50 m around them (a
                            ``footprint`` observation), nodata beyond
-    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas, the outline and the DoD), diagnose.toml
+    DIR/simulate.toml, calibrate.toml (the mapped impact and deposit areas, the outline, the run-out from the
+    release's crown to the farthest changed cell and the DoD), diagnose.toml
 """
 from __future__ import annotations
 
@@ -85,6 +86,13 @@ name = "outline"           # the smooth reach h_max^2 / (h_max^2 + threshold^2) 
 file = "footprint.asc"
 sigma = 0.3
 corr_length = 20.0
+threshold = 0.1
+
+[[observations]]
+kind = "runout_length"     # the survey's run-out: the farthest changed cell of the DoD from the release's crown
+name = "runout"            # (horizontal m; a [[paths]] entry with path = "name" measures it along a path instead)
+map = "dod.asc"
+sigma = 20.0               # two cells
 threshold = 0.1
 
 [[observations]]

@@ -13,11 +13,23 @@ settings, and writes (all rasters on the DEM grid; ESRI ASCII, or GeoTIFF with `
     DIR/draws.csv                one line per successful draw: parameters and predicted observables
     DIR/impact_probability.png   the impact probability over the hillshaded terrain, observations marked
     DIR/observations.png         each scalar observation: the 90 % interval of a new recording against the value
+    DIR/front.png                where the observations map a footprint: the run-out against the share of the
+                                 reached cells outside the map, over the calibration's runs and the draws
+                                 (front.json: the points)
+    DIR/outlines.png             and the mapped footprint against the cells with impact probability >= 0.5
+
+predictive.json ``figures``: the draws' 90 % intervals of the impact area (h_max > --threshold, map m^2) and of
+the run-out from the release's crown (m); ``with_grid_error``: the same when ``--grid-error N`` of the draws
+(4 by default) also run on cells half the size and their mean difference and its spread are added (the
+grid's error of these figures, measured), and the run-out, which the grid knows to a cell, is spread by a
+uniform error of +- half a cell.
 
 predictive.json ``observations``: per scalar observation the model's mean, sd and 5/50/95 % quantiles over
 the draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
 percentile in it, and ``inside``. A value outside is one the calibrated model does not reproduce (see also
-posterior.json's ``best_run_fit``). Maps and gauge series: ``maps_and_series`` gives the share of each
+posterior.json's ``best_run_fit``). With the learnt discrepancy (``[calibration] discrepancy``, the default)
+also ``interval90_model_error``: the interval of a new recording when the model's own error, as the
+calibration learnt it from these data, is counted too (the honest forecast of what would be recorded). Maps and gauge series: ``maps_and_series`` gives the share of each
 one's values inside their 90 % intervals, ``values`` the check of every value. ``against_observations``:
 where the observations map a footprint (footprint, impact_map, elevation_change), the draws' footprint
 Jaccard, shares of mapped cells reached and of reached cells unmapped, run-out and volumes against it
@@ -56,6 +68,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threshold", type=float, default=None, metavar="M",
                    help="h_max above which a cell counts as reached, m (default: the threshold of the config's "
                         "impact_area observation, else 0.5)")
+    p.add_argument("--grid-error", type=int, default=4, metavar="N",
+                   help="run N of the draws on cells half the size too, so that the impact area's and the "
+                        "run-out's intervals carry the grid's error (default 4; 0: the draws alone)")
     p.add_argument("--overwrite", action="store_true", help="replace DIR if it exists")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     add_executor_arguments(p)
@@ -68,6 +83,22 @@ def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndar
             f.write(",".join(f"{v:.10g}" for v in list(xi) + list(pi)) + "\n")
 
 
+def _front(cal_dir: Path, pr) -> tuple | None:
+    """(the calibration's runs' front, the draws' front) against the first mapped footprint
+    (torchslide.tradeoff.front), or None when the calibration's records (records.npz) carry no survey figures."""
+    from ..evaluator import RunRecord, load_records
+    from ..tradeoff import front
+
+    if not (cal_dir / "records.npz").is_file():
+        return None
+    runs = front(load_records(cal_dir / "records.npz"))
+    if runs is None:
+        return None
+    draws = front([RunRecord(x, np.zeros(1), 0.0, False, "", f) for x, f in zip(pr.x, pr.survey_runs)],
+                  name=runs["footprint"])
+    return runs, draws
+
+
 def run(args: argparse.Namespace) -> int:
     from ..output_folder import run_locked
 
@@ -75,15 +106,19 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from ..figures import plot_predictive_check
-    from ..mapplots import plot_field_map
-    from ..predict import observation_check, posterior_samples, run_predictive
+    from ..figures import plot_front, plot_predictive_check
+    from ..mapplots import plot_field_map, plot_outlines
+    from ..survey import FOOTPRINT_KINDS, mapped_footprint
+    from ..predict import (figure_intervals, grid_error, observation_check, posterior_samples, predictive_sd,
+                           run_predictive, with_model_error)
     from ..terrain.io import write_named_raster
     from ..calibration_config import load_calibration, load_calibration_config, make_evaluator
     from ..output_folder import check_output, staged_output
 
     if args.n < 1:
         raise ConfigError(f"--n must be >= 1 posterior draws, got {args.n}")
+    if args.grid_error < 0 or args.grid_error == 1:
+        raise ConfigError(f"--grid-error must be 0 (off) or >= 2 runs, got {args.grid_error}")
     if args.seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {args.seed}")
     if args.threshold is not None and not (math.isfinite(args.threshold) and args.threshold >= 0):
@@ -95,6 +130,7 @@ def _run(args: argparse.Namespace) -> int:
         args.threshold = next((float(o.threshold) for o in ev.observations if o.kind == "impact_area"),
                               DEFAULT_THRESHOLD)
     cal = load_calibration(args.calibration, ev.prior)
+    ev.set_discrepancy_factors(cal.discrepancy_factors)   # the likelihood the calibration learnt
     out = Path(args.out)
     anc = check_output(out, args.overwrite)
 
@@ -120,9 +156,17 @@ def _run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
 
+    error = None
+    if args.grid_error >= 2:
+        with executor_for(args, cfg, ev):
+            error = grid_error(ev, pr.x[: args.grid_error], args.threshold)
+    figures = figure_intervals(pr.figures, error, seed=args.seed, cellsize=ev.dem.cellsize)
     lower = np.concatenate([np.full(b.stop - b.start, 0.0 if KINDS[b.kind].nonnegative else -np.inf) for b in ev.blocks])
     checks = observation_check(pr.predictions, ev.data_recorded, ev.observation_sd(), ev.observation_names,
                                seed=args.seed, lower=lower)
+    if ev.discrepancy == "learnt":
+        checks = with_model_error(checks, pr.predictions, ev.data_recorded, predictive_sd(ev, pr.predictions, args.seed),
+                                  seed=args.seed, lower=lower)
     scalar = [checks[b.start] for b in ev.blocks if not b.is_vector]
     series = {b.name: {"kind": b.kind, "n": b.stop - b.start,
                        "share_inside_90": float(np.mean([c["inside"] for c in checks[b.slice]]))}
@@ -145,6 +189,7 @@ def _run(args: argparse.Namespace) -> int:
             "fixed": {k: float(v) for k, v in ev.fixed.items()},
             "impact_area_m2": {"mean": float((pr.impact_probability * pr.cell_area).sum()),
                                "p50_map": float(pr.cell_area[pr.impact_probability >= 0.5].sum())},
+            "figures": figures,
             "observations": scalar,
             "n_inside_90": int(sum(c["inside"] for c in scalar)),
             "maps_and_series": series,
@@ -158,6 +203,15 @@ def _run(args: argparse.Namespace) -> int:
                        title=f"Impact probability over {len(pr.x)} posterior draws", release=ev.release)
         if scalar:
             plot_predictive_check(scalar, tmp / "observations.png")
+        front = _front(Path(args.calibration), pr)
+        if front is not None:
+            plot_front(front[0], tmp / "front.png", draws=front[1])
+            (tmp / "front.json").write_text(json.dumps({"runs": front[0], "draws": front[1]}))
+        mapped = next((mapped_footprint(o) for o in ev.observations if getattr(o, "kind", None) in FOOTPRINT_KINDS),
+                      None)
+        if mapped is not None:
+            plot_outlines(dem, mapped, {"impact probability >= 0.5": pr.impact_probability >= 0.5},
+                          tmp / "outlines.png", title=f"mapped and simulated footprints (h_max > {args.threshold:g} m)")
     if not args.quiet:
         for name, f in pr.survey.items():
             j, r = f["footprint_jaccard"], f["runout_m"]
@@ -168,8 +222,15 @@ def _run(args: argparse.Namespace) -> int:
             print(f"{name}: {100 * m['share_inside_90']:.0f} % of its {m['n']} values inside their 90 % intervals")
         for c in scalar:
             lo, hi = c["interval90"]
+            wide = "" if "interval90_model_error" not in c else \
+                " [{:.4g}, {:.4g}] with the model's own error".format(*c["interval90_model_error"])
             print(f"{c['name']}: recorded {c['value']:.4g}, predicted {c['model_quantiles']['0.5']:.4g} "
-                  f"(90 % of a new recording: [{lo:.4g}, {hi:.4g}]){'' if c['inside'] else '  <- outside'}")
+                  f"(90 % of a new recording: [{lo:.4g}, {hi:.4g}],{wide}){'' if c['inside'] else '  <- outside'}")
+        for name, f in figures.items():
+            g = f.get("with_grid_error")
+            extra = "" if g is None else (f", [{g['q05']:.4g}, {g['q95']:.4g}] with the grid's error "
+                                          f"(shift {g['shift']:+.3g} from {g['n']} runs on cells half the size)")
+            print(f"{name}: 90 % of the draws [{f['q05']:.4g}, {f['q95']:.4g}]{extra}")
         print(f"impact area (mean over the draws) {info['impact_area_m2']['mean']:.4g} m^2; wrote {out}")
     for c in scalar:
         if not c["inside"]:

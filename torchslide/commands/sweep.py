@@ -113,6 +113,8 @@ def _sweep_runs(ev, x, z, failed, preds, reasons, done: int, ckpt: Path, bar) ->
 
 
 def _run(args: argparse.Namespace) -> int:
+    import torch
+
     from ..figures import plot_posterior_any
     from ..files import atomic_path, write_text_atomic
     from ..posterior import cell_volume, grid_axes, grid_points, normalise_log_grid, summarise_grid, tv_distance
@@ -133,6 +135,7 @@ def _run(args: argparse.Namespace) -> int:
         if cal.posterior_grid is None:
             raise ConfigError(f"--calibration {args.calibration} has no grid posterior ({len(names)} parameters: "
                               f"the TV comparison needs p <= 2)")
+        ev.set_discrepancy_factors(cal.discrepancy_factors)     # the calibration's likelihood
     out = Path(args.out)
     ckpt = out / "sweep_checkpoint.npz"
     if ckpt.exists() and not args.resume:
@@ -166,6 +169,13 @@ def _run(args: argparse.Namespace) -> int:
         if bar is not None:
             bar.close()
 
+    if cal is None and ev.discrepancy == "learnt" and (~failed).any():
+        # the discrepancy's correlation learnt at the best node (as a calibration learns it at its pilot's best
+        # run), every node's z scored again from its predictions
+        ev.learn_discrepancy_from(preds[int(np.nanargmax(np.where(failed, np.nan, z)))])
+        ok = ~failed
+        z[ok] = (ev.likelihood.log_likelihood(torch.as_tensor(preds[ok]))
+                 + ev.prior.log_prob(torch.as_tensor(x[ok]))).numpy()
     zg = np.where(failed, -np.inf, z).reshape([len(a) for a in axes])
     try:
         density, log_z = normalise_log_grid(zg, axes)
@@ -173,6 +183,7 @@ def _run(args: argparse.Namespace) -> int:
         raise ConfigError(f"every one of the {n_runs} sweep runs failed; first: {reasons[0]}") from None
     summ = summarise_grid(density, axes, names).to_dict()
     info = {"n": args.n, "n_runs": n_runs, "n_failed": int(failed.sum()), "solver_seconds": ev.solver_seconds,
+            "discrepancy": ev.discrepancy, "discrepancy_factors": ev.discrepancy_factors or {},
             "log_evidence": log_z, **{key: summ[key] for key in ("mean", "sd", "map", "hdr90")},
             "conventions": cfg.conventions()}
     if cal is not None:

@@ -71,7 +71,8 @@ class DiagnosisEvaluator(LandslideEvaluator):
         cov = np.diag(self.sigma**2) + gamma
         self.sigma = np.sqrt(np.diag(cov))
         self.sigma_raw = np.sqrt(self.sigma_raw**2 + np.diag(gamma))
-        self.likelihood = GaussianLikelihood(torch.as_tensor(self.data), covariance=torch.as_tensor(cov))
+        self.likelihood = self.with_discrepancy(GaussianLikelihood(torch.as_tensor(self.data),
+                                                                   covariance=torch.as_tensor(cov)))
 
     def simulate_params(self, p):
         """LandslideEvaluator.simulate_params, on the fine terrain when ``finer_grid`` (class doc)."""

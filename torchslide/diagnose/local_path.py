@@ -94,7 +94,7 @@ def merged_residuals(requests: list) -> list:
     cuts = np.cumsum([len(X) for _, X in requests])[:-1]
     out = []
     for (prob, _), p, f in zip(requests, np.split(np.asarray(preds), cuts), np.split(np.asarray(failed), cuts)):
-        r = prob.evaluator.likelihood.whiten(torch.as_tensor(p)).numpy()
+        r = prob.evaluator.likelihood.residuals(torch.as_tensor(p)).numpy()
         bad = f | ~np.all(np.isfinite(r), axis=1)
         out.append((np.where(bad[:, None], np.inf, r), bad))
     return out

@@ -216,6 +216,12 @@ def fine_simulate(evaluator, p, factor: int = 2):
     grid (:func:`coarsen_result`), so every observation predicts from it as from an inversion run. With
     ``evaluator.fine_terrain`` (a FineTerrain) its terrain and fields and its own factor (``factor`` must
     agree); else the coarse ones refined ``factor`` times."""
+    return coarsen_result(fine_result(evaluator, p, factor)[0], evaluator.dem, factor)
+
+
+def fine_result(evaluator, p, factor: int = 2) -> tuple:
+    """(SimulationResult on the finer grid itself, its release (ny f, nx f) m): :func:`fine_simulate`'s run
+    before it is coarsened."""
     from ..solver import simulate
 
     ft = getattr(evaluator, "fine_terrain", None)
@@ -233,7 +239,7 @@ def fine_simulate(evaluator, p, factor: int = 2):
     res = simulate(dem_f, rel_f, p, t_end=evaluator.t_end, gauges=list(evaluator.gauges) or None,
                    config=evaluator.solver_config, erodible_depth=erod_f, mu_scale=mus_f, dtype=evaluator.dtype,
                    device=evaluator.device, thickness=getattr(evaluator, "thickness", "normal"))
-    return coarsen_result(res, evaluator.dem, factor)
+    return res, rel_f
 
 
 def fine_predictions(evaluator, x: np.ndarray, factor: int = 2) -> tuple[np.ndarray, np.ndarray]:

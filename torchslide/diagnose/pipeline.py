@@ -589,6 +589,15 @@ def _pilot_stage(evaluator, bud: Budgets, baseline, log):
         return None
     log(f"[diagnose] local baseline fit ({n} runs): " + ", ".join(
         f"{k} {v:.4g} +- {s:.2g}" for k, v, s in zip(evaluator.prior.names, f.x, f.sd)) + f"; ln L {f.log_like:.1f}")
+    if evaluator.discrepancy == "learnt" and evaluator.discrepancy_factors is None:
+        # the model's own error correlated as the residual at the fit is (evaluator.learn_discrepancy_from);
+        # the fit again with it
+        preds, _ = evaluator.run_values({**evaluator.fixed, **dict(zip(evaluator.prior.names, f.x[:, None]))})
+        factors = evaluator.learn_discrepancy_from(preds[0])
+        log("[diagnose] the discrepancy's correlation learnt at the fit: " +
+            ", ".join(f"{k} x{v:.3g}" for k, v in factors.items()))
+        f, _ = fit_model(evaluator, n_lhs=0, extra_starts=f.x[None], rel_step=bud.local_rel_step,
+                         max_iter=bud.local_max_iter, log=log)
     return f
 
 

@@ -16,7 +16,9 @@ def candidate_prior(base_prior: Prior, candidate: str) -> Prior:
 
 def calibrate_evaluator(evaluator, n_initial: int, n_total: int, batch_size: int = 8, seed: int = 0,
                         grid_size: int = 60, mcmc_steps: int = 1500, mcmc_chains: int = 4, **kw):
-    """calibrate() on an evaluator's prior box with small, diagnosis-sized settings."""
+    """calibrate() on an evaluator's prior box with small, diagnosis-sized settings: the emulator's posterior
+    (the diagnosis chooses its inference path itself)."""
+    kw.setdefault("inference", "emulator")
     return calibrate(evaluator, evaluator.prior.bounds, n_initial=n_initial, n_total=n_total, batch_size=batch_size,
                      seed=seed, grid_size=grid_size, names=evaluator.prior.names, progress=False,
                      num_restarts=4, raw_samples=128, mcmc_steps=mcmc_steps, mcmc_chains=mcmc_chains, **kw)
