@@ -37,6 +37,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -184,7 +185,7 @@ def main(argv=None) -> int:
         cases = sorted(done.values(), key=_key)
         a.out.parent.mkdir(parents=True, exist_ok=True)
         tmp = a.out.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"command": "python -m bench.coverage " + " ".join(argv or []),
+        tmp.write_text(json.dumps({"command": "python -m bench.coverage " + " ".join(sys.argv[1:] if argv is None else argv),
                                    "summary": summarise(cases), "cases": cases}, indent=1))
         os.replace(tmp, a.out)
 

@@ -269,6 +269,8 @@ def test_the_local_path_fits_every_model_on_the_solver(kappa, tmp_path):
     bud = Budgets(model_error_runs=0, n_posterior_samples=8, n_posterior_samples_after=6, top_k=2, n_perm=9,
                   local_lhs=8, local_starts=1, profile_top=1)
     d = diagnose(ev, ["entrainment", "mu_i"], bud, Thresholds(), log=lambda s: None, workdir=tmp_path)
+    # the discrepancy correlated as stated (pipeline.stated_correlation), not learnt from the baseline's residual
+    assert ev.discrepancy_factors == {b.name: 1.0 for b in ev.blocks if b.is_vector}
     inf = d.decision["inference"]
     assert inf["path"] == "local" and "of the prior box" in inf["why"]
     ent = next(c for c in d.candidates if c["name"] == "entrainment")

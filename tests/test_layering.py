@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "torchslide"
-LOWER = ["terrain", "solver", "physics", "result", "observe", "observe_series", "bayes", "posterior", "emulator"]
+LOWER = ["terrain", "solver", "physics", "result", "observe", "observe_series", "bayes", "discrepancy", "posterior", "emulator"]
 UPPER = ["active", "calibration", "diagnose", "commands", "cli", "acquisition", "predict", "figures"]
 
 

@@ -141,6 +141,10 @@ def test_calibrate_predict_and_sweep_read_the_dod(msh, tmp_path):
     runout = next(o for o in info["observations"] if o["name"] == "runout")
     assert runout["value"] == pytest.approx(info["against_observations"]["dod"]["runout_m"]["mapped"], rel=1e-12)
     assert runout["value"] > 700 and "interval90_model_error" in runout
+    mm = info["mismatches"]
+    assert mm["footprint"] == "outline" and mm["runout"]["mapped_m"] == pytest.approx(runout["value"])
+    assert all(c["what"].split(":")[0] in ("excess", "deficit") and c["n_cells"] >= 3 for c in mm["clusters"])
+    assert (pred / "front.png").is_file() and (pred / "outlines.png").is_file() and (pred / "front.json").is_file()
     j = info["against_observations"]["dod"]["footprint_jaccard"]
     assert 0 <= j["q05"] <= j["median"] <= j["q95"] <= 1
     assert info["against_observations"]["dod"]["deposition_m3"]["survey"] == pytest.approx(22542.77, rel=1e-6)

@@ -144,3 +144,42 @@ def test_the_front_and_outline_figures(tmp_path):
     reached = np.zeros(dem.shape, bool)
     reached[4:12, 3:12] = True
     assert plot_outlines(dem, mapped, {"run": reached}, tmp_path / "o.png").stat().st_size > 5000
+
+
+def test_the_diagnosis_report_says_what_the_baseline_cannot_meet_together():
+    from torchslide.diagnose.report import _tradeoff_section
+    from torchslide.tradeoff import conflicts
+
+    recs = [RunRecord(np.array([0.1]), np.array([10.2, 160.0]), -3.0, False),
+            RunRecord(np.array([0.2]), np.array([4.0, 101.0]), -5.0, False)]
+    sec = _tradeoff_section(conflicts(recs, _Ev()))
+    assert sec[0] == "## What the baseline cannot meet together" and any("no run meets a and b together" in x for x in sec)
+    assert _tradeoff_section(None) == [] and _tradeoff_section(conflicts([], _Ev())) == []
+
+
+def test_the_mismatches_a_modeller_sees_a_lobe_outside_the_map_and_a_short_run_out():
+    """A mapped path 3 cells wide down x, runs that stop half way and spill a lobe beside the upper path: the
+    excess lobe and the unreached lower path are found with their cells, boxes and distances from the crown,
+    and the run-out's shortfall is the runs' median minus the mapped run-out."""
+    from torchslide.survey import mismatch_clusters, runout_mismatch
+
+    dem = DEM(np.add.outer(np.zeros(20), -np.arange(40.0)), 10.0)
+    release = np.zeros(dem.shape)
+    release[9:12, 0:2] = 1.0
+    mapped = np.zeros(dem.shape, bool)
+    mapped[9:12, :36] = True
+    p = np.zeros(dem.shape)
+    p[9:12, :18] = 0.9                      # reached down to x = 180 m
+    p[13:17, 5:10] = 0.8                    # a lobe of 20 cells off the map, beside the upper path
+    dz = np.where(mapped, 1.0, np.nan)
+    got = mismatch_clusters(p, mapped, dem, release, h_p50=np.where(p > 0, 0.5, 0.0), survey_dz=dz)
+    kinds = {m["what"].split(":")[0]: m for m in got}
+    assert set(kinds) == {"excess", "deficit"} and len(got) == 2
+    lobe, short = kinds["excess"], kinds["deficit"]
+    assert lobe["n_cells"] == 20 and lobe["area_m2"] == 2000.0 and lobe["box"] == [50.0, 130.0, 100.0, 170.0]
+    assert lobe["volume_m3"] == pytest.approx(20 * 0.5 * 100.0) and lobe["score"] == pytest.approx(20 * 0.6)
+    assert short["n_cells"] == 3 * 18 and short["box"][0] == 180.0 and short["volume_m3"] == pytest.approx(54 * 100.0)
+    assert short["from_crown_m"][0] >= 170.0 and short["from_crown_m"][1] == pytest.approx(np.hypot(35 - 1, 1) * 10, rel=0.05)
+    r = runout_mismatch(np.array([170.0, 175.0, 180.0]), 355.0)
+    assert r["what"] == "run-out shortfall" and r["difference_m"] == pytest.approx(-180.0)
+    assert r["interval_m"][0] < -180.0 < r["interval_m"][1] < 0

@@ -66,12 +66,13 @@ def plot_hmax_map(dem: DEM, h_max: np.ndarray, path, *, points: dict | None = No
 
 
 def plot_outlines(dem: DEM, mapped: np.ndarray, outlines: dict, path, *, title: str = "", dpi: int = 110,
-                  background=None) -> Path:
+                  background=None, labels: list | None = None) -> Path:
     """Save a PNG of a mapped footprint against simulated ones over the hillshade: the mapped cells (bool
     (ny, nx)) filled grey with a black outline, each of ``outlines`` {label: bool (ny, nx)} outlined in its
     own colour, and the cells reached but not mapped hatched per outline, so that what a run wets outside the
     map is as visible as what it misses. ``background``: (array, extent) of a finer hillshade to draw
-    instead of the DEM's. The view is cut to the cells shown, with a margin of 5 cells."""
+    instead of the DEM's; ``labels``: [(x, y, text)] written there (e.g. the numbers of mismatch clusters). The
+    view is cut to the cells shown, with a margin of 5 cells."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,6 +104,9 @@ def plot_outlines(dem: DEM, mapped: np.ndarray, outlines: dict, path, *, title: 
         ax.contourf(xc, yc, outside.astype(float), levels=[0.5, 1.5], colors="none", hatches=["////"])
         handles.append(plt.Line2D([], [], color=c, lw=1.3, label=f"{name} ({int(m.sum())} cells, "
                                   f"{int(outside.sum())} outside the map)"))
+    for x, y, text in labels or ():
+        ax.annotate(text, (x, y), ha="center", va="center", fontsize=8, fontweight="bold",
+                    bbox=dict(boxstyle="circle,pad=0.2", fc="yellow", alpha=0.8))
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_xlabel("x (m)")

@@ -131,3 +131,53 @@ def spread(per_run: list[dict]) -> dict:
             out[name][key] = {"median": float(np.median(vals)), "q05": float(np.quantile(vals, 0.05)),
                               "q95": float(np.quantile(vals, 0.95)), **fixed}
     return out
+
+
+def mismatch_clusters(p_reached: np.ndarray, mapped: np.ndarray, dem, release: np.ndarray, *, level: float = 0.5,
+                      min_cells: int = 3, h_p50: np.ndarray | None = None, survey_dz: np.ndarray | None = None) -> list:
+    """Where a run set and a mapped footprint disagree, in a modeller's terms: the clusters (8-connected) of
+    cells reached but not mapped ("excess": impact probability p_reached >= ``level`` off the map) and of
+    cells mapped but not reached ("deficit": on the map, p_reached < ``level``), of at least ``min_cells``
+    cells, the largest first. Each: {"what", "n_cells", "area_m2", "box" [xmin, ymin, xmax, ymax] m,
+    "from_crown_m" [nearest, farthest] (horizontal distance of its cells from the release's crown), "score"
+    (the cells' sum of |2 p - 1|: how many cells the runs agree on), and "volume_m3": for an excess the
+    median run's flow over it (``h_p50`` (ny, nx) m of h_max, times the map area), for a deficit the
+    survey's change in it (``survey_dz``, vertical m, its absolute volume)}."""
+    from scipy import ndimage
+
+    p = np.asarray(p_reached, dtype=np.float64)
+    mapped = np.asarray(mapped, bool)
+    r0, c0 = crown_cell(dem.z, release)
+    rows, cols = np.indices(dem.shape)
+    dist = np.hypot(rows - r0, cols - c0) * dem.cellsize
+    area = dem.cellsize ** 2
+    out = []
+    for what, cells in (("excess: reached, not mapped", (p >= level) & ~mapped),
+                        ("deficit: mapped, not reached", mapped & (p < level))):
+        lab, n = ndimage.label(cells, structure=np.ones((3, 3)))
+        for k in range(1, n + 1):
+            m = lab == k
+            if m.sum() < min_cells:
+                continue
+            rr, cc = np.nonzero(m)
+            item = {"what": what, "n_cells": int(m.sum()), "area_m2": float(m.sum() * area),
+                    "box": [float(dem.xll + cc.min() * dem.cellsize), float(dem.yll + rr.min() * dem.cellsize),
+                            float(dem.xll + (cc.max() + 1) * dem.cellsize), float(dem.yll + (rr.max() + 1) * dem.cellsize)],
+                    "from_crown_m": [float(dist[m].min()), float(dist[m].max())],
+                    "score": float(np.abs(2 * p[m] - 1).sum())}
+            if what.startswith("excess") and h_p50 is not None:
+                item["volume_m3"] = float(np.asarray(h_p50)[m].sum() * area)
+            if what.startswith("deficit") and survey_dz is not None:
+                item["volume_m3"] = float(np.nansum(np.abs(np.asarray(survey_dz)[m])) * area)
+            out.append(item)
+    return sorted(out, key=lambda i: -i["score"])
+
+
+def runout_mismatch(runouts: np.ndarray, mapped_runout: float, level: float = 0.9) -> dict:
+    """The run-out's shortfall (< 0) or overshoot (> 0) against the mapped one, m: the runs' median minus the
+    mapped run-out and its ``level`` interval over the runs."""
+    r = np.asarray(runouts, dtype=np.float64)
+    q = (1 - level) / 2
+    return {"what": "run-out " + ("shortfall" if np.median(r) < mapped_runout else "overshoot"),
+            "difference_m": float(np.median(r) - mapped_runout), "mapped_m": float(mapped_runout),
+            "interval_m": [float(np.quantile(r, q) - mapped_runout), float(np.quantile(r, 1 - q) - mapped_runout)]}

@@ -193,6 +193,16 @@ def write_page(out: dict, path: Path) -> None:
         w = o.get("interval90_model_error")
         lines.append(f"| {name} | {o['value']:,.0f} | {o['interval90'][0]:,.0f} - {o['interval90'][1]:,.0f} | "
                      + ("-" if w is None else f"{w[0]:,.0f} - {w[1]:,.0f}") + " |")
+    mm = pr.get("mismatches")
+    if mm:
+        ro = mm["runout"]
+        lines += ["", f"Where the draws and the mapped footprint disagree (`predictive.json` `mismatches`; numbered on the "
+                  f"outlines figure): the {ro['what']}, {ro['difference_m']:+.0f} m (90 % {ro['interval_m'][0]:+.0f} to "
+                  f"{ro['interval_m'][1]:+.0f} m) of the mapped {ro['mapped_m']:.0f} m, and", "",
+                  "| # | mismatch | cells | area, m^2 | from the crown, m | volume, m^3 |", "|---|---|---|---|---|---|"]
+        lines += [f"| {i + 1} | {m['what']} | {m['n_cells']} | {m['area_m2']:,.0f} | {m['from_crown_m'][0]:.0f} - "
+                  f"{m['from_crown_m'][1]:.0f} | {m.get('volume_m3', float('nan')):,.0f} |"
+                  for i, m in enumerate(mm["clusters"][:9])]
     lines += ["", f"The posterior median run (mu {f['median_run']['mu']:.3f}, xi {f['median_run']['xi']:.0f}) against the "
               "survey, and the draws' 90 % intervals:", "",
               "| figure | median run | 90 % of the draws |", "|---|---|---|"]
@@ -224,8 +234,9 @@ def write_page(out: dict, path: Path) -> None:
                   + (f" ({d['missing_physics']})" if d.get("missing_physics") else "") + f": {d['reason']}.", "",
                   "Where the calibrated model and the survey disagree (clusters of the maps' standardised residuals):", "",
                   "| mismatch | x (m) | y (m) | standardised residual |", "|---|---|---|---|"]
-        lines += [f"| {m['what']} | {m['where'][0]:.0f} - {m['where'][2]:.0f} | {m['where'][1]:.0f} - {m['where'][3]:.0f} "
-                  f"| {m['z']:+.1f} |" for m in d["located"]]
+        lines += [(f"| {m['what']} | {m['where'][0]:.0f} - {m['where'][2]:.0f} | {m['where'][1]:.0f} - {m['where'][3]:.0f} "
+                   if isinstance(m["where"], list) else f"| {m['what']} (a scalar datum) | | ") + f"| {m['z']:+.1f} |"
+                  for m in d["located"]]
         lines += ["", "Refitted candidates, 2 ln Bayes factor against the baseline: "
                   + (", ".join(f"{k} {v:+.1f}" for k, v in d["candidates"].items()) or "none") + ".", ""]
         det = d.get("detectable", {})
@@ -275,7 +286,7 @@ def main(argv=None) -> int:
     out = {"posterior": {k: post[k] for k in ("mean", "sd", "map", "hdr90")}, "inference": post["inference"]["path"],
            "tradeoffs": tradeoff_lines(post["tradeoffs"]), "discrepancy": post["discrepancy"].get("at_best_run", []),
            "predictive": {"figures": info["figures"], "observations": info["observations"],
-                          "against": info["against_observations"]["dod"]},
+                          "against": info["against_observations"]["dod"], "mismatches": info["mismatches"]},
            "median_run": x, "h_over_l": h_over_l(cfg, mapped),
            **survey_figures(dod, r.elevation_change[0].numpy(), r.h_max[0].numpy(), p_impact, dem.cellsize ** 2),
            "runout_m": runout(cfg, dod, r.h_max[0].numpy())}
@@ -283,10 +294,13 @@ def main(argv=None) -> int:
     figs.mkdir(exist_ok=True)
     plot_dod(dem, case / "hillshade.asc", dod, r.elevation_change[0].numpy(), figs / "dod.png")
     hs, hc, hx, hy = read_asc_array(case / "hillshade.asc")
+    clusters = (info.get("mismatches") or {}).get("clusters", [])[:9]
     plot_outlines(dem, mapped, {f"median run (mu {x['mu']:.3f}, xi {x['xi']:.0f})": r.h_max[0].numpy() > THRESHOLD,
                                 "impact probability >= 0.5": p_impact >= 0.5}, figs / "outlines.png",
                   title=f"mapped and simulated footprints (h_max > {THRESHOLD:g} m)",
-                  background=(hs, (hx, hx + hs.shape[1] * hc, hy, hy + hs.shape[0] * hc)))
+                  background=(hs, (hx, hx + hs.shape[1] * hc, hy, hy + hs.shape[0] * hc)),
+                  labels=[(0.5 * (m["box"][0] + m["box"][2]), 0.5 * (m["box"][1] + m["box"][3]), str(i + 1))
+                          for i, m in enumerate(clusters)])
     plot_front_page(pred, figs / "front.png", peer_point(HERE.parents[1]))
     shutil.copyfile(pred / "impact_probability.png", figs / "impact_probability.png")
     shutil.copyfile(cal / "posterior.png", figs / "posterior.png")

@@ -16,13 +16,19 @@ settings, and writes (all rasters on the DEM grid; ESRI ASCII, or GeoTIFF with `
     DIR/front.png                where the observations map a footprint: the run-out against the share of the
                                  reached cells outside the map, over the calibration's runs and the draws
                                  (front.json: the points)
-    DIR/outlines.png             and the mapped footprint against the cells with impact probability >= 0.5
+    DIR/outlines.png             and the mapped footprint against the cells with impact probability >= 0.5,
+                                 the clusters of predictive.json's ``mismatches`` numbered
 
 predictive.json ``figures``: the draws' 90 % intervals of the impact area (h_max > --threshold, map m^2) and of
 the run-out from the release's crown (m); ``with_grid_error``: the same when ``--grid-error N`` of the draws
 (4 by default) also run on cells half the size and their mean difference and its spread are added (the
 grid's error of these figures, measured), and the run-out, which the grid knows to a cell, is spread by a
 uniform error of +- half a cell.
+
+predictive.json ``mismatches``: where the draws and the first mapped footprint disagree, in a modeller's terms
+(torchslide.survey.mismatch_clusters): the clusters of cells reached (impact probability >= 0.5) but not
+mapped and mapped but not reached, each with its box, cells, area, distance from the crown, score and volume,
+and the run-out's shortfall or overshoot against the mapped one.
 
 predictive.json ``observations``: per scalar observation the model's mean, sd and 5/50/95 % quantiles over
 the draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
@@ -83,6 +89,23 @@ def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndar
             f.write(",".join(f"{v:.10g}" for v in list(xi) + list(pi)) + "\n")
 
 
+def _mismatches(ev, pr) -> dict | None:
+    """Where the draws and the first mapped footprint disagree (torchslide.survey.mismatch_clusters, against the
+    impact probability; the run-out's shortfall or overshoot), None without a mapped footprint."""
+    from ..survey import FOOTPRINT_KINDS, crown_point, mapped_footprint, mapped_runout, mismatch_clusters, \
+        runout_mismatch
+
+    obs = next((o for o in ev.observations if getattr(o, "kind", None) in FOOTPRINT_KINDS), None)
+    if obs is None:
+        return None
+    mapped = mapped_footprint(obs)
+    dod = next((o.to_grid(o.values) for o in ev.observations if getattr(o, "kind", None) == "elevation_change"), None)
+    clusters = mismatch_clusters(pr.impact_probability, mapped, ev.dem, ev.release,
+                                 h_p50=pr.quantiles["h_max"][0.5], survey_dz=dod)
+    runout = runout_mismatch(pr.figures[:, 1], mapped_runout(mapped, ev.dem, point=crown_point(ev.dem, ev.release)))
+    return {"footprint": str(obs.name), "clusters": clusters, "runout": runout, "mapped": mapped}
+
+
 def _front(cal_dir: Path, pr) -> tuple | None:
     """(the calibration's runs' front, the draws' front) against the first mapped footprint
     (torchslide.tradeoff.front), or None when the calibration's records (records.npz) carry no survey figures."""
@@ -108,7 +131,6 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from ..figures import plot_front, plot_predictive_check
     from ..mapplots import plot_field_map, plot_outlines
-    from ..survey import FOOTPRINT_KINDS, mapped_footprint
     from ..predict import (figure_intervals, grid_error, observation_check, posterior_samples, predictive_sd,
                            run_predictive, with_model_error)
     from ..terrain.io import write_named_raster
@@ -161,6 +183,7 @@ def _run(args: argparse.Namespace) -> int:
         with executor_for(args, cfg, ev):
             error = grid_error(ev, pr.x[: args.grid_error], args.threshold)
     figures = figure_intervals(pr.figures, error, seed=args.seed, cellsize=ev.dem.cellsize)
+    mismatches = _mismatches(ev, pr)
     lower = np.concatenate([np.full(b.stop - b.start, 0.0 if KINDS[b.kind].nonnegative else -np.inf) for b in ev.blocks])
     checks = observation_check(pr.predictions, ev.data_recorded, ev.observation_sd(), ev.observation_names,
                                seed=args.seed, lower=lower)
@@ -190,6 +213,7 @@ def _run(args: argparse.Namespace) -> int:
             "impact_area_m2": {"mean": float((pr.impact_probability * pr.cell_area).sum()),
                                "p50_map": float(pr.cell_area[pr.impact_probability >= 0.5].sum())},
             "figures": figures,
+            "mismatches": None if mismatches is None else {k: v for k, v in mismatches.items() if k != "mapped"},
             "observations": scalar,
             "n_inside_90": int(sum(c["inside"] for c in scalar)),
             "maps_and_series": series,
@@ -207,11 +231,11 @@ def _run(args: argparse.Namespace) -> int:
         if front is not None:
             plot_front(front[0], tmp / "front.png", draws=front[1])
             (tmp / "front.json").write_text(json.dumps({"runs": front[0], "draws": front[1]}))
-        mapped = next((mapped_footprint(o) for o in ev.observations if getattr(o, "kind", None) in FOOTPRINT_KINDS),
-                      None)
-        if mapped is not None:
-            plot_outlines(dem, mapped, {"impact probability >= 0.5": pr.impact_probability >= 0.5},
-                          tmp / "outlines.png", title=f"mapped and simulated footprints (h_max > {args.threshold:g} m)")
+        if mismatches:
+            plot_outlines(dem, mismatches["mapped"], {"impact probability >= 0.5": pr.impact_probability >= 0.5},
+                          tmp / "outlines.png", title=f"mapped and simulated footprints (h_max > {args.threshold:g} m)",
+                          labels=[(0.5 * (m["box"][0] + m["box"][2]), 0.5 * (m["box"][1] + m["box"][3]), str(i + 1))
+                                  for i, m in enumerate(mismatches["clusters"][:9])])
     if not args.quiet:
         for name, f in pr.survey.items():
             j, r = f["footprint_jaccard"], f["runout_m"]
@@ -220,6 +244,13 @@ def _run(args: argparse.Namespace) -> int:
                   f"{r['median']:.0f} m [{r['q05']:.0f}, {r['q95']:.0f}] (mapped {r['mapped']:.0f} m)")
         for name, m in series.items():
             print(f"{name}: {100 * m['share_inside_90']:.0f} % of its {m['n']} values inside their 90 % intervals")
+        if mismatches:
+            ro = mismatches["runout"]
+            print(f"against {mismatches['footprint']}: {ro['what']} {ro['difference_m']:+.0f} m "
+                  f"[{ro['interval_m'][0]:+.0f}, {ro['interval_m'][1]:+.0f}] of the mapped {ro['mapped_m']:.0f} m")
+            for i, m in enumerate(mismatches["clusters"][:5]):
+                print(f"  {i + 1}. {m['what']}: {m['n_cells']} cells ({m['area_m2']:,.0f} m^2), "
+                      f"{m['from_crown_m'][0]:.0f}-{m['from_crown_m'][1]:.0f} m from the crown")
         for c in scalar:
             lo, hi = c["interval90"]
             wide = "" if "interval90_model_error" not in c else \

@@ -39,6 +39,7 @@ from scipy import special, stats
 
 from ..active import maximin_lhs
 from ..calibration import CalibrationResult
+from ..evaluator import RunRecord
 from .candidates import CANDIDATES
 from .evaluator import stack_values
 from .local import LocalFit, fit, profile_evidence_shift
@@ -93,9 +94,13 @@ def merged_residuals(requests: list) -> list:
     preds, failed = runner.run_values(stack_values([(len(X), prob.values(X)) for prob, X in requests]))
     cuts = np.cumsum([len(X) for _, X in requests])[:-1]
     out = []
-    for (prob, _), p, f in zip(requests, np.split(np.asarray(preds), cuts), np.split(np.asarray(failed), cuts)):
+    for (prob, X), p, f in zip(requests, np.split(np.asarray(preds), cuts), np.split(np.asarray(failed), cuts)):
         r = prob.evaluator.likelihood.residuals(torch.as_tensor(p)).numpy()
         bad = f | ~np.all(np.isfinite(r), axis=1)
+        z = prob.log_norm - 0.5 * np.sum(np.where(bad[:, None], 0.0, r) ** 2, axis=1)
+        prob.evaluator.records += [RunRecord(x.copy(), pi.copy(), float(zi + prob.log_prior(x)) if not b else math.nan,
+                                             bool(b), "failed run" if b else "")
+                                   for x, pi, zi, b in zip(X, p, z, bad)]   # what the fits ran (tradeoff, the cache)
         out.append((np.where(bad[:, None], np.inf, r), bad))
     return out
 

@@ -130,11 +130,23 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
               f"times smaller (rms of the mean / sd per observable: " +
               ", ".join(f"{k} {v['rms_mean']:.3g} / {v['rms_sd']:.3g}" for k, v in me["blocks"].items()) + ").", ""]
-    L += _located_section(j) + _consistency_section(j.get("subset_consistency"))
+    L += _tradeoff_section(j.get("tradeoffs")) + _located_section(j) + _consistency_section(j.get("subset_consistency"))
     L += _screening_section((j.get("screening") or {}).get("candidates") or {})
     L += _candidates_section(j["candidates"], j["decision"].get("explained_shares") or {}) + _fit_section(j)
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
     return "\n".join(L) + "\n"
+
+
+def _tradeoff_section(t: dict | None) -> list[str]:
+    """What the baseline's runs cannot meet together (torchslide.tradeoff), when anything."""
+    from ..tradeoff import lines
+
+    got = lines(t) if t else []
+    if not got:
+        return []
+    return ["## What the baseline cannot meet together", "",
+            f"Over the baseline's {t['n_runs']} runs (the stated sigmas; docs/model-error.md):", ""] + \
+        [f"- {x}." for x in got] + [""]
 
 
 def _verdict_section(j: dict) -> list[str]:
