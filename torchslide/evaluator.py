@@ -259,10 +259,12 @@ class LandslideEvaluator:
         """Use ``factors`` ({name: F / f}, learn_discrepancy's) in the likelihood and score every record again."""
         self.discrepancy_factors = dict(factors) if factors else None
         self.likelihood = self.with_discrepancy(getattr(self.likelihood, "gaussian", self.likelihood))
-        for r in self.records:
-            if not r.failed:
-                x = torch.as_tensor(np.atleast_2d(r.x))
-                r.z = float(self.likelihood.log_likelihood(torch.as_tensor(r.predictions[None])) + self.prior.log_prob(x))
+        ok = [r for r in self.records if not r.failed]
+        if ok:
+            z = (self.likelihood.log_likelihood(torch.as_tensor(np.stack([r.predictions for r in ok])))
+                 + self.prior.log_prob(torch.as_tensor(np.stack([r.x for r in ok]))))
+            for r, zi in zip(ok, z.tolist()):
+                r.z = float(zi)
 
     @property
     def k(self) -> int:
