@@ -268,6 +268,11 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     rep = {"verdict": "unexplained", "decision": {"reason": "r"}, "timings": {"pilot_s": 400.0, "screen_s": 600.5},
            "located": [{"what": "dod deficit cluster", "where": [1.0, 2.0, 3.0, 4.0], "standardised_residual": -14.0}],
            "candidates": [{"name": "curvature", "two_ln_bf": 1.8}],
+           "mismatches": {"runout": {"what": "run-out shortfall", "difference_m": -400.0, "mapped_m": 786.0,
+                                     "interval_m": [-450.0, -300.0]},
+                          "clusters": [{"what": "excess: reached, not mapped", "n_cells": 140, "area_m2": 14000.0,
+                                        "box": [0.0, 0.0, 100.0, 200.0], "from_crown_m": [300.0, 500.0], "score": 90.0,
+                                        "volume_m3": 2000.0}]},
            "screening": {"candidates": {c: {"score": 0.0, "detectable_switch": d} for c, d in det.items()}}}
     d = diagnosis_summary(rep)
     assert d["seconds"] == 1000.5 and d["candidates"] == {"curvature": 1.8}
@@ -292,6 +297,8 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     page = (tmp_path / "README.md").read_text()
     assert "1000 s in its stages: verdict **unexplained**" in page
     assert "| dod deficit cluster | 1 - 3 | 2 - 4 | -14.0 |" in page
+    assert "- run-out shortfall -400 m (90 % of the runs [-450, -300] m) of the mapped 786 m" in page
+    assert "- excess: reached, not mapped: 140 cells (14,000 m^2, 2,000 m^3), 300-500 m from the crown" in page
     assert "Calibration, prediction and the figures: 339 s on the 2-core machine (calibration 52 s)." in page
     assert "- no run meets impact and runout together: ...." in page and "runout 25 x its sigma" in page
     assert "| run-out from the release's crown, m | 200 - 400 | 150 - 420 (shift -40) | 786 |" in page

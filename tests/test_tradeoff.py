@@ -183,3 +183,47 @@ def test_the_mismatches_a_modeller_sees_a_lobe_outside_the_map_and_a_short_run_o
     r = runout_mismatch(np.array([170.0, 175.0, 180.0]), 355.0)
     assert r["what"] == "run-out shortfall" and r["difference_m"] == pytest.approx(-180.0)
     assert r["interval_m"][0] < -180.0 < r["interval_m"][1] < 0
+
+
+def test_the_diagnosis_finds_a_known_lobe_and_a_known_shortfall_on_the_map(tmp_path):
+    """The plane's run (mu 0.2) against a map made from it with a known lobe taken off (the upper path's cells
+    on one side: excess) and a strip added beyond its front (deficit, 3 cells longer): the baseline's runs
+    through diagnose.predictive.map_mismatches find both clusters with their cells and the run-out's shortfall
+    of three cells; report.md lists them and draws outlines.png."""
+    from torchslide.calibration_config import load_calibration_config, make_evaluator
+    from torchslide.diagnose.predictive import map_mismatches
+    from torchslide.diagnose.report import _mismatch_section, write_figures
+    from torchslide.terrain.io import read_asc_array
+
+    assert main(["simulate", str(write(tmp_path, BASE)), "--out", str(tmp_path / "t"), "--quiet"]) == 0
+    h = read_asc_array(tmp_path / "t" / "h_max.asc")[0]
+    from torchslide.config import load_config
+
+    dem = load_config(write(tmp_path, BASE)).terrain.dem
+    reached = h > 0.5
+    rows, cols = np.nonzero(reached)
+    lobe = reached & (np.arange(dem.nx)[None, :] <= cols.min() + 3) & (np.arange(dem.ny)[:, None] >= rows.max() - 1)
+    front = cols.max()
+    strip = np.zeros(dem.shape, bool)
+    strip[rows.min() + 1:rows.max(), front + 1:front + 4] = True     # 3 cells beyond the front, within the width
+    mapped = (reached & ~lobe) | strip
+    write_asc(tmp_path / "map.asc", mapped.astype(float), dem)
+    obs = '[[observations]]\nkind = "footprint"\nfile = "map.asc"\nsigma = 0.3\nthreshold = 0.5\n'
+    ev = make_evaluator(load_calibration_config(write(tmp_path, BASE + PRIOR + obs + CAL)))
+    m = map_mismatches(ev, np.tile([0.2, 1000.0], (3, 1)))
+    excess = [c for c in m["clusters"] if c["what"].startswith("excess")]
+    deficit = [c for c in m["clusters"] if c["what"].startswith("deficit")]
+    assert len(excess) == 1 and excess[0]["n_cells"] == lobe.sum() >= 3
+    assert len(deficit) == 1 and deficit[0]["n_cells"] == strip.sum()
+    assert deficit[0]["box"][0] == dem.xll + (front + 1) * dem.cellsize
+    assert m["runout"]["what"] == "run-out shortfall" and m["n_runs"] == 3
+    assert -3.5 * dem.cellsize < m["runout"]["difference_m"] < -2.5 * dem.cellsize
+    sec = _mismatch_section(m)
+    assert sec[0] == "## Where the baseline and the map differ" and any("run-out shortfall" in x for x in sec)
+    assert sorted(x.split(". ", 1)[1].split(":")[0] for x in sec if x[:1].isdigit()) == ["deficit", "excess"]
+    d = SimpleNamespace(mismatches=m, evaluator=ev, localisation=SimpleNamespace(maps={}, located=[]),
+                        after_localisation=None, refits={})
+    assert "outlines.png" in write_figures(d, tmp_path) and (tmp_path / "outlines.png").stat().st_size > 5000
+    assert map_mismatches(make_evaluator(load_calibration_config(write(tmp_path, BASE + PRIOR + CAL.replace(
+        "[calibration]", '[[observations]]\nkind = "impact_area"\nvalue = 1e5\nsigma = 1e4\n\n[calibration]')))),
+        np.tile([0.2, 1000.0], (2, 1))) == {}

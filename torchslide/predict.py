@@ -21,7 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .survey import run_figures, spread
+from .survey import (FOOTPRINT_KINDS, crown_point, mapped_footprint, mapped_runout, mismatch_clusters, run_figures,
+                     runout_mismatch, spread)
 
 QUANTILES = (0.05, 0.5, 0.95)
 
@@ -235,3 +236,22 @@ def observation_check(predictions: np.ndarray, values: np.ndarray, sigma: np.nda
                     f"interval{int(round(level * 100))}": [float(lo), float(hi)],
                     "percentile": float((rep < v).mean()), "inside": bool(lo <= v <= hi)})
     return out
+
+
+def footprint_mismatches(evaluator, pr: PredictiveRuns) -> dict | None:
+    """Where the draws ``pr`` and the first mapped footprint among the evaluator's observations disagree:
+    {"footprint": its name, "clusters": torchslide.survey.mismatch_clusters against the impact probability
+    (excess and deficit, with the median run's flow and the survey's change as volumes), "runout": the draws'
+    run-out against the mapped one (torchslide.survey.runout_mismatch), "mapped": (ny, nx) bool}; None without
+    a mapped footprint."""
+    obs = next((o for o in evaluator.observations if getattr(o, "kind", None) in FOOTPRINT_KINDS), None)
+    if obs is None:
+        return None
+    mapped = mapped_footprint(obs)
+    dod = next((o.to_grid(o.values) for o in evaluator.observations
+                if getattr(o, "kind", None) == "elevation_change"), None)
+    clusters = mismatch_clusters(pr.impact_probability, mapped, evaluator.dem, evaluator.release,
+                                 h_p50=pr.quantiles["h_max"][0.5], survey_dz=dod)
+    crown = crown_point(evaluator.dem, evaluator.release)
+    runout = runout_mismatch(pr.figures[:, 1], mapped_runout(mapped, evaluator.dem, point=crown))
+    return {"footprint": str(obs.name), "clusters": clusters, "runout": runout, "mapped": mapped}

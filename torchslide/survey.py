@@ -181,3 +181,22 @@ def runout_mismatch(runouts: np.ndarray, mapped_runout: float, level: float = 0.
     return {"what": "run-out " + ("shortfall" if np.median(r) < mapped_runout else "overshoot"),
             "difference_m": float(np.median(r) - mapped_runout), "mapped_m": float(mapped_runout),
             "interval_m": [float(np.quantile(r, q) - mapped_runout), float(np.quantile(r, 1 - q) - mapped_runout)]}
+
+
+def mismatch_line(m: dict) -> str:
+    """One mismatch_clusters item or runout_mismatch result as a modeller reads it."""
+    if "difference_m" in m:
+        lo, hi = m["interval_m"]
+        return (f"{m['what']} {m['difference_m']:+,.0f} m (90 % of the runs [{lo:+,.0f}, {hi:+,.0f}] m) of the mapped "
+                f"{m['mapped_m']:,.0f} m")
+    vol = f", {m['volume_m3']:,.0f} m^3" if m.get("volume_m3") is not None else ""
+    x0, y0, x1, y1 = m["box"]
+    return (f"{m['what']}: {m['n_cells']} cells ({m['area_m2']:,.0f} m^2{vol}), {m['from_crown_m'][0]:,.0f}-"
+            f"{m['from_crown_m'][1]:,.0f} m from the crown, x {x0:,.0f}-{x1:,.0f}, y {y0:,.0f}-{y1:,.0f} m "
+            f"(score {m['score']:.1f})")
+
+
+def cluster_labels(clusters: list, n: int = 9) -> list:
+    """[(x, y, "i")]: the first ``n`` mismatch_clusters numbered at their boxes' centres (mapplots.plot_outlines)."""
+    return [(0.5 * (c["box"][0] + c["box"][2]), 0.5 * (c["box"][1] + c["box"][3]), str(i + 1))
+            for i, c in enumerate(clusters[:n])]

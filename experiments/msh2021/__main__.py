@@ -108,15 +108,19 @@ def plot_dod(dem, hillshade_file: Path, dod: np.ndarray, dz: np.ndarray, path: P
 
 def diagnosis_summary(rep: dict) -> dict:
     """What the page reports of a diagnosis report.json: the verdict and why, its time (the sum of its
-    stages'), where the baseline disagrees with the survey, each refitted candidate's 2 ln BF, each
+    stages'), where the baseline disagrees with the survey (the residuals' clusters and the footprint's), each refitted candidate's 2 ln BF, each
     candidate's detectable switch."""
+    from torchslide.survey import mismatch_line
+
     det = {c: v["detectable_switch"] for c, v in rep["screening"]["candidates"].items() if v.get("detectable_switch")}
+    mm = rep.get("mismatches")
     return {"verdict": rep["verdict"], "missing_physics": rep.get("missing_physics"),
             "reason": rep["decision"].get("reason", ""), "seconds": sum(rep["timings"].values()),
             "stages_s": rep["timings"],
             "detectable": {c: {"switch": d["switch"], "within_prior": d["within_prior"],
                                "measured": bool(d.get("measured"))} for c, d in det.items()},
             "located": [{"what": m["what"], "where": m["where"], "z": m["standardised_residual"]} for m in rep["located"]],
+            "footprint_mismatches": [mismatch_line(m) for m in ([mm["runout"]] + mm["clusters"][:9] if mm else [])],
             "candidates": {c["name"]: c.get("two_ln_bf") for c in rep["candidates"] if c.get("two_ln_bf") is not None},
             "at_range_end": {c["name"]: {"param": c["param"], "hdr90": c["parameters"][c["param"]]["hdr90"],
                                          "baseline": {k: v["hdr90"] for k, v in c["parameters"].items() if k != c["param"]}}
@@ -237,6 +241,9 @@ def write_page(out: dict, path: Path) -> None:
         lines += [(f"| {m['what']} | {m['where'][0]:.0f} - {m['where'][2]:.0f} | {m['where'][1]:.0f} - {m['where'][3]:.0f} "
                    if isinstance(m["where"], list) else f"| {m['what']} (a scalar datum) | | ") + f"| {m['z']:+.1f} |"
                   for m in d["located"]]
+        if d.get("footprint_mismatches"):
+            lines += ["", "The baseline's runs against the mapped footprint (report.md, numbered on the diagnosis' "
+                      "outlines.png):", ""] + [f"- {x}" for x in d["footprint_mismatches"]]
         lines += ["", "Refitted candidates, 2 ln Bayes factor against the baseline: "
                   + (", ".join(f"{k} {v:+.1f}" for k, v in d["candidates"].items()) or "none") + ".", ""]
         det = d.get("detectable", {})
@@ -262,6 +269,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-diagnose", action="store_true")
     a = ap.parse_args(argv)
     from torchslide.mapplots import plot_outlines
+    from torchslide.survey import cluster_labels
     from torchslide.terrain.io import read_asc_array, read_raster
 
     t0 = time.perf_counter()
@@ -294,13 +302,12 @@ def main(argv=None) -> int:
     figs.mkdir(exist_ok=True)
     plot_dod(dem, case / "hillshade.asc", dod, r.elevation_change[0].numpy(), figs / "dod.png")
     hs, hc, hx, hy = read_asc_array(case / "hillshade.asc")
-    clusters = (info.get("mismatches") or {}).get("clusters", [])[:9]
+    clusters = (info.get("mismatches") or {}).get("clusters", [])
     plot_outlines(dem, mapped, {f"median run (mu {x['mu']:.3f}, xi {x['xi']:.0f})": r.h_max[0].numpy() > THRESHOLD,
                                 "impact probability >= 0.5": p_impact >= 0.5}, figs / "outlines.png",
                   title=f"mapped and simulated footprints (h_max > {THRESHOLD:g} m)",
                   background=(hs, (hx, hx + hs.shape[1] * hc, hy, hy + hs.shape[0] * hc)),
-                  labels=[(0.5 * (m["box"][0] + m["box"][2]), 0.5 * (m["box"][1] + m["box"][3]), str(i + 1))
-                          for i, m in enumerate(clusters)])
+                  labels=cluster_labels(clusters))
     plot_front_page(pred, figs / "front.png", peer_point(HERE.parents[1]))
     shutil.copyfile(pred / "impact_probability.png", figs / "impact_probability.png")
     shutil.copyfile(cal / "posterior.png", figs / "posterior.png")

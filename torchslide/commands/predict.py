@@ -89,23 +89,6 @@ def _write_draws_csv(path: Path, names, obs_names, x: np.ndarray, preds: np.ndar
             f.write(",".join(f"{v:.10g}" for v in list(xi) + list(pi)) + "\n")
 
 
-def _mismatches(ev, pr) -> dict | None:
-    """Where the draws and the first mapped footprint disagree (torchslide.survey.mismatch_clusters, against the
-    impact probability; the run-out's shortfall or overshoot), None without a mapped footprint."""
-    from ..survey import FOOTPRINT_KINDS, crown_point, mapped_footprint, mapped_runout, mismatch_clusters, \
-        runout_mismatch
-
-    obs = next((o for o in ev.observations if getattr(o, "kind", None) in FOOTPRINT_KINDS), None)
-    if obs is None:
-        return None
-    mapped = mapped_footprint(obs)
-    dod = next((o.to_grid(o.values) for o in ev.observations if getattr(o, "kind", None) == "elevation_change"), None)
-    clusters = mismatch_clusters(pr.impact_probability, mapped, ev.dem, ev.release,
-                                 h_p50=pr.quantiles["h_max"][0.5], survey_dz=dod)
-    runout = runout_mismatch(pr.figures[:, 1], mapped_runout(mapped, ev.dem, point=crown_point(ev.dem, ev.release)))
-    return {"footprint": str(obs.name), "clusters": clusters, "runout": runout, "mapped": mapped}
-
-
 def _front(cal_dir: Path, pr) -> tuple | None:
     """(the calibration's runs' front, the draws' front) against the first mapped footprint
     (torchslide.tradeoff.front), or None when the calibration's records (records.npz) carry no survey figures."""
@@ -131,8 +114,9 @@ def run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     from ..figures import plot_front, plot_predictive_check
     from ..mapplots import plot_field_map, plot_outlines
-    from ..predict import (figure_intervals, grid_error, observation_check, posterior_samples, predictive_sd,
-                           run_predictive, with_model_error)
+    from ..predict import (figure_intervals, footprint_mismatches, grid_error, observation_check, posterior_samples,
+                           predictive_sd, run_predictive, with_model_error)
+    from ..survey import cluster_labels, mismatch_line
     from ..terrain.io import write_named_raster
     from ..calibration_config import load_calibration, load_calibration_config, make_evaluator
     from ..output_folder import check_output, staged_output
@@ -183,7 +167,7 @@ def _run(args: argparse.Namespace) -> int:
         with executor_for(args, cfg, ev):
             error = grid_error(ev, pr.x[: args.grid_error], args.threshold)
     figures = figure_intervals(pr.figures, error, seed=args.seed, cellsize=ev.dem.cellsize)
-    mismatches = _mismatches(ev, pr)
+    mismatches = footprint_mismatches(ev, pr)
     lower = np.concatenate([np.full(b.stop - b.start, 0.0 if KINDS[b.kind].nonnegative else -np.inf) for b in ev.blocks])
     checks = observation_check(pr.predictions, ev.data_recorded, ev.observation_sd(), ev.observation_names,
                                seed=args.seed, lower=lower)
@@ -234,8 +218,7 @@ def _run(args: argparse.Namespace) -> int:
         if mismatches:
             plot_outlines(dem, mismatches["mapped"], {"impact probability >= 0.5": pr.impact_probability >= 0.5},
                           tmp / "outlines.png", title=f"mapped and simulated footprints (h_max > {args.threshold:g} m)",
-                          labels=[(0.5 * (m["box"][0] + m["box"][2]), 0.5 * (m["box"][1] + m["box"][3]), str(i + 1))
-                                  for i, m in enumerate(mismatches["clusters"][:9])])
+                          labels=cluster_labels(mismatches["clusters"]))
     if not args.quiet:
         for name, f in pr.survey.items():
             j, r = f["footprint_jaccard"], f["runout_m"]
@@ -249,8 +232,7 @@ def _run(args: argparse.Namespace) -> int:
             print(f"against {mismatches['footprint']}: {ro['what']} {ro['difference_m']:+.0f} m "
                   f"[{ro['interval_m'][0]:+.0f}, {ro['interval_m'][1]:+.0f}] of the mapped {ro['mapped_m']:.0f} m")
             for i, m in enumerate(mismatches["clusters"][:5]):
-                print(f"  {i + 1}. {m['what']}: {m['n_cells']} cells ({m['area_m2']:,.0f} m^2), "
-                      f"{m['from_crown_m'][0]:.0f}-{m['from_crown_m'][1]:.0f} m from the crown")
+                print(f"  {i + 1}. {mismatch_line(m)}")
         for c in scalar:
             lo, hi = c["interval90"]
             wide = "" if "interval90_model_error" not in c else \

@@ -40,7 +40,7 @@ from .candidates import CANDIDATES
 from .consistency import subset_consistency
 from .decide import Thresholds, decide
 from .localise import Localisation, localise
-from .predictive import Predictive, posterior_mode, posterior_predictive, posterior_samples
+from .predictive import Predictive, map_mismatches, posterior_mode, posterior_predictive, posterior_samples
 from .refit import calibrate_evaluator, candidate_evaluator, refit
 from .resolution import removed_by_resolution
 from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verified_evidence, waic
@@ -151,6 +151,7 @@ class Diagnosis:
     null_calibration: dict | None = None  # thresholds set on null simulations of this design (diagnose.null)
     grid: dict | None = None            # how the inversion grid was chosen (resolution.choose_grid; None: as configured)
     tradeoffs: dict | None = None       # what the baseline's runs cannot meet together (torchslide.tradeoff.conflicts)
+    mismatches: dict | None = None      # the baseline against the mapped footprint (predictive.map_mismatches; {}: none mapped)
 
     @property
     def missing_physics(self):
@@ -208,6 +209,7 @@ class Diagnosis:
             {**self.null_calibration, "thresholds": self.null_calibration["thresholds"].to_json()},
             "grid": self.grid,
             "tradeoffs": self.tradeoffs,
+            "mismatches": {k: v for k, v in (self.mismatches or {}).items() if k not in ("mapped", "p_reached")},
         })
 
 
@@ -320,10 +322,19 @@ def diagnose(evaluator, candidates, budgets: Budgets | None = None, thresholds: 
     try:
         d = _diagnose(evaluator, candidates, bud, th, baseline, log, workdir)
         d.tradeoffs = conflicts(evaluator.records, evaluator)      # the baseline's runs over its prior box
+        add_mismatches(d)
         return d
     finally:
         if tmp is not None:
             tmp.cleanup()
+
+
+def add_mismatches(d: Diagnosis) -> None:
+    """d.mismatches: the baseline's posterior runs against the mapped footprint (predictive.map_mismatches),
+    timed as d.timings["mismatches_s"]."""
+    t0 = time.perf_counter()
+    d.mismatches = map_mismatches(d.evaluator, d.predictive.x)
+    d.timings["mismatches_s"] = time.perf_counter() - t0
 
 
 def stated_correlation(evaluator) -> dict:

@@ -40,3 +40,18 @@ def posterior_predictive(evaluator, samples: np.ndarray) -> Predictive:
     res, preds = evaluator.evaluate(x)
     ok = ~res.failed.numpy()
     return Predictive(x=np.asarray(samples)[ok], draws=preds.numpy()[ok], n_failed=int((~ok).sum()))
+
+
+def map_mismatches(evaluator, samples: np.ndarray, n: int = 16) -> dict:
+    """Where the baseline's runs (the first ``n`` of ``samples`` (M, p)) and the mapped footprint disagree,
+    in a modeller's terms (torchslide.predict.footprint_mismatches: clusters of excess and deficit, the
+    run-out's shortfall or overshoot), with the maps for the report's figure ("mapped", "p_reached" (ny, nx));
+    {} when no observation maps a footprint (no runs then)."""
+    from ..predict import footprint_mismatches, run_predictive
+    from ..survey import FOOTPRINT_KINDS
+
+    if not any(getattr(o, "kind", None) in FOOTPRINT_KINDS for o in evaluator.observations):
+        return {}
+    pr = run_predictive(evaluator, np.asarray(samples)[:n], evaluator.reach_threshold)
+    got = footprint_mismatches(evaluator, pr)
+    return dict(got, p_reached=pr.impact_probability, threshold=pr.threshold, n_runs=len(pr.x))

@@ -68,6 +68,15 @@ def write_figures(diag, out: Path) -> list[str]:
             save_figure(fig, f, dpi=90)
             plt.close(fig)
             files.append(f.name)
+    if diag.mismatches:
+        from ..mapplots import plot_outlines
+        from ..survey import cluster_labels
+
+        m = diag.mismatches
+        plot_outlines(dem, m["mapped"], {"baseline: P(reached) >= 0.5": m["p_reached"] >= 0.5}, out / "outlines.png",
+                      title=f"mapped and simulated footprints (h_max > {m['threshold']:g} m)",
+                      labels=cluster_labels(m["clusters"]))
+        files.append("outlines.png")
     # posteriors of the refit switches: 1-D marginal of the samples (histogram) or of the grid posterior,
     # on the switch's prior range
     refits = [(c, cal) for c, (_, cal) in diag.refits.items()
@@ -130,7 +139,8 @@ def write_markdown(j: dict, figures: list[str]) -> str:
         L += [f"Approximation error of the grid in every likelihood: {me['n']} run pairs on cells {me['factor']} "
               f"times smaller (rms of the mean / sd per observable: " +
               ", ".join(f"{k} {v['rms_mean']:.3g} / {v['rms_sd']:.3g}" for k, v in me["blocks"].items()) + ").", ""]
-    L += _tradeoff_section(j.get("tradeoffs")) + _located_section(j) + _consistency_section(j.get("subset_consistency"))
+    L += _tradeoff_section(j.get("tradeoffs")) + _located_section(j) + _mismatch_section(j.get("mismatches"))
+    L += _consistency_section(j.get("subset_consistency"))
     L += _screening_section((j.get("screening") or {}).get("candidates") or {})
     L += _candidates_section(j["candidates"], j["decision"].get("explained_shares") or {}) + _fit_section(j)
     L += ["", "## Figures", ""] + [f"![{f}]({f})" for f in figures]
@@ -147,6 +157,20 @@ def _tradeoff_section(t: dict | None) -> list[str]:
     return ["## What the baseline cannot meet together", "",
             f"Over the baseline's {t['n_runs']} runs (the stated sigmas; docs/model-error.md):", ""] + \
         [f"- {x}." for x in got] + [""]
+
+
+def _mismatch_section(m: dict | None) -> list[str]:
+    """The baseline's runs against the mapped footprint (diagnose.predictive.map_mismatches), when one is mapped."""
+    from ..survey import mismatch_line
+
+    if not m:
+        return []
+    return ["## Where the baseline and the map differ", "",
+            f"Over {m['n_runs']} of the baseline's posterior runs against {m['footprint']} (reached: h_max > "
+            f"{m['threshold']:g} m; a cluster: 3 or more 8-connected cells the runs reach with probability >= 0.5 "
+            f"off the map, or < 0.5 on it; numbered on outlines.png):", "",
+            f"- {mismatch_line(m['runout'])}."] + \
+        [f"{i + 1}. {mismatch_line(c)}." for i, c in enumerate(m["clusters"][:9])] + [""]
 
 
 def _verdict_section(j: dict) -> list[str]:
