@@ -217,6 +217,7 @@ def test_the_diagnosis_finds_a_known_lobe_and_a_known_shortfall_on_the_map(tmp_p
     assert len(deficit) == 1 and deficit[0]["n_cells"] == strip.sum()
     assert deficit[0]["box"][0] == dem.xll + (front + 1) * dem.cellsize
     assert m["runout"]["what"] == "run-out shortfall" and m["n_runs"] == 3
+    assert m["path_width"]["n_rings"] > 5 and m["path_width"]["median_cells"] >= 3
     assert -3.5 * dem.cellsize < m["runout"]["difference_m"] < -2.5 * dem.cellsize
     sec = _mismatch_section(m)
     assert sec[0] == "## Where the baseline and the map differ" and any("run-out shortfall" in x for x in sec)
@@ -227,3 +228,20 @@ def test_the_diagnosis_finds_a_known_lobe_and_a_known_shortfall_on_the_map(tmp_p
     assert map_mismatches(make_evaluator(load_calibration_config(write(tmp_path, BASE + PRIOR + CAL.replace(
         "[calibration]", '[[observations]]\nkind = "impact_area"\nvalue = 1e5\nsigma = 1e4\n\n[calibration]')))),
         np.tile([0.2, 1000.0], (2, 1))) == {}
+
+
+@pytest.mark.parametrize("width, narrow", [(2, True), (6, False)])
+def test_whether_the_grid_holds_the_mapped_path(width, narrow):
+    """A straight mapped channel ``width`` cells across below a release: its width in cells, and the sentence
+    says the DEM does not resolve it only where it is narrower than three cells."""
+    from torchslide.survey import path_width, width_line
+
+    dem = DEM(np.add.outer(np.zeros(30), -np.arange(60.0)), 10.0)
+    release = np.zeros(dem.shape)
+    release[12:18, 0:4] = 1.0
+    mapped = release > 0
+    mapped[15 - width // 2:15 - width // 2 + width, 4:50] = True
+    w = path_width(mapped, dem, release)
+    assert w["median_cells"] == pytest.approx(width, abs=0.5) and w["cellsize_m"] == 10.0
+    assert (w["share_narrower"] > 0.9) == narrow and (w["share_narrower"] < 0.1) == (not narrow)
+    assert ("does not resolve the channel" in width_line(w)) == narrow

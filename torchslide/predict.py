@@ -21,8 +21,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from .survey import (FOOTPRINT_KINDS, crown_point, mapped_footprint, mapped_runout, mismatch_clusters, run_figures,
-                     runout_mismatch, spread)
+from .survey import (FOOTPRINT_KINDS, crown_point, mapped_footprint, mapped_runout, mismatch_clusters, path_width,
+                     run_figures, runout_mismatch, spread)
 
 QUANTILES = (0.05, 0.5, 0.95)
 
@@ -242,8 +242,8 @@ def footprint_mismatches(evaluator, pr: PredictiveRuns) -> dict | None:
     """Where the draws ``pr`` and the first mapped footprint among the evaluator's observations disagree:
     {"footprint": its name, "clusters": torchslide.survey.mismatch_clusters against the impact probability
     (excess and deficit, with the median run's flow and the survey's change as volumes), "runout": the draws'
-    run-out against the mapped one (torchslide.survey.runout_mismatch), "mapped": (ny, nx) bool}; None without
-    a mapped footprint."""
+    run-out against the mapped one (torchslide.survey.runout_mismatch), "path_width": whether the grid holds the
+    mapped path (torchslide.survey.path_width), "mapped": (ny, nx) bool}; None without a mapped footprint."""
     obs = next((o for o in evaluator.observations if getattr(o, "kind", None) in FOOTPRINT_KINDS), None)
     if obs is None:
         return None
@@ -254,4 +254,5 @@ def footprint_mismatches(evaluator, pr: PredictiveRuns) -> dict | None:
                                  h_p50=pr.quantiles["h_max"][0.5], survey_dz=dod)
     crown = crown_point(evaluator.dem, evaluator.release)
     runout = runout_mismatch(pr.figures[:, 1], mapped_runout(mapped, evaluator.dem, point=crown))
-    return {"footprint": str(obs.name), "clusters": clusters, "runout": runout, "mapped": mapped}
+    return {"footprint": str(obs.name), "clusters": clusters, "runout": runout, "mapped": mapped,
+            "path_width": path_width(mapped, evaluator.dem, evaluator.release)}

@@ -200,3 +200,34 @@ def cluster_labels(clusters: list, n: int = 9) -> list:
     """[(x, y, "i")]: the first ``n`` mismatch_clusters numbered at their boxes' centres (mapplots.plot_outlines)."""
     return [(0.5 * (c["box"][0] + c["box"][2]), 0.5 * (c["box"][1] + c["box"][3]), str(i + 1))
             for i, c in enumerate(clusters[:n])]
+
+
+NARROW_CELLS = 3.0
+"""The fewest cells across which a finite-volume grid holds a channel (its bed and two banks)."""
+
+
+def path_width(mapped: np.ndarray, dem, release: np.ndarray) -> dict:
+    """How many cells across the mapped path is, below the release: the mapped cells outside the release in
+    rings one cell wide around the crown, each ring's area over its width (the path's width where it crosses
+    the ring, m). {"median_cells", "share_narrower" (of the rings, narrower than NARROW_CELLS cells),
+    "n_rings", "cellsize_m"}; where most of the path is narrower, the grid does not hold the channel that
+    confined the flow."""
+    mapped = np.asarray(mapped, bool) & ~(np.asarray(release) > 0)
+    if not mapped.any():
+        return {"median_cells": float("nan"), "share_narrower": float("nan"), "n_rings": 0,
+                "cellsize_m": float(dem.cellsize)}
+    r0, c0 = crown_cell(dem.z, release)
+    rows, cols = np.nonzero(mapped)
+    ring = np.floor(np.hypot(rows - r0, cols - c0)).astype(int)
+    cells = np.bincount(ring)
+    cells = cells[cells > 0]               # each ring's mapped cells = its area / cell area = its width in cells
+    return {"median_cells": float(np.median(cells)), "share_narrower": float(np.mean(cells < NARROW_CELLS)),
+            "n_rings": int(len(cells)), "cellsize_m": float(dem.cellsize)}
+
+
+def width_line(w: dict) -> str:
+    """path_width as a modeller reads it."""
+    s = (f"the mapped path below the release is {w['median_cells']:.1f} cells of {w['cellsize_m']:g} m across (median "
+         f"over {w['n_rings']} rings around the crown), narrower than {NARROW_CELLS:g} cells over "
+         f"{100 * w['share_narrower']:.0f} % of its length")
+    return s + (": the DEM does not resolve the channel that confined the flow" if w["share_narrower"] > 0.5 else "")

@@ -110,7 +110,7 @@ def diagnosis_summary(rep: dict) -> dict:
     """What the page reports of a diagnosis report.json: the verdict and why, its time (the sum of its
     stages'), where the baseline disagrees with the survey (the residuals' clusters and the footprint's), each refitted candidate's 2 ln BF, each
     candidate's detectable switch."""
-    from torchslide.survey import mismatch_line
+    from torchslide.survey import mismatch_line, width_line
 
     det = {c: v["detectable_switch"] for c, v in rep["screening"]["candidates"].items() if v.get("detectable_switch")}
     mm = rep.get("mismatches")
@@ -120,7 +120,8 @@ def diagnosis_summary(rep: dict) -> dict:
             "detectable": {c: {"switch": d["switch"], "within_prior": d["within_prior"],
                                "measured": bool(d.get("measured"))} for c, d in det.items()},
             "located": [{"what": m["what"], "where": m["where"], "z": m["standardised_residual"]} for m in rep["located"]],
-            "footprint_mismatches": [mismatch_line(m) for m in ([mm["runout"]] + mm["clusters"][:9] if mm else [])],
+            "footprint_mismatches": [mismatch_line(m) for m in ([mm["runout"]] + mm["clusters"][:9] if mm else [])]
+            + ([f"the grid: {width_line(mm['path_width'])}"] if mm and mm.get("path_width", {}).get("n_rings") else []),
             "candidates": {c["name"]: c.get("two_ln_bf") for c in rep["candidates"] if c.get("two_ln_bf") is not None},
             "at_range_end": {c["name"]: {"param": c["param"], "hdr90": c["parameters"][c["param"]]["hdr90"],
                                          "baseline": {k: v["hdr90"] for k, v in c["parameters"].items() if k != c["param"]}}

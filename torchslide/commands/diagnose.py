@@ -449,9 +449,8 @@ def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log, grid: dict | 
     if args.resume:
         d, stage = _load_checkpoint(out, fp)
         log(f"resuming the diagnosis in {out} (stage: {stage})")
-        if d.mismatches is None:           # a checkpoint written before the footprint's mismatches were measured
-            from ..diagnose.pipeline import add_mismatches
-            add_mismatches(d)
+        from ..diagnose.pipeline import add_mismatches
+        add_mismatches(d)                  # described afresh: a checkpoint of an earlier version may lack them
     else:
         d, stage = diagnose(ev, dg["candidates"], bud, th, log=log), "diagnosed"
         d.grid = grid

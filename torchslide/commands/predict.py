@@ -116,7 +116,7 @@ def _run(args: argparse.Namespace) -> int:
     from ..mapplots import plot_field_map, plot_outlines
     from ..predict import (figure_intervals, footprint_mismatches, grid_error, observation_check, posterior_samples,
                            predictive_sd, run_predictive, with_model_error)
-    from ..survey import cluster_labels, mismatch_line
+    from ..survey import cluster_labels, mismatch_line, width_line
     from ..terrain.io import write_named_raster
     from ..calibration_config import load_calibration, load_calibration_config, make_evaluator
     from ..output_folder import check_output, staged_output
@@ -233,6 +233,8 @@ def _run(args: argparse.Namespace) -> int:
                   f"[{ro['interval_m'][0]:+.0f}, {ro['interval_m'][1]:+.0f}] of the mapped {ro['mapped_m']:.0f} m")
             for i, m in enumerate(mismatches["clusters"][:5]):
                 print(f"  {i + 1}. {mismatch_line(m)}")
+            if mismatches["path_width"]["n_rings"]:
+                print(f"  the grid: {width_line(mismatches['path_width'])}")
         for c in scalar:
             lo, hi = c["interval90"]
             wide = "" if "interval90_model_error" not in c else \

@@ -161,7 +161,7 @@ def _tradeoff_section(t: dict | None) -> list[str]:
 
 def _mismatch_section(m: dict | None) -> list[str]:
     """The baseline's runs against the mapped footprint (diagnose.predictive.map_mismatches), when one is mapped."""
-    from ..survey import mismatch_line
+    from ..survey import mismatch_line, width_line
 
     if not m:
         return []
@@ -170,7 +170,8 @@ def _mismatch_section(m: dict | None) -> list[str]:
             f"{m['threshold']:g} m; a cluster: 3 or more 8-connected cells the runs reach with probability >= 0.5 "
             f"off the map, or < 0.5 on it; numbered on outlines.png):", "",
             f"- {mismatch_line(m['runout'])}."] + \
-        [f"{i + 1}. {mismatch_line(c)}." for i, c in enumerate(m["clusters"][:9])] + [""]
+        [f"{i + 1}. {mismatch_line(c)}." for i, c in enumerate(m["clusters"][:9])] + \
+        ([f"- The grid: {width_line(m['path_width'])}.", ""] if m.get("path_width", {}).get("n_rings") else [""])
 
 
 def _verdict_section(j: dict) -> list[str]:
