@@ -2,6 +2,7 @@
 
     OMP_NUM_THREADS=1 python -m bench.coverage --out bench/results/coverage.json [--workers 2]
         [--seeds 0,1] [--terrains narrow,fan] [--kinds grid,release,...] [--discrepancy none,learnt]
+        [--inference auto|emulator|local]   (one setting per --out file)
 
 Every case is a synthetic recording that the inversion's model cannot reproduce exactly
 (experiments.hidden_physics.scenarios.make_recording: made on cells half the inversion's 40 m, with a
@@ -105,7 +106,7 @@ def _predictive(ev, res) -> dict:
             for k, key in (("impact_area", "impact_area_m2"), ("runout", "runout_m"))}
 
 
-def run_case(terrain: str, kind: str, seed: int, discrepancy: str) -> dict:
+def run_case(terrain: str, kind: str, seed: int, discrepancy: str, inference: str = "auto") -> dict:
     """One case's calibration and its intervals against the truth (module doc)."""
     import torch
 
@@ -122,7 +123,7 @@ def run_case(terrain: str, kind: str, seed: int, discrepancy: str) -> dict:
         p = len(ev.names)
         t0 = time.perf_counter()
         res = calibrate(ev, ev.prior.bounds, n_initial=10 * p, n_total=20 * p, batch_size=10, seed=0,
-                        progress=False)
+                        progress=False, inference=inference)
         pred = _predictive(ev, res)
         wall = time.perf_counter() - t0
     truth = {"mu": scenarios.TRUE_BASE["mu"], "xi": scenarios.TRUE_BASE["xi"]}
@@ -138,7 +139,7 @@ def run_case(terrain: str, kind: str, seed: int, discrepancy: str) -> dict:
         iv["covers"] = bool(lo <= iv["truth"] <= hi)
         if "draws_alone" in iv:
             iv["covers_draws_alone"] = bool(iv["draws_alone"][0] <= iv["truth"] <= iv["draws_alone"][1])
-    return {"terrain": terrain, "kind": kind, "seed": seed, "discrepancy": discrepancy,
+    return {"terrain": terrain, "kind": kind, "seed": seed, "discrepancy": discrepancy, "inference_asked": inference,
             "inference": res.inference.get("path"), "discrepancy_factors": res.discrepancy_factors,
             "map": res.summary["map"], "intervals": intervals, "wall_s": wall}
 
@@ -170,12 +171,14 @@ def main(argv=None) -> int:
     ap.add_argument("--kinds", default=",".join(KINDS))
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--discrepancy", default="none,learnt")
+    ap.add_argument("--inference", default="auto", choices=("auto", "emulator", "local"),
+                    help="calibrate's inference path (torchslide.calibrate; auto: local where the posterior is sharp)")
     ap.add_argument("--workers", type=int, default=int(os.environ.get("COVERAGE_WORKERS", "2")))
     a = ap.parse_args(argv)
     done = {}
     if a.out.exists():
         done = {_key(c): c for c in json.loads(a.out.read_text()).get("cases", [])}
-    jobs = [(t, k, int(s), d) for t in a.terrains.split(",") for k in a.kinds.split(",")
+    jobs = [(t, k, int(s), d, a.inference) for t in a.terrains.split(",") for k in a.kinds.split(",")
             for s in a.seeds.split(",") for d in a.discrepancy.split(",")]
     for k in {j[1] for j in jobs} - set(KINDS):
         raise SystemExit(f"--kinds: unknown kind {k!r} (known: {', '.join(KINDS)})")
