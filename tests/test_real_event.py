@@ -300,6 +300,8 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     assert "- run-out shortfall -400 m (90 % of the runs [-450, -300] m) of the mapped 786 m" in page
     assert "- excess: reached, not mapped: 140 cells (14,000 m^2, 2,000 m^3), 300-500 m from the crown" in page
     assert "Calibration, prediction and the figures: 339 s on the 2-core machine (calibration 52 s)." in page
+    write_page(dict(out, threads=1), tmp_path / "README.md")
+    assert "339 s on the 2-core machine on 1 torch thread (calibration 52 s)." in (tmp_path / "README.md").read_text()
     assert "- no run meets impact and runout together: ...." in page and "runout 25 x its sigma" in page
     assert "| run-out from the release's crown, m | 200 - 400 | 150 - 420 (shift -40) | 786 |" in page
     assert "| runout | 786 | 150 - 450 | 0 - 1,100 |" in page and "| impact | 22,400 | 10,000 - 30,000 | - |" in page

@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 
 HERE = Path(__file__).resolve().parent
 THRESHOLD = 0.1
@@ -243,8 +244,9 @@ def write_page(out: dict, path: Path) -> None:
                    if isinstance(m["where"], list) else f"| {m['what']} (a scalar datum) | | ") + f"| {m['z']:+.1f} |"
                   for m in d["located"]]
         if d.get("footprint_mismatches"):
-            lines += ["", "The baseline's runs against the mapped footprint (report.md, numbered on the diagnosis' "
-                      "outlines.png):", ""] + [f"- {x}" for x in d["footprint_mismatches"]]
+            lines += ["", "The baseline's runs against the mapped footprint (report.md; numbered in the figure):", ""] + \
+                [f"- {x}" for x in d["footprint_mismatches"]] + \
+                ["", "![the diagnosis' baseline against the mapped footprint](figures/diagnosis_outlines.png)"]
         lines += ["", "Refitted candidates, 2 ln Bayes factor against the baseline: "
                   + (", ".join(f"{k} {v:+.1f}" for k, v in d["candidates"].items()) or "none") + ".", ""]
         det = d.get("detectable", {})
@@ -259,7 +261,8 @@ def write_page(out: dict, path: Path) -> None:
             base = ", ".join(f"{k} {v[0]:.3g}-{v[1]:.3g}" for k, v in e["baseline"].items())
             lines += [f"{name} fits best but at the end of its range ({e['param']} 90 % interval {e['hdr90'][0]:.3g}-"
                       f"{e['hdr90'][1]:.3g}, with {base}), so nothing is named.", ""]
-    lines.append(f"Calibration, prediction and the figures: {out['wall_s']:.0f} s on the 2-core machine "
+    threads = f" on {out['threads']} torch thread{'s' if out['threads'] > 1 else ''}" if out.get("threads") else ""
+    lines.append(f"Calibration, prediction and the figures: {out['wall_s']:.0f} s on the 2-core machine{threads} "
                  f"(calibration {out['calibrate_s']:.0f} s).")
     path.write_text("\n".join(lines) + "\n")
 
@@ -312,11 +315,13 @@ def main(argv=None) -> int:
     plot_front_page(pred, figs / "front.png", peer_point(HERE.parents[1]))
     shutil.copyfile(pred / "impact_probability.png", figs / "impact_probability.png")
     shutil.copyfile(cal / "posterior.png", figs / "posterior.png")
-    out["wall_s"], out["calibrate_s"] = time.perf_counter() - t0, t_cal
+    out["wall_s"], out["calibrate_s"], out["threads"] = time.perf_counter() - t0, t_cal, torch.get_num_threads()
     if not a.no_diagnose:
         resume = ["--resume"] if (diag / "diagnosis.pkl").exists() else []
         _cli(["diagnose", case / "diagnose.toml", "--out", diag, "--quiet", *resume])
         out["diagnosis"] = diagnosis_summary(json.loads((diag / "report.json").read_text()))
+        if (diag / "outlines.png").is_file():
+            shutil.copyfile(diag / "outlines.png", figs / "diagnosis_outlines.png")
     (w / "summary.json").write_text(json.dumps(out, indent=1))
     write_page(out, HERE / "README.md")
     print(json.dumps(out, indent=1))
