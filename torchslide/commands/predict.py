@@ -28,7 +28,8 @@ uniform error of +- half a cell.
 predictive.json ``mismatches``: where the draws and the first mapped footprint disagree, in a modeller's terms
 (torchslide.survey.mismatch_clusters): the clusters of cells reached (impact probability >= 0.5) but not
 mapped and mapped but not reached, each with its box, cells, area, distance from the crown, score and volume,
-and the run-out's shortfall or overshoot against the mapped one.
+and the run-out's shortfall or overshoot against the mapped one; ``path_width``: how many cells across the
+mapped path is (torchslide.survey.path_width: fewer than 3 over most of it, and the DEM does not resolve it).
 
 predictive.json ``observations``: per scalar observation the model's mean, sd and 5/50/95 % quantiles over
 the draws, the 90 % interval of a new recording (the draws plus the likelihood's noise), the recorded value's
