@@ -13,8 +13,8 @@ from .conftest import TINY_HARNESS_BUDGETS, cand as _cand
 
 
 def test_harness_case_end_to_end(tmp_path):
-    """One blind case through the harness CLI with tiny budgets, run on a Dask worker: the case file, its
-    maps, the run's summary and the results page; the screening ranks the hidden term (entrainment) first."""
+    """One blind case through the harness CLI with tiny budgets and the diagnosis' default thresholds, run on
+    a Dask worker: the case file, its maps, the run's summary and the results page; the screening ranks the hidden term (entrainment) first."""
     import json
     from experiments.hidden_physics.harness import main as harness_main
     from experiments.hidden_physics.make_page import build_page
@@ -23,8 +23,8 @@ def test_harness_case_end_to_end(tmp_path):
     tiny = dict(TINY_HARNESS_BUDGETS, profile_top=0)
     budgets = [f"--budget={k}={v}" for k, v in tiny.items()]
     # the case runs as a task of a Dask LocalCluster of one worker process (--workers): files on this machine
-    assert harness_main(["--seed-list", "0", "--scenarios", "entrainment", "--out", str(out), "--workers", "1"]
-                        + budgets) == 0
+    assert harness_main(["--seed-list", "0", "--scenarios", "entrainment", "--out", str(out), "--workers", "1",
+                         "--thresholds", "defaults"] + budgets) == 0
     case = json.loads((out / "entrainment_s0.json").read_text())
     j = case["diagnosis"]
     assert j["verdict"] in ("missing_physics", "no_missing_physics", "unexplained")
@@ -38,6 +38,8 @@ def test_harness_case_end_to_end(tmp_path):
     (row,) = summary["cases"]
     assert (row["scenario"], row["true"], row["verdict"]) == ("entrainment", "entrainment", j["verdict"])
     assert summary["settings"]["terrain"] == "narrow" and summary["settings"]["cellsize"] == 40.0
+    from torchslide.diagnose import Thresholds
+    assert summary["thresholds"] == json.loads(json.dumps(Thresholds().to_json()))   # not thresholds.json's
     runs = tmp_path / "runs"
     runs.mkdir()
     (runs / "tiny.json").write_text(json.dumps(summary))

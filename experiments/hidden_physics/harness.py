@@ -1,6 +1,6 @@
 """The blind test of the diagnosis: ``python -m experiments.hidden_physics.harness --out DIR
 [--terrain narrow|resolved|fan] [--cellsize M] [--seeds N | --seed-list 100,101] [--scenarios a,b]
-[--strengths 0.5,1,2] [--sigmas harness|noise] [--budget NAME=VALUE ...] [--thresholds FILE]
+[--strengths 0.5,1,2] [--sigmas harness|noise] [--budget NAME=VALUE ...] [--thresholds FILE|defaults]
 [--device cuda] [--max-batch N] [--compile]``.
 
 Each case: make a recording (scenarios.make_recording: a hidden term, a finer grid, noise, a release
@@ -218,7 +218,8 @@ def main(argv=None) -> int:
     p.add_argument("--budget", action="append", default=[], metavar="NAME=VALUE",
                    help="override a torchslide.diagnose.Budgets field (repeatable)")
     p.add_argument("--thresholds", default=None,
-                   help="decision thresholds file (default: the terrain's, thresholds[_<terrain>].json here)")
+                   help="decision thresholds file (default: the terrain's, thresholds[_<terrain>].json here), or "
+                        "\"defaults\": the diagnosis' own defaults, as `torchslide diagnose` decides")
     p.add_argument("--device", default="cpu", help="solver device of the diagnosis (cpu, cuda, ...)")
     p.add_argument("--max-batch", type=int, default=16, help="most members per solver call")
     p.add_argument("--compile", action="store_true", help="torch.compile the diagnosis' solver steps")
@@ -271,17 +272,27 @@ def _case(a, budgets: dict, th: Thresholds, item: tuple) -> tuple:
     return tag, c["diagnosis"]["verdict"], c["diagnosis"]["missing_physics"], c["wall_s"]
 
 
-def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
-    """Every case of seeds x strengths x scenarios: one after another, or as tasks of a Dask cluster
-    (--workers / --scheduler; the cases' files and claims are on this machine's ``out``)."""
-    path = Path(a.thresholds) if a.thresholds else thresholds_file(a.terrain, a.fine_terrain)
+def _thresholds_of(path: Path, release_volume_sd: float) -> Thresholds:
+    """The thresholds of file ``path`` (the defaults where it does not exist), saying when it is missing or
+    was set on another design."""
     if not path.exists():
         print(f"=== {path} does not exist: the cases are decided with the default thresholds (set this terrain's "
               f"on its null seeds with calibrate_thresholds.py)", flush=True)
-    th = load_thresholds(path)
-    unlike = unlike_design(path, {**HARNESS_BUDGETS, **budgets}["release_volume_sd"])
+    unlike = unlike_design(path, release_volume_sd)
     if unlike:
         print(f"=== {unlike}", flush=True)
+    return load_thresholds(path)
+
+
+def _run_all(a, budgets: dict, seeds: list, strengths: list) -> int:
+    """Every case of seeds x strengths x scenarios: one after another, or as tasks of a Dask cluster
+    (--workers / --scheduler; the cases' files and claims are on this machine's ``out``)."""
+    if a.thresholds == "defaults":
+        th = Thresholds()
+        print("=== the cases are decided with the diagnosis' default thresholds", flush=True)
+    else:
+        th = _thresholds_of(Path(a.thresholds) if a.thresholds else thresholds_file(a.terrain, a.fine_terrain),
+                            {**HARNESS_BUDGETS, **budgets}["release_volume_sd"])
     items = []
     for seed in seeds:
         for strength in strengths:

@@ -449,8 +449,9 @@ def _diagnose_case(ev, cfg: Config, bud, th, args, out: Path, log, grid: dict | 
     if args.resume:
         d, stage = _load_checkpoint(out, fp)
         log(f"resuming the diagnosis in {out} (stage: {stage})")
-        from ..diagnose.pipeline import add_mismatches
-        add_mismatches(d)                  # described afresh: a checkpoint of an earlier version may lack them
+        if d.mismatches is None:           # a checkpoint of an earlier version: the footprint's not yet measured
+            from ..diagnose.pipeline import add_mismatches
+            add_mismatches(d)
     else:
         d, stage = diagnose(ev, dg["candidates"], bud, th, log=log), "diagnosed"
         d.grid = grid
