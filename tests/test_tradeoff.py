@@ -185,7 +185,7 @@ def test_the_mismatches_a_modeller_sees_a_lobe_outside_the_map_and_a_short_run_o
     assert r["interval_m"][0] < -180.0 < r["interval_m"][1] < 0
 
 
-def test_the_diagnosis_finds_a_known_lobe_and_a_known_shortfall_on_the_map(tmp_path):
+def test_the_diagnosis_finds_a_known_lobe_and_a_known_shortfall_on_the_map(tmp_path, monkeypatch):
     """The plane's run (mu 0.2) against a map made from it with a known lobe taken off (the upper path's cells
     on one side: excess) and a strip added beyond its front (deficit, 3 cells longer): the baseline's runs
     through diagnose.predictive.map_mismatches find both clusters with their cells and the run-out's shortfall
@@ -225,6 +225,14 @@ def test_the_diagnosis_finds_a_known_lobe_and_a_known_shortfall_on_the_map(tmp_p
     d = SimpleNamespace(mismatches=m, evaluator=ev, localisation=SimpleNamespace(maps={}, located=[]),
                         after_localisation=None, refits={})
     assert "outlines.png" in write_figures(d, tmp_path) and (tmp_path / "outlines.png").stat().st_size > 5000
+
+    def every_run_failed(*args, **kwargs):
+        raise RuntimeError("all 3 posterior-predictive runs failed; first: unstable")
+
+    monkeypatch.setattr("torchslide.predict.run_predictive", every_run_failed)   # a line, not an exception
+    failed = map_mismatches(ev, np.tile([0.2, 1000.0], (3, 1)))
+    assert failed == {"failed": "all 3 posterior-predictive runs failed; first: unstable"}
+    assert _mismatch_section(failed)[2] == "Not measured: all 3 posterior-predictive runs failed; first: unstable."
     assert map_mismatches(make_evaluator(load_calibration_config(write(tmp_path, BASE + PRIOR + CAL.replace(
         "[calibration]", '[[observations]]\nkind = "impact_area"\nvalue = 1e5\nsigma = 1e4\n\n[calibration]')))),
         np.tile([0.2, 1000.0], (2, 1))) == {}

@@ -208,8 +208,8 @@ NARROW_CELLS = 3.0
 
 def path_width(mapped: np.ndarray, dem, release: np.ndarray) -> dict:
     """How many cells across the mapped path is, below the release: the mapped cells outside the release in
-    rings one cell wide around the crown, each ring's area over its width (the path's width where it crosses
-    the ring, m). {"median_cells", "share_narrower" (of the rings, narrower than NARROW_CELLS cells),
+    rings one cell wide around the crown, each ring's count of cells (its area over its width: the path's
+    width where it crosses the ring, in cells). {"median_cells", "share_narrower" (of the rings, narrower than NARROW_CELLS cells),
     "n_rings", "cellsize_m"}; where most of the path is narrower, the grid does not hold the channel that
     confined the flow."""
     mapped = np.asarray(mapped, bool) & ~(np.asarray(release) > 0)

@@ -46,12 +46,16 @@ def map_mismatches(evaluator, samples: np.ndarray, n: int = 16) -> dict:
     """Where the baseline's runs (the first ``n`` of ``samples`` (M, p)) and the mapped footprint disagree,
     in a modeller's terms (torchslide.predict.footprint_mismatches: clusters of excess and deficit, the
     run-out's shortfall or overshoot), with the maps for the report's figure ("mapped", "p_reached" (ny, nx));
-    {} when no observation maps a footprint (no runs then)."""
+    {} when no observation maps a footprint (no runs then); {"failed": why} when every run failed (a
+    description must not end a finished diagnosis)."""
     from ..predict import footprint_mismatches, run_predictive
     from ..survey import FOOTPRINT_KINDS
 
     if not any(getattr(o, "kind", None) in FOOTPRINT_KINDS for o in evaluator.observations):
         return {}
-    pr = run_predictive(evaluator, np.asarray(samples)[:n], evaluator.reach_threshold)
+    try:
+        pr = run_predictive(evaluator, np.asarray(samples)[:n], evaluator.reach_threshold)
+    except RuntimeError as e:
+        return {"failed": str(e)}
     got = footprint_mismatches(evaluator, pr)
     return dict(got, p_reached=pr.impact_probability, threshold=pr.threshold, n_runs=len(pr.x))

@@ -68,7 +68,7 @@ def write_figures(diag, out: Path) -> list[str]:
             save_figure(fig, f, dpi=90)
             plt.close(fig)
             files.append(f.name)
-    if diag.mismatches:
+    if diag.mismatches and "clusters" in diag.mismatches:
         from ..mapplots import plot_outlines
         from ..survey import cluster_labels
 
@@ -165,6 +165,8 @@ def _mismatch_section(m: dict | None) -> list[str]:
 
     if not m:
         return []
+    if "failed" in m:
+        return ["## Where the baseline and the map differ", "", f"Not measured: {m['failed']}.", ""]
     return ["## Where the baseline and the map differ", "",
             f"Over {m['n_runs']} of the baseline's posterior runs against {m['footprint']} (reached: h_max > "
             f"{m['threshold']:g} m; a cluster: 3 or more 8-connected cells the runs reach with probability >= 0.5 "
