@@ -158,6 +158,11 @@ def summarise(cases: list) -> dict:
         out[model] = {"all": share(ivs),
                       "by_type": {t: share([(c, iv) for c, iv in ivs if iv["type"] == t])
                                   for t in ("parameter", "switch", "prediction")},
+                      "median_width_over_truth": {t: float(np.median([(iv["interval"][1] - iv["interval"][0])
+                                                                      / abs(iv["truth"]) for _, iv in ivs
+                                                                      if iv["type"] == t]))
+                                                  for t in ("parameter", "switch", "prediction")
+                                                  if any(iv["type"] == t for _, iv in ivs)},
                       "by_kind": {k: share([(c, iv) for c, iv in ivs if c["kind"] == k]) for k in KINDS},
                       "n_cases": len({_key(c) for c, _ in ivs}),
                       "wall_s_median": float(np.median([c["wall_s"] for c in cases if c["discrepancy"] == model]))}

@@ -182,3 +182,21 @@ def test_predictive_progress_counts_each_chunk_as_it_finishes(calibrated):
     pr = run_predictive(ev, np.array([[0.2, 1000.0], [0.25, 800.0], [0.3, 1200.0], [0.22, 900.0], [0.28, 700.0]]),
                         0.1, progress=progress)
     assert seen == [(2, 1), (4, 2), (5, 3)] and len(pr.x) == 5
+
+
+def test_the_grid_error_widens_the_figures_both_ways():
+    """A grid's error measured as +30 m on every run widens the run-out's interval by about 1.645 x 30 m on
+    both sides, not shifted by +30 m: the calibrated parameters may have absorbed that bias already (its
+    sign on a figure is unknown, its size is measured); the area (no half-cell term) likewise."""
+    from torchslide.predict import figure_intervals
+
+    figures = np.column_stack([np.full(64, 2e5), np.full(64, 1000.0)])
+    error = np.column_stack([np.full(4, 1e4), np.array([29.0, 30.0, 31.0, 30.0])])
+    f = figure_intervals(figures, error, seed=0, cellsize=0.0)
+    g = f["runout_m"]["with_grid_error"]
+    assert g["shift"] == pytest.approx(30.0) and g["sd"] == pytest.approx(30.0, rel=0.01)
+    assert g["q05"] == pytest.approx(1000.0 - 1.645 * 30.0, abs=3.0)
+    assert g["q95"] == pytest.approx(1000.0 + 1.645 * 30.0, abs=3.0)
+    a = f["impact_area_m2"]["with_grid_error"]
+    assert a["q05"] < 2e5 - 1.5e4 and a["q95"] > 2e5 + 1.5e4
+    assert f["runout_m"]["q05"] == f["runout_m"]["q95"] == 1000.0        # the draws alone are kept as they are

@@ -280,7 +280,7 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     two = {"run": 1.0, "survey": 2.0}
     q = {"q05": 0.3, "median": 0.4, "q95": 0.5}
     pred = {"figures": {"runout_m": {"q05": 200.0, "median": 300.0, "q95": 400.0,
-                                     "with_grid_error": {"q05": 150.0, "q95": 420.0, "shift": -40.0}},
+                                     "with_grid_error": {"q05": 150.0, "q95": 420.0, "shift": -40.0, "sd": 45.0}},
                         "impact_area_m2": {"q05": 1e4, "median": 2e4, "q95": 3e4}},
             "observations": [{"name": "runout", "value": 786.0, "interval90": [150.0, 450.0],
                               "interval90_model_error": [0.0, 1100.0]},
@@ -303,7 +303,7 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     write_page(dict(out, threads=1), tmp_path / "README.md")
     assert "339 s on the 2-core machine on 1 torch thread (calibration 52 s)." in (tmp_path / "README.md").read_text()
     assert "- no run meets impact and runout together: ...." in page and "runout 25 x its sigma" in page
-    assert "| run-out from the release's crown, m | 200 - 400 | 150 - 420 (shift -40) | 786 |" in page
+    assert "| run-out from the release's crown, m | 200 - 400 | 150 - 420 (+- 45) | 786 |" in page
     assert "| runout | 786 | 150 - 450 | 0 - 1,100 |" in page and "| impact | 22,400 | 10,000 - 30,000 | - |" in page
     assert ("(the screening's detectable switch, measured on the solver: a term this strong reaches bf_min in half "
             "the noise draws): entrainment from 0.00045, curvature from 4.69 (beyond its range).") in page

@@ -88,9 +88,14 @@ def grid_error(evaluator, x: np.ndarray, threshold: float, factor: int = 2) -> n
 def figure_intervals(figures: np.ndarray, error: np.ndarray | None = None, seed: int = 0,
                      level: float = 0.9, cellsize: float = 0.0) -> dict:
     """{figure: {"median", "q05", "q95"}} over the draws' FIGURES (M, 2); with the grid's error ``error``
-    (n, 2) also "with_grid_error": the draws shifted by its mean and spread by a normal of its variance
-    (sample variance plus that of its mean) and, for the run-out, which a grid of ``cellsize`` m knows to a
-    cell, by a uniform error of +- cellsize / 2; {"median", "q05", "q95", "shift", "sd", "n"}."""
+    (n, 2) also "with_grid_error": the draws spread by a zero-mean normal whose sd is the error's rms
+    (sqrt(mean^2 + its variance, plus that of the mean)) and, for the run-out, which a grid of ``cellsize`` m
+    knows to a cell, by a uniform error of +- cellsize / 2; {"median", "q05", "q95", "shift", "sd", "n"}
+    ("shift": the measured mean difference, "sd": the normal's).
+
+    Zero-mean because the draws come from parameters calibrated on the coarse grid: they absorb the grid's
+    bias of the data (all of it for a figure the data pin, none for one they leave free), so its sign on a
+    figure is not known, only its size (bench/coverage.py measures both: docs/model-error.md)."""
     rng = np.random.default_rng(seed)
     lo_q, hi_q = (1 - level) / 2, 1 - (1 - level) / 2
     out = {}
@@ -100,8 +105,8 @@ def figure_intervals(figures: np.ndarray, error: np.ndarray | None = None, seed:
         e = None if error is None else error[np.isfinite(error[:, j]), j]
         if e is None or e.size < 2:
             continue
-        sd = float(np.std(e, ddof=1) * np.sqrt(1.0 + 1.0 / e.size))
-        g = f[:, None] + e.mean() + sd * rng.standard_normal((f.size, 200))
+        sd = float(np.sqrt(e.mean() ** 2 + np.var(e, ddof=1) * (1.0 + 1.0 / e.size)))
+        g = f[:, None] + sd * rng.standard_normal((f.size, 200))
         if name == "runout_m":
             g = g + cellsize * rng.uniform(-0.5, 0.5, size=g.shape)
         g = np.maximum(g, 0.0).ravel()          # an area or a length

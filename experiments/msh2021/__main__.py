@@ -186,12 +186,12 @@ def write_page(out: dict, path: Path) -> None:
               " others: it weighs in by its logarithm, not its square.", "",
               "![run-out against the share of reached cells outside the map](figures/front.png)", "",
               "## Predictions (32 posterior draws; `torchslide predict`)", "",
-              "| figure | 90 % of the draws | with the grid's error (4 draws on 5 m cells) | survey |", "|---|---|---|---|",
+              "| figure | 90 % of the draws | with the grid's error (4 draws on 5 m cells: its rms, either sign) | survey |", "|---|---|---|---|",
               f"| run-out from the release's crown, m | {ro['q05']:.0f} - {ro['q95']:.0f} | "
-              f"{rog.get('q05', float('nan')):.0f} - {rog.get('q95', float('nan')):.0f} (shift {rog.get('shift', float('nan')):+.0f}) "
+              f"{rog.get('q05', float('nan')):.0f} - {rog.get('q95', float('nan')):.0f} (+- {rog.get('sd', float('nan')):.0f}) "
               f"| {ob['runout']['value']:.0f} |",
               f"| impact area (h_max > 0.1 m), m^2 | {ia['q05']:,.0f} - {ia['q95']:,.0f} | "
-              f"{iag.get('q05', float('nan')):,.0f} - {iag.get('q95', float('nan')):,.0f} (shift {iag.get('shift', float('nan')):+,.0f}) "
+              f"{iag.get('q05', float('nan')):,.0f} - {iag.get('q95', float('nan')):,.0f} (+- {iag.get('sd', float('nan')):,.0f}) "
               f"| {ob['impact']['value']:,.0f} |", "",
               "A new recording of each scalar datum (the stated error; with the model's own error learnt):", "",
               "| datum | recorded | 90 % interval | with the model's own error |", "|---|---|---|---|"]

@@ -21,9 +21,10 @@ settings, and writes (all rasters on the DEM grid; ESRI ASCII, or GeoTIFF with `
 
 predictive.json ``figures``: the draws' 90 % intervals of the impact area (h_max > --threshold, map m^2) and of
 the run-out from the release's crown (m); ``with_grid_error``: the same when ``--grid-error N`` of the draws
-(4 by default) also run on cells half the size and their mean difference and its spread are added (the
-grid's error of these figures, measured), and the run-out, which the grid knows to a cell, is spread by a
-uniform error of +- half a cell.
+(4 by default) also run on cells half the size and the draws are spread by a zero-mean error of their
+differences' rms (the grid's error of these figures, measured; of either sign, since the calibrated
+parameters may already absorb it), and the run-out, which the grid knows to a cell, by a uniform error of
++- half a cell.
 
 predictive.json ``mismatches``: where the draws and the first mapped footprint disagree, in a modeller's terms
 (torchslide.survey.mismatch_clusters): the clusters of cells reached (impact probability >= 0.5) but not
@@ -245,7 +246,8 @@ def _run(args: argparse.Namespace) -> int:
         for name, f in figures.items():
             g = f.get("with_grid_error")
             extra = "" if g is None else (f", [{g['q05']:.4g}, {g['q95']:.4g}] with the grid's error "
-                                          f"(shift {g['shift']:+.3g} from {g['n']} runs on cells half the size)")
+                                          f"(+- {g['sd']:.3g}, either sign: {g['n']} runs on cells half the size differ by "
+                                          f"{g['shift']:+.3g} on average)")
             print(f"{name}: 90 % of the draws [{f['q05']:.4g}, {f['q95']:.4g}]{extra}")
         print(f"impact area (mean over the draws) {info['impact_area_m2']['mean']:.4g} m^2; wrote {out}")
     for c in scalar:
