@@ -95,7 +95,7 @@ def figure_intervals(figures: np.ndarray, error: np.ndarray | None = None, seed:
 
     Zero-mean because the draws come from parameters calibrated on the coarse grid: they absorb the grid's
     bias of the data (all of it for a figure the data pin, none for one they leave free), so its sign on a
-    figure is not known, only its size (bench/coverage.py measures both: docs/model-error.md)."""
+    figure is not known, only its size (its coverage, measured by bench/coverage.py: docs/model-error.md)."""
     rng = np.random.default_rng(seed)
     lo_q, hi_q = (1 - level) / 2, 1 - (1 - level) / 2
     out = {}
