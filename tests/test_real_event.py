@@ -286,7 +286,9 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
                               "interval90_model_error": [0.0, 1100.0]},
                              {"name": "impact", "value": 22400.0, "interval90": [1e4, 3e4]}],
             "against": {k: q for k in ("footprint_jaccard", "share_of_mapped_reached", "share_of_reached_unmapped",
-                                       "rmse_m")}}
+                                       "rmse_m")},
+            "mismatches": dict(rep["mismatches"], clusters=[dict(rep["mismatches"]["clusters"][0],
+                                                                 path_point={"x": 50.0, "y": 120.0, "along_m": 310.0})])}
     out = {"posterior": post, "inference": "local", "median_run": {"mu": 0.31, "xi": 730.0}, "footprint_jaccard": 0.4,
            "share_of_mapped_reached": 0.6, "share_of_reached_unmapped": 0.5,
            "share_of_mapped_cells_with_p_impact_ge_0.5": 0.6, "deposition_m3": two, "erosion_m3": two, "rmse_m": 1.9,
@@ -299,6 +301,7 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     assert "| dod deficit cluster | 1 - 3 | 2 - 4 | -14.0 |" in page
     assert "- run-out shortfall -400 m (90 % of the runs [-450, -300] m) of the mapped 786 m" in page
     assert "- excess: reached, not mapped: 140 cells (14,000 m^2, 2,000 m^3), 300-500 m from the crown" in page
+    assert "| 1 | excess: reached, not mapped | 140 | 14,000 | 300 - 500 | 310 (50, 120) | 2,000 |" in page
     assert "Calibration, prediction and the figures: 339 s on the 2-core machine (calibration 52 s)." in page
     write_page(dict(out, threads=1), tmp_path / "README.md")
     assert "339 s on the 2-core machine on 1 torch thread (calibration 52 s)." in (tmp_path / "README.md").read_text()

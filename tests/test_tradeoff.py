@@ -161,7 +161,7 @@ def test_the_mismatches_a_modeller_sees_a_lobe_outside_the_map_and_a_short_run_o
     """A mapped path 3 cells wide down x, runs that stop half way and spill a lobe beside the upper path: the
     excess lobe and the unreached lower path are found with their cells, boxes and distances from the crown,
     and the run-out's shortfall is the runs' median minus the mapped run-out."""
-    from torchslide.survey import mismatch_clusters, runout_mismatch
+    from torchslide.survey import mismatch_clusters, mismatch_line, runout_mismatch
 
     dem = DEM(np.add.outer(np.zeros(20), -np.arange(40.0)), 10.0)
     release = np.zeros(dem.shape)
@@ -180,6 +180,12 @@ def test_the_mismatches_a_modeller_sees_a_lobe_outside_the_map_and_a_short_run_o
     assert lobe["volume_m3"] == pytest.approx(20 * 0.5 * 100.0) and lobe["score"] == pytest.approx(20 * 0.6)
     assert short["n_cells"] == 3 * 18 and short["box"][0] == 180.0 and short["volume_m3"] == pytest.approx(54 * 100.0)
     assert short["from_crown_m"][0] >= 170.0 and short["from_crown_m"][1] == pytest.approx(np.hypot(35 - 1, 1) * 10, rel=0.05)
+    # the lobe leaves the path beside its upper cells (x 50 m: the path's centre there is y 105 m), the unreached
+    # path starts where the runs stop (x 180 m), each with its distance along the path from the crown (x 5 m)
+    assert lobe["path_point"]["x"] == pytest.approx(55.0, abs=10.0) and lobe["path_point"]["y"] == pytest.approx(105.0, abs=6.0)
+    assert short["path_point"]["x"] == pytest.approx(185.0, abs=10.0)
+    assert short["path_point"]["along_m"] == pytest.approx(short["path_point"]["x"] - 5.0, abs=10.0)
+    assert "meets the mapped path" in mismatch_line(short)
     r = runout_mismatch(np.array([170.0, 175.0, 180.0]), 355.0)
     assert r["what"] == "run-out shortfall" and r["difference_m"] == pytest.approx(-180.0)
     assert r["interval_m"][0] < -180.0 < r["interval_m"][1] < 0

@@ -133,13 +133,40 @@ def spread(per_run: list[dict]) -> dict:
     return out
 
 
+def mapped_path(mapped: np.ndarray, dem, release: np.ndarray) -> np.ndarray:
+    """(n, 3) the mapped footprint's centre line from the release's crown: the crown, then for each ring one
+    cell wide around it (as path_width) the centre of its mapped cells; columns x, y (map m) and the distance
+    along the line from the crown, m."""
+    r0, c0 = crown_cell(dem.z, release)
+    rows, cols = np.nonzero(np.asarray(mapped, bool))
+    ring = np.floor(np.hypot(rows - r0, cols - c0)).astype(int)
+    n = np.bincount(ring)
+    keep = n > 0
+    rc = np.column_stack([np.bincount(ring, rows)[keep] / n[keep], np.bincount(ring, cols)[keep] / n[keep]])
+    rc = np.vstack([[r0, c0], rc])          # rings in order of their distance from the crown
+    xy = np.column_stack([dem.xll + (rc[:, 1] + 0.5) * dem.cellsize, dem.yll + (rc[:, 0] + 0.5) * dem.cellsize])
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(xy, axis=0).T))])
+    return np.column_stack([xy, along])
+
+
+def nearest_on_path(cells: np.ndarray, dem, path: np.ndarray) -> dict:
+    """Where a cluster (``cells`` (ny, nx) bool) meets the mapped path (mapped_path): of the centre-line points
+    within half a cell of the cluster's nearest approach, the one nearest the crown: {"x", "y", "along_m"}."""
+    rr, cc = np.nonzero(cells)
+    cx, cy = dem.xll + (cc + 0.5) * dem.cellsize, dem.yll + (rr + 0.5) * dem.cellsize
+    d = np.hypot(path[:, :1] - cx[None, :], path[:, 1:2] - cy[None, :]).min(axis=1)
+    k = int(np.nonzero(d <= d.min() + 0.5 * dem.cellsize)[0][0])
+    return {"x": float(path[k, 0]), "y": float(path[k, 1]), "along_m": float(path[k, 2])}
+
+
 def mismatch_clusters(p_reached: np.ndarray, mapped: np.ndarray, dem, release: np.ndarray, *, level: float = 0.5,
                       min_cells: int = 3, h_p50: np.ndarray | None = None, survey_dz: np.ndarray | None = None) -> list:
     """Where a run set and a mapped footprint disagree, in a modeller's terms: the clusters (8-connected) of
     cells reached but not mapped ("excess": impact probability p_reached >= ``level`` off the map) and of
     cells mapped but not reached ("deficit": on the map, p_reached < ``level``), of at least ``min_cells``
     cells, the largest first. Each: {"what", "n_cells", "area_m2", "box" [xmin, ymin, xmax, ymax] m,
-    "from_crown_m" [nearest, farthest] (horizontal distance of its cells from the release's crown), "score"
+    "from_crown_m" [nearest, farthest] (horizontal distance of its cells from the release's crown),
+    "path_point" (where it meets the mapped path: nearest_on_path, with its distance along the path), "score"
     (the cells' sum of |2 p - 1|: how many cells the runs agree on), and "volume_m3": for an excess the
     median run's flow over it (``h_p50`` (ny, nx) m of h_max, times the map area), for a deficit the
     survey's change in it (``survey_dz``, vertical m, its absolute volume)}."""
@@ -151,6 +178,7 @@ def mismatch_clusters(p_reached: np.ndarray, mapped: np.ndarray, dem, release: n
     rows, cols = np.indices(dem.shape)
     dist = np.hypot(rows - r0, cols - c0) * dem.cellsize
     area = dem.cellsize ** 2
+    path = mapped_path(mapped | (np.asarray(release) > 0), dem, release)
     out = []
     for what, cells in (("excess: reached, not mapped", (p >= level) & ~mapped),
                         ("deficit: mapped, not reached", mapped & (p < level))):
@@ -164,6 +192,7 @@ def mismatch_clusters(p_reached: np.ndarray, mapped: np.ndarray, dem, release: n
                     "box": [float(dem.xll + cc.min() * dem.cellsize), float(dem.yll + rr.min() * dem.cellsize),
                             float(dem.xll + (cc.max() + 1) * dem.cellsize), float(dem.yll + (rr.max() + 1) * dem.cellsize)],
                     "from_crown_m": [float(dist[m].min()), float(dist[m].max())],
+                    "path_point": nearest_on_path(m, dem, path),
                     "score": float(np.abs(2 * p[m] - 1).sum())}
             if what.startswith("excess") and h_p50 is not None:
                 item["volume_m3"] = float(np.asarray(h_p50)[m].sum() * area)
@@ -191,8 +220,10 @@ def mismatch_line(m: dict) -> str:
                 f"{m['mapped_m']:,.0f} m")
     vol = f", {m['volume_m3']:,.0f} m^3" if m.get("volume_m3") is not None else ""
     x0, y0, x1, y1 = m["box"]
+    pp = m.get("path_point")
+    at = f", meets the mapped path {pp['along_m']:,.0f} m along it (x {pp['x']:,.0f}, y {pp['y']:,.0f})" if pp else ""
     return (f"{m['what']}: {m['n_cells']} cells ({m['area_m2']:,.0f} m^2{vol}), {m['from_crown_m'][0]:,.0f}-"
-            f"{m['from_crown_m'][1]:,.0f} m from the crown, x {x0:,.0f}-{x1:,.0f}, y {y0:,.0f}-{y1:,.0f} m "
+            f"{m['from_crown_m'][1]:,.0f} m from the crown{at}, x {x0:,.0f}-{x1:,.0f}, y {y0:,.0f}-{y1:,.0f} m "
             f"(score {m['score']:.1f})")
 
 

@@ -205,10 +205,12 @@ def write_page(out: dict, path: Path) -> None:
         lines += ["", f"Where the draws and the mapped footprint disagree (`predictive.json` `mismatches`; numbered on the "
                   f"outlines figure): the {ro['what']}, {ro['difference_m']:+.0f} m (90 % {ro['interval_m'][0]:+.0f} to "
                   f"{ro['interval_m'][1]:+.0f} m) of the mapped {ro['mapped_m']:.0f} m, and", "",
-                  "| # | mismatch | cells | area, m^2 | from the crown, m | volume, m^3 |", "|---|---|---|---|---|---|"]
+                  "| # | mismatch | cells | area, m^2 | from the crown, m | meets the mapped path (along it, m; x, y) "
+                  "| volume, m^3 |", "|---|---|---|---|---|---|---|"]
         lines += [f"| {i + 1} | {m['what']} | {m['n_cells']} | {m['area_m2']:,.0f} | {m['from_crown_m'][0]:.0f} - "
-                  f"{m['from_crown_m'][1]:.0f} | {m.get('volume_m3', float('nan')):,.0f} |"
-                  for i, m in enumerate(mm["clusters"][:9])]
+                  f"{m['from_crown_m'][1]:.0f} | " + (f"{m['path_point']['along_m']:.0f} ({m['path_point']['x']:,.0f}, "
+                                                     f"{m['path_point']['y']:,.0f})" if "path_point" in m else "")
+                  + f" | {m.get('volume_m3', float('nan')):,.0f} |" for i, m in enumerate(mm["clusters"][:9])]
     lines += ["", f"The posterior median run (mu {f['median_run']['mu']:.3f}, xi {f['median_run']['xi']:.0f}) against the "
               "survey, and the draws' 90 % intervals:", "",
               "| figure | median run | 90 % of the draws |", "|---|---|---|"]
