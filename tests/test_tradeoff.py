@@ -159,8 +159,8 @@ def test_the_diagnosis_report_says_what_the_baseline_cannot_meet_together():
 
 def test_the_mismatches_a_modeller_sees_a_lobe_outside_the_map_and_a_short_run_out():
     """A mapped path 3 cells wide down x, runs that stop half way and spill a lobe beside the upper path: the
-    excess lobe and the unreached lower path are found with their cells, boxes and distances from the crown,
-    and the run-out's shortfall is the runs' median minus the mapped run-out."""
+    excess lobe and the unreached lower path are found with their cells, boxes, distances from the crown and
+    where they meet the mapped path, and the run-out's shortfall is the runs' median minus the mapped run-out."""
     from torchslide.survey import mismatch_clusters, mismatch_line, runout_mismatch
 
     dem = DEM(np.add.outer(np.zeros(20), -np.arange(40.0)), 10.0)
