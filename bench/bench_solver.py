@@ -83,33 +83,42 @@ def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
     return row["cell_updates_per_s_median"] * BYTES_PER_CELL_UPDATE * size / copy_bw
 
 
-def parse_launch(spec: str) -> tuple[int, int, str]:
-    """'BLOCKxNUM_WARPS[:VELOCITIES]' (e.g. '128x4:stored') -> (BLOCK, NUM_WARPS, VELOCITIES) of the
-    Triton step; VELOCITIES defaults to fused_triton's."""
+LAUNCH = ("BLOCK", "NUM_WARPS", "VELOCITIES", "FACES")
+"""The Triton step's settings a --launch row sets (fused_triton's module constants)."""
+
+
+def parse_launch(spec: str) -> tuple[int, int, str, str]:
+    """'BLOCKxNUM_WARPS[:recomputed|stored][:lines|tiled]' (e.g. '128x4:stored:lines') -> (BLOCK, NUM_WARPS,
+    VELOCITIES, FACES) of the Triton step; VELOCITIES and FACES default to fused_triton's."""
     from torchslide.solver import fused_triton
 
-    sizes, _, velocities = spec.partition(":")
+    sizes, *rest = spec.split(":")
     block, _, warps = sizes.partition("x")
-    velocities = velocities or fused_triton.VELOCITIES
-    if not (block.isdigit() and warps.isdigit()) or velocities not in ("recomputed", "stored"):
-        raise SystemExit(f"--launch: {spec!r} is not BLOCKxNUM_WARPS[:recomputed|stored]")
-    return int(block), int(warps), velocities
+    kinds = {"recomputed": "velocities", "stored": "velocities", "lines": "faces", "tiled": "faces"}
+    if not (block.isdigit() and warps.isdigit()) or any(r not in kinds for r in rest) \
+            or len({kinds[r] for r in rest}) != len(rest):
+        raise SystemExit(f"--launch: {spec!r} is not BLOCKxNUM_WARPS[:recomputed|stored][:lines|tiled]")
+    velocities = [r for r in rest if kinds[r] == "velocities"] or [fused_triton.VELOCITIES]
+    faces = [r for r in rest if kinds[r] == "faces"] or [fused_triton.FACES]
+    return int(block), int(warps), velocities[0], faces[0]
 
 
 def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
-               graphs: bool = False, launch: tuple[int, int, str] | None = None) -> dict:
-    """One row; ``launch``: (BLOCK, NUM_WARPS, VELOCITIES) of the Triton step (fused on CUDA; None: its
-    defaults)."""
+               graphs: bool = False, launch: tuple[int, int, str, str] | None = None) -> dict:
+    """One row; ``launch``: (BLOCK, NUM_WARPS, VELOCITIES, FACES) of the Triton step (fused on CUDA; None:
+    its defaults)."""
     from torchslide.solver import fused_triton
 
-    default = (fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES)
-    fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES = launch or default
+    default = tuple(getattr(fused_triton, k) for k in LAUNCH)
+    for k, v in zip(LAUNCH, launch or default):
+        setattr(fused_triton, k, v)
     try:
         row = _throughput(case, B, kernel, dtype, device, t_end, repeats, graphs)
     finally:
-        fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES = default
+        for k, v in zip(LAUNCH, default):
+            setattr(fused_triton, k, v)
     if launch is not None:
-        row["block"], row["num_warps"], row["velocities"] = launch
+        row["block"], row["num_warps"], row["velocities"], row["faces"] = launch
     return row
 
 
@@ -183,8 +192,9 @@ def main(argv=None) -> None:
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--graphs", default="off", help="on CUDA: 'on', 'off' or 'on,off' (SolverConfig.cuda_graphs)")
     ap.add_argument("--launch", default="", help="on CUDA: extra fused rows at these Triton launch settings, "
-                                                   "BLOCKxNUM_WARPS[:recomputed|stored] comma list "
-                                                   "(e.g. 256x4,128x4,512x4:stored; fused_triton.VELOCITIES)")
+                                                   "BLOCKxNUM_WARPS[:recomputed|stored][:lines|tiled] comma "
+                                                   "list (e.g. 256x4,128x4:stored:lines; fused_triton.VELOCITIES, "
+                                                   "FACES)")
     args = ap.parse_args(argv)
     case = bondo_like(args.cellsize)
     ny, nx = case.dem.shape

@@ -34,22 +34,24 @@ def test_a_row_whose_members_failed_says_so(monkeypatch, capsys):
 def test_a_launch_setting_holds_for_its_row_only(monkeypatch):
     from torchslide.solver import fused_triton
 
-    default = (fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES)
+    settings = lambda: tuple(getattr(fused_triton, k) for k in bench_solver.LAUNCH)
+    default = settings()
     seen = []
-    monkeypatch.setattr(bench_solver, "_throughput", lambda *a: seen.append(
-        (fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES)) or {"kernel": "fused"})
-    row = bench_solver.throughput(None, 1, "fused", "float32", "cuda", 1.0, 1, launch=(128, 8, "stored"))
-    assert seen == [(128, 8, "stored")] and (row["block"], row["num_warps"], row["velocities"]) == (128, 8, "stored")
-    assert (fused_triton.BLOCK, fused_triton.NUM_WARPS, fused_triton.VELOCITIES) == default
+    monkeypatch.setattr(bench_solver, "_throughput", lambda *a: seen.append(settings()) or {"kernel": "fused"})
+    launch = (128, 8, "stored", "lines")
+    row = bench_solver.throughput(None, 1, "fused", "float32", "cuda", 1.0, 1, launch=launch)
+    assert seen == [launch] and (row["block"], row["num_warps"], row["velocities"], row["faces"]) == launch
+    assert settings() == default
     assert fused_triton._launch(None)["num_warps"] == default[1]
 
 
 def test_a_launch_spec_names_block_warps_and_velocities():
     from torchslide.solver import fused_triton
 
-    assert bench_solver.parse_launch("512x4:stored") == (512, 4, "stored")
-    assert bench_solver.parse_launch("256x8") == (256, 8, fused_triton.VELOCITIES)
-    for bad in ("512", "512x4:cached", "ax4"):
+    assert bench_solver.parse_launch("512x4:stored") == (512, 4, "stored", fused_triton.FACES)
+    assert bench_solver.parse_launch("256x8") == (256, 8, fused_triton.VELOCITIES, fused_triton.FACES)
+    assert bench_solver.parse_launch("128x4:lines:recomputed") == (128, 4, "recomputed", "lines")
+    for bad in ("512", "512x4:cached", "ax4", "128x4:lines:tiled", "128x4:stored:stored"):
         with pytest.raises(SystemExit, match="--launch"):
             bench_solver.parse_launch(bad)
 
@@ -57,7 +59,9 @@ def test_a_launch_spec_names_block_warps_and_velocities():
 def test_the_triton_profile_adds_two_stages_and_the_combine_per_cell_update():
     from bench import triton_profile
 
-    rows = [{"kernel": k, "dtype": "fp32", "terms": "voellmy", "velocities": "stored", "instructions_per_cell": n,
-             "mufu_per_cell": m} for k, n, m in (("_facesx", 100, 3), ("_facesy", 110, 3), ("_velocities", 20, 3),
-                                                 ("_drain", 10, 1), ("_update", 50, 10), ("_combine", 40, 4))]
-    assert triton_profile.per_cell_update(rows) == {"fp32-voellmy-stored": {"instructions": 620.0, "mufu": 44.0}}
+    rows = [{"kernel": k, "design": "lines", "dtype": "fp32", "terms": "voellmy", "velocities": "stored",
+             "instructions_per_cell": n, "fp_per_cell": n / 2, "mufu_per_cell": m}
+            for k, n, m in (("_facesx", 100, 3), ("_facesy", 110, 3), ("_velocities", 20, 3), ("_drain", 10, 1),
+                            ("_update", 50, 10), ("_combine", 40, 4))]
+    assert triton_profile.per_cell_update(rows) == {
+        "lines-fp32-voellmy-stored": {"instructions": 620.0, "fp": 310.0, "mufu": 44.0}}

@@ -57,7 +57,7 @@ def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch)
 def test_the_triton_kernels_compile_for_an_h100(dtype, on):
     """Every kernel compiles ahead of time for sm_90 (triton's own ptxas; no GPU needed), with every switch
     on or off: what the interpreter does not check (types, constexpr globals, the lowering)."""
-    for name in triton_profile.KERNELS:
+    for name in triton_profile.KERNELS + ("_tiled",):
         for axis in ((0, 1) if name == "_faces" else (None,)):
             kernel = triton_profile.compile_kernel(name, dtype, dict.fromkeys(triton_profile.switches(name), on), axis)
             assert len(kernel.asm["cubin"]) > 0, name
@@ -75,3 +75,24 @@ def test_stored_velocities_take_the_divisions_and_square_roots_out_of_the_faces(
     assert prof[True]["mufu_per_cell"] <= prof[False]["mufu_per_cell"] - 8, prof
     assert prof[True]["instructions_per_cell"] < prof[False]["instructions_per_cell"], prof
     assert prof[True]["local_bytes"] == prof[False]["local_bytes"] == 0, prof
+
+
+def test_the_tiled_faces_compute_each_cells_work_once():
+    """FACES = "tiled" computes each cell's velocities, reconstructions and pressure coefficient once per stage
+    (the faces read their neighbours' from the tile) where the lines recompute them for each face: in float32
+    Voellmy (the slope metric and the no-creep rule on), a fifth fewer SASS instructions per cell than the line
+    design's velocities, carried velocities and x and y faces together (the halo's positions included) and
+    fewer floating-point ones, with no spills."""
+    pytest.importorskip("triton.backends.nvidia")
+    from torchslide.solver import fused_triton
+
+    on = triton_profile.TERMS["voellmy"]
+    tiled = triton_profile.sass_profile(
+        triton_profile.compile_kernel("_tiled", "fp32", on),
+        triton_profile.tile_cells_per_thread(fused_triton.TILE, fused_triton.TILE_WARPS))
+    lines = [triton_profile.sass_profile(triton_profile.compile_kernel(name, "fp32", {**on, "STORED": True}, axis,
+                                                                       block=128, num_warps=4), 1)
+             for name, axis in (("_velocities", None), ("_carried", None), ("_faces", 0), ("_faces", 1))]
+    assert tiled["local_bytes"] == 0, tiled
+    assert tiled["instructions_per_cell"] < 0.8 * sum(p["instructions_per_cell"] for p in lines), (tiled, lines)
+    assert tiled["fp_per_cell"] < sum(p["fp_per_cell"] for p in lines), (tiled, lines)

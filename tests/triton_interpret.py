@@ -42,6 +42,10 @@ def moving_bed():
 
 
 def nodata():
+    """Cells outside the DEM's domain, both rules, on the tiled faces (fused_triton.FACES; the walls' switch)."""
+    from torchslide.solver import fused_triton
+
+    fused_triton.FACES = "tiled"
     dem, rel, gauges = _channel()
     outside = np.zeros(dem.shape, dtype=bool)
     outside[:, 10:12] = True                 # a band of nodata across the path, beside the release
@@ -54,7 +58,11 @@ def nodata():
 
 def plane():
     """A plane dipping 30 degrees off the grid axes: an open boundary, no slope metric and no no-creep
-    rule, a friction map, no turbulent friction (xi = inf) with k_ap 1.5."""
+    rule, a friction map, no turbulent friction (xi = inf) with k_ap 1.5; on the tiled faces
+    (fused_triton.FACES: the friction map's switch)."""
+    from torchslide.solver import fused_triton
+
+    fused_triton.FACES = "tiled"
     dem = tilted_plane(12, 20.0, 35.0, plan_deg=30.0)[0]
     rel = cap_release(dem, -20.0, -10.0, 50.0, 4.0)
     compare_plane_settings(dem, rel, t_end=1.5, config=SolverConfig)
@@ -101,7 +109,8 @@ def _exact_sqrt() -> None:
 
 def bitwise():
     """One step from a state of the all-terms chute run 5 steps in, with every term and with plain Voellmy,
-    the velocities recomputed and stored (fused_triton.VELOCITIES): every field of the Triton step equals
+    on both designs of the faces (fused_triton.FACES: tiled, on 3 x 2 tiles of the 24 x 60 grid; lines with
+    the velocities recomputed and stored, fused_triton.VELOCITIES): every field of the Triton step equals
     the torch step's to the last bit, with both rounding sqrt exactly (as on CUDA). Only the per-member
     sums (kinetic energy, mass, boundary outflow) may differ, by their order of summation."""
     from torchslide.solver import fused_triton, stepping
@@ -113,7 +122,8 @@ def bitwise():
     assert F.use_ep and F.use_curv and F.use_ent and F.use_dep and F.use_mu_i and F.no_creep
     plain = dataclasses.replace(F, use_ep=False, use_curv=False, use_ent=False, use_dep=False, use_mu_i=False,
                                 slope_correction=False)
-    for fused_triton.VELOCITIES in ("recomputed", "stored"):
+    assert fused_triton.INTERPRETED_TILE == (16, 32) and S["h"].shape[1:] == (24, 60)
+    for fused_triton.FACES, fused_triton.VELOCITIES in (("tiled", "stored"), ("lines", "recomputed"), ("lines", "stored")):
         for flags in (F, plain):
             assert_steps_equal(stepping.make_step(flags)(dict(S), P), fused_triton.triton_step(flags)(dict(S), P))
 
@@ -121,7 +131,8 @@ def bitwise():
 CASES = {f.__name__: f for f in (terms, moving_bed, nodata, plane, float32, bitwise)}
 """The cases against the torch step (tests/test_solver_triton.py); flushed_float32 runs with its own setting.
 Plain Voellmy runs in float64 on the plane (plane), in float32 on the channel (float32) and to the last bit for one
-step of the channel (bitwise)."""
+step of the channel (bitwise). nodata and plane run the tiled faces, the others the default design
+(fused_triton.FACES), bitwise both."""
 
 SETTINGS = {"flushed_float32": {"TORCHSLIDE_FLUSH_SUBNORMALS": "1"}}
 """Environment of the cases that need one (read when torchslide.solver.fused_triton is imported)."""

@@ -77,6 +77,30 @@ stage in the faces alone). The same bits either way; "stored" measured 1.7 times
 2.5 times in float64 on an H200 (20 m grid, batch 256; bench.bench_solver --launch BLOCKxWARPS:stored)."""
 
 
+FACES = os.environ.get("TORCHSLIDE_TRITON_FACES", "lines")
+"""The faces' design (environment TORCHSLIDE_TRITON_FACES at import): "lines", a kernel per axis with one
+face per thread (_faces, after _velocities and _carried), which reconstructs each cell once for each of its
+two faces along the axis; or "tiled", one kernel (_tiled) per stage over 2-D tiles with a halo, in which each
+position's velocities, carried velocities, pressure coefficient and reconstructions along both axes are
+computed once and each face reads its left neighbour's from the tile (tl.gather: shared memory). The same
+bits either way. "tiled" has 0.65 times the SASS instructions of the lines' faces per float32 cell
+(bench/results/triton_profile.json) but 1 program of 16 warps per SM and a barrier per gather; it becomes
+the default when a GPU run measures it faster (bench.bench_solver --launch 128x4:tiled)."""
+
+TILE = (32, 32)
+"""Positions (rows, columns) of a _tiled program: it holds (32 - 3)^2 = 841 cells, the rest (18 %) is its
+halo. Of the tiles compiled for sm_90 (bench.triton_profile --tile), 32 x 32 had the fewest SASS
+instructions per cell: 16 x 16 (66 % of its positions held) 1.3 times as many in float32."""
+
+TILE_WARPS = 16
+"""Warps per _tiled program: 16 (two positions per thread) kept float32 at 105 and float64 at 128 registers
+per thread with no spills; 8 took 182 and 255 for 9 % and 4 % fewer instructions per cell."""
+
+INTERPRETED_TILE = (16, 32)
+"""The tile under Triton's interpreter (the tests on the CPU): small enough that the test grids span several
+tiles along both axes (their seams are tested), large enough that the cost per program stays low."""
+
+
 def interpreted() -> bool:
     return os.environ.get("TRITON_INTERPRET", "0") == "1"
 
@@ -265,6 +289,59 @@ if triton is not None:
         return k * (g * cs) * cs
 
     @triton.jit
+    def _central_upwind(hl, hr, ul, ur, cnl, cnr, tlf, trf, kgl, kgr, wsmin):
+        """The central-upwind fluxes at a face (KP07 Eq. 3.11, scheme.sweep) from its left and right
+        thickness, normal velocity, carried normal and tangential velocity and pressure coefficient: the mass
+        and momentum fluxes, the pressure potential phi and the largest one-sided speed max(a+, -a-)."""
+        cl = _sqrt(kgl * hl)
+        cr = _sqrt(kgr * hr)
+        ap = _max(_max(ur + cr, ul + cl), 0.0)
+        am = _min(_min(ur - cr, ul - cl), 0.0)
+        den = ap - am
+        pos = den > wsmin
+        inv = tl.where(pos, _div(1.0, tl.where(pos, den, 1.0)), 0.0)
+        apam = ap * am * inv
+        ql, qr = hl * ul, hr * ur
+        fh = (ap * ql - am * qr) * inv + apam * (hr - hl)
+        fqn = (ap * ql * cnl - am * qr * cnr) * inv + apam * (hr * cnr - hl * cnl)
+        fqt = (ap * ql * tlf - am * qr * trf) * inv + apam * (hr * trf - hl * tlf)
+        phi = 0.5 * (ap * hl * hl - am * hr * hr) * inv
+        return fh, fqn, fqt, phi, _max(ap, -am)
+
+    @triton.jit
+    def _creep_frozen(h1, h2, z1, z2, kgl, kgr, zxa, zxc, zya, zyc, csa, csc, mua, muc, rest_a, rest_c, pm_ptr,
+                      c_ptr, b, AXIS: tl.constexpr, USE_MUS: tl.constexpr):
+        """scheme.frozen_faces at faces between cells a (left) and c (right): both at rest and friction holds
+        the face's drive. h1, h2 and z1, z2: the clipped padded thickness and the bed of a and c; mua, muc:
+        their friction map's factors (USE_MUS)."""
+        g = tl.load(c_ptr + C_G)
+        hf = 0.5 * (h1 + h2)
+        f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf * tl.load(c_ptr + C_INVDX)
+        zxf = 0.5 * (zxa + zxc)
+        zyf = 0.5 * (zya + zyc)
+        csf = 0.5 * (csa + csc)
+        mu = tl.load(pm_ptr + b * 11)
+        tau = tl.load(pm_ptr + b * 11 + 2)
+        if USE_MUS:
+            mua = mu * mua
+            muc = mu * muc
+        else:
+            mua = mu
+            muc = mu
+        muf = 0.5 * (mua * (g * csa) + muc * (g * csc))
+        tauf = 0.5 * (_div(tau, csa) + _div(tau, csc))
+        if AXIS == 0:
+            f_t = -g * zyf * hf
+            ax, ay = f_n, f_t
+        else:
+            f_t = -g * zxf * hf
+            ax, ay = f_t, f_n
+        along = zxf * ax + zyf * ay
+        drive2 = ax * ax + ay * ay - csf * csf * along * along
+        lim = muf * hf + tauf
+        return rest_a & rest_c & (drive2 <= lim * lim)
+
+    @triton.jit
     def _fo(b, ny, nx, AXIS: tl.constexpr):
         """Offset of member b's faces: (ny, nx + 1) x faces or (ny + 1, nx) y faces per member."""
         if AXIS == 0:
@@ -352,56 +429,28 @@ if triton is not None:
                       m, USE_EP, STORED)
             kgr = _kg(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cs_ptr, pm_ptr, b, cb, gb, c, line, ny, nx, g, sqrt2, heps4,
                       m, USE_EP, STORED)
-        # central-upwind fluxes (KP07 Eq. 3.11)
-        cl = _sqrt(kgl * hl)
-        cr = _sqrt(kgr * hr)
-        ap = _max(_max(ur + cr, ul + cl), 0.0)
-        am = _min(_min(ur - cr, ul - cl), 0.0)
-        den = ap - am
-        pos = den > wsmin
-        inv = tl.where(pos, _div(1.0, tl.where(pos, den, 1.0)), 0.0)
-        apam = ap * am * inv
-        ql, qr = hl * ul, hr * ur
-        fh = (ap * ql - am * qr) * inv + apam * (hr - hl)
-        fqn = (ap * ql * cnl - am * qr * cnr) * inv + apam * (hr * cnr - hl * cnl)
-        fqt = (ap * ql * tlf - am * qr * trf) * inv + apam * (hr * trf - hl * tlf)
-        phi = 0.5 * (ap * hl * hl - am * hr * hr) * inv
+        fh, fqn, fqt, phi, speed = _central_upwind(hl, hr, ul, ur, cnl, cnr, tlf, trf, kgl, kgr, wsmin)
         if NO_CREEP or WALLS:
             frozen = tl.zeros([BLOCK], dtype=tl.int1)
             if NO_CREEP:    # scheme.frozen_faces: both cells at rest and friction holds the face's drive
-                hf = 0.5 * (h1 + h2)
-                f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf * tl.load(c_ptr + C_INVDX)
-                zxf = 0.5 * (tl.load(zx_ptr + gb + base + a * st, mask=m, other=0.0)
-                             + tl.load(zx_ptr + gb + base + c * st, mask=m, other=0.0))
-                zyf = 0.5 * (tl.load(zy_ptr + gb + base + a * st, mask=m, other=0.0)
-                             + tl.load(zy_ptr + gb + base + c * st, mask=m, other=0.0))
-                csa = tl.load(cs_ptr + gb + base + a * st, mask=m, other=1.0)
-                csc = tl.load(cs_ptr + gb + base + c * st, mask=m, other=1.0)
-                csf = 0.5 * (csa + csc)
-                mu = tl.load(pm_ptr + b * 11)
-                tau = tl.load(pm_ptr + b * 11 + 2)
                 if USE_MUS:
-                    mua = mu * tl.load(mus_ptr + base + a * st, mask=m, other=1.0)
-                    muc = mu * tl.load(mus_ptr + base + c * st, mask=m, other=1.0)
+                    mua = tl.load(mus_ptr + base + a * st, mask=m, other=1.0)
+                    muc = tl.load(mus_ptr + base + c * st, mask=m, other=1.0)
                 else:
-                    mua = mu
-                    muc = mu
-                muf = 0.5 * (mua * (g * csa) + muc * (g * csc))
-                tauf = 0.5 * (_div(tau, csa) + _div(tau, csc))
-                if AXIS == 0:
-                    f_t = -g * zyf * hf
-                    ax, ay = f_n, f_t
-                else:
-                    f_t = -g * zxf * hf
-                    ax, ay = f_t, f_n
-                along = zxf * ax + zyf * ay
-                drive2 = ax * ax + ay * ay - csf * csf * along * along
-                lim = muf * hf + tauf
+                    mua = 1.0
+                    muc = 1.0
                 rest_a = (tl.load(hu_ptr + cb + base + a * st, mask=m, other=1.0) == 0) \
                     & (tl.load(hv_ptr + cb + base + a * st, mask=m, other=1.0) == 0)
                 rest_c = (tl.load(hu_ptr + cb + base + c * st, mask=m, other=1.0) == 0) \
                     & (tl.load(hv_ptr + cb + base + c * st, mask=m, other=1.0) == 0)
-                frozen = rest_a & rest_c & (drive2 <= lim * lim)
+                frozen = _creep_frozen(h1, h2, z1, z2, kgl, kgr,
+                                       tl.load(zx_ptr + gb + base + a * st, mask=m, other=0.0),
+                                       tl.load(zx_ptr + gb + base + c * st, mask=m, other=0.0),
+                                       tl.load(zy_ptr + gb + base + a * st, mask=m, other=0.0),
+                                       tl.load(zy_ptr + gb + base + c * st, mask=m, other=0.0),
+                                       tl.load(cs_ptr + gb + base + a * st, mask=m, other=1.0),
+                                       tl.load(cs_ptr + gb + base + c * st, mask=m, other=1.0),
+                                       mua, muc, rest_a, rest_c, pm_ptr, c_ptr, b, AXIS, USE_MUS)
             if WALLS:       # faces between a cell of the domain and one outside it
                 ins_a = tl.load(inside_ptr + base + a * st, mask=m, other=0)
                 ins_c = tl.load(inside_ptr + base + c * st, mask=m, other=0)
@@ -416,7 +465,159 @@ if triton is not None:
         tl.store(phi_ptr + fo + idx, phi, mask=m)
         tl.store(hl_ptr + fo + idx, hl, mask=m)
         tl.store(hr_ptr + fo + idx, hr, mask=m)
-        tl.store(amax_ptr + b * tl.num_programs(0) + pid, tl.max(tl.where(m, _max(ap, -am), 0.0), axis=0))
+        tl.store(amax_ptr + b * tl.num_programs(0) + pid, tl.max(tl.where(m, speed, 0.0), axis=0))
+
+    @triton.jit
+    def _along(q, index, AXIS: tl.constexpr):
+        """q at the tile positions ``index`` along the tile's x axis (AXIS 0, its columns) or y axis (AXIS 1,
+        its rows): a neighbour's value from the tile itself (shared memory), not from global memory."""
+        return tl.gather(q, index, 1 - AXIS)
+
+    @triton.jit
+    def _padded(q, inside_line, d, near, AXIS: tl.constexpr):
+        """q continued by linear extrapolation at the tile's ghost positions along one axis (scheme.pad_linear):
+        at a ghost d cells outside the grid, (1 + d) q0 - d q1 from the edge cell's q0 (what the ghost loaded:
+        its clamped cell) and the next cell's q1 (the tile position ``near``)."""
+        q1 = _along(q, near, AXIS)
+        return tl.where(inside_line, q, tl.where(d == 1, 2 * q - q1, 3 * q - 2 * q1))
+
+    @triton.jit
+    def _east_west(q, west, east, theta):
+        """The generalised-minmod reconstruction of q at each cell's east and west face (scheme.reconstruct),
+        from its neighbours west and east along the axis."""
+        s = _minmod3(theta * (q - west), 0.5 * (east - west), theta * (east - q))
+        return q + 0.5 * s, q - 0.5 * s
+
+    @triton.jit
+    def _tile_faces(hp, z, u_n, U_n, T, kg, hu, hv, zx, zy, cs, mus, ins, sW, sE, pm_ptr, c_ptr, b,
+                    AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr):
+        """scheme.sweep at the west (AXIS 0) or south (AXIS 1) face of every tile position, from the tile's
+        padded thickness hp, padded bed z, normal velocity u_n, carried normal and tangential velocities U_n,
+        T and pressure coefficient kg; sW, sE: the positions before and after each along the axis. Each
+        position's reconstruction is computed once and read by the face after it from the tile."""
+        theta = tl.load(c_ptr + C_THETA)
+        h_wet, wb, wsmin = tl.load(c_ptr + C_HWET), tl.load(c_ptr + C_WB), tl.load(c_ptr + C_WSMIN)
+        hW, hE = _along(hp, sW, AXIS), _along(hp, sE, AXIS)
+        zW, zE = _along(z, sW, AXIS), _along(z, sE, AXIS)
+        w = hp + z
+        w_e, w_w = _east_west(w, hW + zW, hE + zE, theta)
+        h_e, h_w = _east_west(hp, hW, hE, theta)
+        wet = ((_min(_min(hW, hp), hE) > h_wet) & (tl.abs(zE - 2.0 * z + zW) * 0.25 <= wb * hp)).to(tl.int8)
+        u_e, u_w = _east_west(u_n, _along(u_n, sW, AXIS), _along(u_n, sE, AXIS), theta)
+        U_e, U_w = _east_west(U_n, _along(U_n, sW, AXIS), _along(U_n, sE, AXIS), theta)
+        T_e, T_w = _east_west(T, _along(T, sW, AXIS), _along(T, sE, AXIS), theta)
+        # the face's left state: the east values of the position before it
+        bf = 0.5 * (zW + z)
+        hl = tl.where(_along(wet, sW, AXIS) != 0, _max(_along(w_e, sW, AXIS) - bf, 0.0), _along(h_e, sW, AXIS))
+        hr = tl.where(wet != 0, _max(w_w - bf, 0.0), h_w)
+        kgl = _along(kg, sW, AXIS)
+        fh, fqn, fqt, phi, speed = _central_upwind(hl, hr, _along(u_e, sW, AXIS), u_w, _along(U_e, sW, AXIS), U_w,
+                                                   _along(T_e, sW, AXIS), T_w, kgl, kg, wsmin)
+        if NO_CREEP or WALLS:
+            frozen = tl.zeros(hp.shape, dtype=tl.int1)
+            if NO_CREEP:
+                rest = ((hu == 0) & (hv == 0)).to(tl.int8)
+                frozen = _creep_frozen(hW, hp, zW, z, kgl, kg, _along(zx, sW, AXIS), zx, _along(zy, sW, AXIS), zy,
+                                       _along(cs, sW, AXIS), cs, _along(mus, sW, AXIS), mus,
+                                       _along(rest, sW, AXIS) != 0, rest != 0, pm_ptr, c_ptr, b, AXIS, USE_MUS)
+            if WALLS:
+                frozen = frozen | (_along(ins, sW, AXIS) != ins)
+            fh = tl.where(frozen, 0.0, fh)
+            fqn = tl.where(frozen, 0.0, fqn)
+            fqt = tl.where(frozen, 0.0, fqt)
+        return fh, fqn, fqt, phi, hl, hr, speed
+
+    @triton.jit
+    def _store_faces(fh, fqn, fqt, phi, hl, hr, speed, fh_ptr, fqn_ptr, fqt_ptr, phi_ptr, hl_ptr, hr_ptr, amax_ptr,
+                     at, m, tile):
+        """A tile's faces (at: their offsets; m: the faces it holds) and their largest one-sided speed."""
+        tl.store(fh_ptr + at, fh, mask=m)
+        tl.store(fqn_ptr + at, fqn, mask=m)
+        tl.store(fqt_ptr + at, fqt, mask=m)
+        tl.store(phi_ptr + at, phi, mask=m)
+        tl.store(hl_ptr + at, hl, mask=m)
+        tl.store(hr_ptr + at, hr, mask=m)
+        tl.store(amax_ptr + tile, tl.max(tl.max(tl.where(m, speed, 0.0), axis=1), axis=0))
+
+    @triton.jit
+    def _tiled(h_ptr, hu_ptr, hv_ptr, zpx_ptr, zpy_ptr, zx_ptr, zy_ptr, cs_ptr, mus_ptr, inside_ptr, pm_ptr, c_ptr,
+               u_ptr, v_ptr, fhx_ptr, fqnx_ptr, fqtx_ptr, phix_ptr, hlx_ptr, hrx_ptr, amx_ptr,
+               fhy_ptr, fqny_ptr, fqty_ptr, phiy_ptr, hly_ptr, hry_ptr, amy_ptr, ny, nx, s_zpx, s_zpy, s_geo,
+               NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr, USE_EP: tl.constexpr,
+               SLOPE: tl.constexpr, TY: tl.constexpr, TX: tl.constexpr):
+        """The velocities, the carried velocities, the pressure coefficient and scheme.sweep's x and y faces
+        of a tile of TY x TX positions with a halo (FACES = "tiled"): the tile holds the cells (i, j), i in
+        [ty (TY - 3), ty (TY - 3) + TY - 3) and j alike, and reads the two rows and columns before them and
+        the one after (ghost positions outside the grid: the thickness and bed extrapolated linearly, the
+        rest replicated). It writes the x face west of each cell it holds (j <= nx: the last column's east
+        face too), the y face south of each (i <= ny), and u, v."""
+        tx, ty, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
+        rr = tl.broadcast_to(tl.arange(0, TY)[:, None], (TY, TX))   # tile rows and columns of each position
+        ss = tl.broadcast_to(tl.arange(0, TX)[None, :], (TY, TX))
+        i0, j0 = ty * (TY - 3) - 2, tx * (TX - 3) - 2                 # the cell of position (0, 0)
+        i, j = i0 + rr, j0 + ss
+        ic, jc = tl.minimum(tl.maximum(i, 0), ny - 1), tl.minimum(tl.maximum(j, 0), nx - 1)
+        cell = ic * nx + jc
+        cb, gb = b * ny * nx, b * s_geo
+        g = tl.load(c_ptr + C_G)
+        sqrt2, heps4 = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4)
+        h = tl.load(h_ptr + cb + cell)
+        hu = tl.load(hu_ptr + cb + cell)
+        hv = tl.load(hv_ptr + cb + cell)
+        zx = tl.load(zx_ptr + gb + cell)
+        zy = tl.load(zy_ptr + gb + cell)
+        cs = tl.load(cs_ptr + gb + cell)
+        row_in, col_in = (i >= 0) & (i < ny), (j >= 0) & (j < nx)
+        # neighbours along each axis (clamped to the tile) and, at the ghosts, the cell next to the edge one
+        sW, sE = tl.maximum(ss - 1, 0), tl.minimum(ss + 1, TX - 1)
+        rS, rN = tl.maximum(rr - 1, 0), tl.minimum(rr + 1, TY - 1)
+        dj = tl.where(j < 0, -j, j - (nx - 1))
+        di = tl.where(i < 0, -i, i - (ny - 1))
+        near_x = tl.minimum(tl.maximum(tl.where(j < 0, jc + 1, jc - 1) - j0, 0), TX - 1)
+        near_y = tl.minimum(tl.maximum(tl.where(i < 0, ic + 1, ic - 1) - i0, 0), TY - 1)
+        hp = _max(tl.where(row_in, _padded(h, col_in, dj, near_x, 0), _padded(h, row_in, di, near_y, 1)), 0.0)
+        z = tl.where(row_in,
+                     tl.load(zpx_ptr + b * s_zpx + ic * (nx + 4) + tl.minimum(tl.maximum(j, -2), nx + 1) + 2),
+                     tl.load(zpy_ptr + b * s_zpy + (tl.minimum(tl.maximum(i, -2), ny + 1) + 2) * nx + jc))
+        u = _desing(h, hu, sqrt2, heps4)
+        v = _desing(h, hv, sqrt2, heps4)
+        own = (rr >= 2) & (rr < TY - 1) & (ss >= 2) & (ss < TX - 1)
+        tl.store(u_ptr + cb + cell, u, mask=own & row_in & col_in)
+        tl.store(v_ptr + cb + cell, v, mask=own & row_in & col_in)
+        if SLOPE:       # the carried velocities (stepping._stage)
+            ex, ey = _unit(u, v)
+            sg = _stretch(ex, ey, zx, zy)
+            cu, cv = sg * u, sg * v
+        else:
+            cu, cv = u, v
+        k = tl.load(pm_ptr + b * 11 + 3)
+        if USE_EP:      # _kg: the divergence of the velocities of the (clamped) cell's neighbours
+            ue = tl.gather(u, tl.minimum(tl.maximum(tl.minimum(jc + 1, nx - 1) - j0, 0), TX - 1), 1)
+            uw = tl.gather(u, tl.minimum(tl.maximum(tl.maximum(jc - 1, 0) - j0, 0), TX - 1), 1)
+            vn = tl.gather(v, tl.minimum(tl.maximum(tl.minimum(ic + 1, ny - 1) - i0, 0), TY - 1), 0)
+            vs = tl.gather(v, tl.minimum(tl.maximum(tl.maximum(ic - 1, 0) - i0, 0), TY - 1), 0)
+            div = (ue - uw) + (vn - vs)
+            s = tl.load(pm_ptr + b * 11 + 4)
+            ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
+            k = (1.0 - s) * k + s * ksh
+        kg = k * (g * cs) * cs
+        if USE_MUS:
+            mus = tl.load(mus_ptr + cell)
+        else:
+            mus = cs
+        if WALLS:
+            ins = tl.load(inside_ptr + cell).to(tl.int8)
+        else:
+            ins = cs
+        tile = b * tl.num_programs(0) * tl.num_programs(1) + ty * tl.num_programs(0) + tx
+        fh, fqn, fqt, phi, hl, hr, speed = _tile_faces(hp, z, u, cu, cv, kg, hu, hv, zx, zy, cs, mus, ins, sW, sE,
+                                                       pm_ptr, c_ptr, b, 0, NO_CREEP, WALLS, USE_MUS)
+        _store_faces(fh, fqn, fqt, phi, hl, hr, speed, fhx_ptr, fqnx_ptr, fqtx_ptr, phix_ptr, hlx_ptr, hrx_ptr, amx_ptr,
+                     b * ny * (nx + 1) + ic * (nx + 1) + j, own & row_in & (j <= nx), tile)
+        fh, fqn, fqt, phi, hl, hr, speed = _tile_faces(hp, z, v, cv, cu, kg, hu, hv, zx, zy, cs, mus, ins, rS, rN,
+                                                       pm_ptr, c_ptr, b, 1, NO_CREEP, WALLS, USE_MUS)
+        _store_faces(fh, fqn, fqt, phi, hl, hr, speed, fhy_ptr, fqny_ptr, fqty_ptr, phiy_ptr, hly_ptr, hry_ptr, amy_ptr,
+                     b * (ny + 1) * nx + i * nx + jc, own & col_in & (i <= ny), tile)
 
     @triton.jit
     def _drain(h_ptr, fhx_ptr, fhy_ptr, dt_ptr, c_ptr, fac_ptr, ny, nx, BLOCK: tl.constexpr):
@@ -702,9 +903,39 @@ def _block() -> int:
     return INTERPRETED_BLOCK if interpreted() else BLOCK
 
 
+def _tile() -> tuple[int, int]:
+    """Tile rows and columns of _tiled: TILE, or INTERPRETED_TILE under the interpreter."""
+    return INTERPRETED_TILE if interpreted() else TILE
+
+
 def _stride(t: torch.Tensor) -> int:
     """Member stride of a (1 or B, ...) field: 0 when one field serves every member."""
     return 0 if t.shape[0] == 1 else t[0].numel()
+
+
+def _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F) -> list:
+    """The faces of a stage on the line kernels (FACES = "lines": _velocities, _carried and one _faces per
+    axis): [(x faces, amax), (y faces, amax), (u, v)] (u, v: the stored velocities, or h where recomputed)."""
+    B, ny, nx = h.shape
+    cells = (triton.cdiv(ny * nx, _block()), B)
+    stored = VELOCITIES == "stored"
+    u, v = (torch.empty_like(h), torch.empty_like(h)) if stored else (h, h)
+    if stored:
+        _velocities[(triton.cdiv(h.numel(), _block()),)](h, hu, hv, c, u, v, h.numel(), **_launch(h.dtype))
+    cu, cv = (torch.empty_like(h), torch.empty_like(h)) if F.slope_correction else (h, h)
+    if F.slope_correction:
+        _carried[cells](h, hu, hv, zx, zy, c, cu, cv, ny, nx, s_geo, **_launch(h.dtype))
+    sweeps = []
+    for axis, (zp, nf) in enumerate(((zpx, (ny, nx + 1)), (zpy, (ny + 1, nx)))):
+        out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
+        grid = (triton.cdiv(nf[0] * nf[1], _block()), B)
+        amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
+        _faces[grid](h, hu, hv, u, v, cu, cv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
+                     _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
+                     USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, STORED=stored, SLOPE=F.slope_correction,
+                     **_launch(h.dtype))
+        sweeps.append((out, amax.amax(dim=1)))
+    return sweeps + [(u, v)]
 
 
 def triton_step(F):
@@ -732,23 +963,24 @@ def triton_step(F):
         mus = P["mu_scale"].contiguous() if F.use_mu_scale else cs
         inside = P["inside"].contiguous() if F.domain else cs
         cells = (triton.cdiv(ny * nx, _block()), B)
-        stored = VELOCITIES == "stored"
-        u, v = (torch.empty_like(h), torch.empty_like(h)) if stored else (h, h)
-        if stored:
-            _velocities[(triton.cdiv(h.numel(), _block()),)](h, hu, hv, c, u, v, h.numel(), **_launch(h.dtype))
-        cu, cv = (torch.empty_like(h), torch.empty_like(h)) if F.slope_correction else (h, h)
-        if F.slope_correction:
-            _carried[cells](h, hu, hv, zx, zy, c, cu, cv, ny, nx, s_geo, **_launch(h.dtype))
-        sweeps = []
-        for axis, (zp, nf) in enumerate(((zpx, (ny, nx + 1)), (zpy, (ny + 1, nx)))):
-            out = [torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
-            grid = (triton.cdiv(nf[0] * nf[1], _block()), B)
-            amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
-            _faces[grid](h, hu, hv, u, v, cu, cv, zp, zx, zy, cs, mus, inside, pm, c, *out, amax, ny, nx,
-                         _stride(zp), s_geo, AXIS=axis, NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
-                         USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, STORED=stored, SLOPE=F.slope_correction,
-                         **_launch(h.dtype))
-            sweeps.append((out, amax.amax(dim=1)))
+        if FACES == "tiled":
+            u, v = torch.empty_like(h), torch.empty_like(h)
+            ty, tx = _tile()
+            grid = (triton.cdiv(nx + 1, tx - 3), triton.cdiv(ny + 1, ty - 3), B)
+            faces = [[torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(6)]
+                     for nf in ((ny, nx + 1), (ny + 1, nx))]
+            amax = torch.empty((2, B, grid[0] * grid[1]), dtype=h.dtype, device=h.device)
+            _tiled[grid](h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, u, v, *faces[0], amax[0], *faces[1],
+                         amax[1], ny, nx, _stride(zpx), _stride(zpy), s_geo, NO_CREEP=F.no_creep,
+                         WALLS=F.domain == "wall", USE_MUS=F.use_mu_scale, USE_EP=F.use_ep,
+                         SLOPE=F.slope_correction, TY=ty, TX=tx, num_warps=TILE_WARPS,
+                         enable_fp_fusion=fp_fusion(h.dtype))
+            sweeps = [(faces[0], amax[0].amax(dim=1)), (faces[1], amax[1].amax(dim=1))]
+            stored = True
+        else:
+            sweeps = _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F)
+            stored = VELOCITIES == "stored"
+            u, v = sweeps.pop()
         (fx, ax), (fy, ay) = sweeps
         if dt is None:
             dt = torch.minimum(F.cfl * F.dx / (ax + ay), dt_cap)
