@@ -6,14 +6,20 @@ scheme.draining_factors, friction.apply_friction). In float64 (the reference) ev
 root is rounded exactly and nothing fuses into a multiply-add, so on CUDA one step equals the torch step's
 to the last bit; only the sums over the grid (mass, kinetic energy, outflow) add in another order. In
 float32 the kernels take the card's fast paths (FAST_FLOAT32: approximate division and square root,
-fused multiply-add), judged by physics (docs/verification.md), not by bits. A stage is four kernels (and the velocity kernels below), each one
-pass over the grid of every member (grid axis 1 = member); the pressure coefficient k g cos^2 is
-recomputed from the state where it is needed; the velocities (KP07 Eq. 2.17) are written once per stage by
-a fifth kernel (_velocities; VELOCITIES = "recomputed" recomputes them at each use instead), and with the
-slope metric the carried surface velocities by a sixth (_carried):
+fused multiply-add), judged by physics (docs/verification.md), not by bits. Each kernel is one pass over
+the grid of every member (the last grid axis = member); the pressure coefficient k g cos^2 is recomputed
+from the state where it is needed. A stage computes its faces in one of two designs (FACES):
 
-    _faces     x or y faces: reconstruction, central-upwind fluxes (KP07 Eq. 3.11), the no-creep rule,
-               domain walls, the largest one-sided speed per block (for the CFL step)
+    "lines"    _velocities (u, v, KP07 Eq. 2.17, once per stage; VELOCITIES = "recomputed" recomputes them
+               at each use instead), with the slope metric _carried (the carried surface velocities), then
+               _faces for the x and for the y faces, one face per thread: reconstruction, central-upwind
+               fluxes (KP07 Eq. 3.11), the no-creep rule, domain walls, the largest one-sided speed per
+               block (for the CFL step)
+    "tiled"    _tiled: all of that for both axes in one kernel over 2-D tiles with a halo, each position's
+               velocities and reconstructions computed once and read by its faces from the tile
+
+and then, in both designs:
+
     _drain     the draining-flux factor per cell (Bollermann et al. 2013)
     _update    fluxes, bed source and pressure along the surface (Eq. 2-3), entrainment / deposition,
                friction (Eq. 4), outflow per block
@@ -913,9 +919,9 @@ def _stride(t: torch.Tensor) -> int:
     return 0 if t.shape[0] == 1 else t[0].numel()
 
 
-def _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F) -> list:
+def _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F) -> tuple[list, tuple]:
     """The faces of a stage on the line kernels (FACES = "lines": _velocities, _carried and one _faces per
-    axis): [(x faces, amax), (y faces, amax), (u, v)] (u, v: the stored velocities, or h where recomputed)."""
+    axis): ([(x faces, amax), (y faces, amax)], (u, v)) (u, v: the stored velocities, or h where recomputed)."""
     B, ny, nx = h.shape
     cells = (triton.cdiv(ny * nx, _block()), B)
     stored = VELOCITIES == "stored"
@@ -935,7 +941,7 @@ def _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F) -
                      USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, STORED=stored, SLOPE=F.slope_correction,
                      **_launch(h.dtype))
         sweeps.append((out, amax.amax(dim=1)))
-    return sweeps + [(u, v)]
+    return sweeps, (u, v)
 
 
 def triton_step(F):
@@ -978,9 +984,8 @@ def triton_step(F):
             sweeps = [(faces[0], amax[0].amax(dim=1)), (faces[1], amax[1].amax(dim=1))]
             stored = True
         else:
-            sweeps = _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F)
+            sweeps, (u, v) = _line_faces(h, hu, hv, zpx, zpy, zx, zy, cs, mus, inside, pm, c, s_geo, F)
             stored = VELOCITIES == "stored"
-            u, v = sweeps.pop()
         (fx, ax), (fy, ay) = sweeps
         if dt is None:
             dt = torch.minimum(F.cfl * F.dx / (ax + ay), dt_cap)
