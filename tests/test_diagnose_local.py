@@ -386,9 +386,9 @@ def test_profiles_go_to_the_strongest_candidates_and_a_beaten_fit_restarts(monke
                         lambda ev, cf, base, scr, bud, log: ("refit", {"name": "a", "param": "a", "two_ln_bf": 45.0,
                                                                        "log_evidence": -80.0, "reliable": True, "n_runs": 7,
                                                                        "parameters": {"a": {}}}))
-    monkeypatch.setattr(pipeline, "profile_interval90",
-                        lambda ev, cf, prof, bud, log: ({"interval": [0.1, 0.9], "closed": [True, False],
-                                                         "points": [[0.5, 0.0]]}, 3))
+    monkeypatch.setattr(pipeline, "profile_intervals90",
+                        lambda ev, jobs, bud, log: [({"interval": [0.1, 0.9], "closed": [True, False],
+                                                      "points": [[0.5, 0.0]]}, 3) for _ in jobs])
     monkeypatch.setattr(pipeline, "profile_two_ln_bf", lambda cf, p90: {"a2": 47.5, "b": 21.0}[cf])
     rows = [{"name": n, "param": n, "two_ln_bf": bf, "log_evidence": -100.0 + bf / 2, "reliable": True, "n_runs": 5,
              "profile_ends": None, "parameters": {n: {}}} for n, bf in (("a", 30.0), ("d", 25.0), ("b", 20.0), ("c", 10.0))]
@@ -546,7 +546,7 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     from torchslide.diagnose import local_path as lp
 
     level = 2.705543454095404
-    def drop(ev, cf, v, bud, log=print):
+    def drop(ev, cf, v, bud, log=print, lockstep=None):
         sd = 0.2 if v < 1.0 else 0.6
         return ((v - 1.0) / sd) ** 2, 4, None
     monkeypatch.setattr(lp, "profile_drop", drop)
@@ -563,7 +563,7 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     assert [1.0, 0.0] in out["points"] and len(pts) == 3 + runs // 4 and np.all(np.diff(pts[:, 0]) > 0)
     np.testing.assert_allclose(pts[:, 1], [drop(None, None, v, None)[0] for v in pts[:, 0]], rtol=1e-12)
     # the upper side reaches the prior's bound 5 still below 2.71 (sd 6 there): open at the bound
-    monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print: (((v - 1.0) / (0.2 if v < 1 else 6.0)) ** 2, 4, None))
+    monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print, lockstep=None: (((v - 1.0) / (0.2 if v < 1 else 6.0)) ** 2, 4, None))
     prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 6.0) ** 2]}
     out, _ = lp.profile_interval90(None, cf, prof, None, steps=6)
     assert out["closed"] == [True, False] and out["interval"][1] == 5.0
@@ -571,10 +571,48 @@ def test_the_profile_likelihood_interval_is_where_the_drop_reaches_chi2(monkeypa
     out, _ = lp.profile_interval90(None, cf, prof, None, steps=1)
     assert out["closed"] == [True, False] and out["interval"][1] == 5.0
     # ... and where the drop passes 2.71 before the bound, the crossing lies between the last step and the bound
-    monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print: (((v - 1.0) / (0.2 if v < 1 else 1.5)) ** 2, 4, None))
+    monkeypatch.setattr(lp, "profile_drop", lambda ev, cf, v, bud, log=print, lockstep=None: (((v - 1.0) / (0.2 if v < 1 else 1.5)) ** 2, 4, None))
     prof = {"interval90": laplace, "two_ln_drop": [(0.3 * z / 0.2) ** 2, (0.3 * z / 1.5) ** 2]}
     out, _ = lp.profile_interval90(None, cf, prof, None, steps=0)
     assert out["closed"] == [True, True] and out["interval"][1] == pytest.approx(1.0 + 1.5 * z, rel=1e-9)
+
+
+def test_the_profile_intervals_of_every_candidate_run_in_lockstep(monkeypatch):
+    """local_path.profile_intervals90: every side of every candidate steps in the same rounds (one batched
+    call per round: as many rounds as the longest side has points, not their sum), and each interval and
+    point is the one of that candidate profiled alone."""
+    from types import SimpleNamespace
+    from torchslide.bayes import Prior, Uniform
+    from torchslide.diagnose import local_path as lp
+
+    calls = []
+    monkeypatch.setattr(lp, "grouped_residuals", lambda reqs: calls.append(len(reqs)) or [None] * len(reqs))
+
+    def drop(ev, cf, v, bud, log=print, lockstep=None):
+        lockstep.ask(v)                                  # one solver request per profile point
+        sd = cf.sd[0] if v < 1.0 else cf.sd[1]
+        return ((v - 1.0) / sd) ** 2, 4, None
+
+    monkeypatch.setattr(lp, "profile_drop", drop)
+    ev_c = SimpleNamespace(prior=Prior({"mu": Uniform(0.1, 0.4), "tau_y": Uniform(0.0, 5.0)}))
+    z = math.sqrt(2.705543454095404)
+    jobs = []
+    for sd in ((0.2, 0.6), (0.25, 2.0)):        # wider than the Laplace sd 0.3 on the upper side: stepped outward
+        cf = SimpleNamespace(name="yield_stress", evaluator=ev_c, fit=SimpleNamespace(x=np.array([0.25, 1.0])), sd=sd)
+        ends = [1.0 - 0.3 * z, 1.0 + 0.3 * z]
+        jobs.append((cf, {"interval90": ends, "two_ln_drop": [((v - 1.0) / (sd[0] if v < 1 else sd[1])) ** 2
+                                                               for v in ends]}))
+    together = lp.profile_intervals90(None, jobs, None)
+    rounds_together = len(calls)
+    alone = []
+    for j in jobs:
+        calls.clear()
+        alone.append((lp.profile_intervals90(None, [j], None)[0], len(calls)))
+    assert [t for t in together] == [a for a, _ in alone]
+    sides = [len(t[0]["points"]) - 1 for t in together]          # points beyond the mode per candidate
+    assert rounds_together == max(n for _, n in alone) < sum(n for _, n in alone)
+    assert sum(calls_a for _, calls_a in alone) == sum(sides) - 4         # the Laplace ends cost nothing here
+    np.testing.assert_allclose(together[0][0]["interval"], [1.0 - 0.2 * z, 1.0 + 0.6 * z], rtol=1e-9)
 
 
 def test_a_switchs_evidence_from_its_profile_is_exact_where_the_laplace_gaussian_is_not():
@@ -651,7 +689,7 @@ def test_a_finer_grid_evaluator_runs_every_member_on_the_fine_terrain():
     """DiagnosisEvaluator(finer_grid=True): its predictions are the fine terrain's runs seen on the inversion
     cells (model_error.fine_predictions), for the same data; without a fine terrain it is refused; a batch
     of the local path never mixes the two grids."""
-    from torchslide.diagnose.local_path import merged_residuals, problem
+    from torchslide.diagnose.local_path import grouped_residuals, merged_residuals, problem
     from torchslide.diagnose.model_error import fine_predictions
 
     ev = _with_fine_terrain(_plane_case(0.0))
@@ -667,6 +705,11 @@ def test_a_finer_grid_evaluator_runs_every_member_on_the_fine_terrain():
         _plane_case(0.0)._copy(finer_grid=True)
     with pytest.raises(ValueError, match="same grid"):
         merged_residuals([(problem(ev), x), (problem(fine), x)])
+    # a round of fits on both grids: one batch per grid, each request answered as alone
+    both = grouped_residuals([(problem(ev), x), (problem(fine), x[:1]), (problem(ev), x[1:])])
+    np.testing.assert_allclose(both[0][0], merged_residuals([(problem(ev), x)])[0][0], rtol=1e-12)
+    np.testing.assert_allclose(both[1][0], merged_residuals([(problem(fine), x[:1])])[0][0], rtol=1e-12)
+    np.testing.assert_allclose(both[2][0], both[0][0][1:], rtol=1e-12)
 
 
 def _shifted_row(moved: float, two_ln_bf: float) -> dict:

@@ -297,41 +297,88 @@ def profile_drop(evaluator, cf: CandidateFit, value: float, bud, log=print,
     return float(2 * (fc.log_like - fs.log_like)), n, np.insert(fs.x, i, float(value))
 
 
-def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int = 2, log=print) -> tuple[dict, int]:
-    """({"interval": [lo, hi], "closed": [bool, bool]}, members used): the 90 % profile-likelihood interval
-    of candidate ``cf``'s switch, where the profile's 2 ln drop from the mode reaches chi2_1(0.9) = 2.71.
-    From the ends of the Laplace interval and their drops (``prof``, profile_ends' record): a side whose
-    drop is below 2.71 is stepped outward (the distance scaled by sqrt(2.71 / drop), at most 3 times, within
-    the prior range) up to ``steps`` times, then, still below it, probed at the prior's bound; the crossing is
-    interpolated linearly in sqrt(drop) between the last point below and the first at or above 2.71. A side
-    that never reaches it is open ("closed" False) at the prior's bound."""
+def grouped_residuals(requests: list) -> list:
+    """merged_residuals of each group of ``requests`` that can share a batch (the same terrain, observations
+    and grid: the models of one diagnosis on its inversion grid, or on its finer one), answers in the
+    requests' order: a round of a Lockstep over fits on both grids is one solver call per grid."""
+    groups: dict = {}
+    for i, (prob, _) in enumerate(requests):
+        e = prob.evaluator
+        groups.setdefault((id(e.dem), id(e.observations), bool(getattr(e, "finer_grid", False))), []).append(i)
+    out: list = [None] * len(requests)
+    for idx in groups.values():
+        for i, a in zip(idx, merged_residuals([requests[i] for i in idx])):
+            out[i] = a
+    return out
+
+
+def _profile_side(evaluator, cf: CandidateFit, v_end: float, d_end: float, bound: float, bud, steps: int, log,
+                  lockstep: Lockstep | None = None) -> tuple[list, int]:
+    """([(switch value, 2 ln drop)] from the mode outward, members used) of one side of the 90 % profile
+    interval (profile_interval90): from the Laplace end ``v_end`` (drop ``d_end``) towards the prior's
+    ``bound``, stepped until the drop reaches chi2_1(0.9)."""
     level = float(stats.chi2.ppf(0.9, 1))
     i = list(cf.evaluator.prior.names).index(CANDIDATES[cf.name].param)
-    bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
+    lo, hi = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
     m = float(cf.fit.x[i])
-    out, closed, runs, seen = [], [], 0, [[m, 0.0]]
-    for v_end, d_end, bound in zip(prof["interval90"], prof["two_ln_drop"], bounds):
-        pts = [(m, 0.0), (float(v_end), float(d_end))]
-        for k in range(steps + 1):
-            v, d = pts[-1]
-            if d >= level or abs(v - bound) <= 1e-12 * (bounds[1] - bounds[0]) or v == m:
-                break
-            grow = min(max(1.1 * math.sqrt(level / max(d, 0.25 * level)), 1.25), 3.0)
-            v_new = float(bound if k == steps else np.clip(m + (v - m) * grow, bounds[0], bounds[1]))
-            d_new, n, _ = profile_drop(evaluator, cf, v_new, bud, log)
-            runs += n
-            pts.append((v_new, d_new))
-        seen += [[float(v), float(d)] for v, d in pts[1:]]
-        hit = next((k for k in range(1, len(pts)) if pts[k][1] >= level), None)
-        if hit is None:
-            out.append(pts[-1][0])
-            closed.append(False)
-            continue
-        (v0, d0), (v1, d1) = pts[hit - 1], pts[hit]
-        s0, s1 = math.sqrt(max(d0, 0.0)), math.sqrt(d1)
-        out.append(v0 + (math.sqrt(level) - s0) / (s1 - s0) * (v1 - v0) if s1 > s0 else v1)
-        closed.append(True)
-    return {"interval": out, "closed": closed, "level": level, "points": sorted(seen)}, runs
+    pts, runs = [(m, 0.0), (float(v_end), float(d_end))], 0
+    for k in range(steps + 1):
+        v, d = pts[-1]
+        if d >= level or abs(v - bound) <= 1e-12 * (hi - lo) or v == m:
+            break
+        grow = min(max(1.1 * math.sqrt(level / max(d, 0.25 * level)), 1.25), 3.0)
+        v_new = float(bound if k == steps else np.clip(m + (v - m) * grow, lo, hi))
+        d_new, n, _ = profile_drop(evaluator, cf, v_new, bud, log, lockstep=lockstep)
+        runs += n
+        pts.append((v_new, d_new))
+    return pts, runs
+
+
+def _crossing(pts: list, level: float) -> tuple[float, bool]:
+    """(where the side's drop reaches ``level``, interpolated linearly in sqrt(drop) between the last point
+    below it and the first at or above it; True) or (its last point, False: open there)."""
+    hit = next((k for k in range(1, len(pts)) if pts[k][1] >= level), None)
+    if hit is None:
+        return pts[-1][0], False
+    (v0, d0), (v1, d1) = pts[hit - 1], pts[hit]
+    s0, s1 = math.sqrt(max(d0, 0.0)), math.sqrt(d1)
+    return (v0 + (math.sqrt(level) - s0) / (s1 - s0) * (v1 - v0) if s1 > s0 else v1), True
+
+
+def profile_intervals90(evaluator, jobs: list, bud, steps: int = 2, log=print) -> list[tuple[dict, int]]:
+    """[({"interval": [lo, hi], "closed": [bool, bool], "level", "points"}, members used)] of each (CandidateFit,
+    profile_ends record) in ``jobs``: the 90 % profile-likelihood interval of the candidate's switch, where
+    the profile's 2 ln drop from the mode reaches chi2_1(0.9) = 2.71. From the ends of the Laplace interval
+    and their drops: a side whose drop is below 2.71 is stepped outward (the distance scaled by
+    sqrt(2.71 / drop), at most 3 times, within the prior range) up to ``steps`` times, then, still below it,
+    probed at the prior's bound; the crossing is interpolated in sqrt(drop) (_crossing). A side that never
+    reaches it is open ("closed" False) at the prior's bound. Every side of every job runs in lockstep (one
+    solver call per round and grid, grouped_residuals): the same points as one side after the other."""
+    level = float(stats.chi2.ppf(0.9, 1))
+    sides = []
+    for cf, prof in jobs:
+        i = list(cf.evaluator.prior.names).index(CANDIDATES[cf.name].param)
+        bounds = cf.evaluator.prior.bounds.numpy().astype(np.float64)[:, i]
+        sides += list(zip([cf] * 2, prof["interval90"], prof["two_ln_drop"], bounds))
+    ls = Lockstep(grouped_residuals)
+    done = ls.map(lambda j: _profile_side(evaluator, *j, bud, steps, log, lockstep=ls), sides)
+    for d in done:
+        if isinstance(d, BaseException):
+            raise d
+    out = []
+    for k, (cf, _) in enumerate(jobs):
+        i = list(cf.evaluator.prior.names).index(CANDIDATES[cf.name].param)
+        (lo_pts, n_lo), (hi_pts, n_hi) = done[2 * k], done[2 * k + 1]
+        ends = [_crossing(lo_pts, level), _crossing(hi_pts, level)]
+        seen = [[float(cf.fit.x[i]), 0.0]] + [[float(v), float(d)] for v, d in lo_pts[1:] + hi_pts[1:]]
+        out.append(({"interval": [e[0] for e in ends], "closed": [e[1] for e in ends], "level": level,
+                     "points": sorted(seen)}, n_lo + n_hi))
+    return out
+
+
+def profile_interval90(evaluator, cf: CandidateFit, prof: dict, bud, steps: int = 2, log=print) -> tuple[dict, int]:
+    """profile_intervals90 of one candidate ``cf`` with its profile_ends record ``prof``."""
+    return profile_intervals90(evaluator, [(cf, prof)], bud, steps, log)[0]
 
 
 def profile_two_ln_bf(cf: CandidateFit, p90: dict) -> float:

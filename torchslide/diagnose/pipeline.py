@@ -47,7 +47,7 @@ from .verify import hdi_from_grid, hdi_interval, rescore, savage_dickey, verifie
 from .power import detectable_switch
 from .screen import ScreenResult, screen
 from .local_path import (candidate_fit, choose_path, fit_candidates, fit_model, laplace_result, profile_ends,
-                         profile_interval90, profile_two_ln_bf, refit_from)
+                         profile_intervals90, profile_two_ln_bf, refit_from)
 
 
 @dataclass
@@ -850,13 +850,14 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
     point that beats a fit by more than 1 in 2 ln L restarts that fit from there (local_path.refit_from;
     ``restarted_from_profile`` counts the restarts); the restarted fit is profiled again, up to
     ``profile_restarts`` times, and a fit that its profile still beats is marked unreliable. A profiled
-    candidate at its mode gets its 90 % profile-likelihood interval and its 2 ln BF with the switch's factor
-    from the profile (local_path.profile_two_ln_bf; ``two_ln_bf_laplace`` keeps the Laplace value). Candidates
-    fitted on the finer grid (_finer_grid_stage) are profiled there, against its baseline (``fine``: the
+    candidate at its mode gets its 90 % profile-likelihood interval (all of them in lockstep,
+    local_path.profile_intervals90) and its 2 ln BF with the switch's factor from the profile
+    (local_path.profile_two_ln_bf; ``two_ln_bf_laplace`` keeps the Laplace value). Candidates fitted on the finer grid (_finer_grid_stage) are profiled there, against its baseline (``fine``: the
     stage's (evaluator, baseline LocalFit, _Baseline))."""
     ranked = sorted((r for r in rows if r["name"] in fits), key=lambda r: -r["two_ln_bf"])[: bud.profile_top]
     groups = [[r for r in ranked if ("finer_grid" in r) == on_fine] for on_fine in (False, True)]
     ends = [e for g in groups if g for e in zip(g, profile_ends(evaluator, [fits[r["name"]] for r in g], bud, log))]
+    at_mode = []
     for row, (prof, n) in ends:
         c = row["name"]
         ev_r, base_fit, base_r = fine if "finer_grid" in row else (evaluator, f0, base)
@@ -876,24 +877,26 @@ def _local_profiles(evaluator, rows: list, fits: dict, refits: dict, base: _Base
             runs, k = row["n_runs"], row.get("restarted_from_profile", 0)
             row.clear()
             row.update(new, **keep, profile_ends=prof, restarted_from_profile=k + 1, n_runs=runs + new["n_runs"] + n2)
+        log(f"[diagnose] profile of {c}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
+            f"{row['param']} = {[round(v, 5) for v in prof['interval90']]} (Gaussian {prof['gaussian']:.2f})")
         if min(prof["two_ln_drop"]) < -1.0:         # still beaten: the fit is not at its mode
             row["reliable"] = False
         else:
-            p90, n3 = profile_interval90(evaluator, fits[c], prof, bud, log=log)
-            row["n_runs"] += n3
-            row["parameters"][row["param"]]["profile90"] = p90["interval"]
-            row["parameters"][row["param"]]["profile90_closed"] = p90["closed"]
-            bf = profile_two_ln_bf(fits[c], p90)
-            log(f"[diagnose] {c}: 2 ln BF {row['two_ln_bf']:.1f} (Laplace) -> {bf:.1f} with the switch's profile "
-                f"likelihood at {len(p90['points'])} points")
-            row.update(two_ln_bf_laplace=row["two_ln_bf"], two_ln_bf=bf, two_ln_bf_lower=bf, log_bayes_factor=0.5 * bf,
-                       log_evidence_laplace=row["log_evidence"],
-                       log_evidence=row["log_evidence"] + 0.5 * (bf - row["two_ln_bf"]), profile_points=p90["points"])
-            log(f"[diagnose] {c}: 90 % profile-likelihood interval of {row['param']} "
-                f"{[round(v, 5) for v in p90['interval']]}" + ("" if all(p90["closed"]) else " (open: the drop "
-                "stays below 2.71 up to there)"))
-        log(f"[diagnose] profile of {c}: 2 ln drop {[round(v, 2) for v in prof['two_ln_drop']]} at "
-            f"{row['param']} = {[round(v, 5) for v in prof['interval90']]} (Gaussian {prof['gaussian']:.2f})")
+            at_mode.append((row, c, prof))
+    p90s = profile_intervals90(evaluator, [(fits[c], prof) for _, c, prof in at_mode], bud, log=log)
+    for (row, c, _), (p90, n3) in zip(at_mode, p90s):
+        row["n_runs"] += n3
+        row["parameters"][row["param"]]["profile90"] = p90["interval"]
+        row["parameters"][row["param"]]["profile90_closed"] = p90["closed"]
+        bf = profile_two_ln_bf(fits[c], p90)
+        log(f"[diagnose] {c}: 2 ln BF {row['two_ln_bf']:.1f} (Laplace) -> {bf:.1f} with the switch's profile "
+            f"likelihood at {len(p90['points'])} points")
+        row.update(two_ln_bf_laplace=row["two_ln_bf"], two_ln_bf=bf, two_ln_bf_lower=bf, log_bayes_factor=0.5 * bf,
+                   log_evidence_laplace=row["log_evidence"],
+                   log_evidence=row["log_evidence"] + 0.5 * (bf - row["two_ln_bf"]), profile_points=p90["points"])
+        log(f"[diagnose] {c}: 90 % profile-likelihood interval of {row['param']} "
+            f"{[round(v, 5) for v in p90['interval']]}" + ("" if all(p90["closed"]) else " (open: the drop "
+            "stays below 2.71 up to there)"))
 
 
 def _diagnose_local(evaluator, candidates, pilot, why: str, bud: Budgets, th: Thresholds, log, T: dict, lap):
