@@ -1,6 +1,11 @@
-"""Solver benchmark on the Bondo-like terrain (torchslide.terrain.synthetic.bondo_like).
+"""Solver benchmark on the Bondo-like terrain (torchslide.terrain.synthetic.bondo_like) or a real event's.
 
     python -m bench.bench_solver --out bench/results/solver.json [--device cuda] [--batches 1,8,32]
+    python -m bench.bench_solver --terrain msh2021 --mu 0.4 --xi 2500 --skip-throughput ...
+
+``--terrain msh2021``: the embedded 2021 Mount St. Helens event (``torchslide example msh2021``: its 10 m DEM
+lowered by the failure depths, the release they give), the grid and flow of the runs its calibration and
+diagnosis make (a long, narrow path on a small grid: the cropping box, not the grid, sets the cost).
 
 Two parts, each measured in this one process (medians of ``--repeats``; ratios between rows of the
 same run only, since the machines are shared):
@@ -14,7 +19,7 @@ same run only, since the machines are shared):
    or for "fused" loading numba's on-disk cache; the very first call after an install compiles it).
    On CUDA, ``--graphs on,off`` measures each kernel with and without CUDA graphs
    (SolverConfig.cuda_graphs; "compiled" runs without).
-2. Full runs: the wall time per member of one Bondo-like run (mu 0.23, xi 1000, t_end 300 s; 20 m
+2. Full runs: the wall time per member of one run (mu 0.23, xi 1000 unless --mu, --xi; t_end 300 s; 20 m
    cells by default) for the configurations a calibration can use: eager float64 on the whole grid
    (the reference), with cropping, per kernel and precision. Compiled and fused rows are warmed up
    first (first_call_s). The "runs_120_min" column is 120 x the per-member wall time (one calibration
@@ -144,9 +149,10 @@ def _throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float
             "steps_per_member": float(r.steps.float().mean()), "failed_members": failed}
 
 
-def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_end: float, repeats: int) -> dict:
+def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_end: float, repeats: int,
+             mu: float = 0.23, xi: float = 1000.0) -> dict:
     cfg = SolverConfig(kernel=kernel, crop=crop)
-    p = Params.make(B=B, mu=0.23, xi=1000.0)
+    p = Params.make(B=B, mu=mu, xi=xi)
     warm = None
     if kernel != "eager":  # compile (or load) both code paths (small and large boxes) before timing
         _, warm = _timed(case, p, min(60.0, t_end), cfg, DTYPES[dtype], device)
@@ -155,7 +161,8 @@ def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_e
         r, w = _timed(case, p, t_end, cfg, DTYPES[dtype], device)
         walls.append(w)
     w = statistics.median(walls)
-    return {"kernel": kernel, "crop": crop, "dtype": dtype, "B": B, "wall_s_median": w,
+    return {"kernel": kernel, "crop": crop, "dtype": dtype, "B": B, "mu": mu, "xi": xi, "wall_s_median": w,
+            "wall_s_repeats": walls,
             "wall_s_per_member": w / B, "runs_120_min": 120 * w / B / 60.0, "first_call_s": warm,
             "t_final_s": float(r.t_final[0]), "steps": int(r.steps[0]), "stopped": bool(r.stopped[0]),
             "release_volume_m3": float(r.release_volume[0]), "final_volume_m3": float(r.final_volume[0]),
@@ -171,6 +178,21 @@ def full_run_speedups(rows: list) -> dict:
     return {"full_run_speedup_vs_eager_whole_f64": {
         f"{r['kernel']}-{r['dtype']}-{'crop' if r['crop'] else 'whole'}-B{r['B']}":
             base[0]["wall_s_per_member"] / r["wall_s_per_member"] for r in rows}}
+
+
+def event_case(name: str, work: str):
+    """(dem, release) of the embedded event ``name`` as ``torchslide example`` writes it and a run of its
+    simulate.toml reads it, under the folder ``work``."""
+    from types import SimpleNamespace
+
+    from torchslide.cli import main as cli
+    from torchslide.config import load_config
+
+    folder = os.path.join(work, name)
+    if cli(["example", name, "--out", folder]) != 0:
+        raise SystemExit(f"torchslide example {name} failed")
+    cfg = load_config(os.path.join(folder, "simulate.toml"))
+    return SimpleNamespace(dem=cfg.terrain.dem, release=cfg.terrain.release)
 
 
 def main(argv=None) -> None:
@@ -189,6 +211,10 @@ def main(argv=None) -> None:
                     help="comma list of {eager|compiled|fused}-{f64|f32}-{whole|crop}[:B] (B defaults to --full-batch); "
                          "'' skips the full runs")
     ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
+    ap.add_argument("--terrain", default="bondo_like", choices=("bondo_like", "msh2021"),
+                    help="the synthetic Bondo-like case or the embedded msh2021 event (torchslide example)")
+    ap.add_argument("--mu", type=float, default=0.23, help="mu of every member of the full runs")
+    ap.add_argument("--xi", type=float, default=1000.0, help="xi of every member of the full runs, m/s^2")
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--graphs", default="off", help="on CUDA: 'on', 'off' or 'on,off' (SolverConfig.cuda_graphs)")
     ap.add_argument("--launch", default="", help="on CUDA: extra fused rows at these Triton launch settings, "
@@ -196,9 +222,17 @@ def main(argv=None) -> None:
                                                    "list (e.g. 256x4,128x4:stored:lines; fused_triton.VELOCITIES, "
                                                    "FACES)")
     args = ap.parse_args(argv)
-    case = bondo_like(args.cellsize)
+    if args.terrain == "msh2021":
+        import tempfile
+
+        with tempfile.TemporaryDirectory(prefix="bench-") as work:     # the case is read into memory
+            case = event_case(args.terrain, work)
+        terrain = "torchslide example msh2021"
+    else:
+        case = bondo_like(args.cellsize)
+        terrain = "torchslide.terrain.synthetic.bondo_like"
     ny, nx = case.dem.shape
-    res = {"load_average_at_start": os.getloadavg()[0], "terrain": "torchslide.terrain.synthetic.bondo_like",
+    res = {"load_average_at_start": os.getloadavg()[0], "terrain": terrain,
            "grid": [ny, nx], "cellsize_m": case.dem.cellsize, "device": args.device, "torch": torch.__version__,
            "threads": torch.get_num_threads(), "numba_threads": os.environ.get("NUMBA_NUM_THREADS"), "cpu": platform.processor() or platform.machine(),
            "cpu_count": os.cpu_count(), "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
@@ -244,7 +278,7 @@ def main(argv=None) -> None:
         if mode not in args.kernels.split(","):
             continue
         row = full_run(case, int(b) if b else args.full_batch, mode, dom == "crop", {"f64": "float64", "f32": "float32"}[prec],
-                       args.device, args.full_t_end, args.full_repeats)
+                       args.device, args.full_t_end, args.full_repeats, args.mu, args.xi)
         print(json.dumps(row), flush=True)
         res["full_run"].append(row)
         save()

@@ -65,3 +65,16 @@ def test_the_triton_profile_adds_two_stages_and_the_combine_per_cell_update():
                             ("_update", 50, 10), ("_combine", 40, 4))]
     assert triton_profile.per_cell_update(rows) == {
         "lines-fp32-voellmy-stored": {"instructions": 620.0, "fp": 310.0, "mufu": 44.0}}
+
+
+def test_the_full_runs_on_the_msh2021_event(tmp_path):
+    """--terrain msh2021: the embedded event's DEM and release as `torchslide example` writes them, each
+    member at --mu, --xi; a row per configuration with every repeat's wall time."""
+    out = tmp_path / "event.json"
+    bench_solver.main(["--out", str(out), "--terrain", "msh2021", "--skip-throughput", "--kernels", "fused",
+                       "--full-configs", "fused-f64-crop:2", "--full-t-end", "4", "--mu", "0.4", "--xi", "2500"])
+    d = json.loads(out.read_text())
+    assert d["terrain"] == "torchslide example msh2021" and d["cellsize_m"] == 10.0
+    (row,) = d["full_run"]
+    assert (row["B"], row["mu"], row["xi"], len(row["wall_s_repeats"])) == (2, 0.4, 2500.0, 1)
+    assert row["release_volume_m3"] > 1e3 and row["h_max_max_m"] > 0 and row["steps"] > 1
