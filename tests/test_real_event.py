@@ -305,6 +305,9 @@ def test_the_event_page_reports_the_diagnosis_as_its_report_gives_it(tmp_path):
     assert "Calibration, prediction and the figures: 339 s on the 2-core machine (calibration 52 s)." in page
     write_page(dict(out, threads=1), tmp_path / "README.md")
     assert "339 s on the 2-core machine on 1 torch thread (calibration 52 s)." in (tmp_path / "README.md").read_text()
+    write_page(dict(out, solver_pace_s=2.5), tmp_path / "README.md")     # the machine's pace: the stages in its units
+    assert ("1000 s in its stages (400 times the 2.5 s this machine takes for the event's 8-member batch of 300 s): "
+            "verdict **unexplained**") in (tmp_path / "README.md").read_text()
     assert "- no run meets impact and runout together: ...." in page and "runout 25 x its sigma" in page
     assert "| run-out from the release's crown, m | 200 - 400 | 150 - 420 (+- 45) | 786 |" in page
     assert "| runout | 786 | 150 - 450 | 0 - 1,100 |" in page and "| impact | 22,400 | 10,000 - 30,000 | - |" in page

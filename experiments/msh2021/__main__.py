@@ -57,6 +57,23 @@ def _median_run(case: Path, pred: Path):
     return x, cfg, r
 
 
+def solver_pace(cfg, repeats: int = 3) -> float:
+    """Median wall time, s, of this machine's event batch: 8 members at the diagnosis' baseline (mu 0.4, xi
+    2500) for 300 s, as bench.bench_solver --terrain msh2021 times it, after a short warm-up run: the unit
+    that makes the diagnosis' stage times comparable between machines."""
+    from torchslide.physics import Params
+    from torchslide.solver import simulate
+
+    p = Params.make(B=8, mu=0.4, xi=2500.0)
+    simulate(cfg.terrain.dem, cfg.terrain.release, p, t_end=10.0)
+    walls = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        simulate(cfg.terrain.dem, cfg.terrain.release, p, t_end=300.0)
+        walls.append(time.perf_counter() - t0)
+    return float(np.median(walls))
+
+
 def survey_figures(dod: np.ndarray, dz: np.ndarray, h_max: np.ndarray, p_impact: np.ndarray, cell: float) -> dict:
     """Figures a modeller quotes (torchslide.survey), of a run (simulated change dz, h_max) and the impact
     probability against the survey (dod, NaN off the mapped cells)."""
@@ -238,7 +255,10 @@ def write_page(out: dict, path: Path) -> None:
         d = out["diagnosis"]
         lines += [f"## Diagnosis", "",
                   f"`torchslide diagnose diagnose.toml`, with a 1.2 m erodible regolith for the entrainment "
-                  f"candidate; {d['seconds']:.0f} s in its stages: verdict **{d['verdict']}**"
+                  f"candidate; {d['seconds']:.0f} s in its stages"
+                  + (f" ({d['seconds'] / out['solver_pace_s']:.0f} times the {out['solver_pace_s']:.1f} s this machine "
+                     "takes for the event's 8-member batch of 300 s)" if out.get("solver_pace_s") else "")
+                  + f": verdict **{d['verdict']}**"
                   + (f" ({d['missing_physics']})" if d.get("missing_physics") else "") + f": {d['reason']}.", "",
                   "Where the calibrated model and the survey disagree (clusters of the maps' standardised residuals):", "",
                   "| mismatch | x (m) | y (m) | standardised residual |", "|---|---|---|---|"]
@@ -319,6 +339,7 @@ def main(argv=None) -> int:
     shutil.copyfile(cal / "posterior.png", figs / "posterior.png")
     out["wall_s"], out["calibrate_s"], out["threads"] = time.perf_counter() - t0, t_cal, torch.get_num_threads()
     if not a.no_diagnose:
+        out["solver_pace_s"] = solver_pace(cfg)
         resume = ["--resume"] if (diag / "diagnosis.pkl").exists() else []
         _cli(["diagnose", case / "diagnose.toml", "--out", diag, "--quiet", *resume])
         out["diagnosis"] = diagnosis_summary(json.loads((diag / "report.json").read_text()))
