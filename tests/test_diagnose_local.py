@@ -119,6 +119,48 @@ def test_the_optimiser_recovers_the_optimum_of_a_small_solver_case():
     assert f.log_like > -0.5 and f.n_runs <= 30 * 5
 
 
+def test_a_fit_runs_one_member_per_trial_point_and_its_jacobian_only_where_a_step_is_accepted():
+    """local.fit: each trial point of the trust region is one run; the Jacobian's 2p runs are asked for only
+    where least_squares accepts a step (near the mode most trial points are rejected); the mode, ln L and
+    the Gauss-Newton precision are those of the same least squares with the central-difference Jacobian."""
+    from scipy import optimize
+
+    from torchslide.diagnose.local import steps
+
+    t = np.linspace(0.0, 1.0, 25)
+    d = 2.0 * np.exp(-3.0 * t) + 0.02 * np.random.default_rng(3).standard_normal(t.size)
+    calls = []
+
+    def residuals(X):       # the model's outputs quantised, as a solver's time steps make them near the mode
+        calls.append(len(X))
+        y = np.round(X[:, :1] * np.exp(-X[:, 1:2] * t), 3)
+        return (y - d) / 0.02, np.zeros(len(X), dtype=bool)
+
+    bounds = np.array([[0.5, 0.5], [4.0, 6.0]])
+    f = fit(residuals, np.array([1.0, 1.0]), bounds, log_norm=0.0, log_prior=0.0)
+    assert set(calls) == {1, 4} and f.n_runs == sum(calls)
+    assert calls.count(4) < calls.count(1)          # some trial points were rejected: no Jacobian there
+    lo, scale, h = bounds[0], bounds[1] - bounds[0], steps(bounds, 3e-3)
+
+    def r(u):
+        return residuals((lo + u * scale)[None])[0][0]
+
+    def jac(u):
+        x = lo + u * scale
+        cols = []
+        for i in range(2):
+            e = np.zeros(2)
+            e[i] = h[i]
+            cols.append((residuals((x + e)[None])[0][0] - residuals((x - e)[None])[0][0]) / (2 * h[i]))
+        return np.stack(cols, axis=1) * scale
+
+    ref = optimize.least_squares(r, (np.array([1.0, 1.0]) - lo) / scale, jac=jac, bounds=(0.0, 1.0), method="trf",
+                                 xtol=1e-6, ftol=1e-6, gtol=1e-10, max_nfev=30, x_scale="jac")
+    np.testing.assert_allclose(f.x, lo + ref.x * scale, rtol=1e-12)
+    np.testing.assert_allclose(f.log_like, -0.5 * ref.fun @ ref.fun, rtol=1e-12)
+    np.testing.assert_allclose(f.precision, (ref.jac / scale).T @ (ref.jac / scale), rtol=1e-9)
+
+
 # ---- the local path (torchslide.diagnose.local_path) ----
 
 def test_the_boundary_corrected_likelihood_ratio_holds_its_level():
@@ -460,7 +502,8 @@ def test_lockstep_answers_every_job_as_if_alone_in_one_call_per_round():
 
 def test_merged_residuals_equal_each_model_run_alone():
     """The baseline, two candidate models (one with a fixed phi_int) and a profile model (switch held)
-    evaluated in one batch give each model's residuals as its own runs do."""
+    evaluated in one batch give each model's residuals as its own runs do, and each point's alone, bit for
+    bit (a local fit runs its trial points alone and their Jacobians apart)."""
     from torchslide.diagnose.local_path import merged_residuals, problem
     from torchslide.diagnose.refit import candidate_evaluator
 
@@ -479,8 +522,10 @@ def test_merged_residuals_equal_each_model_run_alone():
     for p, x, (r, bad) in zip(probs, X, merged):
         r1, bad1 = merged_residuals([(p, x)])[0]
         assert not bad.any() and not bad1.any()
-        np.testing.assert_allclose(r, r1, rtol=1e-9, atol=1e-9)
-    assert [p.n_runs for p in probs] == [4, 2, 4, 2, 2]
+        np.testing.assert_array_equal(r, r1)
+        for i in range(len(x)):
+            np.testing.assert_array_equal(merged_residuals([(p, x[i:i + 1])])[0][0][0], r[i])
+    assert [p.n_runs for p in probs] == [4 + 2, 2 + 1, 4 + 2, 2 + 1, 2 + 1]
     assert not np.allclose(merged[1][0], merged[4][0])     # the same run, another likelihood
     with pytest.raises(ValueError, match="share the terrain"):
         merged_residuals([(probs[0], X[0]), (problem(_plane_case(0.0)), X[0])])

@@ -28,7 +28,7 @@ and a [diagnose] section::
                                  #     cannot resolve such a peak), else emulator
     local_max_fraction = 0.05
     local_lhs = 16               # local path: maximin-LHS runs ranking the baseline's starts, fits from the
-    local_starts = 2             #     local_starts best; local_max_iter evaluations (2p + 1 members each) per fit
+    local_starts = 2             #     local_starts best; local_max_iter trial points (a run each) per fit
     local_max_iter = 30
     n_posterior_samples = 32     # baseline posterior-predictive members
     n_posterior_samples_after = 16   # posterior-predictive members of every candidate's fit

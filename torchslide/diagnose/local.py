@@ -8,10 +8,12 @@ resolve the peak.
 With whitened residuals r(x) = L^-1 (y(x) - d) (k,), Sigma = L L^T the likelihood's covariance, and
 ln L(x) = c - |r(x)|^2 / 2 (c the Gaussian normaliser):
 
-* ``jacobian``: J = dr/dx (k, p) by central differences, all 2p + 1 points in one batched solver call
+* ``jacobian``: J = dr/dx (k, p) by central differences, its 2p points in one batched solver call
   (one-sided where a step would leave the prior box).
 * ``fit``: the mode of ln L + ln prior in the box by scipy.optimize.least_squares (trust-region
-  reflective, bounds kept), with J from ``jacobian``.
+  reflective, bounds kept): one run per trial point, J from ``jacobian`` only where a step is accepted
+  (most trial points near the mode are rejected: the trust region shrinks there until the step is below
+  xtol).
 * ``laplace_log_evidence``: ln Z = ln L(x*) + ln pi(x*) + (p/2) ln 2 pi - (1/2) ln det A
   + ln P_box, A = J^T J the Gauss-Newton precision and P_box the probability that N(x*, A^-1) gives to
   the prior box; for a mode on the box's edge (e.g. a candidate's switch at 0) the Gaussian is centred
@@ -90,22 +92,30 @@ def steps(bounds: np.ndarray, rel: float = 1e-3) -> np.ndarray:
     return rel * (b[1] - b[0])
 
 
-def jacobian(residuals: Residuals, x: np.ndarray, bounds: np.ndarray, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(r(x) (k,), J (k, p)) by central differences in one batched call of 2p + 1 points; a step that
-    would leave the box is taken one-sided (forward or backward, still of size h)."""
+def residual(residuals: Residuals, x: np.ndarray) -> np.ndarray:
+    """r(x) (k,) from one run at x (p,); a failed run raises RuntimeError."""
+    x = np.asarray(x, dtype=np.float64)
+    R, failed = residuals(x[None])
+    if np.any(failed):
+        raise RuntimeError(f"the run failed at x = {x.tolist()}")
+    return R[0]
+
+
+def jacobian(residuals: Residuals, x: np.ndarray, bounds: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """J (k, p) at x (p,) by central differences in one batched call of 2p points (x + h_i, x - h_i); a step
+    that would leave the box is taken one-sided (forward or backward, still of size h)."""
     x = np.asarray(x, dtype=np.float64)
     p = x.size
     lo, hi = np.asarray(bounds, dtype=np.float64)
     plus, minus = np.minimum(x + h, hi), np.maximum(x - h, lo)
-    X = np.repeat(x[None], 2 * p + 1, axis=0)
+    X = np.repeat(x[None], 2 * p, axis=0)
     for i in range(p):
-        X[1 + 2 * i, i] = plus[i]
-        X[2 + 2 * i, i] = minus[i]
+        X[2 * i, i] = plus[i]
+        X[2 * i + 1, i] = minus[i]
     R, failed = residuals(X)
     if np.any(failed):
-        raise RuntimeError(f"{int(np.sum(failed))} of the {2 * p + 1} finite-difference runs failed at x = {x.tolist()}")
-    J = np.stack([(R[1 + 2 * i] - R[2 + 2 * i]) / (plus[i] - minus[i]) for i in range(p)], axis=1)
-    return R[0], J
+        raise RuntimeError(f"{int(np.sum(failed))} of the {2 * p} finite-difference runs failed at x = {x.tolist()}")
+    return np.stack([(R[2 * i] - R[2 * i + 1]) / (plus[i] - minus[i]) for i in range(p)], axis=1)
 
 
 def box_log_probability(x: np.ndarray, covariance: np.ndarray, bounds: np.ndarray) -> float:
@@ -143,29 +153,32 @@ def fit(residuals: Residuals, x0: np.ndarray, bounds: np.ndarray, log_norm: floa
     (ln L = c - |r|^2 / 2); ``log_prior``: ln pi, constant in the box (uniform prior). ``rel_step``:
     finite-difference step as a share of each prior range; a solver's outputs are smooth in the
     parameters only above its time-step noise (a small chute case stalled at 1e-3 and converged in 16
-    evaluations at 3e-3); ``max_iter``: most evaluations of the residuals and their Jacobian; ``ftol``:
+    evaluations at 3e-3); ``max_iter``: most trial points (runs of the residuals); ``ftol``:
     stop when |r|^2 / 2 falls by less than this share of itself (1e-6 of a misfit of thousands is a
     thousandth of a nat); ``xtol``: ... or the step is below this share of the prior range."""
     b = np.asarray(bounds, dtype=np.float64)
     h = steps(b, rel_step)
     scale = b[1] - b[0]
     n_runs = 0
-    cache: dict = {}
+    seen: dict = {}         # trial point (unit box) -> [r, J or None]
 
-    def both(u: np.ndarray):
+    def at(u: np.ndarray, with_jacobian: bool) -> list:
         nonlocal n_runs
         key = tuple(np.round(u, 15))
-        if key not in cache:
-            cache.clear()
-            cache[key] = jacobian(residuals, b[0] + u * scale, b, h)
-            n_runs += 2 * u.size + 1
-        return cache[key]
+        if key not in seen:
+            seen[key] = [residual(residuals, b[0] + u * scale), None]
+            n_runs += 1
+        if with_jacobian and seen[key][1] is None:
+            seen[key][1] = jacobian(residuals, b[0] + u * scale, b, h)
+            n_runs += 2 * u.size
+        return seen[key]
 
     u0 = np.clip((np.asarray(x0, dtype=np.float64) - b[0]) / scale, 0.0, 1.0)
-    res = optimize.least_squares(lambda u: both(u)[0], u0, jac=lambda u: both(u)[1] * scale, bounds=(0.0, 1.0),
-                                 method="trf", xtol=xtol, ftol=ftol, gtol=1e-10, max_nfev=max_iter, x_scale="jac")
+    res = optimize.least_squares(lambda u: at(u, False)[0], u0, jac=lambda u: at(u, True)[1] * scale,
+                                 bounds=(0.0, 1.0), method="trf", xtol=xtol, ftol=ftol, gtol=1e-10,
+                                 max_nfev=max_iter, x_scale="jac")
     x = b[0] + res.x * scale
-    r, J = both(res.x)
+    r, J = at(res.x, True)
     A = J.T @ J
     log_like = float(log_norm - 0.5 * r @ r)
     cov = np.linalg.inv(A)

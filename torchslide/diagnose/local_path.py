@@ -95,7 +95,11 @@ def merged_residuals(requests: list) -> list:
     cuts = np.cumsum([len(X) for _, X in requests])[:-1]
     out = []
     for (prob, X), p, f in zip(requests, np.split(np.asarray(preds), cuts), np.split(np.asarray(failed), cuts)):
-        r = prob.evaluator.likelihood.residuals(torch.as_tensor(p)).numpy()
+        # one row at a time: numpy's reductions over a batch sum in another order than over one row, and a
+        # point's residuals must not depend on its batch (a fit's trial point runs alone, its Jacobian apart)
+        lik = prob.evaluator.likelihood
+        r = np.concatenate([lik.residuals(torch.as_tensor(p[i:i + 1])).numpy() for i in range(len(p))]) \
+            if len(p) else np.empty((0, prob.evaluator.k))
         bad = f | ~np.all(np.isfinite(r), axis=1)
         z = prob.log_norm - 0.5 * np.sum(np.where(bad[:, None], 0.0, r) ** 2, axis=1)
         prob.evaluator.records += [RunRecord(x.copy(), pi.copy(), float(zi + prob.log_prior(x)) if not b else math.nan,

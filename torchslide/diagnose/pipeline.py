@@ -62,7 +62,7 @@ class Budgets:
     local_lhs: int = 16                # local path: maximin-LHS runs ranking the baseline's start points ...
     local_starts: int = 2              # ... local fits from this many of the best
     local_rel_step: float = 3e-3       # finite-difference step, share of each prior range
-    local_max_iter: int = 30           # evaluations (each one batch of 2p + 1 members) per local fit
+    local_max_iter: int = 30           # trial points per local fit (one run each, 2p more where a step is accepted)
     n_posterior_samples: int = 32      # posterior-predictive members (baseline)
     n_posterior_samples_after: int = 16  # posterior-predictive members of every refit (verification)
     n_initial: int = 16                # emulator path: refit LHS runs ...
