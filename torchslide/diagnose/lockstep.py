@@ -1,9 +1,9 @@
 """Several fits advanced together, their solver runs merged into one batched call per round.
 
 A local fit (scipy.optimize.least_squares in local.fit) asks for one run per trial point and 2p more
-where a step is accepted (its Jacobian), one request at a time. On small grids a solver call costs mostly per call, not per member (the 40 m
-harness grid: 0.77 s for 1 member, 1.24 s for 7, 3.2 s for 31 on one core), so fits run one after
-another spend most of their time in per-call overhead. ``Lockstep.map`` runs each fit in its own thread;
+where a step is accepted (its Jacobian), one request at a time. On small grids a solver call costs
+mostly per call, not per member (the 40 m harness grid: 0.77 s for 1 member, 1.24 s for 7, 3.2 s for 31
+on one core), so fits run one after another spend most of their time in per-call overhead. ``Lockstep.map`` runs each fit in its own thread;
 a fit's request (``ask``) blocks until every fit still running has asked or finished, then the
 calling thread answers all requests with one ``evaluate`` call and the fits go on. The fits' own
 arithmetic is small (the GIL is not the bottleneck) and all solver work stays in the calling thread.
