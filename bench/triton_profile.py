@@ -1,19 +1,21 @@
 """Static profile of the Triton step's kernels for a GPU, compiled ahead of time on any machine (Triton's
 own ptxas and cuobjdump; no GPU needed): per kernel, registers per thread, local memory (spills), and the
-SASS instructions of the kernel's body per cell, with the MUFU among them (the special-function unit's
-approximations: each exactly rounded division and square root starts with one).
+SASS instructions per cell, with the floating-point ones and the MUFU among them (the special-function
+unit: a reciprocal, square root or reciprocal square root each).
 
-    python -m bench.triton_profile [--arch 90] [--block 512] [--warps 4] [--out bench/results/triton_profile.json]
+    python -m bench.triton_profile [--arch 90] [--out bench/results/triton_profile.json]
     TORCHSLIDE_EXACT_FLOAT32=1 python -m bench.triton_profile --out bench/results/triton_profile_exact_float32.json
 
-Rows: every kernel of both designs of the faces (fused_triton.FACES: "tiled", whose _tiled kernel counts per
-cell it holds, its halo's positions included in the cost; "lines", the velocities recomputed and stored:
-fused_triton.VELOCITIES), float32 and float64, the switches of a default Voellmy run (TERMS["voellmy"]: the
-slope metric and the no-creep rule, what bench.bench_solver times) and every term on. Instruction counts are
-static (the kernels have no loops; the slow paths of division and sqrt, called rarely, are not counted):
-what a change to the kernels costs in arithmetic, before a GPU measures its speed (bench.bench_solver
---device cuda). ``fp_per_cell``: the floating-point instructions among them (FADD, FMUL, FFMA, FMNMX,
-FSETP, FSEL, MUFU; the D-prefixed ones in float64): the scheme's own arithmetic, which no layout removes.
+Rows: every kernel of both designs of the faces (fused_triton.FACES: "march", "lines") and the update (after
+the first stage, and with the step's combine after the second), float32 and float64, the switches of a
+default Voellmy run (TERMS["voellmy"]: the slope metric and the no-creep rule, what bench.bench_solver
+times) and every term on. Counts are static: what a change to the kernels costs in instructions, before a
+GPU measures its speed (bench.bench_solver --device cuda). A straight-line kernel counts its body up to
+its exit (the slow paths of exactly rounded division and sqrt, called rarely, not counted) per cell a
+thread holds. The marching kernel counts the body of its loop over rows per cell it writes (the W - 4 owned
+of every W positions), and its prologue once per band of MARCH rows (``prologue_per_cell``), both in
+``instructions_per_cell``. ``fp_per_cell``: the floating-point instructions (FADD, FMUL, FFMA, FMNMX,
+FSETP, FSEL, MUFU; the D-prefixed ones in float64): the scheme's own arithmetic.
 """
 from __future__ import annotations
 
@@ -25,12 +27,10 @@ import re
 import subprocess
 import tempfile
 
-KERNELS = ("_velocities", "_carried", "_faces", "_drain", "_update", "_combine")
-"""The kernels of a step with FACES = "lines" (fused_triton), in launch order (_carried: with the slope
-metric, on in every row)."""
-
-TILED = ("_tiled", "_drain", "_update", "_combine")
-"""The kernels of a step with FACES = "tiled" (the velocities stored by _tiled)."""
+KERNELS = {"march": ("_march", "_update", "_update+combine"),
+           "lines": ("_velocities", "_facesx", "_facesy", "_cells", "_update", "_update+combine")}
+"""The kernels of a step per design of the faces (fused_triton.FACES): each but the combine's update runs once
+per stage, "_update+combine" once per step (the second stage's update)."""
 
 FP = ("FADD", "FMUL", "FFMA", "FMNMX", "FSETP", "FSEL", "MUFU", "DADD", "DMUL", "DFMA", "DSETP", "DMNMX", "FCHK")
 """The floating-point SASS opcodes (fp_per_cell)."""
@@ -38,44 +38,66 @@ FP = ("FADD", "FMUL", "FFMA", "FMNMX", "FSETP", "FSEL", "MUFU", "DADD", "DMUL", 
 TERMS = {"voellmy": {"SLOPE": True, "NO_CREEP": True}, "all": None}
 """Switches on per row set: a default SolverConfig's Voellmy run (mu, xi only); every switch (None)."""
 
+SKIP = {"INFLOW", "GONE_OUT", "WALLS"}
+"""Switches the "all" rows leave off: boundary and domain settings, not terms."""
+
+
+def kernel_fn(name: str):
+    """The @triton.jit function of kernel ``name`` (a KERNELS entry: "_facesx" is _faces on AXIS 0)."""
+    from torchslide.solver import triton_lines, triton_march, triton_update
+
+    base = name.split("+")[0].rstrip("xy") if name.startswith("_faces") else name.split("+")[0]
+    for module in (triton_march, triton_update, triton_lines):
+        if hasattr(module, base):
+            return getattr(module, base)
+    raise KeyError(name)
+
 
 def switches(name: str) -> list[str]:
-    """The compile-time switches of kernel ``name`` (its tl.constexpr parameters but BLOCK and AXIS)."""
-    from torchslide.solver import fused_triton
-
-    params = inspect.signature(getattr(fused_triton, name).fn).parameters
+    """The compile-time switches of kernel ``name`` (its tl.constexpr parameters but the launch shape)."""
+    params = inspect.signature(kernel_fn(name).fn).parameters
     return [p for p, v in params.items() if v.annotation in ("tl.constexpr", "constexpr")
-            and p not in ("BLOCK", "AXIS", "TY", "TX")]
+            and p not in ("BLOCK", "AXIS", "W", "BAND", "COMBINE", "UNROLL")]
 
 
-def compile_kernel(name: str, dtype: str, on: dict, axis: int | None = None, arch: int = 90,
-                   block: int | None = None, num_warps: int | None = None, tile: tuple | None = None):
-    """Kernel ``name`` of fused_triton compiled for sm_``arch`` with the launch options of the step (fused
-    multiply-add in float32 on the fast paths only); ``dtype``: 'fp32' or 'fp64'; ``on``: switch -> value
-    (switches not named are off); _tiled: ``tile`` (rows, columns; default fused_triton.TILE) and
-    ``num_warps`` (default fused_triton.TILE_WARPS)."""
+def compile_kernel(name: str, dtype: str, on: dict, arch: int = 90, block: int | None = None,
+                   num_warps: int | None = None, march: tuple | None = None):
+    """Kernel ``name`` (a KERNELS entry) compiled for sm_``arch`` with the step's launch options (fused multiply-add
+    in float32 on the fast paths only); ``dtype``: 'fp32' or 'fp64'; ``on``: switch -> value (switches not
+    named are off); ``march``: (W, BAND) of _march (default fused_triton.MARCH)."""
     import triton
     from triton.backends.compiler import GPUTarget
     from triton.compiler import ASTSource
 
     from torchslide.solver import fused_triton
 
-    fn = getattr(fused_triton, name)
+    fn = kernel_fn(name)
     params = list(inspect.signature(fn.fn).parameters)
-    if name == "_tiled":
-        ty, tx = tile or fused_triton.TILE
-        consts = {"TY": ty, "TX": tx}
-        num_warps = num_warps or fused_triton.TILE_WARPS
+    if name == "_march":
+        w, band = march or fused_triton.MARCH
+        consts = {"W": w, "BAND": band, "UNROLL": fused_triton.MARCH_UNROLL}
+        num_warps = max(1, w // 32)
     else:
-        consts = {"BLOCK": block or fused_triton.BLOCK}
+        consts = {"BLOCK": block or default_block(dtype)}
+        num_warps = num_warps or fused_triton.NUM_WARPS
+    if name.startswith("_faces"):
+        consts["AXIS"] = "xy".index(name[-1])
+    if "COMBINE" in params:
+        consts["COMBINE"] = name.endswith("+combine")
     consts.update({s: bool(on.get(s, False)) for s in switches(name)})
-    if axis is not None:
-        consts["AXIS"] = axis
     sig = {p: "constexpr" if p in consts else ("*i1" if p == "inside_ptr" else f"*{dtype}")
            if p.endswith("_ptr") else "i32" for p in params}
     src = ASTSource(fn=fn, signature=sig, constexprs={(params.index(k),): v for k, v in consts.items()})
-    options = {"enable_fp_fusion": fused_triton.fp_fusion(dtype), "num_warps": num_warps or fused_triton.NUM_WARPS}
+    options = {"enable_fp_fusion": fused_triton.fp_fusion(dtype), "num_warps": num_warps}
     return triton.compile(src, target=GPUTarget("cuda", arch, 32), options=options)
+
+
+def default_block(dtype: str) -> int:
+    """fused_triton.BLOCK of ``dtype`` ('fp32' or 'fp64')."""
+    from torchslide.solver import fused_triton
+
+    block = fused_triton.BLOCK
+    return block[{"fp32": "float32", "fp64": "float64"}[dtype]] if isinstance(block, dict) else block
 
 
 def _cuobjdump(cubin: bytes, flag: str) -> str:
@@ -89,70 +111,84 @@ def _cuobjdump(cubin: bytes, flag: str) -> str:
         return subprocess.run([tool, flag, path], capture_output=True, text=True, check=True).stdout
 
 
-def sass_profile(kernel, cells_per_thread: float) -> dict:
-    """Registers, local memory bytes, shared memory bytes, and the body's SASS, floating-point and MUFU
-    instructions per cell of a compiled kernel whose threads hold ``cells_per_thread`` cells (BLOCK /
-    (32 num_warps); for _tiled the cells a tile holds per thread)."""
-    res = _cuobjdump(kernel.asm["cubin"], "-res-usage")
-    regs, local = (int(re.search(rf"{k}:(\d+)", res).group(1)) for k in ("REG", "LOCAL"))
-    sass = _cuobjdump(kernel.asm["cubin"], "-sass")
-    body = []       # (address, opcode) of every instruction
+def _body(sass: str) -> list[tuple[int, str, str]]:
+    """(address, opcode, operands) of every instruction of the kernel up to its last EXIT, and before the first
+    called subroutine (the slow paths of exactly rounded division and sqrt)."""
+    body = []
     for line in sass.splitlines():
         m = re.match(r"\s+/\*([0-9a-f]{4,})\*/\s+(.*?);", line)
         if m:
-            body.append((int(m.group(1), 16), re.sub(r"^@!?U?P\w+\s+", "", m.group(2)).split()[0]))
-    # the body ends where the first called subroutine (a slow path of division or sqrt) begins
+            text = re.sub(r"^@!?U?P\w+\s+", "", m.group(2))
+            body.append((int(m.group(1), 16), text.split()[0].split(".")[0], text))
     targets = [int(t, 16) for t in re.findall(r"CALL\.REL\.NOINC\s+0x([0-9a-f]+)", sass)]
-    end = min(targets) if targets else max(a for a, op in body if op == "EXIT") + 1
-    ops = [op.split(".")[0] for a, op in body if a < end]
-    return {"registers": regs, "local_bytes": local, "shared_bytes": int(kernel.metadata.shared),
-            "instructions_per_cell": round(len(ops) / cells_per_thread, 1),
-            "fp_per_cell": round(sum(op in FP for op in ops) / cells_per_thread, 1),
-            "mufu_per_cell": round(ops.count("MUFU") / cells_per_thread, 2)}
+    end = min(targets) if targets else max(a for a, op, _ in body if op == "EXIT") + 1
+    return [b for b in body if b[0] < end]
 
 
-def tile_cells_per_thread(tile: tuple, num_warps: int) -> float:
-    """Cells a _tiled program holds ((rows - 3) (columns - 3)) per thread."""
-    return (tile[0] - 3) * (tile[1] - 3) / (32 * num_warps)
+def _counts(ops: list[str]) -> tuple[int, int, int]:
+    return len(ops), sum(op in FP for op in ops), ops.count("MUFU")
 
 
-def profile(arch: int = 90, block: int | None = None, num_warps: int | None = None, tile: tuple | None = None,
-            tile_warps: int | None = None) -> list[dict]:
+def sass_profile(kernel, cells_per_thread: float, rows_per_band: int | None = None, unroll: int = 1) -> dict:
+    """Registers, local memory bytes, shared memory bytes, and SASS, floating-point and MUFU instructions per
+    cell of a compiled kernel whose threads hold ``cells_per_thread`` cells. A kernel with a loop over rows
+    (``rows_per_band``: its rows per program) counts the body of its main loop (the largest; ``unroll`` rows per
+    pass) per row, and the rest (prologue, the unrolled loop's remainder, epilogue) once per band."""
+    res = _cuobjdump(kernel.asm["cubin"], "-res-usage")
+    regs, local = (int(re.search(rf"{k}:(\d+)", res).group(1)) for k in ("REG", "LOCAL"))
+    body = _body(_cuobjdump(kernel.asm["cubin"], "-sass"))
+    out = {"registers": regs, "local_bytes": local, "shared_bytes": int(kernel.metadata.shared)}
+    if rows_per_band is None:
+        n, fp, mufu = _counts([op for _, op, _ in body])
+        prologue = 0.0
+    else:
+        branches = [(a, int(m.group(1), 16)) for a, op, text in body if op == "BRA"
+                    for m in [re.search(r"0x([0-9a-f]+)", text)] if m and int(m.group(1), 16) < a]
+        if not branches:
+            raise ValueError("no loop in the kernel")
+        loops = [[op for a, op, _ in body if start <= a <= end] for end, start in branches]
+        loop = max(loops, key=len)
+        n, fp, mufu = (k / unroll for k in _counts(loop))
+        prologue = (len(body) - len(loop)) / rows_per_band
+        out["loop_per_cell"] = round(n / cells_per_thread, 1)
+        out["prologue_per_cell"] = round(prologue / cells_per_thread, 1)
+    out.update(instructions_per_cell=round((n + prologue) / cells_per_thread, 1),
+               fp_per_cell=round(fp / cells_per_thread, 1), mufu_per_cell=round(mufu / cells_per_thread, 2))
+    return out
+
+
+def profile(arch: int = 90, block: int | None = None, num_warps: int | None = None,
+            march: tuple | None = None) -> list[dict]:
     from torchslide.solver import fused_triton
 
-    block, num_warps = block or fused_triton.BLOCK, num_warps or fused_triton.NUM_WARPS
-    tile, tile_warps = tile or fused_triton.TILE, tile_warps or fused_triton.TILE_WARPS
-    cells_per_thread = max(1, block // (32 * num_warps))
+    num_warps = num_warps or fused_triton.NUM_WARPS
+    w, band = march or fused_triton.MARCH
     rows = []
     for dtype in ("fp32", "fp64"):
+        block_d = block or default_block(dtype)
         for terms, switched in TERMS.items():
-            for design, velocities in (("tiled", "stored"), ("lines", "recomputed"), ("lines", "stored")):
-                for name in TILED if design == "tiled" else KERNELS:
-                    if name == "_velocities" and velocities == "recomputed":
-                        continue
-                    on = {s: switched is None or switched.get(s, False) for s in switches(name)}
-                    on["STORED"] = velocities == "stored"
-                    for axis in ((0, 1) if name == "_faces" else (None,)):
-                        tiled = name == "_tiled"
-                        k = compile_kernel(name, dtype, on, axis, arch, block, tile_warps if tiled else num_warps,
-                                           tile if tiled else None)
-                        per = tile_cells_per_thread(tile, tile_warps) if tiled else cells_per_thread
-                        launch = {"tile": list(tile), "num_warps": tile_warps} if tiled else \
-                            {"block": block, "num_warps": num_warps}
-                        rows.append({"kernel": name + ("" if axis is None else "xy"[axis]), "design": design,
-                                     "dtype": dtype, "terms": terms, "velocities": velocities, **launch,
-                                     **sass_profile(k, per)})
+            for design, names in KERNELS.items():
+                for name in names:
+                    on = {s: (s not in SKIP) if switched is None else switched.get(s, False) for s in switches(name)}
+                    k = compile_kernel(name, dtype, on, arch, block_d, num_warps, (w, band))
+                    if name == "_march":
+                        prof = sass_profile(k, (w - 4) / (32 * max(1, w // 32)), band, fused_triton.MARCH_UNROLL)
+                        launch = {"W": w, "BAND": band, "num_warps": max(1, w // 32)}
+                    else:
+                        prof = sass_profile(k, max(1, block_d // (32 * num_warps)))
+                        launch = {"block": block_d, "num_warps": num_warps}
+                    rows.append({"kernel": name, "design": design, "dtype": dtype, "terms": terms, **launch, **prof})
     return rows
 
 
 def per_cell_update(rows: list[dict]) -> dict:
-    """Instructions, floating-point instructions and MUFU per cell-update (a step: two stages of the faces,
-    drain and update, then the combine), per design-dtype-terms-velocities."""
+    """Instructions, floating-point instructions and MUFU per cell-update (a step: two stages, the second's
+    update with the combine), per design-dtype-terms."""
     out = {}
     for r in rows:
-        key = f"{r['design']}-{r['dtype']}-{r['terms']}-{r['velocities']}"
+        key = f"{r['design']}-{r['dtype']}-{r['terms']}"
         s = out.setdefault(key, {"instructions": 0.0, "fp": 0.0, "mufu": 0.0})
-        n = 1 if r["kernel"] == "_combine" else 2
+        n = 1 if r["kernel"].startswith("_update") else 2
         s["instructions"] += n * r["instructions_per_cell"]
         s["fp"] += n * r["fp_per_cell"]
         s["mufu"] += n * r["mufu_per_cell"]
@@ -162,23 +198,21 @@ def per_cell_update(rows: list[dict]) -> dict:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--arch", type=int, default=90, help="compute capability x 10 (90: H100 / H200)")
-    ap.add_argument("--block", type=int, default=None, help="BLOCK (default: fused_triton.BLOCK)")
-    ap.add_argument("--warps", type=int, default=None, help="num_warps (default: fused_triton.NUM_WARPS)")
-    ap.add_argument("--tile", default=None, help="_tiled's ROWSxCOLUMNS (default: fused_triton.TILE)")
-    ap.add_argument("--tile-warps", type=int, default=None, help="_tiled's num_warps (default: fused_triton.TILE_WARPS)")
+    ap.add_argument("--block", type=int, default=None, help="BLOCK of the cell-wise kernels (fused_triton.BLOCK)")
+    ap.add_argument("--warps", type=int, default=None, help="their num_warps (fused_triton.NUM_WARPS)")
+    ap.add_argument("--march", default=None, help="WxBAND of the marching kernel (fused_triton.MARCH)")
     ap.add_argument("--out", default="bench/results/triton_profile.json")
     args = ap.parse_args(argv)
     import triton
 
-    tile = tuple(int(a) for a in args.tile.lower().split("x")) if args.tile else None
-    rows = profile(args.arch, args.block, args.warps, tile, args.tile_warps)
+    march = tuple(int(a) for a in args.march.lower().split("x")) if args.march else None
+    rows = profile(args.arch, args.block, args.warps, march)
     for r in rows:
         print(json.dumps(r), flush=True)
     from torchslide.solver import fused_triton
 
     res = {"arch": f"sm_{args.arch}", "triton": triton.__version__, "fast_float32": fused_triton.FAST_FLOAT32,
-           "faces": fused_triton.FACES, "rows": rows,
-           "per_cell_update": per_cell_update(rows)}
+           "faces": fused_triton.FACES, "rows": rows, "per_cell_update": per_cell_update(rows)}
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(res, f, indent=2)

@@ -42,10 +42,7 @@ def moving_bed():
 
 
 def nodata():
-    """Cells outside the DEM's domain, both rules, on the tiled faces (fused_triton.FACES; the walls' switch)."""
-    from torchslide.solver import fused_triton
-
-    fused_triton.FACES = "tiled"
+    """Cells outside the DEM's domain, both rules (the walls' switch)."""
     dem, rel, gauges = _channel()
     outside = np.zeros(dem.shape, dtype=bool)
     outside[:, 10:12] = True                 # a band of nodata across the path, beside the release
@@ -58,11 +55,7 @@ def nodata():
 
 def plane():
     """A plane dipping 30 degrees off the grid axes: an open boundary, no slope metric and no no-creep
-    rule, a friction map, no turbulent friction (xi = inf) with k_ap 1.5; on the tiled faces
-    (fused_triton.FACES: the friction map's switch)."""
-    from torchslide.solver import fused_triton
-
-    fused_triton.FACES = "tiled"
+    rule, a friction map, no turbulent friction (xi = inf) with k_ap 1.5."""
     dem = tilted_plane(12, 20.0, 35.0, plan_deg=30.0)[0]
     rel = cap_release(dem, -20.0, -10.0, 50.0, 4.0)
     compare_plane_settings(dem, rel, t_end=1.5, config=SolverConfig)
@@ -108,11 +101,11 @@ def _exact_sqrt() -> None:
 
 
 def bitwise():
-    """One step from a state of the all-terms chute run 5 steps in, with every term and with plain Voellmy,
-    on both designs of the faces (fused_triton.FACES: tiled, on 3 x 2 tiles of the 24 x 60 grid; lines with
-    the velocities stored, and recomputed with every term, fused_triton.VELOCITIES): every field of the Triton step equals
-    the torch step's to the last bit, with both rounding sqrt exactly (as on CUDA). Only the per-member
-    sums (kinetic energy, mass, boundary outflow) may differ, by their order of summation."""
+    """One step from a state of the all-terms chute run 5 steps in, with every term and with plain Voellmy
+    without the slope metric, on both designs of the faces (fused_triton.FACES; the marching kernel on strips
+    and bands that split the 24 x 60 grid along both axes): every field of the Triton step equals the torch
+    step's to the last bit, with both rounding sqrt exactly (as on CUDA). Only the per-member sums (kinetic
+    energy, mass, boundary outflow) may differ, by their order of summation."""
     from torchslide.solver import fused_triton, stepping
 
     from .conftest import assert_steps_equal, step_state
@@ -122,9 +115,10 @@ def bitwise():
     assert F.use_ep and F.use_curv and F.use_ent and F.use_dep and F.use_mu_i and F.no_creep
     plain = dataclasses.replace(F, use_ep=False, use_curv=False, use_ent=False, use_dep=False, use_mu_i=False,
                                 slope_correction=False)
-    assert fused_triton.INTERPRETED_TILE == (16, 32) and S["h"].shape[1:] == (24, 60)
-    for fused_triton.FACES, fused_triton.VELOCITIES, cases in (("tiled", "stored", (F, plain)), ("lines", "stored", (F, plain)),
-                                                              ("lines", "recomputed", (F,))):
+    W, band = fused_triton.INTERPRETED_MARCH
+    ny, nx = S["h"].shape[1:]
+    assert (ny, nx) == (24, 60) and nx + 1 > W - 4 and ny > band
+    for fused_triton.FACES, cases in (("march", (F, plain)), ("lines", (F,))):
         for flags in cases:
             assert_steps_equal(stepping.make_step(flags)(dict(S), P), fused_triton.triton_step(flags)(dict(S), P))
 
@@ -132,39 +126,47 @@ def bitwise():
 CASES = {f.__name__: f for f in (terms, moving_bed, nodata, plane, float32, bitwise)}
 """The cases against the torch step (tests/test_solver_triton.py); flushed_float32 runs with its own setting.
 Plain Voellmy runs in float64 on the plane (plane), in float32 on the channel (float32) and to the last bit for one
-step of the channel (bitwise). nodata and plane run the tiled faces, the others the default design
-(fused_triton.FACES), bitwise both."""
+step of the channel (bitwise). The whole runs take the default design of the faces (fused_triton.FACES), bitwise
+both."""
 
 SETTINGS = {"flushed_float32": {"TORCHSLIDE_FLUSH_SUBNORMALS": "1"}}
 """Environment of the cases that need one (read when torchslide.solver.fused_triton is imported)."""
 
 
 def _patch_language_once() -> None:
-    """Triton's interpreter patches triton.language again at every call of a @triton.jit helper inside a
-    kernel (a third of an interpreted step's time); the kernel's launch has patched it already, so a call
-    from the kernel's own module skips it (the same patched functions either way). Where the interpreter's
-    internals differ, it is left as it is."""
+    """Triton's interpreter patches triton.language again at every call of a @triton.jit function inside a
+    kernel (most of an interpreted step's time). The patches of a launch stay until it ends, so a call whose
+    language modules (triton.language, triton.language.core, as its globals name them) the launch has patched
+    already skips it (the same patched functions either way). Where the interpreter's internals differ, it is
+    left as it is."""
+    import inspect
+
+    import triton.language as tl
     from triton.runtime import interpreter
 
     if not (callable(getattr(interpreter, "_patch_lang", None)) and hasattr(interpreter, "GridExecutor")):
         return
     patch_lang, launch = interpreter._patch_lang, interpreter.GridExecutor.__call__
-    state = {"launch": False, "patched": None}     # patched: the globals of the running kernel, once patched
+    state = {"launch": False, "patched": set()}
+    langs_of: dict = {}     # id of a function's globals -> the ids of the language modules it names
 
     def patch_once(fn):
-        if state["patched"] is fn.__globals__:
-            return None                            # a helper's call: the scope is not used
+        key = id(fn.__globals__)
+        if key not in langs_of:
+            langs_of[key] = {id(v) for v in fn.__globals__.values() if inspect.ismodule(v) and v in (tl, tl.core)}
+        if state["launch"] and langs_of[key] <= state["patched"]:
+            return None                            # a call within the launch: the scope is not used
         scope = patch_lang(fn)
-        if state["launch"] and state["patched"] is None:
-            state["patched"] = fn.__globals__
+        if state["launch"]:
+            state["patched"] |= langs_of[key]
         return scope
 
     def run(self, *args, **kwargs):
-        state.update(launch=True, patched=None)
+        state.update(launch=True, patched=set())
         try:
             return launch(self, *args, **kwargs)
         finally:
-            state.update(launch=False, patched=None)
+            state.update(launch=False, patched=set())
 
     interpreter._patch_lang, interpreter.GridExecutor.__call__ = patch_once, run
 

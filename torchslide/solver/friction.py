@@ -24,11 +24,17 @@ from ..physics import MU_I_D, MU_I_I0
 Tensor = torch.Tensor
 
 
+def desingularised_factor(h: Tensor, h_eps: float) -> Tensor:
+    """r(h) = sqrt(2) h / sqrt(h^4 + max(h^4, h_eps^4)), 1/m: the desingularised velocity of a momentum q is
+    u = r q (KP07 Eq. 2.17); 1 / h for h >= h_eps, -> 0 as h -> 0. One division serves both components."""
+    h2 = h * h
+    h4 = h2 * h2
+    return (2.0**0.5) * h / torch.sqrt(h4 + torch.clamp(h4, min=h_eps**4))
+
+
 def desingularised_velocity(h: Tensor, q: Tensor, h_eps: float) -> Tensor:
-    """u = sqrt(2) h q / sqrt(h^4 + max(h^4, h_eps^4)) (KP07 Eq. 2.17): q/h for h >= h_eps, -> 0 as h -> 0."""
-    h4 = h * h * h * h
-    den = torch.sqrt(h4 + torch.clamp(h4, min=h_eps**4))
-    return (2.0**0.5) * h * q / den
+    """u = r(h) q (desingularised_factor, KP07 Eq. 2.17): q/h for h >= h_eps, -> 0 as h -> 0."""
+    return desingularised_factor(h, h_eps) * q
 
 
 def mu_effective(mu_c: Tensor, mu_i: Tensor, speed: Tensor, h: Tensor, gn: Tensor, h_eps: float,
@@ -54,27 +60,31 @@ def curvature_gn(gn: Tensor, scale: Tensor, cent: Tensor) -> Tensor:
     return torch.clamp(gn + scale * cent, min=0.0)
 
 
-def apply_friction(h: Tensor, qx: Tensor, qy: Tensor, dt: Tensor, coul: Tensor, xi: Tensor,
-                   g: float, h_eps: float, slope: tuple[Tensor, Tensor]) -> tuple[Tensor, Tensor]:
-    """One friction fractional step on the momentum along the surface (stops, never reverses).
+def turbulent_coefficient(dt: Tensor, xi: Tensor, sec: Tensor, g: float) -> Tensor:
+    """4 dt g / (xi cos), s, per cell: the implicit turbulent step's coefficient times h^2 (apply_friction);
+    0 where xi = inf (no turbulent term). dt: (B, 1, 1) s; xi: (B, 1, 1) m/s^2; sec: 1 / cos theta per cell."""
+    return ((4.0 * g) * dt * torch.reciprocal(xi)) * sec
 
-    The momentum along the surface of the horizontal momentum q = (qx, qy) is Q = (qx, qy, z_x qx +
-    z_y qy); friction opposes Q and scales it, so it scales q by the same factor.
+
+def apply_friction(h: Tensor, qn: Tensor, dt: Tensor, coul: Tensor, turb: Tensor, h_eps: float) -> Tensor:
+    """The factor of one friction fractional step on the momentum along the surface (stops, never reverses).
+
+    Friction opposes the momentum along the surface Q (|Q| = ``qn``) and scales it, so it scales the
+    horizontal momentum q by the same factor:
+
+        keep = max(0, 1 - dt coul / |Q|)                  (Coulomb + yield, clipped)
+        factor = keep 2 / (1 + sqrt(1 + a4 keep |Q|)),     a4 = turb / h^2   (turbulent, implicit)
 
     Args:
-        h: (B, ny, nx) thickness per horizontal area, m; qx, qy: horizontal momentum, m^2/s; dt: (B, 1, 1) s.
+        h: (B, ny, nx) thickness per horizontal area, m; qn: |Q|, m^2/s; dt: (B, 1, 1) s.
         coul: resisting force per horizontal area (mu_eff g_n_eff h_n + tau_y) / cos, m^2/s^2 (broadcastable).
-        xi: (B, 1, 1) or per cell Voellmy coefficient times cos theta, m/s^2 (inf: no turbulent term);
-            the turbulent force per horizontal area is g |Q|^2 / (xi cos h^2).
-        slope: (z_x, z_y) of the bed.
+        turb: turbulent_coefficient, 4 dt g / (xi cos) per cell (0: no turbulent term).
+    Returns:
+        the factor (B, ny, nx) in [0, 1].
     """
-    zx, zy = slope
-    w = zx * qx + zy * qy
-    qn = torch.sqrt(qx * qx + qy * qy + w * w)
     moving = qn > 0
-    qs = torch.where(moving, qn, torch.ones_like(qn))
-    keep = torch.where(moving, torch.clamp(1.0 - dt * coul / qs, min=0.0), torch.zeros_like(qn))
+    keep = torch.where(moving, torch.clamp(1.0 - dt * coul / torch.where(moving, qn, torch.ones_like(qn)), min=0.0),
+                       torch.zeros_like(qn))
     hs = torch.clamp(h, min=h_eps)
-    a4 = 4.0 * dt * (g / xi) / (hs * hs)
-    factor = keep * 2.0 / (1.0 + torch.sqrt(1.0 + a4 * (keep * qn)))
-    return qx * factor, qy * factor
+    a4 = turb / (hs * hs)
+    return keep * 2.0 / (1.0 + torch.sqrt(1.0 + a4 * (keep * qn)))

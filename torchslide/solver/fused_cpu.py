@@ -53,32 +53,25 @@ def supported(F, device) -> str | None:
 
 if numba is not None:
     @njit(cache=True, error_model="numpy", inline="always")
-    def _desing(h, q, h_eps4):
-        h4 = h * h * h * h
-        return SQRT2 * h * q / math.sqrt(h4 + max(h4, h_eps4))
+    def _dfac(h, h_eps4):
+        """friction.desingularised_factor: u = r q."""
+        h2 = h * h
+        h4 = h2 * h2
+        return SQRT2 * h / math.sqrt(h4 + max(h4, h_eps4))
 
     @njit(cache=True, error_model="numpy", inline="always")
-    def _unit(px, py):
-        """stepping.unit_direction."""
-        n2 = px * px + py * py
-        inv = 1.0 / math.sqrt(n2) if n2 > 0 else 0.0
-        return px * inv, py * inv
-
-    @njit(cache=True, error_model="numpy", inline="always")
-    def _stretch(ex, ey, zx, zy):
-        """stepping.stretch."""
-        se = zx * ex + zy * ey
-        return math.sqrt(1.0 + se * se)
+    def _motion(u, v, zx, zy):
+        """stepping.motion_stretch: (sigma, c, moving)."""
+        n2 = u * u + v * v
+        w = zx * u + zy * v
+        moving = n2 > 0
+        c = w / n2 if moving else 0.0
+        return math.sqrt(1.0 + w * c), c, moving
 
     @njit(cache=True, error_model="numpy", inline="always")
     def _minmod3(a, b, c):
-        mn = min(min(a, b), c)
-        mx = max(max(a, b), c)
-        if mn > 0:
-            return mn
-        if mx < 0:
-            return mx
-        return 0.0
+        """scheme.minmod3."""
+        return max(min(min(a, b), c), 0.0) + min(max(max(a, b), c), 0.0)
 
     @njit(cache=True, error_model="numpy")
     def _live_spans(h, hu, hv, rows, cols):
@@ -120,10 +113,10 @@ if numba is not None:
         for i in range(n):
             out[i + 2] = q[i]
         if linear:
-            out[0] = 3 * q[0] - 2 * q[1]
             out[1] = 2 * q[0] - q[1]
+            out[0] = 2 * out[1] - q[0]
             out[n + 2] = 2 * q[n - 1] - q[n - 2]
-            out[n + 3] = 3 * q[n - 1] - 2 * q[n - 2]
+            out[n + 3] = 2 * out[n + 2] - q[n - 1]
         else:
             out[0] = q[0]
             out[1] = q[0]
@@ -140,7 +133,8 @@ if numba is not None:
         padded line."""
         for c in range(f0, f1 + 2):
             qm, qc, qq = qp[c], qp[c + 1], qp[c + 2]
-            s = _minmod3(theta * (qc - qm), 0.5 * (qq - qm), theta * (qq - qc))
+            dm, dp = qc - qm, qq - qc
+            s = _minmod3(theta * dm, 0.5 * (dm + dp), theta * dp)
             if c <= n:
                 L[c] = qc + 0.5 * s
             if c >= 1:
@@ -239,17 +233,19 @@ if numba is not None:
             am = min(min(uR[f] - cR, uL[f] - cL), 0.0)
             den = ap - am
             inv = 1.0 / den if den > WAVE_SPEED_MIN else 0.0
-            apam = ap * am * inv
-            qL, qR = hL * uL[f], hR * uR[f]
-            phi[f] = 0.5 * (ap * hL * hL - am * hR * hR) * inv
+            aL = hL * (ap * inv)
+            aR = hR * (am * inv)
+            phi[f] = 0.5 * (aL * hL - aR * hR)
             if has_frozen and frozen[f]:
                 Fh[f] = 0.0
                 Fqn[f] = 0.0
                 Fqt[f] = 0.0
             else:
-                Fh[f] = (ap * qL - am * qR) * inv + apam * (hR - hL)
-                Fqn[f] = (ap * qL * UL[f] - am * qR * UR[f]) * inv + apam * (hR * UR[f] - hL * UL[f])
-                Fqt[f] = (ap * qL * tL[f] - am * qR * tR[f]) * inv + apam * (hR * tR[f] - hL * tL[f])
+                left = aL * (uL[f] - am)
+                right = aR * (ap - uR[f])
+                Fh[f] = left + right
+                Fqn[f] = left * UL[f] + right * UR[f]
+                Fqt[f] = left * tL[f] + right * tR[f]
             hLR[f] = hL
             wp[f] = hR          # (wp no longer needed) the right state of face f
             a = max(ap, -am)
@@ -262,7 +258,7 @@ if numba is not None:
         return amax
 
     @njit(cache=True, error_model="numpy")
-    def _frozen_line(h, kg, rest, zx, zy, cs, muc, tauc, zL, zR, g, dx, along_x, out, w, f0, f1):
+    def _frozen_line(h, kg, rest, zx, zy, cs, mcs, sec, mug, tau, zL, zR, g, dx, along_x, out, w, f0, f1):
         """scheme.frozen_faces along one line on its faces f0 ... f1 (along_x: the faces are x faces)."""
         n = h.shape[0]
         hp, kgp = w[0], w[1]
@@ -276,8 +272,8 @@ if numba is not None:
             zxf = 0.5 * (zx[a] + zx[b])
             zyf = 0.5 * (zy[a] + zy[b])
             csf = 0.5 * (cs[a] + cs[b])
-            muf = 0.5 * (muc[a] + muc[b])
-            tauf = 0.5 * (tauc[a] + tauc[b])
+            mcf = 0.5 * (mcs[a] + mcs[b])
+            secf = 0.5 * (sec[a] + sec[b])
             if along_x:
                 f_t = -g * zyf * hf
                 ax, ay = f_n, f_t
@@ -286,7 +282,7 @@ if numba is not None:
                 ax, ay = f_t, f_n
             along = zxf * ax + zyf * ay
             drive2 = ax * ax + ay * ay - csf * csf * along * along
-            lim = muf * hf + tauf
+            lim = (mug * mcf) * hf + tau * secf
             out[f] = rest[a] and rest[b] and (drive2 <= lim * lim)
 
     @njit(cache=True, error_model="numpy")
@@ -323,24 +319,22 @@ if numba is not None:
         kg = np.zeros((ny, nx))
         for i in range(ny):
             for j in range(near2[0, i], near2[1, i] + 1):
-                u[i, j] = _desing(h[i, j], hu[i, j], h_eps4)
-                v[i, j] = _desing(h[i, j], hv[i, j], h_eps4)
+                r = _dfac(h[i, j], h_eps4)
+                u[i, j] = r * hu[i, j]
+                v[i, j] = r * hv[i, j]
         if slope:       # the carried surface velocity sigma u (stepping._stage)
-            ex = np.zeros((ny, nx))
-            ey = np.zeros((ny, nx))
+            cm = np.zeros((ny, nx))
+            mv = np.zeros((ny, nx), dtype=np.bool_)
             sg = np.zeros((ny, nx))
             cu = np.zeros((ny, nx))
             cv = np.zeros((ny, nx))
             for i in range(ny):
                 for j in range(near2[0, i], near2[1, i] + 1):
-                    e1, e2 = _unit(u[i, j], v[i, j])
-                    ex[i, j] = e1
-                    ey[i, j] = e2
-                    sg[i, j] = _stretch(e1, e2, zx[i, j], zy[i, j])
+                    sg[i, j], cm[i, j], mv[i, j] = _motion(u[i, j], v[i, j], zx[i, j], zy[i, j])
                     cu[i, j] = sg[i, j] * u[i, j]
                     cv[i, j] = sg[i, j] * v[i, j]
         else:
-            ex, ey, sg, cu, cv = u, v, u, u, v
+            cm, mv, sg, cu, cv = u, np.zeros((ny, nx), dtype=np.bool_), u, u, v
         for i in range(ny):
             for j in range(near2[0, i], near2[1, i] + 1):
                 k = k_ap
@@ -348,7 +342,7 @@ if numba is not None:
                     div = (u[i, min(j + 1, nx - 1)] - u[i, max(j - 1, 0)]) + (v[min(i + 1, ny - 1), j] - v[max(i - 1, 0), j])
                     ksh = k_act if div >= 0 else k_pass
                     k = (1.0 - s_ep) * k_ap + s_ep * ksh
-                kg[i, j] = k * (g * cs[i, j]) * cs[i, j]
+                kg[i, j] = k * ((g * cs[i, j]) * cs[i, j])
         Fhx, Fqnx, Fqtx, phix = (np.zeros((ny, nx + 1)), np.zeros((ny, nx + 1)), np.zeros((ny, nx + 1)),
                                  np.zeros((ny, nx + 1)))
         Fhy, Fqny, Fqty, phiy = (np.zeros((ny + 1, nx)), np.zeros((ny + 1, nx)), np.zeros((ny + 1, nx)),
@@ -360,21 +354,22 @@ if numba is not None:
         wk = np.empty((17, m))
         if no_creep:
             rest = np.empty((ny, nx), dtype=np.bool_)
-            muc = np.empty((ny, nx))
-            tauc = np.empty((ny, nx))
+            mcs = np.empty((ny, nx))
+            sec = np.empty((ny, nx))
             for i in range(ny):
                 for j in range(near2[0, i], near2[1, i] + 1):
                     rest[i, j] = (hu[i, j] == 0) and (hv[i, j] == 0)
-                    muc[i, j] = (mu0 * mus[i, j]) * (g * cs[i, j])
-                    tauc[i, j] = tau / cs[i, j]
+                    mcs[i, j] = mus[i, j] * cs[i, j]     # (mus is 1 without a friction map)
+                    sec[i, j] = 1.0 / cs[i, j]
+            mug = mu0 * g
             for i in range(ny):
                 if rows[0, i] <= rows[1, i]:
-                    _frozen_line(h[i], kg[i], rest[i], zx[i], zy[i], cs[i], muc[i], tauc[i], zLx[i], zRx[i], g, dx,
-                                 True, fzx[i], wk, rows[0, i], rows[1, i] + 1)
+                    _frozen_line(h[i], kg[i], rest[i], zx[i], zy[i], cs[i], mcs[i], sec[i], mug, tau, zLx[i], zRx[i],
+                                 g, dx, True, fzx[i], wk, rows[0, i], rows[1, i] + 1)
             for j in range(nx):
                 if cols[0, j] <= cols[1, j]:
-                    _frozen_line(h[:, j], kg[:, j], rest[:, j], zx[:, j], zy[:, j], cs[:, j], muc[:, j], tauc[:, j],
-                                 zLy[:, j], zRy[:, j], g, dx, False, fzy[:, j], wk, cols[0, j], cols[1, j] + 1)
+                    _frozen_line(h[:, j], kg[:, j], rest[:, j], zx[:, j], zy[:, j], cs[:, j], mcs[:, j], sec[:, j],
+                                 mug, tau, zLy[:, j], zRy[:, j], g, dx, False, fzy[:, j], wk, cols[0, j], cols[1, j] + 1)
         if walls:       # stepping._domain_walls: faces between a cell of the domain and one outside it
             for i in range(ny):
                 for f in range(nx + 1):
@@ -431,6 +426,7 @@ if numba is not None:
                 Fqny[f, j] = Fqny[f, j] * c
                 Fqty[f, j] = Fqty[f, j] * c
         lam = dt * (1.0 / dx)
+        kturb = (4.0 * g) * dt * (1.0 / xi)     # friction.turbulent_coefficient without the 1 / cos
         bnd_x = 0.0
         bnd_y = 0.0
         for i in range(ny):
@@ -465,35 +461,42 @@ if numba is not None:
                     a2 = cs[i, j] * cs[i, j] * (zx[i, j] * px + zy[i, j] * py)
                     px = px - zx[i, j] * a2
                     py = py - zy[i, j] * a2
-                    e1, e2, sf = ex[i, j], ey[i, j], sg[i, j]
-                    if e1 == 0 and e2 == 0:
-                        e1, e2 = _unit(px, py)
-                        sf = _stretch(e1, e2, zx[i, j], zy[i, j])
-                    along = e1 * px + e2 * py
-                    tang = (along + (zx[i, j] * e1 + zy[i, j] * e2) * (zx[i, j] * px + zy[i, j] * py)) / sf
-                    px, py = tang * e1 + sf * (px - e1 * along), tang * e2 + sf * (py - e2 * along)
-                    qx = sg[i, j] * hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
-                    qy = sg[i, j] * hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
-                    e1, e2 = _unit(qx, qy)
-                    sf = _stretch(e1, e2, zx[i, j], zy[i, j])
-                    qx = qx / sf
-                    qy = qy / sf
+                    sf = sg[i, j]
+                    if mv[i, j]:    # stepping.surface_momentum_change
+                        cc, uu, vv = cm[i, j], u[i, j], v[i, j]
+                        zp = zx[i, j] * px + zy[i, j] * py
+                        k = cc * (zp - cc * (uu * px + vv * py)) / sf
+                        px, py = sf * px + uu * k, sf * py + vv * k
+                    else:           # a flow at rest starts along the force
+                        sp = _motion(px, py, zx[i, j], zy[i, j])[0]
+                        px, py = sp * px, sp * py
+                    qx = sf * hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
+                    qy = sf * hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
+                    n2 = qx * qx + qy * qy       # stepping.horizontal_momentum
+                    wq = zx[i, j] * qx + zy[i, j] * qy
+                    tq = n2 + wq * wq
+                    fq = math.sqrt(n2 / tq) if tq > 0 else 1.0
+                    qx = qx * fq
+                    qy = qy * fq
+                    qn = math.sqrt(n2)
                 else:
                     qx = hu[i, j] - lam * (((Fqnx[i, j + 1] - Fqnx[i, j]) + (Fqty[i + 1, j] - Fqty[i, j])) + px)
                     qy = hv[i, j] - lam * (((Fqtx[i, j + 1] - Fqtx[i, j]) + (Fqny[i + 1, j] - Fqny[i, j])) + py)
+                    qn = math.sqrt(qx * qx + qy * qy)
                 if gone_out and not inside[i, j]:   # what entered a cell outside the domain has left it
                     lost += hn
-                    hn, qx, qy = 0.0, 0.0, 0.0
+                    hn, qx, qy, qn = 0.0, 0.0, 0.0, 0.0
                 zn = z[i, j]
                 if use_ent or use_dep:
                     out_erod[i, j] = erod[i, j]
                     out_dep[i, j] = dep[i, j]
+                sc = 1.0 / cs[i, j]
                 if moving:      # mass sources, explicit in the stage-start state (stepping._stage)
                     uu, vv = u[i, j], v[i, j]
                     w0 = zx[i, j] * uu + zy[i, j] * vv
                     speed0 = math.sqrt(uu * uu + vv * vv + w0 * w0)
                     if use_ent:
-                        rate = kappa * speed0 / cs[i, j] * (1.0 if cs[i, j] * h[i, j] > ent_hmin else 0.0)
+                        rate = kappa * speed0 * sc * (1.0 if cs[i, j] * h[i, j] > ent_hmin else 0.0)
                         de = min(dt * rate, erod[i, j])
                         hn = hn + de
                         out_erod[i, j] = erod[i, j] - de
@@ -507,6 +510,7 @@ if numba is not None:
                         ratio = (hpos - dd) / hpos if hpos > 0 else 0.0
                         qx = qx * ratio
                         qy = qy * ratio
+                        qn = qn * ratio
                         hn = hn - dd
                         out_dep[i, j] = dep[i, j] + dd
                         zn = zn + dd
@@ -517,8 +521,9 @@ if numba is not None:
                 mue = mu0 * mus[i, j]
                 gne = gn
                 if use_curv or use_mu_i:
-                    un = _desing(hn, qx, h_eps4)
-                    vn = _desing(hn, qy, h_eps4)
+                    rn = _dfac(hn, h_eps4)
+                    un = rn * qx
+                    vn = rn * qy
                     if use_curv:
                         gne = max(gn + curv * (cs[i, j] * (zxx[i, j] * un * un + 2.0 * zxy[i, j] * un * vn
                                                            + zyy[i, j] * vn * vn)), 0.0)
@@ -528,21 +533,18 @@ if numba is not None:
                         hs_ = max(cs[i, j] * hnp, h_eps)
                         inertial = 2.5 * MU_I_D * spd / (hs_ * math.sqrt(max(gne, 1e-12) * hs_))
                         mue = mue + mu_i * inertial / (MU_I_I0 + inertial)
-                coul = mue * gne * hnp + tau / cs[i, j]
-                w = zx[i, j] * qx + zy[i, j] * qy
-                qn = math.sqrt(qx * qx + qy * qy + w * w)
+                coul = mue * gne * hnp + tau * sc
                 if qn > 0:
                     keep = max(1.0 - dt * coul / qn, 0.0)
                 else:
                     keep = 0.0
                 hs = max(hn, h_eps)
-                a4 = 4.0 * dt * ((1.0 / (xi * cs[i, j])) * g) / (hs * hs)
+                a4 = (kturb * sc) / (hs * hs)
                 factor = keep * 2.0 / (1.0 + math.sqrt(1.0 + a4 * (keep * qn)))
+                if hn < h_eps:  # a layer thinner than h_eps keeps its desingularised velocity's momentum
+                    factor = factor * (hn * _dfac(hn, h_eps4))
                 qx = qx * factor
                 qy = qy * factor
-                if hn < h_eps:
-                    qx = hn * _desing(hn, qx, h_eps4)
-                    qy = hn * _desing(hn, qy, h_eps4)
                 out_h[i, j] = max(hn, 0.0)
                 out_hu[i, j] = qx
                 out_hv[i, j] = qy
@@ -642,10 +644,8 @@ if numba is not None:
                     dN = 0.5 * (db[i, j] + d2[i, j])
                     dep_o[b, i, j] = dN
                     hfin = hN + dN
-                uN = _desing(hN, qx, h_eps4)
-                vN = _desing(hN, qy, h_eps4)
-                w = rzx[i, j] * uN + rzy[i, j] * vN
-                spd = math.sqrt(uN * uN + vN * vN + w * w)
+                w = rzx[i, j] * qx + rzy[i, j] * qy
+                spd = _dfac(hN, h_eps4) * math.sqrt(qx * qx + qy * qy + w * w)
                 hnorm = rcs[i, j] * hN
                 h_max[b, i, j] = max(h_max[b, i, j], rcs[i, j] * hfin)
                 v_max[b, i, j] = max(v_max[b, i, j], spd if hnorm >= vmin else 0.0)

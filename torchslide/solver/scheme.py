@@ -31,11 +31,13 @@ def pad_replicate(q: Tensor, d: int) -> Tensor:
 
 
 def pad_linear(z: Tensor, d: int) -> Tensor:
-    """Two ghost cells per side along ``d`` by linear extrapolation (exact for a plane)."""
+    """Two ghost cells per side along ``d`` by linear extrapolation (exact for a plane): g1 = 2 z0 - z1 next to
+    the edge cell z0, then g2 = 2 g1 - z0 (each ghost continues the line through the two cells inside it)."""
     n = z.shape[d]
     l0, l1 = z.narrow(d, 0, 1), z.narrow(d, 1, 1)
     r0, r1 = z.narrow(d, n - 1, 1), z.narrow(d, n - 2, 1)
-    return torch.cat([3 * l0 - 2 * l1, 2 * l0 - l1, z, 2 * r0 - r1, 3 * r0 - 2 * r1], dim=d)
+    gl, gr = 2 * l0 - l1, 2 * r0 - r1
+    return torch.cat([2 * gl - l0, gl, z, gr, 2 * gr - r0], dim=d)
 
 
 def pad_const(q: Tensor, d: int, value: float) -> Tensor:
@@ -47,15 +49,18 @@ def pad_const(q: Tensor, d: int, value: float) -> Tensor:
 
 
 def minmod3(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
-    """minmod(a, b, c): the smallest magnitude when all have one sign, else 0."""
-    mn = torch.minimum(torch.minimum(a, b), c)
-    mx = torch.maximum(torch.maximum(a, b), c)
-    zero = torch.zeros_like(mn)
-    return torch.where(mn > 0, mn, torch.where(mx < 0, mx, zero))
+    """minmod(a, b, c): the smallest magnitude when all have one sign, else 0, written as
+    max(min(a, b, c), 0) + min(max(a, b, c), 0) (at most one of the two terms is not 0)."""
+    zero = torch.zeros_like(a)
+    return (torch.maximum(torch.minimum(torch.minimum(a, b), c), zero)
+            + torch.minimum(torch.maximum(torch.maximum(a, b), c), zero))
 
 
 def reconstruct(qp: Tensor, d: int, n: int, theta: float) -> tuple[Tensor, Tensor]:
     """Piecewise-linear generalised-minmod reconstruction (KP07 Eq. 2.12).
+
+    The slope of cell c is minmod(theta dq_c, (dq_c + dq_c+1) / 2, theta dq_c+1) of the differences
+    dq_c = q_c - q_c-1 between neighbours, each difference computed once for the two cells it serves.
 
     Args:
         qp: field padded with 2 ghost cells along ``d`` (length n + 4).
@@ -63,8 +68,11 @@ def reconstruct(qp: Tensor, d: int, n: int, theta: float) -> tuple[Tensor, Tenso
         (left, right) states at the n + 1 faces along ``d`` (face i lies between cells i-1 and i;
         face 0 and face n are the boundary faces).
     """
-    qm, qc, qq = qp.narrow(d, 0, n + 2), qp.narrow(d, 1, n + 2), qp.narrow(d, 2, n + 2)
-    s = minmod3(theta * (qc - qm), 0.5 * (qq - qm), theta * (qq - qc))
+    dq = qp.narrow(d, 1, n + 3) - qp.narrow(d, 0, n + 3)
+    tdq = theta * dq
+    dm, dp = dq.narrow(d, 0, n + 2), dq.narrow(d, 1, n + 2)
+    s = minmod3(tdq.narrow(d, 0, n + 2), 0.5 * (dm + dp), tdq.narrow(d, 1, n + 2))
+    qc = qp.narrow(d, 1, n + 2)
     east = qc + 0.5 * s
     west = qc - 0.5 * s
     return east.narrow(d, 0, n + 1), west.narrow(d, 1, n + 1)
@@ -92,6 +100,33 @@ def bed_terms(z: Tensor, d: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor
     zm, zc, zq = zp.narrow(d, 0, n + 2), zp.narrow(d, 1, n + 2), zp.narrow(d, 2, n + 2)
     bias = torch.abs(zq - 2.0 * zc + zm) * 0.25
     return zp, zL, zR, Bf, bias
+
+
+def central_upwind(hL: Tensor, hR: Tensor, uL: Tensor, uR: Tensor, UL: Tensor, UR: Tensor, tL: Tensor, tR: Tensor,
+                   kgL: Tensor, kgR: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The central-upwind fluxes at faces (KP07 Eq. 3.11) from the left and right thickness h, normal velocity
+    u, carried normal and tangential velocities U, t and pressure coefficients kg (all broadcastable).
+
+    With the one-sided speeds a+ >= 0 >= a- (a = u -+ sqrt(kg h)) and d = a+ - a-, the mass flux
+    (a+ h- u- - a- h+ u+) / d + a+ a- (h+ - h-) / d is the sum of a left part L = h- a+ (u- - a-) / d and a
+    right part R = h+ a- (a+ - u+) / d; the momentum fluxes carry the same parts, L U- + R U+ and L t- + R t+,
+    and the pressure potential is phi = (a+ h-^2 - a- h+^2) / (2 d). A face whose speeds span less than
+    WAVE_SPEED_MIN carries nothing. Returns (Fh, Fqn, Fqt, phi, max(a+, -a-)).
+    """
+    cL = torch.sqrt(kgL * hL)
+    cR = torch.sqrt(kgR * hR)
+    zero = torch.zeros_like(hL)
+    ap = torch.maximum(torch.maximum(uR + cR, uL + cL), zero)
+    am = torch.minimum(torch.minimum(uR - cR, uL - cL), zero)
+    den = ap - am
+    pos = den > WAVE_SPEED_MIN
+    inv = torch.where(pos, torch.reciprocal(torch.where(pos, den, torch.ones_like(den))), zero)
+    aL = hL * (ap * inv)
+    aR = hR * (am * inv)
+    left = aL * (uL - am)
+    right = aR * (ap - uR)
+    return (left + right, left * UL + right * UR, left * tL + right * tR, 0.5 * (aL * hL - aR * hR),
+            torch.maximum(ap, -am))
 
 
 def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tensor | None, d: int,
@@ -136,28 +171,12 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tens
         tL, tR = reconstruct(pad_replicate(carried[1], d), d, n, theta)
     kgp = pad_replicate(kg.expand_as(h) if kg.shape != h.shape else kg, d)
     kgL, kgR = faces_of(kgp, d, n)
-    cL = torch.sqrt(kgL * hL)
-    cR = torch.sqrt(kgR * hR)
-    zero = torch.zeros_like(hL)
-    ap = torch.maximum(torch.maximum(uR + cR, uL + cL), zero)
-    am = torch.minimum(torch.minimum(uR - cR, uL - cL), zero)
-    den = ap - am
-    pos = den > WAVE_SPEED_MIN
-    inv = torch.where(pos, 1.0 / torch.where(pos, den, torch.ones_like(den)), zero)
-    apam = ap * am * inv
-    qL, qR = hL * uL, hR * uR
-    Fh = (ap * qL - am * qR) * inv + apam * (hR - hL)
-    Fqn = (ap * qL * UL - am * qR * UR) * inv + apam * (hR * UR - hL * UL)
-    Fqt = (ap * qL * tL - am * qR * tR) * inv + apam * (hR * tR - hL * tL)
-    phi = 0.5 * (ap * hL * hL - am * hR * hR) * inv
+    Fh, Fqn, Fqt, phi, speed = central_upwind(hL, hR, uL, uR, UL, UR, tL, tR, kgL, kgR)
     if frozen is not None:
-        Fh = torch.where(frozen, zero, Fh)
-        Fqn = torch.where(frozen, zero, Fqn)
-        Fqt = torch.where(frozen, zero, Fqt)
+        Fh, Fqn, Fqt = (torch.where(frozen, torch.zeros_like(a), a) for a in (Fh, Fqn, Fqt))
     hbar = 0.5 * (hR.narrow(d, 0, n) + hL.narrow(d, 1, n))
     dB = Bf.narrow(d, 1, n) - Bf.narrow(d, 0, n)
-    amax = torch.maximum(ap, -am).amax(dim=(1, 2))
-    return Fh, Fqn, Fqt, phi, hbar, dB, amax
+    return Fh, Fqn, Fqt, phi, hbar, dB, speed.amax(dim=(1, 2))
 
 
 def _face_drive(h: Tensor, kg: Tensor, bed, g: float, d: int, dx: float) -> tuple[Tensor, Tensor]:
@@ -180,35 +199,36 @@ def _face_mean(q: Tensor, d: int) -> Tensor:
 
 
 def frozen_faces(h: Tensor, kg: Tensor, rest: Tensor, hold: tuple[Tensor, Tensor], g: float, dx: float,
-                 slope: tuple[Tensor, Tensor, Tensor], beds) -> tuple[Tensor, Tensor]:
+                 slope: tuple[Tensor, Tensor, Tensor, Tensor, Tensor], beds) -> tuple[Tensor, Tensor]:
     """Faces that pass no flux (no creep; the D-Claw "no failure" rule on a sloping surface).
 
     A face is frozen when both cells beside it are at rest and friction can hold the driving force
     there: the horizontal drive f per unit map area, whose face-normal component is -(kg dh + g dz)
     hbar / dx from the face itself and whose tangential component is the bed's, -g hbar dz/dt (cell
     slopes), measured along the surface, |F_s|^2 = |f|^2 - cos^2 (grad z . f)^2 (the norm of the
-    metric's inverse), against hold = mu g_n hbar + tau_y / cos. On a plane the test is the same in
-    any plan orientation.
+    metric's inverse), against hold = mu g cos hbar + tau_y / cos (face means of the cells' cos, friction
+    map times cos and 1 / cos). On a plane the test is the same in any plan orientation.
 
     Args:
         h: (B, ny, nx) thickness per map area, m; kg: pressure coefficient per cell, m/s^2;
-        rest: (B, ny, nx) bool, momentum exactly zero; hold: (mu g_n per cell, tau_y / cos per cell),
-        broadcastable; slope: (z_x, z_y, cos theta) per cell; beds: (bed_terms along x, along y).
+        rest: (B, ny, nx) bool, momentum exactly zero; hold: (mu g, tau_y) per member, (B, 1, 1);
+        slope: (z_x, z_y, cos theta, mu_scale cos theta (cos theta without a friction map), 1 / cos theta)
+        per cell; beds: (bed_terms along x, along y).
     Returns:
         (frozen x faces (B, ny, nx + 1), frozen y faces (B, ny + 1, nx)).
     """
-    zx, zy, cs = slope
-    muc, tauc = hold
+    zx, zy, cs, mcs, sec = slope
+    mug, tau = hold
     out = []
     for d, bed in ((2, beds[0]), (1, beds[1])):
         f_n, hf = _face_drive(h, kg, bed, g, d, dx)
-        zxf, zyf, csf, muf, tauf = (_face_mean(q.expand_as(h) if q.shape != h.shape else q, d)
-                                    for q in (zx, zy, cs, muc, tauc))
+        zxf, zyf, csf, secf = (_face_mean(q.expand_as(h) if q.shape != h.shape else q, d) for q in (zx, zy, cs, sec))
+        mcf = csf if mcs is cs else _face_mean(mcs.expand_as(h) if mcs.shape != h.shape else mcs, d)
         f_t = -g * (zyf if d == 2 else zxf) * hf
         ax, ay = (f_n, f_t) if d == 2 else (f_t, f_n)
         along = zxf * ax + zyf * ay
         drive2 = ax * ax + ay * ay - csf * csf * along * along
-        lim = muf * hf + tauf
+        lim = (mug * mcf) * hf + tau * secf
         restL, restR = faces_of(pad_replicate(rest, d), d, h.shape[d])
         out.append(restL & restR & (drive2 <= lim * lim))
     return out[0], out[1]

@@ -12,11 +12,13 @@ the step the same on both devices, and the fused kernels (fused_cpu, fused_trito
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
 from ..physics import FR_DEP
-from .friction import apply_friction, curvature_gn, desingularised_velocity, mu_effective
+from .friction import (apply_friction, curvature_gn, desingularised_factor, desingularised_velocity, mu_effective,
+                       turbulent_coefficient)
 from .scheme import bed_terms, diff, draining_factors, faces_of, frozen_faces, pad_linear, pad_replicate, sweep
 
 Tensor = torch.Tensor
@@ -75,15 +77,26 @@ def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool
     return zx, zy, 1.0 / torch.sqrt(1.0 + zx * zx + zy * zy), hess
 
 
-def _geometry(z: Tensor, F: StepFlags):
-    return surface_geometry(z, F.dx, F.slope_correction, F.use_curv)
+class Geometry(NamedTuple):
+    """What the step reads of a bed (static_geometry): per cell (B or 1, ny, nx) z_x, z_y, cos theta, its
+    reciprocal sec = 1 / cos theta and the pressure coefficient per unit k, g cos^2 theta; the Hessian
+    (z_xx, z_xy, z_yy) or None; the bed terms of the x and y sweeps (scheme.bed_terms)."""
+
+    zx: Tensor
+    zy: Tensor
+    cs: Tensor
+    sec: Tensor
+    gc2: Tensor
+    hess: tuple | None
+    beds: tuple
 
 
-def static_geometry(z: Tensor, F: StepFlags):
-    """Everything the step needs from a bed that does not evolve: (z_x, z_y, cos theta, Hessian or None,
-    (bed_terms along x, bed_terms along y)); computed once per cropping box by the caller and passed
-    in as ``P["geo"]`` (it is the same for every step on that box)."""
-    return (*_geometry(z, F), (bed_terms(z, 2), bed_terms(z, 1)))
+def static_geometry(z: Tensor, F) -> Geometry:
+    """Everything the step needs from a bed (B or 1, ny, nx); computed once per cropping box by the caller
+    for a bed that does not evolve and passed in as ``P["geo"]`` (it is the same for every step on that
+    box), per stage where the bed moves."""
+    zx, zy, cs, hess = surface_geometry(z, F.dx, F.slope_correction, F.use_curv)
+    return Geometry(zx, zy, cs, torch.reciprocal(cs), (F.g * cs) * cs, hess, (bed_terms(z, 2), bed_terms(z, 1)))
 
 
 def surface_speed(u: Tensor, v: Tensor, zx: Tensor, zy: Tensor) -> Tensor:
@@ -101,39 +114,41 @@ def inverse_metric(px: Tensor, py: Tensor, zx: Tensor, zy: Tensor, cs: Tensor) -
     return px - zx * a, py - zy * a
 
 
-def unit_direction(px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
-    """The unit vector of the map vector (px, py); (0, 0) where it is zero."""
-    n2 = px * px + py * py
-    ok = n2 > 0
-    inv = torch.where(ok, 1.0 / torch.sqrt(torch.where(ok, n2, torch.ones_like(n2))), torch.zeros_like(n2))
-    return px * inv, py * inv
+def motion_stretch(u: Tensor, v: Tensor, zx: Tensor, zy: Tensor, tiny: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+    """(sigma, c, moving) of a flow with horizontal velocity u = (u, v): c = (grad z . u) / |u|^2 and
+    sigma = sqrt(1 + (grad z . u) c), the length along the surface of a unit map step in the direction of
+    motion (sigma |u| = |V|); at rest (|u|^2 <= ``tiny``) sigma = 1 and c = 0."""
+    n2 = u * u + v * v
+    w = zx * u + zy * v
+    moving = n2 > tiny
+    c = torch.where(moving, w / torch.where(moving, n2, torch.ones_like(n2)), torch.zeros_like(n2))
+    return torch.sqrt(1.0 + w * c), c, moving
 
 
-def stretch(ex: Tensor, ey: Tensor, zx: Tensor, zy: Tensor) -> Tensor:
-    """sigma = sqrt(1 + (grad z . e)^2) for the unit map direction e: the length along the surface of a
-    unit map step in direction e, so |V| = sigma |u| for a horizontal velocity u along e (1 for e = 0)."""
-    se = zx * ex + zy * ey
-    return torch.sqrt(1.0 + se * se)
-
-
-def surface_momentum_change(ax: Tensor, ay: Tensor, ex: Tensor, ey: Tensor, sg: Tensor, zx: Tensor,
+def surface_momentum_change(px: Tensor, py: Tensor, u: Tensor, v: Tensor, motion: tuple, zx: Tensor,
                             zy: Tensor) -> tuple[Tensor, Tensor]:
-    """The change of the surface momentum Q = sigma q (m^2/s per unit time, times dx) that the force
-    whose horizontal projection along the surface is A = (ax, ay) makes, for a flow moving in the unit
-    map direction e with stretch sigma = ``sg``: along e its component along the surface,
-    e^T G A / sigma (G = I + grad z grad z^T), across e sigma times A's (which turns the flow without
-    changing its speed). Where the flow is at rest, e is A's own direction: the change is sigma_A A."""
-    along = ex * ax + ey * ay
-    tang = (along + (zx * ex + zy * ey) * (zx * ax + zy * ay)) / sg
-    return tang * ex + sg * (ax - ex * along), tang * ey + sg * (ay - ey * along)
+    """The change of the surface momentum Q = sigma q (m^2/s per unit time, times dx) that the force whose
+    horizontal projection along the surface is p = (px, py) makes, for a flow with horizontal velocity u
+    (motion: motion_stretch(u)): along the direction of motion e its component along the surface,
+    e^T G p / sigma (G = I + grad z grad z^T), across e sigma times p's (which turns the flow without
+    changing its speed), i.e. sigma p + u c ((grad z . p) - c (u . p)) / sigma. Where the flow is at rest
+    the change is sigma_p p, with the stretch of p's own direction."""
+    sg, c, moving = motion
+    zp = zx * px + zy * py
+    k = c * (zp - c * (u * px + v * py)) / sg
+    sp = motion_stretch(px, py, zx, zy)[0]
+    return torch.where(moving, sg * px + u * k, sp * px), torch.where(moving, sg * py + v * k, sp * py)
 
 
-def horizontal_momentum(QX: Tensor, QY: Tensor, zx: Tensor, zy: Tensor) -> tuple[Tensor, Tensor]:
-    """q = Q / sigma(Q): the horizontal momentum of the surface momentum Q (map direction, |Q| = h |V|)
-    in a cell of slope grad z."""
-    ex, ey = unit_direction(QX, QY)
-    sg = stretch(ex, ey, zx, zy)
-    return QX / sg, QY / sg
+def horizontal_momentum(QX: Tensor, QY: Tensor, zx: Tensor, zy: Tensor, tiny: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+    """(qx, qy, |Q|): the horizontal momentum q = Q / sigma(Q) = Q |Q| / sqrt(|Q|^2 + (grad z . Q)^2) of the
+    surface momentum Q (map direction, |Q| = h |V|) in a cell of slope grad z, and |Q|."""
+    n2 = QX * QX + QY * QY
+    w = zx * QX + zy * QY
+    t = n2 + w * w
+    ok = t > tiny
+    f = torch.where(ok, torch.sqrt(n2 / torch.where(ok, t, torch.ones_like(t))), torch.ones_like(t))
+    return QX * f, QY * f, torch.sqrt(n2)
 
 
 def _earth_pressure(u: Tensor, v: Tensor, P: dict, F: StepFlags) -> Tensor:
@@ -161,27 +176,26 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     """
     dx, g = F.dx, F.g
     if geo is None:
-        geo = (*_geometry(z, F), (bed_terms(z, 2), bed_terms(z, 1)))
-    zx, zy, cs, hess, (bx, by) = geo
-    gn = g * cs
-    u = desingularised_velocity(h, hu, F.h_eps)
-    v = desingularised_velocity(h, hv, F.h_eps)
+        geo = static_geometry(z, F)
+    zx, zy, cs, sec, gc2, hess, (bx, by) = geo
+    r = desingularised_factor(h, F.h_eps)
+    u, v = r * hu, r * hv
     if F.slope_correction:
         # the momentum crosses faces as the surface momentum Q = sigma q (speed along the surface, map
         # direction), so a flow passing between cells of different slope keeps its speed (module docstring)
-        ex, ey = unit_direction(u, v)
-        sg = stretch(ex, ey, zx, zy)
+        motion = motion_stretch(u, v, zx, zy)
+        sg = motion[0]
         cu, cv = sg * u, sg * v
         carried_x, carried_y = (cu, cv), (cv, cu)
     else:
         carried_x = carried_y = None
-    k = _earth_pressure(u, v, P, F)
-    kg = k * gn * cs          # pressure k g_n hn^2 / 2 of the normal thickness hn = cos h, per horizontal length
-    mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
+    kg = _earth_pressure(u, v, P, F) * gc2   # pressure k g_n hn^2 / 2 of the normal thickness hn = cos h, per horizontal length
     tau = P["tau_y"]
     fx = fy = None
     if F.no_creep:
-        fx, fy = frozen_faces(h, kg, (hu == 0) & (hv == 0), (mu_c * gn, tau / cs), g, dx, (zx, zy, cs), (bx, by))
+        mcs = P["mu_scale"] * cs if F.use_mu_scale else cs
+        fx, fy = frozen_faces(h, kg, (hu == 0) & (hv == 0), (P["mu"] * g, tau), g, dx, (zx, zy, cs, mcs, sec),
+                              (bx, by))
     if F.domain == "wall":
         wx, wy = _domain_walls(P["inside"])
         fx, fy = (wx, wy) if fx is None else (fx | wx, fy | wy)
@@ -202,16 +216,13 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     if F.slope_correction:
         # the surface momentum Q = sigma q is updated and turned back into q with the cell's own metric
         px, py = inverse_metric(px, py, zx, zy, cs)
-        rest = (ex == 0) & (ey == 0)       # a flow at rest starts along the force
-        fx_, fy_ = unit_direction(px, py)
-        ex, ey = torch.where(rest, fx_, ex), torch.where(rest, fy_, ey)
-        sg_f = torch.where(rest, stretch(ex, ey, zx, zy), sg)
-        px, py = surface_momentum_change(px, py, ex, ey, sg_f, zx, zy)
-        qx, qy = horizontal_momentum(sg * hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px),
-                                     sg * hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py), zx, zy)
+        px, py = surface_momentum_change(px, py, u, v, motion, zx, zy)
+        qx, qy, qn = horizontal_momentum(sg * hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px),
+                                         sg * hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py), zx, zy)
     else:
         qx = hu - lam * ((diff(Fqnx, 2) + diff(Fqty, 1)) + px)
         qy = hv - lam * ((diff(Fqtx, 2) + diff(Fqny, 1)) + py)
+        qn = torch.sqrt(qx * qx + qy * qy)
     nx, ny = h.shape[2], h.shape[1]
     bnd = ((Fhx.narrow(2, nx, 1).sum(dim=(1, 2)) - Fhx.narrow(2, 0, 1).sum(dim=(1, 2)))
            + (Fhy.narrow(1, ny, 1).sum(dim=(1, 2)) - Fhy.narrow(1, 0, 1).sum(dim=(1, 2))))
@@ -219,13 +230,14 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     if F.domain == "outflow":   # what entered a cell outside the domain has left it
         gone = ~P["inside"]
         outflow = outflow + torch.where(gone, hn, torch.zeros_like(hn)).sum(dim=(1, 2)) * (dx * dx)
-        hn, qx, qy = (torch.where(gone, torch.zeros_like(a), a) for a in (hn, qx, qy))
+        hn, qx, qy, qn = (torch.where(gone, torch.zeros_like(a), a) for a in (hn, qx, qy, qn))
     # --- mass sources (explicit in the stage-start state; rates per unit horizontal area)
+    gn = g * cs
     if F.use_ent or F.use_dep:
         speed0 = surface_speed(u, v, zx, zy)
     if F.use_ent:
         # erosion kappa |V| normal to the bed per unit bed area = kappa |V| / cos per horizontal area
-        rate = P["kappa"] * speed0 / cs * (cs * h > F.entrain_h_min).to(h.dtype)
+        rate = P["kappa"] * speed0 * sec * (cs * h > F.entrain_h_min).to(h.dtype)
         de = torch.minimum(dtb * rate, erod)
         hn = hn + de
         erod = erod - de
@@ -238,22 +250,24 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
         dd = torch.minimum(dtb * rate, hpos)
         left = hpos > 0
         ratio = torch.where(left, (hpos - dd) / torch.where(left, hpos, torch.ones_like(hpos)), torch.zeros_like(hpos))
-        qx, qy = qx * ratio, qy * ratio
+        qx, qy, qn = qx * ratio, qy * ratio, qn * ratio
         hn = hn - dd
         dep = dep + dd
         z = z + dd
     # --- friction on the momentum along the surface (Eq. 4)
-    un = desingularised_velocity(hn, qx, F.h_eps)
-    vn = desingularised_velocity(hn, qy, F.h_eps)
+    mu_c = P["mu"] * P["mu_scale"] if F.use_mu_scale else P["mu"]
+    if F.use_curv or F.use_mu_i:
+        rn = desingularised_factor(hn, F.h_eps)
+        un, vn = rn * qx, rn * qy
     gne = curvature_gn(gn, P["curvature"], cs * _hessian_form(hess, un, vn)) if F.use_curv else gn
     spd = surface_speed(un, vn, zx, zy) if F.use_mu_i else None
     hnp = torch.clamp(hn, min=0.0)
     mue = mu_effective(mu_c, P["mu_i"], spd, cs * hnp, gne, F.h_eps, F.use_mu_i)
-    coul = mue * gne * hnp + tau / cs
-    qx, qy = apply_friction(hn, qx, qy, dtb, coul, P["xi"] * cs, F.g, F.h_eps, (zx, zy))
-    thin = hn < F.h_eps
-    qx = torch.where(thin, hn * desingularised_velocity(hn, qx, F.h_eps), qx)
-    qy = torch.where(thin, hn * desingularised_velocity(hn, qy, F.h_eps), qy)
+    coul = mue * gne * hnp + tau * sec
+    factor = apply_friction(hn, qn, dtb, coul, turbulent_coefficient(dtb, P["xi"], sec, g), F.h_eps)
+    # a layer thinner than h_eps keeps its desingularised velocity's momentum h u
+    factor = factor * torch.where(hn < F.h_eps, hn * desingularised_factor(hn, F.h_eps), torch.ones_like(hn))
+    qx, qy = qx * factor, qy * factor
     hn = torch.clamp(hn, min=0.0)
     return hn, qx, qy, z, erod, dep, outflow, dt
 
@@ -322,9 +336,7 @@ def make_step(F: StepFlags):
         # z_x, z_y, cos theta on this box)
         rzx, rzy, rcs = P["rec"]
         hN = out["h"]
-        uN = desingularised_velocity(hN, out["hu"], F.h_eps)
-        vN = desingularised_velocity(hN, out["hv"], F.h_eps)
-        spd = surface_speed(uN, vN, rzx, rzy)
+        spd = desingularised_factor(hN, F.h_eps) * surface_speed(out["hu"], out["hv"], rzx, rzy)
         spd2 = spd * spd
         hfin = hN + out["dep"] if F.use_dep else hN
         hnorm = rcs * hN
