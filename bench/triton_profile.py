@@ -27,10 +27,12 @@ import re
 import subprocess
 import tempfile
 
-KERNELS = {"march": ("_march", "_update", "_update+combine"),
-           "lines": ("_velocities", "_facesx", "_facesy", "_cells", "_update", "_update+combine")}
-"""The kernels of a step per design of the faces (fused_triton.FACES): each but the combine's update runs once
-per stage, "_update+combine" once per step (the second stage's update)."""
+KERNELS = {"march": (("_march", 1), ("_march+second", 1), ("_update", 1), ("_update+combine", 1)),
+           "lines": (("_velocities", 2), ("_facesx", 1), ("_facesx+second", 1), ("_facesy", 1), ("_facesy+second", 1),
+                     ("_cells", 2), ("_update", 1), ("_update+combine", 1))}
+"""The kernels of a step per design of the faces (fused_triton.FACES), each with how often a step runs it: the
+first stage's faces find the time step (CFL), the second's ("+second") do not; the second stage's update
+averages and records ("+combine")."""
 
 FP = ("FADD", "FMUL", "FFMA", "FMNMX", "FSETP", "FSEL", "MUFU", "DADD", "DMUL", "DFMA", "DSETP", "DMNMX", "FCHK")
 """The floating-point SASS opcodes (fp_per_cell)."""
@@ -46,7 +48,8 @@ def kernel_fn(name: str):
     """The @triton.jit function of kernel ``name`` (a KERNELS entry: "_facesx" is _faces on AXIS 0)."""
     from torchslide.solver import triton_lines, triton_march, triton_update
 
-    base = name.split("+")[0].rstrip("xy") if name.startswith("_faces") else name.split("+")[0]
+    base = name.split("+")[0]
+    base = base.rstrip("xy") if base.startswith("_faces") else base
     for module in (triton_march, triton_update, triton_lines):
         if hasattr(module, base):
             return getattr(module, base)
@@ -57,7 +60,7 @@ def switches(name: str) -> list[str]:
     """The compile-time switches of kernel ``name`` (its tl.constexpr parameters but the launch shape)."""
     params = inspect.signature(kernel_fn(name).fn).parameters
     return [p for p, v in params.items() if v.annotation in ("tl.constexpr", "constexpr")
-            and p not in ("BLOCK", "AXIS", "W", "BAND", "COMBINE", "UNROLL")]
+            and p not in ("BLOCK", "AXIS", "W", "BAND", "COMBINE", "UNROLL", "CFL")]
 
 
 def compile_kernel(name: str, dtype: str, on: dict, arch: int = 90, block: int | None = None,
@@ -73,17 +76,23 @@ def compile_kernel(name: str, dtype: str, on: dict, arch: int = 90, block: int |
 
     fn = kernel_fn(name)
     params = list(inspect.signature(fn.fn).parameters)
-    if name == "_march":
+    if name.startswith("_march"):
         w, band = march or fused_triton.MARCH
         consts = {"W": w, "BAND": band, "UNROLL": fused_triton.MARCH_UNROLL}
+        num_warps = max(1, w // 32)
+    elif name.startswith("_update"):
+        w, band = fused_triton.UPDATE
+        consts = {"W": w, "BAND": band, "UNROLL": fused_triton.UPDATE_UNROLL}
         num_warps = max(1, w // 32)
     else:
         consts = {"BLOCK": block or default_block(dtype)}
         num_warps = num_warps or fused_triton.NUM_WARPS
     if name.startswith("_faces"):
-        consts["AXIS"] = "xy".index(name[-1])
+        consts["AXIS"] = "xy".index(name.split("+")[0][-1])
     if "COMBINE" in params:
         consts["COMBINE"] = name.endswith("+combine")
+    if "CFL" in params:
+        consts["CFL"] = not name.endswith("+second")
     consts.update({s: bool(on.get(s, False)) for s in switches(name)})
     sig = {p: "constexpr" if p in consts else ("*i1" if p == "inside_ptr" else f"*{dtype}")
            if p.endswith("_ptr") else "i32" for p in params}
@@ -129,31 +138,36 @@ def _counts(ops: list[str]) -> tuple[int, int, int]:
     return len(ops), sum(op in FP for op in ops), ops.count("MUFU")
 
 
-def sass_profile(kernel, cells_per_thread: float, rows_per_band: int | None = None, unroll: int = 1) -> dict:
+def sass_profile(kernel, cells_per_thread: float, band: tuple | None = None) -> dict:
     """Registers, local memory bytes, shared memory bytes, and SASS, floating-point and MUFU instructions per
     cell of a compiled kernel whose threads hold ``cells_per_thread`` cells. A kernel with a loop over rows
-    (``rows_per_band``: its rows per program) counts the body of its main loop (the largest; ``unroll`` rows per
-    pass) per row, and the rest (prologue, the unrolled loop's remainder, epilogue) once per band."""
+    (``band``: (rows per program, iterations of its loop per program, rows per pass of the unrolled loop))
+    counts what a full band executes, per row: the main loop's body once per pass, the remainder loop's once
+    per iteration left over, and the code outside the loops once."""
     res = _cuobjdump(kernel.asm["cubin"], "-res-usage")
     regs, local = (int(re.search(rf"{k}:(\d+)", res).group(1)) for k in ("REG", "LOCAL"))
     body = _body(_cuobjdump(kernel.asm["cubin"], "-sass"))
     out = {"registers": regs, "local_bytes": local, "shared_bytes": int(kernel.metadata.shared)}
-    if rows_per_band is None:
+    if band is None:
         n, fp, mufu = _counts([op for _, op, _ in body])
-        prologue = 0.0
     else:
+        rows, iterations, unroll = band
         branches = [(a, int(m.group(1), 16)) for a, op, text in body if op == "BRA"
                     for m in [re.search(r"0x([0-9a-f]+)", text)] if m and int(m.group(1), 16) < a]
-        if not branches:
-            raise ValueError("no loop in the kernel")
-        loops = [[op for a, op, _ in body if start <= a <= end] for end, start in branches]
-        loop = max(loops, key=len)
-        n, fp, mufu = (k / unroll for k in _counts(loop))
-        prologue = (len(body) - len(loop)) / rows_per_band
-        out["loop_per_cell"] = round(n / cells_per_thread, 1)
-        out["prologue_per_cell"] = round(prologue / cells_per_thread, 1)
-    out.update(instructions_per_cell=round((n + prologue) / cells_per_thread, 1),
-               fp_per_cell=round(fp / cells_per_thread, 1), mufu_per_cell=round(mufu / cells_per_thread, 2))
+        loops = sorted(([b for b in body if start <= b[0] <= end] for end, start in branches), key=len, reverse=True)
+        if not loops or len(loops) > 2:
+            raise ValueError(f"expected a loop and its remainder, found {len(loops)} loops")
+        inside = {a for loop in loops for a, _, _ in loop}
+        weights = [(loops[0], iterations // unroll)] + [(loop, iterations % unroll) for loop in loops[1:]]
+        weights.append(([b for b in body if b[0] not in inside], 1))
+        counts = [0.0, 0.0, 0.0]
+        for block, w in weights:
+            for i, k in enumerate(_counts([op for _, op, _ in block])):
+                counts[i] += w * k
+        n, fp, mufu = (k / rows for k in counts)
+        out["loop_per_cell"] = round(len(loops[0]) * (iterations // unroll) / rows / cells_per_thread, 1)
+    out.update(instructions_per_cell=round(n / cells_per_thread, 1), fp_per_cell=round(fp / cells_per_thread, 1),
+               mufu_per_cell=round(mufu / cells_per_thread, 2))
     return out
 
 
@@ -168,27 +182,32 @@ def profile(arch: int = 90, block: int | None = None, num_warps: int | None = No
         block_d = block or default_block(dtype)
         for terms, switched in TERMS.items():
             for design, names in KERNELS.items():
-                for name in names:
+                for name, runs in names:
                     on = {s: (s not in SKIP) if switched is None else switched.get(s, False) for s in switches(name)}
                     k = compile_kernel(name, dtype, on, arch, block_d, num_warps, (w, band))
-                    if name == "_march":
-                        prof = sass_profile(k, (w - 4) / (32 * max(1, w // 32)), band, fused_triton.MARCH_UNROLL)
+                    if name.startswith("_march"):
+                        prof = sass_profile(k, (w - 4) / (32 * max(1, w // 32)), (band, band + 1, fused_triton.MARCH_UNROLL))
                         launch = {"W": w, "BAND": band, "num_warps": max(1, w // 32)}
+                    elif name.startswith("_update"):
+                        uw, ub = fused_triton.UPDATE
+                        prof = sass_profile(k, (uw - 2) / (32 * max(1, uw // 32)), (ub, ub, fused_triton.UPDATE_UNROLL))
+                        launch = {"W": uw, "BAND": ub, "num_warps": max(1, uw // 32)}
                     else:
                         prof = sass_profile(k, max(1, block_d // (32 * num_warps)))
                         launch = {"block": block_d, "num_warps": num_warps}
-                    rows.append({"kernel": name, "design": design, "dtype": dtype, "terms": terms, **launch, **prof})
+                    rows.append({"kernel": name, "runs_per_step": runs, "design": design, "dtype": dtype, "terms": terms,
+                                 **launch, **prof})
     return rows
 
 
 def per_cell_update(rows: list[dict]) -> dict:
-    """Instructions, floating-point instructions and MUFU per cell-update (a step: two stages, the second's
-    update with the combine), per design-dtype-terms."""
+    """Instructions, floating-point instructions and MUFU per cell-update (a step: each kernel as often as the step
+    runs it), per design-dtype-terms."""
     out = {}
     for r in rows:
         key = f"{r['design']}-{r['dtype']}-{r['terms']}"
         s = out.setdefault(key, {"instructions": 0.0, "fp": 0.0, "mufu": 0.0})
-        n = 1 if r["kernel"].startswith("_update") else 2
+        n = r["runs_per_step"]
         s["instructions"] += n * r["instructions_per_cell"]
         s["fp"] += n * r["fp_per_cell"]
         s["mufu"] += n * r["mufu_per_cell"]

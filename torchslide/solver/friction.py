@@ -82,9 +82,7 @@ def apply_friction(h: Tensor, qn: Tensor, dt: Tensor, coul: Tensor, turb: Tensor
     Returns:
         the factor (B, ny, nx) in [0, 1].
     """
-    moving = qn > 0
-    keep = torch.where(moving, torch.clamp(1.0 - dt * coul / torch.where(moving, qn, torch.ones_like(qn)), min=0.0),
-                       torch.zeros_like(qn))
+    keep = torch.where(qn > 0, torch.clamp(1.0 - dt * coul / qn, min=0.0), torch.zeros_like(qn))
     hs = torch.clamp(h, min=h_eps)
     a4 = turb / (hs * hs)
     return keep * 2.0 / (1.0 + torch.sqrt(1.0 + a4 * (keep * qn)))

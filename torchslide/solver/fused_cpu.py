@@ -258,8 +258,9 @@ if numba is not None:
         return amax
 
     @njit(cache=True, error_model="numpy")
-    def _frozen_line(h, kg, rest, zx, zy, cs, mcs, sec, mug, tau, zL, zR, g, dx, along_x, out, w, f0, f1):
-        """scheme.frozen_faces along one line on its faces f0 ... f1 (along_x: the faces are x faces)."""
+    def _frozen_line(h, kg, rest, zx, zy, cs, mcs, sec, mu, tau, zL, zR, g, dx, along_x, out, w, f0, f1):
+        """scheme.frozen_faces along one line on its faces f0 ... f1 (along_x: the faces are x faces), with
+        scheme.hold_coefficients computed face by face."""
         n = h.shape[0]
         hp, kgp = w[0], w[1]
         _pad(h, hp, True, True)
@@ -267,22 +268,22 @@ if numba is not None:
         for f in range(f0, f1 + 1):
             a, b = max(f - 1, 0), min(f, n - 1)
             hcL, hcR = hp[f + 1], hp[f + 2]
-            hf = 0.5 * (hcL + hcR)
-            f_n = -(0.5 * (kgp[f + 1] + kgp[f + 2]) * (hcR - hcL) + g * (zR[f] - zL[f])) * hf * (1.0 / dx)
             zxf = 0.5 * (zx[a] + zx[b])
             zyf = 0.5 * (zy[a] + zy[b])
             csf = 0.5 * (cs[a] + cs[b])
             mcf = 0.5 * (mcs[a] + mcs[b])
             secf = 0.5 * (sec[a] + sec[b])
-            if along_x:
-                f_t = -g * zyf * hf
-                ax, ay = f_n, f_t
-            else:
-                f_t = -g * zxf * hf
-                ax, ay = f_t, f_n
-            along = zxf * ax + zyf * ay
-            drive2 = ax * ax + ay * ay - csf * csf * along * along
-            lim = (mug * mcf) * hf + tau * secf
+            zn, zt = (zxf, zyf) if along_x else (zyf, zxf)
+            T = -g * zt
+            c2 = csf * csf
+            alpha = 1.0 - c2 * (zn * zn)
+            beta = -2.0 * c2 * zn * zt * T
+            gamma = T * T * (1.0 - c2 * (zt * zt))
+            gdz = g * (zR[f] - zL[f]) * (1.0 / dx)
+            hf = 0.5 * (hcL + hcR)
+            A = -(0.5 * (kgp[f + 1] + kgp[f + 2]) * (hcR - hcL) * (1.0 / dx) + gdz)
+            drive2 = (hf * hf) * ((alpha * A + beta) * A + gamma)
+            lim = hf * (mu * (g * mcf)) + tau * secf
             out[f] = rest[a] and rest[b] and (drive2 <= lim * lim)
 
     @njit(cache=True, error_model="numpy")
@@ -361,15 +362,14 @@ if numba is not None:
                     rest[i, j] = (hu[i, j] == 0) and (hv[i, j] == 0)
                     mcs[i, j] = mus[i, j] * cs[i, j]     # (mus is 1 without a friction map)
                     sec[i, j] = 1.0 / cs[i, j]
-            mug = mu0 * g
             for i in range(ny):
                 if rows[0, i] <= rows[1, i]:
-                    _frozen_line(h[i], kg[i], rest[i], zx[i], zy[i], cs[i], mcs[i], sec[i], mug, tau, zLx[i], zRx[i],
+                    _frozen_line(h[i], kg[i], rest[i], zx[i], zy[i], cs[i], mcs[i], sec[i], mu0, tau, zLx[i], zRx[i],
                                  g, dx, True, fzx[i], wk, rows[0, i], rows[1, i] + 1)
             for j in range(nx):
                 if cols[0, j] <= cols[1, j]:
                     _frozen_line(h[:, j], kg[:, j], rest[:, j], zx[:, j], zy[:, j], cs[:, j], mcs[:, j], sec[:, j],
-                                 mug, tau, zLy[:, j], zRy[:, j], g, dx, False, fzy[:, j], wk, cols[0, j], cols[1, j] + 1)
+                                 mu0, tau, zLy[:, j], zRy[:, j], g, dx, False, fzy[:, j], wk, cols[0, j], cols[1, j] + 1)
         if walls:       # stepping._domain_walls: faces between a cell of the domain and one outside it
             for i in range(ny):
                 for f in range(nx + 1):

@@ -44,18 +44,28 @@ of "lines" (bench/results/triton_profile.json); a GPU run (bench.bench_solver --
 128x4:lines,128x4:march) decides which is faster on the card."""
 
 BLOCK = {"float32": 512, "float64": 128}
-"""Cells (or faces) per program of the cell-wise kernels (the update; the line design's kernels), per dtype:
-with 4 warps four cells per thread in float32 (their scalar and address work shared: 264 SASS instructions
-per cell of the update against 352 with one) and one in float64 (whose registers four would spill;
+"""Cells (or faces) per program of the line design's kernels, per dtype: with 4 warps four cells per thread in
+float32 (their scalar and address work shared) and one in float64 (whose registers four would spill;
 bench.bench_solver --launch BLOCKxWARPS sets both)."""
 
 NUM_WARPS = 4
-"""Warps per program of the cell-wise kernels."""
+"""Warps per program of the line design's kernels."""
 
-MARCH = (32, 32)
+MARCH = (32, 64)
 """(W, BAND) of the marching kernel: a warp over a strip of W = 32 positions (W - 4 = 28 columns owned, one
-position per lane: its neighbours along a row are shuffles within the warp) marching through BAND = 32 rows
-(the bands give a small batch programs enough to fill the card)."""
+position per lane: its neighbours along a row are shuffles within the warp) marching through at most BAND = 64
+rows (band: fewer where a small batch would leave the card's multiprocessors without work)."""
+
+UPDATE = (32, 64)
+"""(W, BAND) of the update: a warp over a strip of W = 32 positions (W - 2 = 30 columns updated, a draining
+factor's neighbours along a row are shuffles) marching through at most BAND = 64 rows."""
+
+PROGRAMS_PER_SM = 8
+"""The least programs (one warp each) per multiprocessor a marching launch aims at before it shortens its band
+(band): a 10-member batch on the 20 m Bondo-like grid marches through 16 rows, a 256-member one through 64."""
+
+UPDATE_UNROLL = 2
+"""The update's loop over rows unrolled (1: not)."""
 
 MARCH_UNROLL = 3
 """The marching loop unrolled three times: the rows' roles (older, newer, new) rotate with period three, so
@@ -69,6 +79,9 @@ mostly per program; the same arithmetic per cell as any BLOCK."""
 INTERPRETED_MARCH = (64, 16)
 """(W, BAND) under the interpreter: the test grids still span several strips and bands (their seams are
 tested) at a lower cost per program."""
+
+INTERPRETED_UPDATE = (32, 16)
+"""The update's (W, BAND) under the interpreter."""
 
 
 def supported(F, device) -> str | None:
@@ -115,23 +128,39 @@ def _launch(dtype) -> dict:
     return {"BLOCK": _block(dtype), "num_warps": NUM_WARPS, "enable_fp_fusion": fp_fusion(dtype)}
 
 
-def _update_launch(dtype, nx: int) -> dict:
-    """Launch options of the update, whose program holds cells of one row: BLOCK, at most the row's length
-    rounded up to a power of two, with as many cells per thread as BLOCK and NUM_WARPS give."""
-    block = _block(dtype)
-    per_thread = max(1, block // (32 * NUM_WARPS))
-    block = min(block, max(32 * per_thread, triton.next_power_of_2(nx)))
-    return {"BLOCK": block, "num_warps": max(1, block // (32 * per_thread)), "enable_fp_fusion": fp_fusion(dtype)}
-
-
 def march_shape() -> tuple[int, int]:
     """(W, BAND) of the marching kernel: MARCH, or INTERPRETED_MARCH under the interpreter."""
     return INTERPRETED_MARCH if interpreted() else MARCH
 
 
+def update_shape() -> tuple[int, int]:
+    """(W, BAND) of the update: UPDATE, or INTERPRETED_UPDATE under the interpreter."""
+    return INTERPRETED_UPDATE if interpreted() else UPDATE
+
+
+def band(shape: tuple[int, int], B: int, ny: int, nx: int, owned: int, device) -> int:
+    """The rows a marching program walks: BAND of ``shape`` (W, BAND), halved (down to 8) while the launch would
+    have fewer than PROGRAMS_PER_SM programs per multiprocessor of the CUDA device (a longer band shares its
+    start-up over more rows; more bands give a small batch programs for the whole card). ``owned``: columns per
+    strip."""
+    rows = shape[1]
+    if torch.device(device).type != "cuda":
+        return rows
+    target = PROGRAMS_PER_SM * torch.cuda.get_device_properties(device).multi_processor_count
+    strips = triton.cdiv(nx + 1, owned)
+    while rows > 8 and B * strips * triton.cdiv(ny, rows) < target:
+        rows //= 2
+    return rows
+
+
 def _stride(t: torch.Tensor) -> int:
     """Member stride of a (1 or B, ...) field: 0 when one field serves every member."""
     return 0 if t.shape[0] == 1 else t[0].numel()
+
+
+def _faces_stride(t: torch.Tensor) -> int:
+    """Member stride in faces (or cells) of a (1 or B, ..., k) field interleaved in k: 0 for one field of every member."""
+    return 0 if t.shape[0] == 1 else t[0].numel() // t.shape[-1]
 
 
 def padded_bed(geo) -> torch.Tensor:
@@ -155,28 +184,33 @@ def _outputs(h):
             torch.empty((B, ny, nx, 4), dtype=h.dtype, device=h.device))
 
 
-def _faces_march(h, hu, hv, geo, zpp, mus, inside, pm, c, F):
-    """The faces of a stage on the marching kernel: (x faces, y faces, cells, (ax, ay) (B,)) (_outputs)."""
+def _faces_march(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool = True):
+    """The faces of a stage on the marching kernel: (x faces, y faces, cells, (ax, ay) (B,), None without
+    ``cfl``) (_outputs)."""
     B, ny, nx = h.shape
-    W, band = march_shape()
+    W = march_shape()[0]
+    rows = band(march_shape(), B, ny, nx, W - 4, h.device)
+    zpp, gq, hold_x, hold_y = fields
     fx, fy, cell = _outputs(h)
-    grid = (triton.cdiv(nx + 1, W - 4), triton.cdiv(ny, band), B)
+    grid = (triton.cdiv(nx + 1, W - 4), triton.cdiv(ny, rows), B)
     amax = torch.empty((B, grid[0] * grid[1], 2), dtype=h.dtype, device=h.device)
-    _march[grid](h, hu, hv, zpp, geo.zx, geo.zy, geo.cs, geo.sec, geo.gc2, mus, inside, pm, c, fx, fy, cell, amax,
-                 ny, nx, _stride(geo.cs), _stride(zpp), NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
-                 USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, SLOPE=F.slope_correction, W=W, BAND=band,
+    _march[grid](h, hu, hv, zpp, gq, hold_x, hold_y, inside, pm, c, fx, fy, cell, amax,
+                 ny, nx, _stride(geo.cs), _stride(zpp), _faces_stride(hold_x), _faces_stride(hold_y),
+                 NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
+                 USE_EP=F.use_ep, USE_TAU=F.use_tau, SLOPE=F.slope_correction, CFL=cfl, W=W, BAND=rows,
                  UNROLL=MARCH_UNROLL, num_warps=max(1, W // 32), enable_fp_fusion=fp_fusion(h.dtype))
-    return fx, fy, cell, amax.amax(dim=1).unbind(1)
+    return fx, fy, cell, amax.amax(dim=1).unbind(1) if cfl else None
 
 
-def _faces_lines(h, hu, hv, geo, zpp, mus, inside, pm, c, F):
+def _faces_lines(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool = True):
     """The faces of a stage on the line kernels: (x faces, y faces, (out, mx, my, sg), (ax, ay) (B,))."""
     B, ny, nx = h.shape
+    zpp, gq, holds = fields[0], fields[1], fields[2:]
     launch = _launch(h.dtype)
     cells = (triton.cdiv(ny * nx, launch["BLOCK"]), B)
     u, v = torch.empty_like(h), torch.empty_like(h)
     cu, cv, sg = (torch.empty_like(h) for _ in range(3)) if F.slope_correction else (u, v, h)
-    _velocities[cells](h, hu, hv, geo.zx, geo.zy, c, u, v, cu, cv, sg, ny, nx, _stride(geo.cs),
+    _velocities[cells](h, hu, hv, gq, c, u, v, cu, cv, sg, ny, nx, _stride(geo.cs),
                        SLOPE=F.slope_correction, **launch)
     quads = _outputs(h)
     sweeps = []
@@ -184,15 +218,15 @@ def _faces_lines(h, hu, hv, geo, zpp, mus, inside, pm, c, F):
         hl, hr = (torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(2))
         grid = (triton.cdiv(nf[0] * nf[1], launch["BLOCK"]), B)
         amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
-        _faces[grid](h, hu, hv, u, v, cu, cv, zpp, geo.zx, geo.zy, geo.cs, geo.sec, geo.gc2, mus, inside, pm, c,
-                     quads[axis], hl, hr, amax, ny, nx, _stride(zpp), _stride(geo.cs), AXIS=axis, NO_CREEP=F.no_creep,
-                     WALLS=F.domain == "wall", USE_MUS=F.use_mu_scale, USE_EP=F.use_ep, SLOPE=F.slope_correction,
+        _faces[grid](h, hu, hv, u, v, cu, cv, zpp, geo.gc2, holds[axis], inside, pm, c, quads[axis], hl, hr, amax, ny,
+                     nx, _stride(zpp), _stride(geo.cs), _faces_stride(holds[axis]), AXIS=axis, NO_CREEP=F.no_creep,
+                     WALLS=F.domain == "wall", USE_EP=F.use_ep, USE_TAU=F.use_tau, SLOPE=F.slope_correction, CFL=cfl,
                      **launch)
         sweeps.append((hl, hr, amax.amax(dim=1)))
     (hlx, hrx, ax), (hly, hry, ay) = sweeps
-    _cells[cells](u, v, sg, zpp, geo.zx, geo.zy, geo.cs, geo.gc2, pm, c, quads[0], hlx, hrx, quads[1], hly, hry,
+    _cells[cells](u, v, sg, zpp, gq, geo.gc2, pm, c, quads[0], hlx, hrx, quads[1], hly, hry,
                   quads[2], ny, nx, _stride(zpp), _stride(geo.cs), USE_EP=F.use_ep, SLOPE=F.slope_correction, **launch)
-    return (*quads, (ax, ay))
+    return (*quads, (ax, ay) if cfl else None)
 
 
 def triton_step(F):
@@ -200,7 +234,8 @@ def triton_step(F):
     stepping.make_step's step on the Triton kernels (same inputs and outputs)."""
     moving = F.use_ent or F.use_dep
     tables: dict = {}
-    beds: list = [None]     # (the geometry of the last static bed, its padded bed), replaced whole
+    held: list = [None]     # (the geometry of the last static bed, its padded bed and fields), replaced whole
+    held_rec: list = [None]  # (the last box's records' metric, interleaved)
 
     def consts(dtype, device):
         key = (dtype, str(device))
@@ -208,29 +243,49 @@ def triton_step(F):
             tables[key] = constants(F, dtype, device)
         return tables[key]
 
-    def bed_of(geo):
-        last = beds[0]
+    def rec_of(rec):
+        """The records' metric (z_x, z_y, cos of the initial bed, P["rec"]) interleaved in fours, once per box."""
+        last = held_rec[0]
+        if last is not None and all(a is b for a, b in zip(last[0], rec)):
+            return last[1]
+        quad = torch.stack(list(rec) + [torch.zeros_like(rec[0])], dim=-1).contiguous()
+        held_rec[0] = (rec, quad)
+        return quad
+
+    def fields_of(geo):
+        """The kernels' fields of the geometry ``geo``, once per static bed (held): the padded bed zpp, per cell
+        (z_x, z_y, cos, g cos^2) interleaved, and the no-creep rule's coefficients at the x and y faces in eights
+        (the geometry's quad itself where the rule is off)."""
+        last = held[0]
         if last is not None and last[0] is geo:
             return last[1]
-        zpp = padded_bed(geo).contiguous()
+        quad = torch.stack([geo.zx, geo.zy, geo.cs, geo.gc2], dim=-1).contiguous()
+        if geo.holds is None:
+            holds = (quad, quad)
+        else:
+            holds = tuple(torch.stack(list(H) + [torch.zeros_like(H.alpha)] * 2, dim=-1).contiguous()
+                          for H in geo.holds)
+        fields = (padded_bed(geo).contiguous(), quad, *holds)
         if not moving:
-            beds[0] = (geo, zpp)
-        return zpp
+            held[0] = (geo, fields)
+        return fields
 
     def stage(h, hu, hv, z, erod, dep, dt, dt_cap, pm, c, P, geo, start=None):
         """stepping._stage on the kernels: the new (h, hu, hv, z, erod, dep), the stage's sums (B, 4) and dt
         (B,). ``start``: for the second stage, (h, hu, hv, z, erod, dep) of the step's start, the records'
         inputs and t_new: the update then averages and records (COMBINE)."""
         B, ny, nx = h.shape
-        geo = static_geometry(z, F) if geo is None else geo
-        zpp = bed_of(geo)
+        geo = static_geometry(z, F, P.get("mu_scale")) if geo is None else geo
+        fields = fields_of(geo)
+        gq = fields[1]
         geo = type(geo)(*(a.contiguous() if torch.is_tensor(a) else a for a in geo))
         hess = tuple(a.contiguous() for a in geo.hess) if geo.hess is not None else (geo.zx,) * 3
         mus = P["mu_scale"].contiguous() if F.use_mu_scale else geo.cs
         inside = P["inside"].contiguous() if F.domain else geo.cs
         faces = _faces_march if FACES == "march" else _faces_lines
-        fx, fy, cell, (ax, ay) = faces(h, hu, hv, geo, zpp, mus, inside, pm, c, F)
+        fx, fy, cell, speeds = faces(h, hu, hv, geo, fields, inside, pm, c, F, dt is None)
         if dt is None:
+            ax, ay = speeds
             dt = torch.minimum(F.cfl * F.dx / (ax + ay), dt_cap)
             dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
         dt = dt.contiguous()
@@ -238,22 +293,25 @@ def triton_step(F):
         z_o = torch.empty_like(h) if moving else h
         e_o = torch.empty_like(h) if F.use_ent else h
         d_o = torch.empty_like(h) if F.use_dep else h
-        launch = _update_launch(h.dtype, nx)
-        grid = (triton.cdiv(nx, launch["BLOCK"]), ny, B)
+        W = update_shape()[0]
+        rows = band(update_shape(), B, ny, nx, W - 2, h.device)
+        grid = (triton.cdiv(nx, W - 2), triton.cdiv(ny, rows), B)
         part = torch.empty((B, grid[0] * grid[1], 4), dtype=h.dtype, device=h.device)
         some = lambda a: h if a is None else a
         if start is None:
-            combine, rec = (h,) * 6, (h,) * 3
+            combine, rec = (h,) * 6, h
             records, rec_out, t_new = (h,) * 3, (h,) * 3, dt
         else:
             combine, rec, records, t_new = start
             rec_out = [torch.empty_like(h) for _ in range(3)]
         _update[grid](h, hu, hv, cell, some(z) if moving else h, some(erod) if F.use_ent else h,
-                      some(dep) if F.use_dep else h, fx, fy, geo.zx, geo.zy, geo.cs, geo.sec, *hess, mus, inside, pm,
-                      c, dt, *(some(a) for a in combine), *rec, *records, t_new, *new, z_o, e_o, d_o, *rec_out, part,
+                      some(dep) if F.use_dep else h, fx, fy, gq, *hess, mus, inside, pm,
+                      c, dt, *(some(a) for a in combine), rec, *records, t_new, *new, z_o, e_o, d_o, *rec_out, part,
                       ny, nx, _stride(geo.cs), SLOPE=F.slope_correction, USE_CURV=F.use_curv, USE_MU_I=F.use_mu_i,
-                      USE_ENT=F.use_ent, USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale, GONE_OUT=F.domain == "outflow",
-                      INFLOW=F.inflow, COMBINE=start is not None, **launch)
+                      USE_ENT=F.use_ent, USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale, USE_TAU=F.use_tau,
+                      GONE_OUT=F.domain == "outflow",
+                      INFLOW=F.inflow, COMBINE=start is not None, W=W, BAND=rows, UNROLL=UPDATE_UNROLL,
+                      num_warps=max(1, W // 32), enable_fp_fusion=fp_fusion(h.dtype))
         sums = part.sum(dim=1)
         return (*new, z_o if moving else z, e_o if F.use_ent else erod, d_o if F.use_dep else dep), sums, dt, rec_out
 
@@ -266,11 +324,11 @@ def triton_step(F):
         active, t, t_next = S["active"], S["t"], S["t_next"]
         rem = t_next - t
         dt_cap = torch.where(active, torch.clamp(rem, max=F.dt_max), torch.zeros_like(rem))
-        geo = None if moving else (P["geo"] if "geo" in P else static_geometry(z, F))
+        geo = None if moving else (P["geo"] if "geo" in P else static_geometry(z, F, P.get("mu_scale")))
         first, sums1, dt, _ = stage(h, hu, hv, z, erod, dep, None, dt_cap, pm, c, P, geo)
         hit = active & (dt >= rem)
         t_new = torch.where(hit, t_next, t + dt)
-        rec = tuple(a.contiguous() for a in P["rec"])
+        rec = rec_of(P["rec"])
         records = (S["h_max"].contiguous(), S["v_max"].contiguous(), S["arrival"].contiguous())
         final, sums2, _, rec_out = stage(*first, dt, dt_cap, pm, c, P, geo,
                                          start=((h, hu, hv, z, erod, dep), rec, records, t_new.contiguous()))

@@ -11,6 +11,8 @@ What a boundary face may carry into the domain is set by ``draining_factors``' `
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 Tensor = torch.Tensor
@@ -120,7 +122,7 @@ def central_upwind(hL: Tensor, hR: Tensor, uL: Tensor, uR: Tensor, UL: Tensor, U
     am = torch.minimum(torch.minimum(uR - cR, uL - cL), zero)
     den = ap - am
     pos = den > WAVE_SPEED_MIN
-    inv = torch.where(pos, torch.reciprocal(torch.where(pos, den, torch.ones_like(den))), zero)
+    inv = torch.where(pos, torch.reciprocal(den), zero)
     aL = hL * (ap * inv)
     aR = hR * (am * inv)
     left = aL * (uL - am)
@@ -179,18 +181,6 @@ def sweep(h: Tensor, un: Tensor, ut: Tensor, z: Tensor, kg: Tensor, frozen: Tens
     return Fh, Fqn, Fqt, phi, hbar, dB, speed.amax(dim=(1, 2))
 
 
-def _face_drive(h: Tensor, kg: Tensor, bed, g: float, d: int, dx: float) -> tuple[Tensor, Tensor]:
-    """Signed horizontal driving force per unit horizontal area at the n + 1 faces along ``d``,
-    -(kg dh + g dz) hbar / dx (positive towards +d), and the face mean thickness hbar, m."""
-    n = h.shape[d]
-    hp = torch.clamp(pad_linear(h, d), min=0.0)
-    hcL, hcR = faces_of(hp, d, n)
-    kgL, kgR = faces_of(pad_replicate(kg.expand_as(h) if kg.shape != h.shape else kg, d), d, n)
-    _, zL, zR, _, _ = bed
-    hbf = 0.5 * (hcL + hcR)
-    return -(0.5 * (kgL + kgR) * (hcR - hcL) + g * (zR - zL)) * hbf * (1.0 / dx), hbf
-
-
 def _face_mean(q: Tensor, d: int) -> Tensor:
     """Mean of the two cells beside each of the n + 1 faces along ``d`` (edge value replicated)."""
     n = q.shape[d]
@@ -198,38 +188,69 @@ def _face_mean(q: Tensor, d: int) -> Tensor:
     return 0.5 * (qL + qR)
 
 
-def frozen_faces(h: Tensor, kg: Tensor, rest: Tensor, hold: tuple[Tensor, Tensor], g: float, dx: float,
-                 slope: tuple[Tensor, Tensor, Tensor, Tensor, Tensor], beds) -> tuple[Tensor, Tensor]:
+class FaceHold(NamedTuple):
+    """The bed's part of the no-creep rule at the faces along one axis (hold_coefficients): with A the drive
+    per unit thickness normal to the face, the squared drive along the surface per unit thickness is
+    (alpha A + beta) A + gamma; m0 = g cos (times the friction map), gdz = g dz / dx (the bed step across the
+    face), secf = 1 / cos, all face means of the two cells."""
+
+    alpha: Tensor
+    beta: Tensor
+    gamma: Tensor
+    m0: Tensor
+    gdz: Tensor
+    secf: Tensor
+
+
+def hold_coefficients(zx: Tensor, zy: Tensor, cs: Tensor, mcs: Tensor, sec: Tensor, bed, g: float, dx: float,
+                      d: int) -> FaceHold:
+    """The no-creep rule's coefficients at the faces along ``d`` of a bed (frozen_faces; once per bed).
+
+    The horizontal drive per unit map area at a face is f = hbar (A n + T t): A = -(kg dh / dx + g dz / dx)
+    along the face normal n, T = -g dz/dt along the face (the cells' mean slope), and its squared norm
+    along the surface is |f|^2 - cos^2 (grad z . f)^2 (the metric's inverse) = hbar^2 ((alpha A + beta) A +
+    gamma) with alpha = 1 - cos^2 z_n^2, beta = -2 cos^2 z_n z_t T, gamma = T^2 (1 - cos^2 z_t^2).
+
+    Args:
+        zx, zy, cs, mcs, sec: per cell z_x, z_y, cos theta, cos theta times the friction map (cos theta
+        without one) and 1 / cos theta, (B or 1, ny, nx); bed: bed_terms(z, d).
+    """
+    zxf, zyf, csf, secf = (_face_mean(q, d) for q in (zx, zy, cs, sec))
+    mcf = csf if mcs is cs else _face_mean(mcs, d)
+    zn, zt = (zxf, zyf) if d == 2 else (zyf, zxf)
+    T = -g * zt
+    c2 = csf * csf
+    _, zL, zR, _, _ = bed
+    return FaceHold(1.0 - c2 * (zn * zn), -2.0 * c2 * zn * zt * T, T * T * (1.0 - c2 * (zt * zt)), g * mcf,
+                    g * (zR - zL) * (1.0 / dx), secf)
+
+
+def frozen_faces(h: Tensor, kg: Tensor, rest: Tensor, mu: Tensor, tau: Tensor | None, holds: tuple, dx: float
+                 ) -> tuple[Tensor, Tensor]:
     """Faces that pass no flux (no creep; the D-Claw "no failure" rule on a sloping surface).
 
     A face is frozen when both cells beside it are at rest and friction can hold the driving force
-    there: the horizontal drive f per unit map area, whose face-normal component is -(kg dh + g dz)
-    hbar / dx from the face itself and whose tangential component is the bed's, -g hbar dz/dt (cell
-    slopes), measured along the surface, |F_s|^2 = |f|^2 - cos^2 (grad z . f)^2 (the norm of the
-    metric's inverse), against hold = mu g cos hbar + tau_y / cos (face means of the cells' cos, friction
-    map times cos and 1 / cos). On a plane the test is the same in any plan orientation.
+    there: the horizontal drive per unit map area, -(kg dh + g dz) hbar / dx across the face from the face
+    itself and -g hbar dz/dt along it from the bed (hold_coefficients), measured along the surface, against
+    hold = mu g cos hbar + tau_y / cos. On a plane the test is the same in any plan orientation.
 
     Args:
         h: (B, ny, nx) thickness per map area, m; kg: pressure coefficient per cell, m/s^2;
-        rest: (B, ny, nx) bool, momentum exactly zero; hold: (mu g, tau_y) per member, (B, 1, 1);
-        slope: (z_x, z_y, cos theta, mu_scale cos theta (cos theta without a friction map), 1 / cos theta)
-        per cell; beds: (bed_terms along x, along y).
+        rest: (B, ny, nx) bool, momentum exactly zero; mu, tau: per member (B, 1, 1) (tau None: no yield
+        stress); holds: (hold_coefficients along x, along y).
     Returns:
         (frozen x faces (B, ny, nx + 1), frozen y faces (B, ny + 1, nx)).
     """
-    zx, zy, cs, mcs, sec = slope
-    mug, tau = hold
     out = []
-    for d, bed in ((2, beds[0]), (1, beds[1])):
-        f_n, hf = _face_drive(h, kg, bed, g, d, dx)
-        zxf, zyf, csf, secf = (_face_mean(q.expand_as(h) if q.shape != h.shape else q, d) for q in (zx, zy, cs, sec))
-        mcf = csf if mcs is cs else _face_mean(mcs.expand_as(h) if mcs.shape != h.shape else mcs, d)
-        f_t = -g * (zyf if d == 2 else zxf) * hf
-        ax, ay = (f_n, f_t) if d == 2 else (f_t, f_n)
-        along = zxf * ax + zyf * ay
-        drive2 = ax * ax + ay * ay - csf * csf * along * along
-        lim = (mug * mcf) * hf + tau * secf
-        restL, restR = faces_of(pad_replicate(rest, d), d, h.shape[d])
+    for d, H in ((2, holds[0]), (1, holds[1])):
+        n = h.shape[d]
+        hcL, hcR = faces_of(torch.clamp(pad_linear(h, d), min=0.0), d, n)
+        kgL, kgR = faces_of(pad_replicate(kg.expand_as(h) if kg.shape != h.shape else kg, d), d, n)
+        hf = 0.5 * (hcL + hcR)
+        A = -(0.5 * (kgL + kgR) * (hcR - hcL) * (1.0 / dx) + H.gdz)
+        drive2 = (hf * hf) * ((H.alpha * A + H.beta) * A + H.gamma)
+        lim = hf * (mu * H.m0) + tau * H.secf if tau is not None else hf * (mu * H.m0)
+        restL, restR = faces_of(pad_replicate(rest, d), d, n)
         out.append(restL & restR & (drive2 <= lim * lim))
     return out[0], out[1]
 
@@ -254,8 +275,7 @@ def draining_factors(h: Tensor, Fx: Tensor, Fy: Tensor, dt: Tensor, dx: float,
     outx = torch.relu(Fx.narrow(2, 1, nx)) + torch.relu(-Fx.narrow(2, 0, nx))
     outy = torch.relu(Fy.narrow(1, 1, ny)) + torch.relu(-Fy.narrow(1, 0, ny))
     out = (outx + outy) * (dt * (1.0 / dx))
-    over = out > h
-    fac = torch.where(over, h / torch.where(over, out, torch.ones_like(out)), torch.ones_like(out))
+    fac = torch.where(out > h, h / out, torch.ones_like(out))
     fx = pad_const(fac, 2, ghost)
     fy = pad_const(fac, 1, ghost)
     facx = torch.where(Fx > 0, fx.narrow(2, 0, nx + 1), fx.narrow(2, 1, nx + 1))

@@ -302,6 +302,7 @@ def _step_flags(cfg: SolverConfig, P0: Params, inp: _Inputs, dx: float) -> StepF
         arrival_threshold=cfg.arrival_threshold, v_max_min_depth=cfg.v_max_min_depth, entrain_h_min=cfg.entrain_h_min,
         no_creep=cfg.no_creep, slope_correction=cfg.slope_correction,
         use_ep=bool((P0.earth_pressure > 0).any()), use_curv=bool((P0.curvature > 0).any()),
+        use_tau=bool((P0.tau_y != 0).any()),
         use_ent=inp.use_ent, use_dep=inp.use_dep, use_mu_i=bool((P0.mu_i > 0).any()),
         use_mu_scale=inp.mu_scale is not None, inflow=cfg.boundary == "open",
         domain="" if inp.inside is None else cfg.nodata)
@@ -401,7 +402,7 @@ def _run(S: dict, P0: Params, inp: _Inputs, F: StepFlags, cfg: SolverConfig, out
         if inp.inside is not None:
             P_["inside"] = inp.inside[:, b.r0:b.r1, b.c0:b.c1].contiguous()
         if not inp.evolve:  # the bed terms of this box, once (not once per step)
-            P_["geo"] = static_geometry(sub_["z"], F)
+            P_["geo"] = static_geometry(sub_["z"], F, P_.get("mu_scale"))
         gi_, gin_ = _crop.gauge_index(g_rows, g_cols, b)
         return sub_, P_, gi_, gin_
 

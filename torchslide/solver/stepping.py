@@ -19,7 +19,8 @@ import torch
 from ..physics import FR_DEP
 from .friction import (apply_friction, curvature_gn, desingularised_factor, desingularised_velocity, mu_effective,
                        turbulent_coefficient)
-from .scheme import bed_terms, diff, draining_factors, faces_of, frozen_faces, pad_linear, pad_replicate, sweep
+from .scheme import (bed_terms, diff, draining_factors, faces_of, frozen_faces, hold_coefficients, pad_linear,
+                     pad_replicate, sweep)
 
 Tensor = torch.Tensor
 
@@ -48,6 +49,7 @@ class StepFlags:
     use_dep: bool
     use_mu_i: bool
     use_mu_scale: bool
+    use_tau: bool = True      # a member's yield stress is not 0 (without it the step leaves its zero terms out)
     inflow: bool = False      # SolverConfig.boundary == "open": boundary faces may carry mass into the domain
     domain: str = ""          # cells outside the DEM's domain: "" none, "outflow" or "wall" (SolverConfig.nodata)
 
@@ -80,7 +82,8 @@ def surface_geometry(z: Tensor, dx: float, slope_correction: bool, hessian: bool
 class Geometry(NamedTuple):
     """What the step reads of a bed (static_geometry): per cell (B or 1, ny, nx) z_x, z_y, cos theta, its
     reciprocal sec = 1 / cos theta and the pressure coefficient per unit k, g cos^2 theta; the Hessian
-    (z_xx, z_xy, z_yy) or None; the bed terms of the x and y sweeps (scheme.bed_terms)."""
+    (z_xx, z_xy, z_yy) or None; the bed terms of the x and y sweeps (scheme.bed_terms); the no-creep rule's
+    coefficients at the x and y faces (scheme.hold_coefficients) or None."""
 
     zx: Tensor
     zy: Tensor
@@ -89,14 +92,21 @@ class Geometry(NamedTuple):
     gc2: Tensor
     hess: tuple | None
     beds: tuple
+    holds: tuple | None
 
 
-def static_geometry(z: Tensor, F) -> Geometry:
-    """Everything the step needs from a bed (B or 1, ny, nx); computed once per cropping box by the caller
-    for a bed that does not evolve and passed in as ``P["geo"]`` (it is the same for every step on that
-    box), per stage where the bed moves."""
+def static_geometry(z: Tensor, F, mu_scale: Tensor | None = None) -> Geometry:
+    """Everything the step needs from a bed (B or 1, ny, nx) and the friction map ``mu_scale`` (with
+    F.use_mu_scale); computed once per cropping box by the caller for a bed that does not evolve and passed
+    in as ``P["geo"]`` (it is the same for every step on that box), per stage where the bed moves."""
     zx, zy, cs, hess = surface_geometry(z, F.dx, F.slope_correction, F.use_curv)
-    return Geometry(zx, zy, cs, torch.reciprocal(cs), (F.g * cs) * cs, hess, (bed_terms(z, 2), bed_terms(z, 1)))
+    sec = torch.reciprocal(cs)
+    beds = (bed_terms(z, 2), bed_terms(z, 1))
+    holds = None
+    if F.no_creep:
+        mcs = mu_scale * cs if F.use_mu_scale else cs
+        holds = tuple(hold_coefficients(zx, zy, cs, mcs, sec, bed, F.g, F.dx, d) for bed, d in zip(beds, (2, 1)))
+    return Geometry(zx, zy, cs, sec, (F.g * cs) * cs, hess, beds, holds)
 
 
 def surface_speed(u: Tensor, v: Tensor, zx: Tensor, zy: Tensor) -> Tensor:
@@ -121,7 +131,7 @@ def motion_stretch(u: Tensor, v: Tensor, zx: Tensor, zy: Tensor, tiny: float = 0
     n2 = u * u + v * v
     w = zx * u + zy * v
     moving = n2 > tiny
-    c = torch.where(moving, w / torch.where(moving, n2, torch.ones_like(n2)), torch.zeros_like(n2))
+    c = torch.where(moving, w / n2, torch.zeros_like(n2))
     return torch.sqrt(1.0 + w * c), c, moving
 
 
@@ -146,8 +156,7 @@ def horizontal_momentum(QX: Tensor, QY: Tensor, zx: Tensor, zy: Tensor, tiny: fl
     n2 = QX * QX + QY * QY
     w = zx * QX + zy * QY
     t = n2 + w * w
-    ok = t > tiny
-    f = torch.where(ok, torch.sqrt(n2 / torch.where(ok, t, torch.ones_like(t))), torch.ones_like(t))
+    f = torch.where(t > tiny, torch.sqrt(n2 / t), torch.ones_like(t))
     return QX * f, QY * f, torch.sqrt(n2)
 
 
@@ -176,8 +185,8 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     """
     dx, g = F.dx, F.g
     if geo is None:
-        geo = static_geometry(z, F)
-    zx, zy, cs, sec, gc2, hess, (bx, by) = geo
+        geo = static_geometry(z, F, P.get("mu_scale"))
+    zx, zy, cs, sec, gc2, hess, (bx, by), holds = geo
     r = desingularised_factor(h, F.h_eps)
     u, v = r * hu, r * hv
     if F.slope_correction:
@@ -190,12 +199,10 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     else:
         carried_x = carried_y = None
     kg = _earth_pressure(u, v, P, F) * gc2   # pressure k g_n hn^2 / 2 of the normal thickness hn = cos h, per horizontal length
-    tau = P["tau_y"]
+    tau = P["tau_y"] if F.use_tau else None
     fx = fy = None
     if F.no_creep:
-        mcs = P["mu_scale"] * cs if F.use_mu_scale else cs
-        fx, fy = frozen_faces(h, kg, (hu == 0) & (hv == 0), (P["mu"] * g, tau), g, dx, (zx, zy, cs, mcs, sec),
-                              (bx, by))
+        fx, fy = frozen_faces(h, kg, (hu == 0) & (hv == 0), P["mu"], tau, holds, dx)
     if F.domain == "wall":
         wx, wy = _domain_walls(P["inside"])
         fx, fy = (wx, wy) if fx is None else (fx | wx, fy | wy)
@@ -248,8 +255,7 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
         rate = P["deposition"] * h * torch.clamp(1.0 - froude / FR_DEP, min=0.0)
         hpos = torch.clamp(hn, min=0.0)
         dd = torch.minimum(dtb * rate, hpos)
-        left = hpos > 0
-        ratio = torch.where(left, (hpos - dd) / torch.where(left, hpos, torch.ones_like(hpos)), torch.zeros_like(hpos))
+        ratio = torch.where(hpos > 0, (hpos - dd) / hpos, torch.zeros_like(hpos))
         qx, qy, qn = qx * ratio, qy * ratio, qn * ratio
         hn = hn - dd
         dep = dep + dd
@@ -263,7 +269,7 @@ def _stage(h, hu, hv, z, erod, dep, dt, dt_cap, P: dict, F: StepFlags, geo=None)
     spd = surface_speed(un, vn, zx, zy) if F.use_mu_i else None
     hnp = torch.clamp(hn, min=0.0)
     mue = mu_effective(mu_c, P["mu_i"], spd, cs * hnp, gne, F.h_eps, F.use_mu_i)
-    coul = mue * gne * hnp + tau * sec
+    coul = mue * gne * hnp + tau * sec if F.use_tau else mue * gne * hnp
     factor = apply_friction(hn, qn, dtb, coul, turbulent_coefficient(dtb, P["xi"], sec, g), F.h_eps)
     # a layer thinner than h_eps keeps its desingularised velocity's momentum h u
     factor = factor * torch.where(hn < F.h_eps, hn * desingularised_factor(hn, F.h_eps), torch.ones_like(hn))
@@ -310,7 +316,7 @@ def make_step(F: StepFlags):
         if F.use_ent or F.use_dep:
             geo = None
         else:
-            geo = P["geo"] if "geo" in P else static_geometry(z, F)
+            geo = P["geo"] if "geo" in P else static_geometry(z, F, P.get("mu_scale"))
         h1, hu1, hv1, z1, e1, d1, o1, dt = _stage(h, hu, hv, z, erod, dep, None, dt_cap, P, F, geo)
         h2, hu2, hv2, z2, e2, d2, o2, _ = _stage(h1, hu1, hv1, z1, e1, d1, dt, dt_cap, P, F, geo)
         stop = (hu1 == 0) & (hv1 == 0) & (hu2 == 0) & (hv2 == 0)

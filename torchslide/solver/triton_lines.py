@@ -22,7 +22,7 @@ if triton is not None:
                              _dfac, _frozen, _max, _min, _momentum_change, _motion, _slope)
 
     @triton.jit
-    def _velocities(h_ptr, hu_ptr, hv_ptr, zx_ptr, zy_ptr, c_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, sg_ptr, ny, nx, s_geo,
+    def _velocities(h_ptr, hu_ptr, hv_ptr, geo_ptr, c_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, sg_ptr, ny, nx, s_geo,
                     SLOPE: tl.constexpr, BLOCK: tl.constexpr):
         """u, v of every cell of every member and, with SLOPE, sigma u, sigma v and sigma (stepping._stage)."""
         b = tl.program_id(1)
@@ -36,8 +36,8 @@ if triton is not None:
         tl.store(u_ptr + cb, u, mask=m)
         tl.store(v_ptr + cb, v, mask=m)
         if SLOPE:
-            sg, _c, _m = _motion(u, v, tl.load(zx_ptr + b * s_geo + idx, mask=m, other=0.0),
-                                 tl.load(zy_ptr + b * s_geo + idx, mask=m, other=0.0), tl.load(c_ptr + C_NORMAL))
+            gq = geo_ptr + (b * s_geo + idx) * 4
+            sg, _c, _m = _motion(u, v, tl.load(gq, mask=m), tl.load(gq + 1, mask=m), tl.load(c_ptr + C_NORMAL))
             tl.store(cu_ptr + cb, sg * u, mask=m)
             tl.store(cv_ptr + cb, sg * v, mask=m)
             tl.store(sg_ptr + cb, sg, mask=m)
@@ -108,12 +108,14 @@ if triton is not None:
             return b * (ny + 1) * nx
 
     @triton.jit
-    def _faces(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr,
-               mus_ptr, inside_ptr, pm_ptr, c_ptr, f_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zpp, s_geo, AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr,
-               USE_EP: tl.constexpr, SLOPE: tl.constexpr, BLOCK: tl.constexpr):
+    def _faces(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, zpp_ptr, gc2_ptr, hold_ptr,
+               inside_ptr, pm_ptr, c_ptr, f_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zpp, s_geo, s_hold,
+               AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_EP: tl.constexpr,
+               USE_TAU: tl.constexpr, SLOPE: tl.constexpr, CFL: tl.constexpr, BLOCK: tl.constexpr):
         """scheme.sweep (and scheme.frozen_faces, stepping._domain_walls) at the x faces (AXIS 0: (ny, nx + 1)
         per member) or the y faces (AXIS 1: (ny + 1, nx)); face f of a line lies between cells f - 1 and f.
-        zpp: the bed padded on both axes; u, v: the velocities, cu, cv: the carried velocities (SLOPE). Writes per
+        zpp: the bed padded on both axes; u, v: the velocities, cu, cv: the carried velocities (SLOPE); hold: the
+        no-creep rule's coefficients of the faces (scheme.hold_coefficients, in eights). Writes per
         face (Fh, Fqn, Fqt, phi) interleaved (f) and the thickness left and right of it (hl, hr)."""
         b = tl.program_id(1)
         pid = tl.program_id(0)
@@ -174,25 +176,14 @@ if triton is not None:
         if NO_CREEP or WALLS:
             frozen = tl.zeros([BLOCK], dtype=tl.int1)
             if NO_CREEP:    # scheme.frozen_faces: both cells at rest and friction holds the face's drive
-                ga, gc = gb + base + a * st, gb + base + c * st
-                csa = tl.load(cs_ptr + ga, mask=m, other=1.0)
-                csc = tl.load(cs_ptr + gc, mask=m, other=1.0)
-                if USE_MUS:
-                    mca = tl.load(mus_ptr + base + a * st, mask=m, other=1.0) * csa
-                    mcc = tl.load(mus_ptr + base + c * st, mask=m, other=1.0) * csc
-                else:
-                    mca = csa
-                    mcc = csc
                 rest_a = (tl.load(hu_ptr + cb + base + a * st, mask=m, other=1.0) == 0) \
                     & (tl.load(hv_ptr + cb + base + a * st, mask=m, other=1.0) == 0)
                 rest_c = (tl.load(hu_ptr + cb + base + c * st, mask=m, other=1.0) == 0) \
                     & (tl.load(hv_ptr + cb + base + c * st, mask=m, other=1.0) == 0)
-                frozen = _frozen(h1, h2, z1, z2, kgl, kgr, tl.load(zx_ptr + ga, mask=m, other=0.0),
-                                 tl.load(zx_ptr + gc, mask=m, other=0.0), tl.load(zy_ptr + ga, mask=m, other=0.0),
-                                 tl.load(zy_ptr + gc, mask=m, other=0.0), csa, csc, mca, mcc,
-                                 tl.load(sec_ptr + ga, mask=m, other=1.0), tl.load(sec_ptr + gc, mask=m, other=1.0),
-                                 rest_a, rest_c, tl.load(pm_ptr + b * 11) * g, tl.load(pm_ptr + b * 11 + 2), g,
-                                 tl.load(c_ptr + C_INVDX), AXIS)
+                nf = (ny * (nx + 1)) if AXIS == 0 else ((ny + 1) * nx)
+                frozen = _frozen(h1, h2, kgl, kgr, hold_ptr + (b * s_hold + tl.minimum(idx, nf - 1)) * 8,
+                                 rest_a & rest_c, tl.load(pm_ptr + b * 11), tl.load(pm_ptr + b * 11 + 2),
+                                 tl.load(c_ptr + C_INVDX), USE_TAU)
             if WALLS:       # faces between a cell of the domain and one outside it
                 ins_a = tl.load(inside_ptr + base + a * st, mask=m, other=0)
                 ins_c = tl.load(inside_ptr + base + c * st, mask=m, other=0)
@@ -208,10 +199,11 @@ if triton is not None:
         tl.store(q + 3, phi, mask=m)
         tl.store(hl_ptr + fo + idx, hl, mask=m)
         tl.store(hr_ptr + fo + idx, hr, mask=m)
-        tl.store(amax_ptr + b * tl.num_programs(0) + pid, tl.max(tl.where(m, speed, 0.0), axis=0))
+        if CFL:     # the first stage's faces set its time step
+            tl.store(amax_ptr + b * tl.num_programs(0) + pid, tl.max(tl.where(m, speed, 0.0), axis=0))
 
     @triton.jit
-    def _cells(u_ptr, v_ptr, sg_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, gc2_ptr, pm_ptr, c_ptr,
+    def _cells(u_ptr, v_ptr, sg_ptr, zpp_ptr, geo_ptr, gc2_ptr, pm_ptr, c_ptr,
                fx_ptr, hlx_ptr, hrx_ptr, fy_ptr, hly_ptr, hry_ptr, cell_ptr,
                ny, nx, s_zpp, s_geo, USE_EP: tl.constexpr, SLOPE: tl.constexpr, BLOCK: tl.constexpr):
         """Per cell (out, mx, my, sigma), interleaved: out, the mass its faces carry out (scheme.draining_factors),
@@ -241,9 +233,8 @@ if triton is not None:
         px = kg * (tl.load(fx_ptr + xw * 4 + 7, mask=m) - tl.load(fx_ptr + xw * 4 + 3, mask=m)) + g * hbarx * dbx
         py = kg * (tl.load(fy_ptr + (ys + nx) * 4 + 3, mask=m) - tl.load(fy_ptr + ys * 4 + 3, mask=m)) + g * hbary * dby
         if SLOPE:   # along the surface (stepping.inverse_metric), then the change of Q = sigma q
-            zx = tl.load(zx_ptr + gb + idx, mask=m, other=0.0)
-            zy = tl.load(zy_ptr + gb + idx, mask=m, other=0.0)
-            cs = tl.load(cs_ptr + gb + idx, mask=m, other=1.0)
+            gq = geo_ptr + (gb + idx) * 4
+            zx, zy, cs = tl.load(gq, mask=m), tl.load(gq + 1, mask=m), tl.load(gq + 2, mask=m)
             a = cs * cs * (zx * px + zy * py)
             px = px - zx * a
             py = py - zy * a

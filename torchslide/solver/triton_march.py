@@ -35,20 +35,19 @@ if triton is not None:
         return tl.gather(q, index, 0)
 
     @triton.jit
-    def _store4(ptr, a, b, c, d, mask):
-        """Four values per position, interleaved at ptr, ptr + 1, ptr + 2, ptr + 3 (one address, four stores)."""
+    def _store3(ptr, a, b, c, mask):
+        """Three values per position, interleaved at ptr, ptr + 1, ptr + 2 (one address, three stores)."""
         tl.store(ptr, a, mask=mask)
         tl.store(ptr + 1, b, mask=mask)
         tl.store(ptr + 2, c, mask=mask)
-        tl.store(ptr + 3, d, mask=mask)
 
     @triton.jit
-    def _load_row(r, h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr,
+    def _load_row(r, h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, ins_ptr,
                   cb, gb, zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny,
-                  SLOPE: tl.constexpr, USE_MUS: tl.constexpr, WALLS: tl.constexpr):
+                  SLOPE: tl.constexpr, WALLS: tl.constexpr):
         """Row r (clamped into the grid for the state and the fields, replicated; the bed from the padded zpp) at
-        every position of the strip: (h, z, u, v, cu, cv, sg, c, moving, g cos^2, rest, zx, zy, cs, mcs, sec,
-        inside).
+        every position of the strip: (h, z, u, v, cu, cv, sg, c, moving, g cos^2, |hu| + |hv| (0: at rest), zx, zy,
+        cs, inside).
         h is extrapolated linearly at the ghost columns (``far``: 1 or 2 columns outside; ``edge``, ``edge1``:
         the lanes of the edge column and the one inside it); the velocities are those of the clamped cell."""
         rc = tl.minimum(tl.maximum(r, 0), ny - 1)
@@ -57,15 +56,8 @@ if triton is not None:
         hu = tl.load(hu_ptr + cb + cell)
         hv = tl.load(hv_ptr + cb + cell)
         z = tl.load(zpp_ptr + zb + (r + 2) * (nx + 4) + jp)
-        zx = tl.load(zx_ptr + gb + cell)
-        zy = tl.load(zy_ptr + gb + cell)
-        cs = tl.load(cs_ptr + gb + cell)
-        sec = tl.load(sec_ptr + gb + cell)
-        gc2 = tl.load(gc2_ptr + gb + cell)
-        if USE_MUS:
-            mcs = tl.load(mus_ptr + cell) * cs
-        else:
-            mcs = cs
+        q = geo_ptr + (gb + cell) * 4
+        zx, zy, cs, gc2 = tl.load(q), tl.load(q + 1), tl.load(q + 2), tl.load(q + 3)
         if WALLS:
             ins = tl.load(ins_ptr + cell).to(tl.int8)
         else:
@@ -86,8 +78,8 @@ if triton is not None:
         he = _lane(h, edge)
         g1 = 2 * he - _lane(h, edge1)
         hx = tl.where(col_in, h, tl.where(far == 1, g1, 2 * g1 - he))
-        rest = ((hu == 0) & (hv == 0)).to(tl.int8)
-        return hx, z, u, v, cu, cv, sg, c, moving.to(tl.int8), gc2, rest, zx, zy, cs, mcs, sec, ins
+        rest = tl.abs(hu) + tl.abs(hv)
+        return hx, z, u, v, cu, cv, sg, c, moving.to(tl.int8), gc2, rest, zx, zy, cs, ins
 
     @triton.jit
     def _kg_ep(gc2, u, v_s, v_n, ue_i, uw_i, pm_ptr, b):
@@ -119,15 +111,19 @@ if triton is not None:
         return tl.where(wet, _max(q_m - bf_m, 0.0), q_m), tl.where(wet, _max(q_p - bf_p, 0.0), q_p), bf_m, bf_p
 
     @triton.jit
-    def _march(h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr, pm_ptr,
-               c_ptr, fx_ptr, fy_ptr, cell_ptr, amax_ptr, ny, nx, s_geo, s_zpp,
-               NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_MUS: tl.constexpr, USE_EP: tl.constexpr,
-               SLOPE: tl.constexpr, W: tl.constexpr, BAND: tl.constexpr, UNROLL: tl.constexpr):
+    def _march(h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, hx_ptr, hy_ptr, ins_ptr, pm_ptr,
+               c_ptr, fx_ptr, fy_ptr, cell_ptr, amax_ptr, ny, nx, s_geo, s_zpp, s_hx, s_hy,
+               NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_EP: tl.constexpr, USE_TAU: tl.constexpr,
+               SLOPE: tl.constexpr, CFL: tl.constexpr, W: tl.constexpr, BAND: tl.constexpr, UNROLL: tl.constexpr):
         """The faces and cell terms of a stage (module docstring) for the strip program_id(0), the band of rows
         program_id(1) and the member program_id(2). Writes the x faces (B, ny, nx + 1, 4) west of the cells it
         owns (and the grid's east edge) and the y faces (B, ny + 1, nx, 4) south of them (and the north edge),
-        each (Fh, Fqn, Fqt, phi); per cell (B, ny, nx, 4) (out, mx, my, sigma); and its largest one-sided speeds
-        along x and y to amax (B, programs, 2). UNROLL: the loop over rows unrolled (3: the rows' rotation)."""
+        each (Fh, Fqn, Fqt) in the first three of four; per cell (B, ny, nx, 4) (out, mx, my, sigma); and with CFL
+        (the first stage, whose time step they set) its largest one-sided speeds along x and y to amax (B,
+        programs, 2). geo: per cell (z_x, z_y, cos, g cos^2), interleaved; hx, hy: the
+        no-creep rule's coefficients at the x and y faces (scheme.hold_coefficients, in eights; s_hx, s_hy: their
+        member strides in faces, 0 for one bed of every member); UNROLL: the
+        loop over rows unrolled (3: the rows' rotation)."""
         s, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
         p = tl.arange(0, W)
         j0 = s * (W - 4) - 2
@@ -147,23 +143,23 @@ if triton is not None:
         h_wet, wb, wsmin = tl.load(c_ptr + C_HWET), tl.load(c_ptr + C_WB), tl.load(c_ptr + C_WSMIN)
         sqrt2, heps4, tiny = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4), tl.load(c_ptr + C_NORMAL)
         k_ap = tl.load(pm_ptr + b * 11 + 3)
-        mug = tl.load(pm_ptr + b * 11) * g
+        mu0 = tl.load(pm_ptr + b * 11)
         tau = tl.load(pm_ptr + b * 11 + 2)
         i0 = t * BAND
         i1 = tl.minimum(i0 + BAND, ny)
         # --- the rows i0 - 2 .. i0 + 1; ghost rows above the grid extrapolate the thickness (scheme.pad_linear)
-        hA, zA, uA, vA, cuA, cvA, sgA, cA, mvA, g2A, rsA, zxA, zyA, csA, mcA, seA, inA = _load_row(
-            i0 - 2, h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr, cb, gb,
-            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, USE_MUS, WALLS)
-        hO, zO, uO, vO, cuO, cvO, sgO, cO, mvO, g2O, rsO, zxO, zyO, csO, mcO, seO, inO = _load_row(
-            i0 - 1, h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr, cb, gb,
-            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, USE_MUS, WALLS)
-        hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, rsN, zxN, zyN, csN, mcN, seN, inN = _load_row(
-            i0, h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr, cb, gb,
-            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, USE_MUS, WALLS)
-        hB, zB, uB, vB, cuB, cvB, sgB, cB_, mvB, g2B, rsB, zxB, zyB, csB, mcB, seB, inB = _load_row(
-            i0 + 1, h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr, cb, gb,
-            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, USE_MUS, WALLS)
+        hA, zA, uA, vA, cuA, cvA, sgA, cA, mvA, g2A, rsA, zxA, zyA, csA, inA = _load_row(
+            i0 - 2, h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, ins_ptr, cb, gb,
+            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, WALLS)
+        hO, zO, uO, vO, cuO, cvO, sgO, cO, mvO, g2O, rsO, zxO, zyO, csO, inO = _load_row(
+            i0 - 1, h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, ins_ptr, cb, gb,
+            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, WALLS)
+        hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, rsN, zxN, zyN, csN, inN = _load_row(
+            i0, h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, ins_ptr, cb, gb,
+            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, WALLS)
+        hB, zB, uB, vB, cuB, cvB, sgB, cB_, mvB, g2B, rsB, zxB, zyB, csB, inB = _load_row(
+            i0 + 1, h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, ins_ptr, cb, gb,
+            zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, WALLS)
         hO = tl.where(i0 >= 1, hO, 2 * hN - hB)
         hA = tl.where(i0 >= 2, hA, 2 * hO - hN)
         kgO = k_ap * g2O
@@ -188,9 +184,9 @@ if triton is not None:
         amy = tl.zeros([W], dtype=hN.dtype)
         for f in tl.range(i0, i1 + 1, loop_unroll_factor=UNROLL):
             # --- the new row f + 1 (a ghost row below the grid: the thickness continues the line of the two above)
-            hW, zW, uW, vW, cuW, cvW, sgW, cW, mvW, g2W, rsW, zxW, zyW, csW, mcW, seW, inW = _load_row(
-                f + 1, h_ptr, hu_ptr, hv_ptr, zpp_ptr, zx_ptr, zy_ptr, cs_ptr, sec_ptr, gc2_ptr, mus_ptr, ins_ptr, cb,
-                gb, zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, USE_MUS, WALLS)
+            hW, zW, uW, vW, cuW, cvW, sgW, cW, mvW, g2W, rsW, zxW, zyW, csW, inW = _load_row(
+                f + 1, h_ptr, hu_ptr, hv_ptr, zpp_ptr, geo_ptr, ins_ptr, cb,
+                gb, zb, jc, jp, col_in, far, edge, edge1, ny, nx, sqrt2, heps4, tiny, SLOPE, WALLS)
             hW = tl.where(f + 1 < ny, hW, 2 * hN - hO)
             kgW = k_ap * g2W
             if USE_EP:      # the newer row's coefficient, now that the rows on both sides are here
@@ -208,8 +204,8 @@ if triton is not None:
             if NO_CREEP or WALLS:
                 frozen = tl.zeros([W], dtype=tl.int1)
                 if NO_CREEP:
-                    frozen = _frozen(hpO, hpN, zO, zN, kgO, kgN, zxO, zxN, zyO, zyN, csO, csN, mcO, mcN, seO, seN,
-                                     rsO != 0, rsN != 0, mug, tau, g, invdx, 1)
+                    frozen = _frozen(hpO, hpN, kgO, kgN, hy_ptr + (b * s_hy + f * nx + jc) * 8, rsO + rsN == 0,
+                                     mu0, tau, invdx, USE_TAU)
                 if WALLS:
                     frozen = frozen | (inO != inN)
                 fh_n = tl.where(frozen, 0.0, fh_n)
@@ -217,8 +213,9 @@ if triton is not None:
                 fqt_n = tl.where(frozen, 0.0, fqt_n)
             fv = f + p * 0      # the face row at every lane
             keep_y = own & col_in & ((fv < i0 + BAND) | (fv == ny))
-            _store4(fy_ptr + (b * (ny + 1) * nx + f * nx + j) * 4, fh_n, fqn_n, fqt_n, phi_n, keep_y)
-            amy = _max(amy, tl.where(keep_y, speed, 0.0))
+            _store3(fy_ptr + (b * (ny + 1) * nx + f * nx + j) * 4, fh_n, fqn_n, fqt_n, keep_y)
+            if CFL:
+                amy = _max(amy, tl.where(keep_y, speed, 0.0))
             # --- the older row f - 1 reconstructed along x, and the x face west of each of its positions
             hpw, hpe = _lane(hpO, west), _lane(hpO, east)
             zw, ze = _lane(zO, west), _lane(zO, east)
@@ -239,9 +236,9 @@ if triton is not None:
             if NO_CREEP or WALLS:
                 frozen = tl.zeros([W], dtype=tl.int1)
                 if NO_CREEP:
-                    frozen = _frozen(hpw, hpO, zw, zO, kgw, kgO, _lane(zxO, west), zxO, _lane(zyO, west), zyO,
-                                     _lane(csO, west), csO, _lane(mcO, west), mcO, _lane(seO, west), seO,
-                                     _lane(rsO, west) != 0, rsO != 0, mug, tau, g, invdx, 0)
+                    hold = hx_ptr + (b * s_hx + tl.maximum(f - 1, 0) * (nx + 1) + tl.minimum(tl.maximum(j, 0), nx)) * 8
+                    frozen = _frozen(hpw, hpO, kgw, kgO, hold, _lane(rsO, west) + rsO == 0, mu0, tau, invdx,
+                                     USE_TAU)
                 if WALLS:
                     frozen = frozen | (_lane(inO, west) != inO)
                 fh_x = tl.where(frozen, 0.0, fh_x)
@@ -249,8 +246,9 @@ if triton is not None:
                 fqt_x = tl.where(frozen, 0.0, fqt_x)
             row_ok = (fv - 1 >= i0) & (fv - 1 < i1)
             keep_x = own & row_ok & (j >= 0) & (j <= nx)
-            _store4(fx_ptr + (b * ny * (nx + 1) + (f - 1) * (nx + 1) + j) * 4, fh_x, fqn_x, fqt_x, phi_x, keep_x)
-            amx = _max(amx, tl.where(keep_x, speed, 0.0))
+            _store3(fx_ptr + (b * ny * (nx + 1) + (f - 1) * (nx + 1) + j) * 4, fh_x, fqn_x, fqt_x, keep_x)
+            if CFL:
+                amx = _max(amx, tl.where(keep_x, speed, 0.0))
             # --- the older row's cells: outgoing mass, the momentum change of gravity and pressure (Eq. 2-3)
             fh_e = _lane(fh_x, east)
             out = (_max(fh_e, 0.0) + _max(-fh_x, 0.0)) + (_max(fh_n, 0.0) + _max(-fh_s, 0.0))
@@ -261,17 +259,21 @@ if triton is not None:
                 px = px - zxO * a
                 py = py - zyO * a
                 px, py = _momentum_change(px, py, uO, vO, sgO, cO, mvO != 0, zxO, zyO, tiny)
-            _store4(cell_ptr + (cb + (f - 1) * nx + j) * 4, out, px, py, sgO, own & row_ok & col_in)
+            at = cell_ptr + (cb + (f - 1) * nx + j) * 4
+            _store3(at, out, px, py, own & row_ok & col_in)
+            if SLOPE:
+                tl.store(at + 3, sgO, mask=own & row_ok & col_in)
             # --- move down a row
             fh_s, phi_s = fh_n, phi_n
             hbar_y, db_y = 0.5 * (hr_y + hn_y), bfn - bfs
             hl_y, vl_y, cvl_y, cul_y = hn_y, vn_y, cvn_y, cun_y
             d_h, d_w, d_v, d_cv, d_cu = e_h, e_w, e_v, e_cv, e_cu
-            hO, zO, uO, vO, cuO, cvO, sgO, cO, mvO, g2O, kgO, rsO, zxO, zyO, csO, mcO, seO, inO = \
-                hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, kgN, rsN, zxN, zyN, csN, mcN, seN, inN
-            hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, kgN, rsN, zxN, zyN, csN, mcN, seN, inN = \
-                hW, zW, uW, vW, cuW, cvW, sgW, cW, mvW, g2W, kgW, rsW, zxW, zyW, csW, mcW, seW, inW
+            hO, zO, uO, vO, cuO, cvO, sgO, cO, mvO, g2O, kgO, rsO, zxO, zyO, csO, inO = \
+                hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, kgN, rsN, zxN, zyN, csN, inN
+            hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, kgN, rsN, zxN, zyN, csN, inN = \
+                hW, zW, uW, vW, cuW, cvW, sgW, cW, mvW, g2W, kgW, rsW, zxW, zyW, csW, inW
             hpO, hpN = hpN, hpW
-        at = (b * tl.num_programs(0) * tl.num_programs(1) + t * tl.num_programs(0) + s) * 2
-        tl.store(amax_ptr + at, tl.max(amx, axis=0))
-        tl.store(amax_ptr + at + 1, tl.max(amy, axis=0))
+        if CFL:
+            at = (b * tl.num_programs(0) * tl.num_programs(1) + t * tl.num_programs(0) + s) * 2
+            tl.store(amax_ptr + at, tl.max(amx, axis=0))
+            tl.store(amax_ptr + at + 1, tl.max(amy, axis=0))

@@ -161,7 +161,7 @@ if triton is not None:
         n2 = u * u + v * v
         w = zx * u + zy * v
         moving = n2 > tiny
-        c = tl.where(moving, _div(w, tl.where(moving, n2, 1.0)), 0.0)
+        c = tl.where(moving, _div(w, n2), 0.0)
         return _sqrt(1.0 + w * c), c, moving
 
     @triton.jit
@@ -194,8 +194,7 @@ if triton is not None:
         ap = _max(_max(ur + cr, ul + cl), 0.0)
         am = _min(_min(ur - cr, ul - cl), 0.0)
         den = ap - am
-        pos = den > wsmin
-        inv = tl.where(pos, _div(1.0, tl.where(pos, den, 1.0)), 0.0)
+        inv = tl.where(den > wsmin, _div(1.0, den), 0.0)
         al = hl * (ap * inv)
         ar = hr * (am * inv)
         left = al * (ul - am)
@@ -204,28 +203,19 @@ if triton is not None:
             _max(ap, -am)
 
     @triton.jit
-    def _frozen(h1, h2, z1, z2, kgl, kgr, zxa, zxc, zya, zyc, csa, csc, mca, mcc, seca, secc, rest_a, rest_c, mug, tau,
-                g, invdx, AXIS: tl.constexpr):
-        """scheme.frozen_faces at faces between cells a (left) and c (right): both at rest and friction holds
-        the face's drive. h1, h2 and z1, z2: the clipped padded thickness and the bed of a and c; mca, mcc:
-        friction map times cos (cos without a map); mug: mu g of the member, tau its yield stress."""
+    def _frozen(h1, h2, kgl, kgr, hold, rest, mu, tau, invdx, USE_TAU: tl.constexpr):
+        """scheme.frozen_faces at faces between cells a (left) and c (right): both at rest (``rest``) and friction
+        holds the face's drive. h1, h2: the clipped padded thickness of a and c; hold: the pointer to the face's
+        coefficients (scheme.hold_coefficients: alpha, beta, gamma, m0, gdz, secf, in eights); mu, tau: the
+        member's friction and yield stress (USE_TAU)."""
         hf = 0.5 * (h1 + h2)
-        f_n = -(0.5 * (kgl + kgr) * (h2 - h1) + g * (z2 - z1)) * hf * invdx
-        zxf = 0.5 * (zxa + zxc)
-        zyf = 0.5 * (zya + zyc)
-        csf = 0.5 * (csa + csc)
-        mcf = 0.5 * (mca + mcc)
-        secf = 0.5 * (seca + secc)
-        if AXIS == 0:
-            f_t = -g * zyf * hf
-            ax, ay = f_n, f_t
+        a = -(0.5 * (kgl + kgr) * (h2 - h1) * invdx + tl.load(hold + 4))
+        drive2 = (hf * hf) * ((tl.load(hold) * a + tl.load(hold + 1)) * a + tl.load(hold + 2))
+        if USE_TAU:
+            lim = hf * (mu * tl.load(hold + 3)) + tau * tl.load(hold + 5)
         else:
-            f_t = -g * zxf * hf
-            ax, ay = f_t, f_n
-        along = zxf * ax + zyf * ay
-        drive2 = ax * ax + ay * ay - csf * csf * along * along
-        lim = (mug * mcf) * hf + tau * secf
-        return rest_a & rest_c & (drive2 <= lim * lim)
+            lim = hf * (mu * tl.load(hold + 3))
+        return rest & (drive2 <= lim * lim)
 
     @triton.jit
     def _hform(zxx, zxy, zyy, u, v):

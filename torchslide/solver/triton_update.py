@@ -3,13 +3,15 @@ the draining-flux limiter (scheme.draining_factors), the fluxes' divergence, the
 and pressure along the surface (Eq. 2-3, made by the faces' kernels), entrainment and deposition, friction
 (Eq. 4), and, after the second stage, the Heun average of the step with its records (stepping.make_step).
 
-It reads, per cell, what the faces' kernels wrote: out (the mass a cell's faces carry out per unit time,
-m^2/s), the momentum change (mx, my) and the stretch sigma of the direction of motion; per face, the mass and
-momentum fluxes. A program updates BLOCK cells of one row of one member.
+It reads what the faces' kernels wrote, interleaved in fours: per face (Fh, Fqn, Fqt, phi), per cell (out, mx,
+my, sigma), out being the mass a cell's faces carry out per unit time (m^2/s) and (mx, my) the momentum change.
+A program is one warp over a strip of W positions (columns j0 - 1 .. j0 + W - 2, the W - 2 inside its own) of
+one member, marching down a band of rows: each cell's draining factor is computed once, its neighbours' come
+from the lanes beside it and the rows before and after it, and every load lies inside the grid (the halo's
+positions read the edge cell) so that none needs a mask.
 """
 from __future__ import annotations
 
-from ..physics import MU_I_D, MU_I_I0  # noqa: F401  (the constant table carries them: fused_triton.constants)
 from .triton_ops import triton
 
 if triton is not None:
@@ -19,37 +21,50 @@ if triton is not None:
                              C_SQRT2, C_TINY, C_VMIN, _dfac, _div, _hform, _max, _min, _sqrt)
 
     @triton.jit
-    def _drain(out, h, lam_dt, normal):
+    def _drain(out, h, lam, normal):
         """scheme.draining_factors' factor of a cell: content / outgoing mass where that is below 1 (no divisor
         below ``normal``)."""
-        o = out * lam_dt
+        o = out * lam
         over = (o > h) & (o >= normal)
-        return tl.where(over, _div(h, tl.where(over, o, 1.0)), 1.0)
+        return tl.where(over, _div(h, o), 1.0)
+
+    @triton.jit
+    def _lane(q, index):
+        """q at the lanes ``index`` of the strip (a shuffle within the warp)."""
+        return tl.gather(q, index, 0)
 
     @triton.jit
     def _update(h_ptr, hu_ptr, hv_ptr, cell_ptr, z_ptr, erod_ptr, dep_ptr, fx_ptr, fy_ptr,
-                zx_ptr, zy_ptr, cs_ptr, sec_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr, pm_ptr, c_ptr, dt_ptr,
-                h0_ptr, hu0_ptr, hv0_ptr, z0_ptr, e0_ptr, d0_ptr, rzx_ptr, rzy_ptr, rcs_ptr, hmax_ptr, vmax_ptr,
+                geo_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr, pm_ptr, c_ptr, dt_ptr,
+                h0_ptr, hu0_ptr, hv0_ptr, z0_ptr, e0_ptr, d0_ptr, rec_ptr, hmax_ptr, vmax_ptr,
                 arr_ptr, tnew_ptr,
                 ho_ptr, huo_ptr, hvo_ptr, zo_ptr, erodo_ptr, depo_ptr, hmaxo_ptr, vmaxo_ptr, arro_ptr, part_ptr,
                 ny, nx, s_geo,
                 SLOPE: tl.constexpr, USE_CURV: tl.constexpr, USE_MU_I: tl.constexpr, USE_ENT: tl.constexpr,
-                USE_DEP: tl.constexpr, USE_MUS: tl.constexpr, GONE_OUT: tl.constexpr, INFLOW: tl.constexpr,
-                COMBINE: tl.constexpr, BLOCK: tl.constexpr):
-        """stepping._stage after the sweeps, for cells (i, j0 .. j0 + BLOCK) of member b (cell: per cell (out, mx,
-        my, sigma), fx and fy: per face (Fh, Fqn, Fqt, phi), interleaved; fused_triton): drained fluxes, the
-        new thickness and surface momentum, q = Q / sigma(Q), the mass sources, friction. With COMBINE (the
-        second stage) the result is averaged with the step's start (h0, hu0, hv0, ...; h, hu, hv are the first
-        stage's) and the records h_max, v_max and arrival are updated, as stepping.make_step does.
+                USE_DEP: tl.constexpr, USE_MUS: tl.constexpr, USE_TAU: tl.constexpr, GONE_OUT: tl.constexpr,
+                INFLOW: tl.constexpr, COMBINE: tl.constexpr, W: tl.constexpr, BAND: tl.constexpr,
+                UNROLL: tl.constexpr):
+        """stepping._stage after the sweeps, for the strip program_id(0), the band of rows program_id(1) and the
+        member program_id(2): drained fluxes, the new thickness and surface momentum, q = Q / sigma(Q), the mass
+        sources, friction. With COMBINE (the second stage) the result is averaged with the step's start (h0,
+        hu0, hv0, ...; h, hu, hv are the first stage's) and the records h_max, v_max and arrival are updated, as
+        stepping.make_step does.
 
-        part: (B, programs, 4) per program the boundary outflow (m^2/s, outward), the thickness lost outside
-        the domain (m), and with COMBINE the sums of h |V|^2 and of the thickness (m)."""
-        jb, i, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
-        j = jb * BLOCK + tl.arange(0, BLOCK)
-        m = j < nx
-        row = i * nx + j
-        c = b * ny * nx + row
-        g_ = b * s_geo + row
+        geo: per cell (z_x, z_y, cos, g cos^2), rec: (z_x, z_y, cos) of the initial bed (the records'), both
+        interleaved in fours. part: (B, programs, 4) per program the boundary outflow (m^2/s, outward), the
+        thickness lost outside the domain (m, GONE_OUT), and with COMBINE the sums of h |V|^2 and of the thickness
+        (m)."""
+        s, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
+        p = tl.arange(0, W)
+        j = s * (W - 2) - 1 + p
+        jc = tl.minimum(tl.maximum(j, 0), nx - 1)
+        own = (p >= 1) & (p < W - 1) & (j >= 0) & (j < nx)
+        west, east = tl.maximum(p - 1, 0), tl.minimum(p + 1, W - 1)
+        has_w, has_e = j >= 1, j + 1 < nx
+        at_w = tl.where(own & (j == 0), 1.0, 0.0)             # the cells whose faces are the grid's edges
+        at_e = tl.where(own & (j == nx - 1), 1.0, 0.0)
+        at_y = tl.where(own, 1.0, 0.0)
+        cb = b * ny * nx
         g = tl.load(c_ptr + C_G)
         sqrt2, heps4, h_eps = tl.load(c_ptr + C_SQRT2), tl.load(c_ptr + C_HEPS4), tl.load(c_ptr + C_HEPS)
         normal = tl.load(c_ptr + C_NORMAL)
@@ -59,167 +74,174 @@ if triton is not None:
             ghost = 0.0
         dt = tl.load(dt_ptr + b)
         lam = dt * tl.load(c_ptr + C_INVDX)
-        # the draining factors of the cell and its four neighbours (scheme.draining_factors)
-        h = tl.load(h_ptr + c, mask=m)
-        q = cell_ptr + c * 4
-        fac = _drain(tl.load(q, mask=m), h, lam, normal)
-        has_w, has_e = m & (j >= 1), m & (j + 1 < nx)
-        iv = i + tl.zeros([BLOCK], dtype=tl.int32)       # the row of every cell
-        has_s, has_n = m & (iv >= 1), m & (iv + 1 < ny)
-        fac_w = tl.where(has_w, _drain(tl.load(q - 4, mask=has_w), tl.load(h_ptr + c - 1, mask=has_w), lam, normal),
-                         ghost)
-        fac_e = tl.where(has_e, _drain(tl.load(q + 4, mask=has_e), tl.load(h_ptr + c + 1, mask=has_e), lam, normal),
-                         ghost)
-        fac_s = tl.where(has_s, _drain(tl.load(q - 4 * nx, mask=has_s), tl.load(h_ptr + c - nx, mask=has_s), lam,
-                                       normal), ghost)
-        fac_n = tl.where(has_n, _drain(tl.load(q + 4 * nx, mask=has_n), tl.load(h_ptr + c + nx, mask=has_n), lam,
-                                       normal), ghost)
-        # each face scaled by its upwind cell's factor
-        xw = fx_ptr + (b * ny * (nx + 1) + i * (nx + 1) + j) * 4      # the west face; the east face 4 further
-        ys = fy_ptr + (b * (ny + 1) * nx + row) * 4                     # the south face; the north face 4 nx further
-        fhw, fhe = tl.load(xw, mask=m), tl.load(xw + 4, mask=m)
-        fhs, fhn = tl.load(ys, mask=m), tl.load(ys + 4 * nx, mask=m)
-        k_w = tl.where(fhw > 0, fac_w, fac)
-        k_e = tl.where(fhe > 0, fac, fac_e)
-        k_s = tl.where(fhs > 0, fac_s, fac)
-        k_n = tl.where(fhn > 0, fac, fac_n)
-        fhw, fhe, fhs, fhn = fhw * k_w, fhe * k_e, fhs * k_s, fhn * k_n
-        dqx = (tl.load(xw + 5, mask=m) * k_e - tl.load(xw + 1, mask=m) * k_w) \
-            + (tl.load(ys + 4 * nx + 2, mask=m) * k_n - tl.load(ys + 2, mask=m) * k_s)
-        dqy = (tl.load(xw + 6, mask=m) * k_e - tl.load(xw + 2, mask=m) * k_w) \
-            + (tl.load(ys + 4 * nx + 1, mask=m) * k_n - tl.load(ys + 1, mask=m) * k_s)
-        bnd = tl.where(j == nx - 1, fhe, 0.0) - tl.where(j == 0, fhw, 0.0) \
-            + (tl.where(iv == ny - 1, fhn, 0.0) - tl.where(iv == 0, fhs, 0.0))
-        hn = h - lam * ((fhe - fhw) + (fhn - fhs))
-        hu = tl.load(hu_ptr + c, mask=m)
-        hv = tl.load(hv_ptr + c, mask=m)
-        zx = tl.load(zx_ptr + g_, mask=m)
-        zy = tl.load(zy_ptr + g_, mask=m)
-        cs = tl.load(cs_ptr + g_, mask=m)
-        sec = tl.load(sec_ptr + g_, mask=m)
-        mx = tl.load(q + 1, mask=m)
-        my = tl.load(q + 2, mask=m)
-        if SLOPE:   # the surface momentum Q = sigma q, turned back into q (stepping.horizontal_momentum)
-            sg = tl.load(q + 3, mask=m)
-            qx = sg * hu - lam * (dqx + mx)
-            qy = sg * hv - lam * (dqy + my)
-            n2 = qx * qx + qy * qy
-            w = zx * qx + zy * qy
-            t = n2 + w * w
-            ok = t > normal
-            f = tl.where(ok, _sqrt(_div(n2, tl.where(ok, t, 1.0))), 1.0)
-            qx = qx * f
-            qy = qy * f
-            qn = _sqrt(n2)
-        else:
-            qx = hu - lam * (dqx + mx)
-            qy = hv - lam * (dqy + my)
-            qn = _sqrt(qx * qx + qy * qy)
-        lost = tl.zeros([BLOCK], dtype=h.dtype)
-        if GONE_OUT:    # what entered a cell outside the domain has left it
-            gone = tl.load(inside_ptr + row, mask=m) == 0
-            lost = tl.where(gone & m, hn, 0.0)
-            hn = tl.where(gone, 0.0, hn)
-            qx = tl.where(gone, 0.0, qx)
-            qy = tl.where(gone, 0.0, qy)
-            qn = tl.where(gone, 0.0, qn)
-        gn = g * cs
-        if USE_ENT or USE_DEP:      # mass sources, explicit in the stage-start state
-            r0 = _dfac(h, sqrt2, heps4)
-            u0, v0 = r0 * hu, r0 * hv
-            w0 = zx * u0 + zy * v0
-            speed0 = _sqrt(u0 * u0 + v0 * v0 + w0 * w0)
-            zn = tl.load(z_ptr + c, mask=m)
+        mu0 = tl.load(pm_ptr + b * 11)
+        tau = tl.load(pm_ptr + b * 11 + 2)
+        kturb = (4.0 * g) * dt * _div(1.0, tl.load(pm_ptr + b * 11 + 1))   # friction.turbulent_coefficient / sec
+        if COMBINE:
+            t_new = tl.load(tnew_ptr + b)
+            vmin, arr_th, inf = tl.load(c_ptr + C_VMIN), tl.load(c_ptr + C_ARR), tl.load(c_ptr + C_INF)
+        i0 = t * BAND
+        i1 = tl.minimum(i0 + BAND, ny)
+        # --- the row before the band (its draining factor; above the grid: the ghost's) and the first row
+        rp = tl.maximum(i0 - 1, 0)
+        fac_s = tl.where(i0 >= 1, _drain(tl.load(cell_ptr + (cb + rp * nx + jc) * 4), tl.load(h_ptr + cb + rp * nx + jc),
+                                         lam, normal), ghost)
+        h_c = tl.load(h_ptr + cb + i0 * nx + jc)
+        fac_c = _drain(tl.load(cell_ptr + (cb + i0 * nx + jc) * 4), h_c, lam, normal)
+        ys = fy_ptr + (b * (ny + 1) * nx + i0 * nx + jc) * 4                # the south face of the first row
+        fhs, fqns, fqts = tl.load(ys), tl.load(ys + 1), tl.load(ys + 2)
+        bnd = tl.zeros([W], dtype=h_c.dtype)
+        lost = tl.zeros([W], dtype=h_c.dtype)
+        ke = tl.zeros([W], dtype=h_c.dtype)
+        mass = tl.zeros([W], dtype=h_c.dtype)
+        for r in tl.range(i0, i1, loop_unroll_factor=UNROLL):
+            # the next row's draining factor (below the grid: the ghost's) and the faces north of this row
+            rn = tl.minimum(r + 1, ny - 1)
+            h_n = tl.load(h_ptr + cb + rn * nx + jc)
+            fac_n = tl.where(r + 1 < ny, _drain(tl.load(cell_ptr + (cb + rn * nx + jc) * 4), h_n, lam, normal), ghost)
+            yn = fy_ptr + (b * (ny + 1) * nx + (r + 1) * nx + jc) * 4
+            fhn, fqnn, fqtn = tl.load(yn), tl.load(yn + 1), tl.load(yn + 2)
+            xw = fx_ptr + (b * ny * (nx + 1) + r * (nx + 1) + jc) * 4       # the west face; the east face next to it
+            fhw, fqnw, fqtw = tl.load(xw), tl.load(xw + 1), tl.load(xw + 2)
+            fhe, fqne, fqte = tl.load(xw + 4), tl.load(xw + 5), tl.load(xw + 6)
+            # each face scaled by its upwind cell's factor (a cell outside the grid: the ghost's)
+            k_w = tl.where(fhw > 0, tl.where(has_w, _lane(fac_c, west), ghost), fac_c)
+            k_e = tl.where(fhe > 0, fac_c, tl.where(has_e, _lane(fac_c, east), ghost))
+            k_s = tl.where(fhs > 0, fac_s, fac_c)
+            k_n = tl.where(fhn > 0, fac_c, fac_n)
+            fhw, fhe, fhs_, fhn_ = fhw * k_w, fhe * k_e, fhs * k_s, fhn * k_n
+            dqx = (fqne * k_e - fqnw * k_w) + (fqtn * k_n - fqts * k_s)
+            dqy = (fqte * k_e - fqtw * k_w) + (fqnn * k_n - fqns * k_s)
+            bnd += (fhe * at_e - fhw * at_w) + (fhn_ * tl.where(r == ny - 1, at_y, 0.0) - fhs_ * tl.where(r == 0, at_y, 0.0))
+            h = h_c
+            hn = h - lam * ((fhe - fhw) + (fhn_ - fhs_))
+            c = cb + r * nx + jc
+            g_ = b * s_geo + r * nx + jc
+            q = cell_ptr + c * 4
+            hu, hv = tl.load(hu_ptr + c), tl.load(hv_ptr + c)
+            gq = geo_ptr + g_ * 4
+            zx, zy, cs = tl.load(gq), tl.load(gq + 1), tl.load(gq + 2)
+            sec = _div(1.0, cs)
+            if SLOPE:   # the surface momentum Q = sigma q, turned back into q (stepping.horizontal_momentum)
+                qx = tl.load(q + 3) * hu - lam * (dqx + tl.load(q + 1))
+                qy = tl.load(q + 3) * hv - lam * (dqy + tl.load(q + 2))
+                n2 = qx * qx + qy * qy
+                w = zx * qx + zy * qy
+                tq = n2 + w * w
+                fq = tl.where(tq > normal, _sqrt(_div(n2, tq)), 1.0)
+                qx = qx * fq
+                qy = qy * fq
+                qn = _sqrt(n2)
+            else:
+                qx = hu - lam * (dqx + tl.load(q + 1))
+                qy = hv - lam * (dqy + tl.load(q + 2))
+                qn = _sqrt(qx * qx + qy * qy)
+            if GONE_OUT:    # what entered a cell outside the domain has left it
+                gone = tl.load(inside_ptr + r * nx + jc) == 0
+                lost += tl.where(gone & own, hn, 0.0)
+                hn = tl.where(gone, 0.0, hn)
+                qx = tl.where(gone, 0.0, qx)
+                qy = tl.where(gone, 0.0, qy)
+                qn = tl.where(gone, 0.0, qn)
+            gn = g * cs
+            if USE_ENT or USE_DEP:      # mass sources, explicit in the stage-start state
+                r0 = _dfac(h, sqrt2, heps4)
+                u0, v0 = r0 * hu, r0 * hv
+                w0 = zx * u0 + zy * v0
+                speed0 = _sqrt(u0 * u0 + v0 * v0 + w0 * w0)
+                zn = tl.load(z_ptr + c)
+                if USE_ENT:
+                    erod = tl.load(erod_ptr + c)
+                    rate = tl.load(pm_ptr + b * 11 + 9) * speed0 * sec * (cs * h > tl.load(c_ptr + C_ENTMIN)).to(h.dtype)
+                    de = _min(dt * rate, erod)
+                    hn = hn + de
+                    erod = erod - de
+                    zn = zn - de
+                if USE_DEP:
+                    dep = tl.load(dep_ptr + c)
+                    hs0 = _max(cs * h, h_eps)
+                    froude = _div(speed0, _sqrt(_max(gn, tl.load(c_ptr + C_TINY)) * hs0))
+                    rate = tl.load(pm_ptr + b * 11 + 10) * h * _max(1.0 - _div(froude, tl.load(c_ptr + C_FRDEP)), 0.0)
+                    hpos = _max(hn, 0.0)
+                    dd = _min(dt * rate, hpos)
+                    ratio = tl.where((hpos > 0) & (hpos >= normal), _div(hpos - dd, hpos), 0.0)
+                    qx = qx * ratio
+                    qy = qy * ratio
+                    qn = qn * ratio
+                    hn = hn - dd
+                    dep = dep + dd
+                    zn = zn + dd
+            # friction on the momentum along the surface (Eq. 4, friction.apply_friction)
+            mu = mu0
+            if USE_MUS:
+                mu = mu * tl.load(mus_ptr + r * nx + jc)
+            gne = gn
+            hnp = _max(hn, 0.0)
+            if USE_CURV or USE_MU_I:
+                rn_ = _dfac(hn, sqrt2, heps4)
+                un = rn_ * qx
+                vn = rn_ * qy
+                if USE_CURV:
+                    gne = _max(gn + tl.load(pm_ptr + b * 11 + 7)
+                               * (cs * _hform(tl.load(zxx_ptr + g_), tl.load(zxy_ptr + g_), tl.load(zyy_ptr + g_), un,
+                                              vn)), 0.0)
+                if USE_MU_I:
+                    wn = zx * un + zy * vn
+                    spd = _sqrt(un * un + vn * vn + wn * wn)
+                    hs_ = _max(cs * hnp, h_eps)
+                    inertial = _div(tl.load(c_ptr + C_MUI) * spd, hs_ * _sqrt(_max(gne, tl.load(c_ptr + C_TINY)) * hs_))
+                    mu = mu + _div(tl.load(pm_ptr + b * 11 + 8) * inertial, tl.load(c_ptr + C_I0) + inertial)
+            if USE_TAU:
+                coul = mu * gne * hnp + tau * sec
+            else:
+                coul = mu * gne * hnp
+            keep = tl.where(qn > normal, _max(1.0 - _div(dt * coul, qn), 0.0), 0.0)
+            hs = _max(hn, h_eps)
+            factor = _div(keep * 2.0, 1.0 + _sqrt(1.0 + _div(kturb * sec, hs * hs) * (keep * qn)))
+            factor = factor * tl.where(hn < h_eps, hn * _dfac(hn, sqrt2, heps4), 1.0)
+            qx = qx * factor
+            qy = qy * factor
+            hn = _max(hn, 0.0)
+            if COMBINE:     # the Heun average of the step and its records (stepping.make_step)
+                stop = (hu == 0) & (hv == 0) & (qx == 0) & (qy == 0)
+                hn = 0.5 * (tl.load(h0_ptr + c) + hn)
+                qx = tl.where(stop, 0.0, 0.5 * (tl.load(hu0_ptr + c) + qx))
+                qy = tl.where(stop, 0.0, 0.5 * (tl.load(hv0_ptr + c) + qy))
+                if USE_ENT or USE_DEP:
+                    zn = 0.5 * (tl.load(z0_ptr + c) + zn)
+                if USE_ENT:
+                    erod = 0.5 * (tl.load(e0_ptr + c) + erod)
+                hfin = hn
+                if USE_DEP:
+                    dep = 0.5 * (tl.load(d0_ptr + c) + dep)
+                    hfin = hn + dep
+                rq = rec_ptr + (r * nx + jc) * 4
+                rzx, rzy, rcs = tl.load(rq), tl.load(rq + 1), tl.load(rq + 2)
+                w = rzx * qx + rzy * qy
+                spd = _dfac(hn, sqrt2, heps4) * _sqrt(qx * qx + qy * qy + w * w)
+                hnorm = rcs * hn
+                tl.store(hmaxo_ptr + c, _max(tl.load(hmax_ptr + c), rcs * hfin), mask=own)
+                tl.store(vmaxo_ptr + c, _max(tl.load(vmax_ptr + c), tl.where(hnorm >= vmin, spd, 0.0)), mask=own)
+                arr = tl.load(arr_ptr + c)
+                tl.store(arro_ptr + c, tl.where((arr == inf) & (hnorm > arr_th), t_new, arr), mask=own)
+                ke += tl.where(own, hn * (spd * spd), 0.0)
+                mass += tl.where(own, hfin, 0.0)
+            tl.store(ho_ptr + c, hn, mask=own)
+            tl.store(huo_ptr + c, qx, mask=own)
+            tl.store(hvo_ptr + c, qy, mask=own)
+            if USE_ENT or USE_DEP:
+                tl.store(zo_ptr + c, zn, mask=own)
             if USE_ENT:
-                erod = tl.load(erod_ptr + c, mask=m)
-                rate = tl.load(pm_ptr + b * 11 + 9) * speed0 * sec * (cs * h > tl.load(c_ptr + C_ENTMIN)).to(h.dtype)
-                de = _min(dt * rate, erod)
-                hn = hn + de
-                erod = erod - de
-                zn = zn - de
+                tl.store(erodo_ptr + c, erod, mask=own)
             if USE_DEP:
-                dep = tl.load(dep_ptr + c, mask=m)
-                hs0 = _max(cs * h, h_eps)
-                froude = _div(speed0, _sqrt(_max(gn, tl.load(c_ptr + C_TINY)) * hs0))
-                rate = tl.load(pm_ptr + b * 11 + 10) * h * _max(1.0 - _div(froude, tl.load(c_ptr + C_FRDEP)), 0.0)
-                hpos = _max(hn, 0.0)
-                dd = _min(dt * rate, hpos)
-                left = (hpos > 0) & (hpos >= normal)
-                ratio = tl.where(left, _div(hpos - dd, tl.where(left, hpos, 1.0)), 0.0)
-                qx = qx * ratio
-                qy = qy * ratio
-                qn = qn * ratio
-                hn = hn - dd
-                dep = dep + dd
-                zn = zn + dd
-        # friction on the momentum along the surface (Eq. 4, friction.apply_friction)
-        mu = tl.load(pm_ptr + b * 11)
-        if USE_MUS:
-            mu = mu * tl.load(mus_ptr + row, mask=m)
-        gne = gn
-        hnp = _max(hn, 0.0)
-        if USE_CURV or USE_MU_I:
-            rn = _dfac(hn, sqrt2, heps4)
-            un = rn * qx
-            vn = rn * qy
-            if USE_CURV:
-                gne = _max(gn + tl.load(pm_ptr + b * 11 + 7) * (cs * _hform(tl.load(zxx_ptr + g_, mask=m),
-                                                                           tl.load(zxy_ptr + g_, mask=m),
-                                                                           tl.load(zyy_ptr + g_, mask=m),
-                                                                           un, vn)), 0.0)
-            if USE_MU_I:
-                wn = zx * un + zy * vn
-                spd = _sqrt(un * un + vn * vn + wn * wn)
-                hs_ = _max(cs * hnp, h_eps)
-                inertial = _div(tl.load(c_ptr + C_MUI) * spd, hs_ * _sqrt(_max(gne, tl.load(c_ptr + C_TINY)) * hs_))
-                mu = mu + _div(tl.load(pm_ptr + b * 11 + 8) * inertial, tl.load(c_ptr + C_I0) + inertial)
-        coul = mu * gne * hnp + tl.load(pm_ptr + b * 11 + 2) * sec
-        moving = qn > normal
-        keep = tl.where(moving, _max(1.0 - _div(dt * coul, tl.where(moving, qn, 1.0)), 0.0), 0.0)
-        hs = _max(hn, h_eps)
-        turb = ((4.0 * g) * dt * _div(1.0, tl.load(pm_ptr + b * 11 + 1))) * sec
-        factor = _div(keep * 2.0, 1.0 + _sqrt(1.0 + _div(turb, hs * hs) * (keep * qn)))
-        factor = factor * tl.where(hn < h_eps, hn * _dfac(hn, sqrt2, heps4), 1.0)
-        qx = qx * factor
-        qy = qy * factor
-        hn = _max(hn, 0.0)
-        pp = part_ptr + (b * tl.num_programs(0) * tl.num_programs(1) + i * tl.num_programs(0) + jb) * 4
-        tl.store(pp, tl.sum(tl.where(m, bnd, 0.0), axis=0))
+                tl.store(depo_ptr + c, dep, mask=own)
+            # --- move down a row
+            fac_s, fac_c, h_c = fac_c, fac_n, h_n
+            fhs, fqns, fqts = fhn, fqnn, fqtn
+        pp = part_ptr + (b * tl.num_programs(0) * tl.num_programs(1) + t * tl.num_programs(0) + s) * 4
+        tl.store(pp, tl.sum(bnd, axis=0))
         if GONE_OUT:
             tl.store(pp + 1, tl.sum(lost, axis=0))
-        if COMBINE:     # the Heun average of the step and its records (stepping.make_step)
-            stop = (hu == 0) & (hv == 0) & (qx == 0) & (qy == 0)
-            hn = 0.5 * (tl.load(h0_ptr + c, mask=m) + hn)
-            qx = tl.where(stop, 0.0, 0.5 * (tl.load(hu0_ptr + c, mask=m) + qx))
-            qy = tl.where(stop, 0.0, 0.5 * (tl.load(hv0_ptr + c, mask=m) + qy))
-            if USE_ENT or USE_DEP:
-                zn = 0.5 * (tl.load(z0_ptr + c, mask=m) + zn)
-            if USE_ENT:
-                erod = 0.5 * (tl.load(e0_ptr + c, mask=m) + erod)
-            hfin = hn
-            if USE_DEP:
-                dep = 0.5 * (tl.load(d0_ptr + c, mask=m) + dep)
-                hfin = hn + dep
-            rzx = tl.load(rzx_ptr + row, mask=m)
-            rzy = tl.load(rzy_ptr + row, mask=m)
-            rcs = tl.load(rcs_ptr + row, mask=m)
-            w = rzx * qx + rzy * qy
-            spd = _dfac(hn, sqrt2, heps4) * _sqrt(qx * qx + qy * qy + w * w)
-            hnorm = rcs * hn
-            tl.store(hmaxo_ptr + c, _max(tl.load(hmax_ptr + c, mask=m), rcs * hfin), mask=m)
-            vmax = _max(tl.load(vmax_ptr + c, mask=m), tl.where(hnorm >= tl.load(c_ptr + C_VMIN), spd, 0.0))
-            tl.store(vmaxo_ptr + c, vmax, mask=m)
-            arr = tl.load(arr_ptr + c, mask=m)
-            arrived = (arr == tl.load(c_ptr + C_INF)) & (hnorm > tl.load(c_ptr + C_ARR))
-            tl.store(arro_ptr + c, tl.where(arrived, tl.load(tnew_ptr + b), arr), mask=m)
-            tl.store(pp + 2, tl.sum(tl.where(m, hn * (spd * spd), 0.0), axis=0))
-            tl.store(pp + 3, tl.sum(tl.where(m, hfin, 0.0), axis=0))
-        tl.store(ho_ptr + c, hn, mask=m)
-        tl.store(huo_ptr + c, qx, mask=m)
-        tl.store(hvo_ptr + c, qy, mask=m)
-        if USE_ENT or USE_DEP:
-            tl.store(zo_ptr + c, zn, mask=m)
-        if USE_ENT:
-            tl.store(erodo_ptr + c, erod, mask=m)
-        if USE_DEP:
-            tl.store(depo_ptr + c, dep, mask=m)
+        if COMBINE:
+            tl.store(pp + 2, tl.sum(ke, axis=0))
+            tl.store(pp + 3, tl.sum(mass, axis=0))
