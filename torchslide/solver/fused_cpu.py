@@ -134,7 +134,7 @@ if numba is not None:
         for c in range(f0, f1 + 2):
             qm, qc, qq = qp[c], qp[c + 1], qp[c + 2]
             dm, dp = qc - qm, qq - qc
-            s = _minmod3(theta * dm, 0.5 * (dm + dp), theta * dp)
+            s = _minmod3(theta * dm, 0.5 * dm + 0.5 * dp, theta * dp)
             if c <= n:
                 L[c] = qc + 0.5 * s
             if c >= 1:

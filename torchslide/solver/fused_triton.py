@@ -158,6 +158,13 @@ def _stride(t: torch.Tensor) -> int:
     return 0 if t.shape[0] == 1 else t[0].numel()
 
 
+def geometry_record(geo, g: float) -> torch.Tensor:
+    """Per cell (z_x, z_y, cos, g cos^2, 1 / cos, g cos, 0, 0) of the geometry ``geo``, (1 or B, ny, nx, 8): what
+    the kernels read of a cell's bed, one address for all of it (g cos is the torch step's g_n, the same bits)."""
+    zero = torch.zeros_like(geo.cs)
+    return torch.stack([geo.zx, geo.zy, geo.cs, geo.gc2, geo.sec, g * geo.cs, zero, zero], dim=-1).contiguous()
+
+
 def _faces_stride(t: torch.Tensor) -> int:
     """Member stride in faces (or cells) of a (1 or B, ..., k) field interleaved in k: 0 for one field of every member."""
     return 0 if t.shape[0] == 1 else t[0].numel() // t.shape[-1]
@@ -253,19 +260,19 @@ def triton_step(F):
         return quad
 
     def fields_of(geo):
-        """The kernels' fields of the geometry ``geo``, once per static bed (held): the padded bed zpp, per cell
-        (z_x, z_y, cos, g cos^2) interleaved, and the no-creep rule's coefficients at the x and y faces in eights
-        (the geometry's quad itself where the rule is off)."""
+        """The kernels' fields of the geometry ``geo``, once per static bed (held): the padded bed zpp, the
+        geometry_record, and the no-creep rule's coefficients at the x and y faces in eights (the record itself
+        where the rule is off)."""
         last = held[0]
         if last is not None and last[0] is geo:
             return last[1]
-        quad = torch.stack([geo.zx, geo.zy, geo.cs, geo.gc2], dim=-1).contiguous()
+        record = geometry_record(geo, F.g)
         if geo.holds is None:
-            holds = (quad, quad)
+            holds = (record, record)
         else:
             holds = tuple(torch.stack(list(H) + [torch.zeros_like(H.alpha)] * 2, dim=-1).contiguous()
                           for H in geo.holds)
-        fields = (padded_bed(geo).contiguous(), quad, *holds)
+        fields = (padded_bed(geo).contiguous(), record, *holds)
         if not moving:
             held[0] = (geo, fields)
         return fields

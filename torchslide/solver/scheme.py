@@ -61,8 +61,9 @@ def minmod3(a: Tensor, b: Tensor, c: Tensor) -> Tensor:
 def reconstruct(qp: Tensor, d: int, n: int, theta: float) -> tuple[Tensor, Tensor]:
     """Piecewise-linear generalised-minmod reconstruction (KP07 Eq. 2.12).
 
-    The slope of cell c is minmod(theta dq_c, (dq_c + dq_c+1) / 2, theta dq_c+1) of the differences
-    dq_c = q_c - q_c-1 between neighbours, each difference computed once for the two cells it serves.
+    The slope of cell c is minmod(theta dq_c, dq_c / 2 + dq_c+1 / 2, theta dq_c+1) of the differences
+    dq_c = q_c - q_c-1 between neighbours, each difference (and its theta dq and dq / 2) computed once for the
+    two cells it serves.
 
     Args:
         qp: field padded with 2 ghost cells along ``d`` (length n + 4).
@@ -71,9 +72,8 @@ def reconstruct(qp: Tensor, d: int, n: int, theta: float) -> tuple[Tensor, Tenso
         face 0 and face n are the boundary faces).
     """
     dq = qp.narrow(d, 1, n + 3) - qp.narrow(d, 0, n + 3)
-    tdq = theta * dq
-    dm, dp = dq.narrow(d, 0, n + 2), dq.narrow(d, 1, n + 2)
-    s = minmod3(tdq.narrow(d, 0, n + 2), 0.5 * (dm + dp), tdq.narrow(d, 1, n + 2))
+    tdq, hdq = theta * dq, 0.5 * dq
+    s = minmod3(tdq.narrow(d, 0, n + 2), hdq.narrow(d, 0, n + 2) + hdq.narrow(d, 1, n + 2), tdq.narrow(d, 1, n + 2))
     qc = qp.narrow(d, 1, n + 2)
     east = qc + 0.5 * s
     west = qc - 0.5 * s

@@ -36,7 +36,7 @@ if triton is not None:
         tl.store(u_ptr + cb, u, mask=m)
         tl.store(v_ptr + cb, v, mask=m)
         if SLOPE:
-            gq = geo_ptr + (b * s_geo + idx) * 4
+            gq = geo_ptr + (b * s_geo + idx) * 8
             sg, _c, _m = _motion(u, v, tl.load(gq, mask=m), tl.load(gq + 1, mask=m), tl.load(c_ptr + C_NORMAL))
             tl.store(cu_ptr + cb, sg * u, mask=m)
             tl.store(cv_ptr + cb, sg * v, mask=m)
@@ -233,7 +233,7 @@ if triton is not None:
         px = kg * (tl.load(fx_ptr + xw * 4 + 7, mask=m) - tl.load(fx_ptr + xw * 4 + 3, mask=m)) + g * hbarx * dbx
         py = kg * (tl.load(fy_ptr + (ys + nx) * 4 + 3, mask=m) - tl.load(fy_ptr + ys * 4 + 3, mask=m)) + g * hbary * dby
         if SLOPE:   # along the surface (stepping.inverse_metric), then the change of Q = sigma q
-            gq = geo_ptr + (gb + idx) * 4
+            gq = geo_ptr + (gb + idx) * 8
             zx, zy, cs = tl.load(gq, mask=m), tl.load(gq + 1, mask=m), tl.load(gq + 2, mask=m)
             a = cs * cs * (zx * px + zy * py)
             px = px - zx * a

@@ -27,7 +27,7 @@ if triton is not None:
     import triton.language as tl
 
     from .triton_ops import (C_G, C_HEPS4, C_HWET, C_INVDX, C_NORMAL, C_SQRT2, C_THETA, C_WB, C_WSMIN, _central_upwind,
-                             _dfac, _frozen, _max, _min, _momentum_change, _motion, _slope)
+                             _dfac, _frozen, _max, _min, _minmod3, _momentum_change, _motion, _slope)
 
     @triton.jit
     def _lane(q, index):
@@ -56,7 +56,7 @@ if triton is not None:
         hu = tl.load(hu_ptr + cb + cell)
         hv = tl.load(hv_ptr + cb + cell)
         z = tl.load(zpp_ptr + zb + (r + 2) * (nx + 4) + jp)
-        q = geo_ptr + (gb + cell) * 4
+        q = geo_ptr + (gb + cell) * 8
         zx, zy, cs, gc2 = tl.load(q), tl.load(q + 1), tl.load(q + 2), tl.load(q + 3)
         if WALLS:
             ins = tl.load(ins_ptr + cell).to(tl.int8)
@@ -99,6 +99,12 @@ if triton is not None:
         return q - 0.5 * s, q + 0.5 * s
 
     @triton.jit
+    def _ends_t(q, tdm, hdm, tdp, hdp):
+        """_ends from the differences' theta d and d / 2 (each computed once, for the two cells it serves)."""
+        s = _minmod3(tdm, hdm + hdp, tdp)
+        return q - 0.5 * s, q + 0.5 * s
+
+    @triton.jit
     def _thickness_ends(hp, z, d_hm, d_hp, d_wm, d_wp, h_m, h_p, z_m, z_p, theta, h_wet, wb):
         """A cell's thickness at its two faces along an axis (scheme.sweep): the surface w = h + z reconstructed
         where the layer is wet (its neighbours h_m, h_p thicker than h_wet and the bed's curvature offset
@@ -120,7 +126,7 @@ if triton is not None:
         owns (and the grid's east edge) and the y faces (B, ny + 1, nx, 4) south of them (and the north edge),
         each (Fh, Fqn, Fqt) in the first three of four; per cell (B, ny, nx, 4) (out, mx, my, sigma); and with CFL
         (the first stage, whose time step they set) its largest one-sided speeds along x and y to amax (B,
-        programs, 2). geo: per cell (z_x, z_y, cos, g cos^2), interleaved; hx, hy: the
+        programs, 2). geo: fused_triton.geometry_record (in eights); hx, hy: the
         no-creep rule's coefficients at the x and y faces (scheme.hold_coefficients, in eights; s_hx, s_hy: their
         member strides in faces, 0 for one bed of every member); UNROLL: the
         loop over rows unrolled (3: the rows' rotation)."""
@@ -171,6 +177,8 @@ if triton is not None:
         hpA, hpO, hpN = _max(hA, 0.0), _max(hO, 0.0), _max(hN, 0.0)
         d_h, d_w = hpN - hpO, (hpN + zN) - (hpO + zO)       # the differences between the older and newer row
         d_v, d_cv, d_cu = vN - vO, cvN - cvO, cuN - cuO
+        t_v, t_cv, t_cu = theta * d_v, theta * d_cv, theta * d_cu          # their theta d and d / 2, carried
+        g_v, g_cv, g_cu = 0.5 * d_v, 0.5 * d_cv, 0.5 * d_cu
         _x, hl_y, _b0, _b1 = _thickness_ends(hpO, zO, hpO - hpA, d_h, (hpO + zO) - (hpA + zA), d_w, hpA, hpN, zA, zN,
                                              theta, h_wet, wb)
         _x, vl_y = _ends(vO, vO - vA, d_v, theta)
@@ -195,10 +203,12 @@ if triton is not None:
             # --- the newer row reconstructed along y, and the y face f between the older and the newer row
             e_h, e_w = hpW - hpN, (hpW + zW) - (hpN + zN)
             e_v, e_cv, e_cu = vW - vN, cvW - cvN, cuW - cuN
+            te_v, te_cv, te_cu = theta * e_v, theta * e_cv, theta * e_cu
+            ge_v, ge_cv, ge_cu = 0.5 * e_v, 0.5 * e_cv, 0.5 * e_cu
             hr_y, hn_y, bfs, bfn = _thickness_ends(hpN, zN, d_h, e_h, d_w, e_w, hpO, hpW, zO, zW, theta, h_wet, wb)
-            vr_y, vn_y = _ends(vN, d_v, e_v, theta)
-            cvr_y, cvn_y = _ends(cvN, d_cv, e_cv, theta)
-            cur_y, cun_y = _ends(cuN, d_cu, e_cu, theta)
+            vr_y, vn_y = _ends_t(vN, t_v, g_v, te_v, ge_v)
+            cvr_y, cvn_y = _ends_t(cvN, t_cv, g_cv, te_cv, ge_cv)
+            cur_y, cun_y = _ends_t(cuN, t_cu, g_cu, te_cu, ge_cu)
             fh_n, fqn_n, fqt_n, phi_n, speed = _central_upwind(hl_y, hr_y, vl_y, vr_y, cvl_y, cvr_y, cul_y, cur_y,
                                                                kgO, kgN, wsmin)
             if NO_CREEP or WALLS:
@@ -267,7 +277,8 @@ if triton is not None:
             fh_s, phi_s = fh_n, phi_n
             hbar_y, db_y = 0.5 * (hr_y + hn_y), bfn - bfs
             hl_y, vl_y, cvl_y, cul_y = hn_y, vn_y, cvn_y, cun_y
-            d_h, d_w, d_v, d_cv, d_cu = e_h, e_w, e_v, e_cv, e_cu
+            d_h, d_w = e_h, e_w
+            t_v, t_cv, t_cu, g_v, g_cv, g_cu = te_v, te_cv, te_cu, ge_v, ge_cv, ge_cu
             hO, zO, uO, vO, cuO, cvO, sgO, cO, mvO, g2O, kgO, rsO, zxO, zyO, csO, inO = \
                 hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, kgN, rsN, zxN, zyN, csN, inN
             hN, zN, uN, vN, cuN, cvN, sgN, cN, mvN, g2N, kgN, rsN, zxN, zyN, csN, inN = \

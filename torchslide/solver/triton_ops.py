@@ -182,8 +182,8 @@ if triton is not None:
     @triton.jit
     def _slope(dm, dp, theta):
         """The limited slope of a cell from its differences to the west dm and to the east dp
-        (scheme.reconstruct): minmod(theta dm, (dm + dp) / 2, theta dp)."""
-        return _minmod3(theta * dm, 0.5 * (dm + dp), theta * dp)
+        (scheme.reconstruct): minmod(theta dm, dm / 2 + dp / 2, theta dp)."""
+        return _minmod3(theta * dm, 0.5 * dm + 0.5 * dp, theta * dp)
 
     @triton.jit
     def _central_upwind(hl, hr, ul, ur, cnl, cnr, tlf, trf, kgl, kgr, wsmin):

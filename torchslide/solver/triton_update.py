@@ -50,8 +50,8 @@ if triton is not None:
         hu0, hv0, ...; h, hu, hv are the first stage's) and the records h_max, v_max and arrival are updated, as
         stepping.make_step does.
 
-        geo: per cell (z_x, z_y, cos, g cos^2), rec: (z_x, z_y, cos) of the initial bed (the records'), both
-        interleaved in fours. part: (B, programs, 4) per program the boundary outflow (m^2/s, outward), the
+        geo: fused_triton.geometry_record (in eights); rec: (z_x, z_y, cos) of the initial bed (the records') in
+        fours. part: (B, programs, 4) per program the boundary outflow (m^2/s, outward), the
         thickness lost outside the domain (m, GONE_OUT), and with COMBINE the sums of h |V|^2 and of the thickness
         (m)."""
         s, t, b = tl.program_id(0), tl.program_id(1), tl.program_id(2)
@@ -119,9 +119,8 @@ if triton is not None:
             g_ = b * s_geo + r * nx + jc
             q = cell_ptr + c * 4
             hu, hv = tl.load(hu_ptr + c), tl.load(hv_ptr + c)
-            gq = geo_ptr + g_ * 4
-            zx, zy, cs = tl.load(gq), tl.load(gq + 1), tl.load(gq + 2)
-            sec = _div(1.0, cs)
+            gq = geo_ptr + g_ * 8
+            zx, zy, cs, sec, gn = tl.load(gq), tl.load(gq + 1), tl.load(gq + 2), tl.load(gq + 4), tl.load(gq + 5)
             if SLOPE:   # the surface momentum Q = sigma q, turned back into q (stepping.horizontal_momentum)
                 qx = tl.load(q + 3) * hu - lam * (dqx + tl.load(q + 1))
                 qy = tl.load(q + 3) * hv - lam * (dqy + tl.load(q + 2))
@@ -143,7 +142,6 @@ if triton is not None:
                 qx = tl.where(gone, 0.0, qx)
                 qy = tl.where(gone, 0.0, qy)
                 qn = tl.where(gone, 0.0, qn)
-            gn = g * cs
             if USE_ENT or USE_DEP:      # mass sources, explicit in the stage-start state
                 r0 = _dfac(h, sqrt2, heps4)
                 u0, v0 = r0 * hu, r0 * hv
@@ -203,7 +201,7 @@ if triton is not None:
             qy = qy * factor
             hn = _max(hn, 0.0)
             if COMBINE:     # the Heun average of the step and its records (stepping.make_step)
-                stop = (hu == 0) & (hv == 0) & (qx == 0) & (qy == 0)
+                stop = ((tl.abs(hu) + tl.abs(hv)) + (tl.abs(qx) + tl.abs(qy))) == 0   # no momentum in either stage
                 hn = 0.5 * (tl.load(h0_ptr + c) + hn)
                 qx = tl.where(stop, 0.0, 0.5 * (tl.load(hu0_ptr + c) + qx))
                 qy = tl.where(stop, 0.0, 0.5 * (tl.load(hv0_ptr + c) + qy))
