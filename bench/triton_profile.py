@@ -40,6 +40,9 @@ FP = ("FADD", "FMUL", "FFMA", "FMNMX", "FSETP", "FSEL", "MUFU", "DADD", "DMUL", 
 TERMS = {"voellmy": {"SLOPE": True, "NO_CREEP": True}, "all": None}
 """Switches on per row set: a default SolverConfig's Voellmy run (mu, xi only); every switch (None)."""
 
+POINTERS = {"inside_ptr": "*i1", "active_ptr": "*i1"}
+"""The kernels' pointers that are not to the state's dtype (bool tensors)."""
+
 SKIP = {"INFLOW", "GONE_OUT", "WALLS"}
 """Switches the "all" rows leave off: boundary and domain settings, not terms."""
 
@@ -60,7 +63,7 @@ def switches(name: str) -> list[str]:
     """The compile-time switches of kernel ``name`` (its tl.constexpr parameters but the launch shape)."""
     params = inspect.signature(kernel_fn(name).fn).parameters
     return [p for p, v in params.items() if v.annotation in ("tl.constexpr", "constexpr")
-            and p not in ("BLOCK", "AXIS", "W", "BAND", "COMBINE", "UNROLL", "CFL")]
+            and p not in ("BLOCK", "AXIS", "W", "BAND", "COMBINE", "FIRST", "UNROLL", "CFL")]
 
 
 def compile_kernel(name: str, dtype: str, on: dict, arch: int = 90, block: int | None = None,
@@ -91,11 +94,12 @@ def compile_kernel(name: str, dtype: str, on: dict, arch: int = 90, block: int |
         consts["AXIS"] = "xy".index(name.split("+")[0][-1])
     if "COMBINE" in params:
         consts["COMBINE"] = name.endswith("+combine")
+        consts["FIRST"] = not name.endswith("+combine")
     if "CFL" in params:
         consts["CFL"] = not name.endswith("+second")
     consts.update({s: bool(on.get(s, False)) for s in switches(name)})
-    sig = {p: "constexpr" if p in consts else ("*i1" if p == "inside_ptr" else f"*{dtype}")
-           if p.endswith("_ptr") else "i32" for p in params}
+    sig = {p: "constexpr" if p in consts else POINTERS.get(p, f"*{dtype}") if p.endswith("_ptr") else "i32"
+           for p in params}
     src = ASTSource(fn=fn, signature=sig, constexprs={(params.index(k),): v for k, v in consts.items()})
     options = {"enable_fp_fusion": fused_triton.fp_fusion(dtype), "num_warps": num_warps}
     return triton.compile(src, target=GPUTarget("cuda", arch, 32), options=options)
@@ -155,17 +159,21 @@ def sass_profile(kernel, cells_per_thread: float, band: tuple | None = None) -> 
         branches = [(a, int(m.group(1), 16)) for a, op, text in body if op == "BRA"
                     for m in [re.search(r"0x([0-9a-f]+)", text)] if m and int(m.group(1), 16) < a]
         loops = sorted(([b for b in body if start <= b[0] <= end] for end, start in branches), key=len, reverse=True)
-        if not loops or len(loops) > 2:
-            raise ValueError(f"expected a loop and its remainder, found {len(loops)} loops")
+        if not loops:
+            raise ValueError("no loop in the kernel")
+        main = loops[0]
+        # the unrolled loop's remainder (about a pass over unroll of its body) runs the iterations left over;
+        # a small loop (a reduction over a member's programs, at most one pass of W in practice) once
+        weights = [(main, iterations // unroll)] + [
+            (loop, iterations % unroll if 2 * unroll * len(loop) >= len(main) else 1) for loop in loops[1:]]
         inside = {a for loop in loops for a, _, _ in loop}
-        weights = [(loops[0], iterations // unroll)] + [(loop, iterations % unroll) for loop in loops[1:]]
         weights.append(([b for b in body if b[0] not in inside], 1))
         counts = [0.0, 0.0, 0.0]
         for block, w in weights:
             for i, k in enumerate(_counts([op for _, op, _ in block])):
                 counts[i] += w * k
         n, fp, mufu = (k / rows for k in counts)
-        out["loop_per_cell"] = round(len(loops[0]) * (iterations // unroll) / rows / cells_per_thread, 1)
+        out["loop_per_cell"] = round(len(main) * (iterations // unroll) / rows / cells_per_thread, 1)
     out.update(instructions_per_cell=round(n / cells_per_thread, 1), fp_per_cell=round(fp / cells_per_thread, 1),
                mufu_per_cell=round(mufu / cells_per_thread, 2))
     return out

@@ -55,44 +55,43 @@ def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch)
 @pytest.mark.parametrize("dtype", ["fp64", "fp32"])
 @pytest.mark.parametrize("on", [True, False])
 def test_the_triton_kernels_compile_for_an_h100(dtype, on):
-    """Every kernel compiles ahead of time for sm_90 (triton's own ptxas; no GPU needed), with every switch
-    on or off: what the interpreter does not check (types, constexpr globals, the lowering)."""
-    for name in triton_profile.KERNELS + ("_tiled",):
-        for axis in ((0, 1) if name == "_faces" else (None,)):
-            kernel = triton_profile.compile_kernel(name, dtype, dict.fromkeys(triton_profile.switches(name), on), axis)
-            assert len(kernel.asm["cubin"]) > 0, name
+    """Every kernel of both designs of the faces compiles ahead of time for sm_90 (triton's own ptxas; no GPU
+    needed), with every switch on or off: what the interpreter does not check (types, constexpr globals, the
+    lowering), and no spills to local memory."""
+    names = {name for kernels in triton_profile.KERNELS.values() for name, _ in kernels}
+    for name in sorted(names):
+        kernel = triton_profile.compile_kernel(name, dtype, dict.fromkeys(triton_profile.switches(name), on))
+        assert len(kernel.asm["cubin"]) > 0, name
+        assert triton_profile.sass_profile(kernel, 1)["local_bytes"] == 0, name
 
 
-def test_stored_velocities_take_the_divisions_and_square_roots_out_of_the_faces():
-    """With VELOCITIES = "stored" an x face reads its 8 velocities instead of dividing for each (and taking
-    a square root): at least 8 fewer MUFU instructions per face in the compiled kernel, no spills."""
-    pytest.importorskip("triton.backends.nvidia")
-    prof = {}
-    for stored in (False, True):
-        kernel = triton_profile.compile_kernel("_faces", "fp32", {"STORED": stored}, axis=0, block=128, num_warps=4)
-        prof[stored] = triton_profile.sass_profile(kernel, cells_per_thread=1)
-    assert prof[True]["mufu_per_cell"] >= 2                     # the face's wave speeds: two sqrt, one division
-    assert prof[True]["mufu_per_cell"] <= prof[False]["mufu_per_cell"] - 8, prof
-    assert prof[True]["instructions_per_cell"] < prof[False]["instructions_per_cell"], prof
-    assert prof[True]["local_bytes"] == prof[False]["local_bytes"] == 0, prof
-
-
-def test_the_tiled_faces_compute_each_cells_work_once():
-    """FACES = "tiled" computes each cell's velocities, reconstructions and pressure coefficient once per stage
-    (the faces read their neighbours' from the tile) where the lines recompute them for each face: in float32
-    Voellmy (the slope metric and the no-creep rule on), a fifth fewer SASS instructions per cell than the line
-    design's velocities, carried velocities and x and y faces together (the halo's positions included) and
-    fewer floating-point ones, with no spills."""
-    pytest.importorskip("triton.backends.nvidia")
+def _step_counts(design: str, dtype: str = "fp32", terms: str = "voellmy") -> dict:
+    """bench.triton_profile's per cell-update counts of one design (a default Voellmy run's switches)."""
     from torchslide.solver import fused_triton
 
-    on = triton_profile.TERMS["voellmy"]
-    tiled = triton_profile.sass_profile(
-        triton_profile.compile_kernel("_tiled", "fp32", on),
-        triton_profile.tile_cells_per_thread(fused_triton.TILE, fused_triton.TILE_WARPS))
-    lines = [triton_profile.sass_profile(triton_profile.compile_kernel(name, "fp32", {**on, "STORED": True}, axis,
-                                                                       block=128, num_warps=4), 1)
-             for name, axis in (("_velocities", None), ("_carried", None), ("_faces", 0), ("_faces", 1))]
-    assert tiled["local_bytes"] == 0, tiled
-    assert tiled["instructions_per_cell"] < 0.8 * sum(p["instructions_per_cell"] for p in lines), (tiled, lines)
-    assert tiled["fp_per_cell"] < sum(p["fp_per_cell"] for p in lines), (tiled, lines)
+    rows = []
+    for name, runs in triton_profile.KERNELS[design]:
+        switched = triton_profile.TERMS[terms]
+        on = {s: (s not in triton_profile.SKIP) if switched is None else switched.get(s, False)
+              for s in triton_profile.switches(name)}
+        kernel = triton_profile.compile_kernel(name, dtype, on)
+        if name.startswith("_march"):
+            w, rows_ = fused_triton.MARCH
+            prof = triton_profile.sass_profile(kernel, (w - 4) / 32, (rows_, rows_ + 1, fused_triton.MARCH_UNROLL))
+        elif name.startswith("_update"):
+            w, rows_ = fused_triton.UPDATE
+            prof = triton_profile.sass_profile(kernel, (w - 2) / 32, (rows_, rows_, fused_triton.UPDATE_UNROLL))
+        else:
+            prof = triton_profile.sass_profile(kernel, triton_profile.default_block(dtype) // (32 * fused_triton.NUM_WARPS))
+        assert prof["local_bytes"] == 0, (name, prof)
+        rows.append({"kernel": name, "runs_per_step": runs, "design": design, "dtype": dtype, "terms": terms, **prof})
+    return triton_profile.per_cell_update(rows)[f"{design}-{dtype}-{terms}"]
+
+
+def test_the_marching_step_takes_at_most_1500_instructions_per_float32_cell_update():
+    """The marching design computes each cell's slopes and each face's flux once per stage, with no barrier: a
+    float32 Voellmy cell-update (two stages of the faces and the update, the slope metric and the no-creep rule
+    on) compiles for sm_90 to at most 1,500 SASS instructions, no spills (bench/results/triton_profile.json has
+    every design, dtype and set of terms)."""
+    pytest.importorskip("triton.backends.nvidia")
+    assert _step_counts("march")["instructions"] <= 1500

@@ -26,13 +26,13 @@ import torch
 
 from ..physics import FR_DEP, MU_I_D, MU_I_I0
 from .scheme import WAVE_SPEED_MIN
-from .stepping import end_of_step, static_geometry
+from .stepping import static_geometry
 from .triton_ops import CONSTANTS, FAST_FLOAT32, FLUSH_SUBNORMALS, interpreted, triton  # noqa: F401
 
 if triton is not None:
     from .triton_lines import _cells, _faces, _velocities
     from .triton_march import _march
-    from .triton_update import _update
+    from .triton_update import _end_step, _update
 
 PM = ("mu", "xi", "tau_y", "k_ap", "earth_pressure", "k_act", "k_pass", "curvature", "mu_i", "kappa", "deposition")
 """The per-member parameters the kernels read, in their order (columns of the (B, 11) table)."""
@@ -100,7 +100,8 @@ def constants(F, dtype, device) -> torch.Tensor:
             "sqrt2": 2.0 ** 0.5, "wave_speed_min": WAVE_SPEED_MIN, "h_eps": F.h_eps, "entrain_h_min": F.entrain_h_min,
             "fr_dep": FR_DEP, "mu_i_scale": 2.5 * MU_I_D, "mu_i_i0": MU_I_I0, "tiny": 1e-12,
             "v_max_min_depth": F.v_max_min_depth, "arrival_threshold": F.arrival_threshold, "inf": math.inf,
-            "inv_dx": 1.0 / F.dx, "normal": _normal(dtype), "cfl": F.cfl}
+            "inv_dx": 1.0 / F.dx, "normal": _normal(dtype), "cfl_dx": F.cfl * F.dx, "dt_max": F.dt_max,
+            "stop_ke_fraction": F.stop_ke_fraction, "cell_area": F.dx * F.dx}
     return torch.tensor([vals[k] for k in CONSTANTS], dtype=dtype, device=device)
 
 
@@ -191,9 +192,9 @@ def _outputs(h):
             torch.empty((B, ny, nx, 4), dtype=h.dtype, device=h.device))
 
 
-def _faces_march(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool = True):
-    """The faces of a stage on the marching kernel: (x faces, y faces, cells, (ax, ay) (B,), None without
-    ``cfl``) (_outputs)."""
+def _faces_march(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool):
+    """The faces of a stage on the marching kernel: (x faces, y faces, cells (_outputs), the largest one-sided
+    speeds per program (B, programs, 2), filled with ``cfl``)."""
     B, ny, nx = h.shape
     W = march_shape()[0]
     rows = band(march_shape(), B, ny, nx, W - 4, h.device)
@@ -203,14 +204,14 @@ def _faces_march(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool = True):
     amax = torch.empty((B, grid[0] * grid[1], 2), dtype=h.dtype, device=h.device)
     _march[grid](h, hu, hv, zpp, gq, hold_x, hold_y, inside, pm, c, fx, fy, cell, amax,
                  ny, nx, _stride(geo.cs), _stride(zpp), _faces_stride(hold_x), _faces_stride(hold_y),
-                 NO_CREEP=F.no_creep, WALLS=F.domain == "wall",
-                 USE_EP=F.use_ep, USE_TAU=F.use_tau, SLOPE=F.slope_correction, CFL=cfl, W=W, BAND=rows,
-                 UNROLL=MARCH_UNROLL, num_warps=max(1, W // 32), enable_fp_fusion=fp_fusion(h.dtype))
-    return fx, fy, cell, amax.amax(dim=1).unbind(1) if cfl else None
+                 NO_CREEP=F.no_creep, WALLS=F.domain == "wall", USE_EP=F.use_ep, USE_TAU=F.use_tau,
+                 SLOPE=F.slope_correction, CFL=cfl, W=W, BAND=rows, UNROLL=MARCH_UNROLL, num_warps=max(1, W // 32),
+                 enable_fp_fusion=fp_fusion(h.dtype))
+    return fx, fy, cell, amax
 
 
-def _faces_lines(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool = True):
-    """The faces of a stage on the line kernels: (x faces, y faces, (out, mx, my, sg), (ax, ay) (B,))."""
+def _faces_lines(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool):
+    """The faces of a stage on the line kernels: as _faces_march."""
     B, ny, nx = h.shape
     zpp, gq, holds = fields[0], fields[1], fields[2:]
     launch = _launch(h.dtype)
@@ -220,35 +221,49 @@ def _faces_lines(h, hu, hv, geo, fields, inside, pm, c, F, cfl: bool = True):
     _velocities[cells](h, hu, hv, gq, c, u, v, cu, cv, sg, ny, nx, _stride(geo.cs),
                        SLOPE=F.slope_correction, **launch)
     quads = _outputs(h)
-    sweeps = []
+    programs = [triton.cdiv(n * m, launch["BLOCK"]) for n, m in ((ny, nx + 1), (ny + 1, nx))]
+    amax = torch.zeros((B, max(programs), 2), dtype=h.dtype, device=h.device)
+    halves = []
     for axis, nf in enumerate(((ny, nx + 1), (ny + 1, nx))):
         hl, hr = (torch.empty((B, *nf), dtype=h.dtype, device=h.device) for _ in range(2))
-        grid = (triton.cdiv(nf[0] * nf[1], launch["BLOCK"]), B)
-        amax = torch.empty((B, grid[0]), dtype=h.dtype, device=h.device)
-        _faces[grid](h, hu, hv, u, v, cu, cv, zpp, geo.gc2, holds[axis], inside, pm, c, quads[axis], hl, hr, amax, ny,
-                     nx, _stride(zpp), _stride(geo.cs), _faces_stride(holds[axis]), AXIS=axis, NO_CREEP=F.no_creep,
-                     WALLS=F.domain == "wall", USE_EP=F.use_ep, USE_TAU=F.use_tau, SLOPE=F.slope_correction, CFL=cfl,
-                     **launch)
-        sweeps.append((hl, hr, amax.amax(dim=1)))
-    (hlx, hrx, ax), (hly, hry, ay) = sweeps
+        _faces[(programs[axis], B)](h, hu, hv, u, v, cu, cv, zpp, geo.gc2, holds[axis], inside, pm, c, quads[axis], hl,
+                                    hr, amax, amax.shape[1], ny, nx, _stride(zpp), _stride(geo.cs),
+                                    _faces_stride(holds[axis]), AXIS=axis, NO_CREEP=F.no_creep,
+                                    WALLS=F.domain == "wall", USE_EP=F.use_ep, USE_TAU=F.use_tau,
+                                    SLOPE=F.slope_correction, CFL=cfl, **launch)
+        halves.append((hl, hr))
+    (hlx, hrx), (hly, hry) = halves
     _cells[cells](u, v, sg, zpp, gq, geo.gc2, pm, c, quads[0], hlx, hrx, quads[1], hly, hry,
                   quads[2], ny, nx, _stride(zpp), _stride(geo.cs), USE_EP=F.use_ep, SLOPE=F.slope_correction, **launch)
-    return (*quads, (ax, ay) if cfl else None)
+    return (*quads, amax)
 
 
 def triton_step(F):
     """``step(S, P) -> S`` for the settings ``F`` (StepFlags; supported(F, device) must be None):
-    stepping.make_step's step on the Triton kernels (same inputs and outputs)."""
+    stepping.make_step's step on the Triton kernels (same inputs and outputs), five launches: the faces and
+    update of each stage and the end of the step (triton_update._end_step), nothing on the host but
+    allocations."""
     moving = F.use_ent or F.use_dep
     tables: dict = {}
-    held: list = [None]     # (the geometry of the last static bed, its padded bed and fields), replaced whole
+    held: list = [None]     # (the geometry of the last static bed, its kernels' fields), replaced whole
     held_rec: list = [None]  # (the last box's records' metric, interleaved)
+    held_pm: list = [None]  # (the last working set's parameters, their (B, 11) table)
 
     def consts(dtype, device):
         key = (dtype, str(device))
         if key not in tables:
             tables[key] = constants(F, dtype, device)
         return tables[key]
+
+    def params_of(P: dict, B: int) -> torch.Tensor:
+        """The members' parameters (PM) as a (B, 11) table, once per working set (P is replaced with it)."""
+        key = tuple(P[k] for k in PM)
+        last = held_pm[0]
+        if last is not None and last[1].shape[0] == B and all(a is b for a, b in zip(last[0], key)):
+            return last[1]
+        pm = torch.stack([P[k].reshape(-1).expand(B) for k in PM], dim=1).contiguous()
+        held_pm[0] = (key, pm)
+        return pm
 
     def rec_of(rec):
         """The records' metric (z_x, z_y, cos of the initial bed, P["rec"]) interleaved in fours, once per box."""
@@ -277,25 +292,21 @@ def triton_step(F):
             held[0] = (geo, fields)
         return fields
 
-    def stage(h, hu, hv, z, erod, dep, dt, dt_cap, pm, c, P, geo, start=None):
-        """stepping._stage on the kernels: the new (h, hu, hv, z, erod, dep), the stage's sums (B, 4) and dt
-        (B,). ``start``: for the second stage, (h, hu, hv, z, erod, dep) of the step's start, the records'
-        inputs and t_new: the update then averages and records (COMBINE)."""
+    def stage(state, clock, dt, pm, c, P, geo, start=None):
+        """stepping._stage on the kernels: the new (h, hu, hv, z, erod, dep) and the update's sums per program (B,
+        programs, 4). ``clock``: (t, t_next, active, t_end); ``dt``: (B,), written by the first stage's update
+        (``start`` None), read by the second's; ``start``: for the second stage, (h, hu, hv, z, erod, dep) of
+        the step's start, the records' metric and the records (h_max, v_max, arrival) and their outputs: the
+        update then averages and records (COMBINE)."""
+        h, hu, hv, z, erod, dep = state
         B, ny, nx = h.shape
         geo = static_geometry(z, F, P.get("mu_scale")) if geo is None else geo
         fields = fields_of(geo)
-        gq = fields[1]
-        geo = type(geo)(*(a.contiguous() if torch.is_tensor(a) else a for a in geo))
-        hess = tuple(a.contiguous() for a in geo.hess) if geo.hess is not None else (geo.zx,) * 3
-        mus = P["mu_scale"].contiguous() if F.use_mu_scale else geo.cs
-        inside = P["inside"].contiguous() if F.domain else geo.cs
+        hess = tuple(a.contiguous() for a in geo.hess) if geo.hess is not None else (fields[1],) * 3
+        mus = P["mu_scale"].contiguous() if F.use_mu_scale else h
+        inside = P["inside"].contiguous() if F.domain else h
         faces = _faces_march if FACES == "march" else _faces_lines
-        fx, fy, cell, speeds = faces(h, hu, hv, geo, fields, inside, pm, c, F, dt is None)
-        if dt is None:
-            ax, ay = speeds
-            dt = torch.minimum(F.cfl * F.dx / (ax + ay), dt_cap)
-            dt = torch.where(dt_cap > 0, dt, torch.zeros_like(dt))
-        dt = dt.contiguous()
+        fx, fy, cell, amax = faces(h, hu, hv, geo, fields, inside, pm, c, F, start is None)
         new = [torch.empty_like(h) for _ in range(3)]
         z_o = torch.empty_like(h) if moving else h
         e_o = torch.empty_like(h) if F.use_ent else h
@@ -306,57 +317,48 @@ def triton_step(F):
         part = torch.empty((B, grid[0] * grid[1], 4), dtype=h.dtype, device=h.device)
         some = lambda a: h if a is None else a
         if start is None:
-            combine, rec = (h,) * 6, h
-            records, rec_out, t_new = (h,) * 3, (h,) * 3, dt
+            combine, rec, records, rec_out = (h,) * 6, h, (h,) * 3, (h,) * 3
         else:
-            combine, rec, records, t_new = start
-            rec_out = [torch.empty_like(h) for _ in range(3)]
+            combine, rec, records, rec_out = start
         _update[grid](h, hu, hv, cell, some(z) if moving else h, some(erod) if F.use_ent else h,
-                      some(dep) if F.use_dep else h, fx, fy, gq, *hess, mus, inside, pm,
-                      c, dt, *(some(a) for a in combine), rec, *records, t_new, *new, z_o, e_o, d_o, *rec_out, part,
-                      ny, nx, _stride(geo.cs), SLOPE=F.slope_correction, USE_CURV=F.use_curv, USE_MU_I=F.use_mu_i,
-                      USE_ENT=F.use_ent, USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale, USE_TAU=F.use_tau,
-                      GONE_OUT=F.domain == "outflow",
-                      INFLOW=F.inflow, COMBINE=start is not None, W=W, BAND=rows, UNROLL=UPDATE_UNROLL,
-                      num_warps=max(1, W // 32), enable_fp_fusion=fp_fusion(h.dtype))
-        sums = part.sum(dim=1)
-        return (*new, z_o if moving else z, e_o if F.use_ent else erod, d_o if F.use_dep else dep), sums, dt, rec_out
+                      some(dep) if F.use_dep else h, fx, fy, fields[1], *hess, mus, inside, pm, c, dt, amax,
+                      amax.shape[1], *clock[:3], *(some(a) for a in combine), rec, *records, *new, z_o, e_o, d_o,
+                      *rec_out, part, ny, nx, _stride(geo.cs), SLOPE=F.slope_correction, USE_CURV=F.use_curv,
+                      USE_MU_I=F.use_mu_i, USE_ENT=F.use_ent, USE_DEP=F.use_dep, USE_MUS=F.use_mu_scale,
+                      USE_TAU=F.use_tau, GONE_OUT=F.domain == "outflow", INFLOW=F.inflow, FIRST=start is None,
+                      COMBINE=start is not None, W=W, BAND=rows, UNROLL=UPDATE_UNROLL, num_warps=max(1, W // 32),
+                      enable_fp_fusion=fp_fusion(h.dtype))
+        return (*new, z_o if moving else z, e_o if F.use_ent else erod, d_o if F.use_dep else dep), part
 
     def step(S: dict, P: dict) -> dict:
-        h, hu, hv, z, erod, dep = (S[k] if S[k] is None else S[k].contiguous()
-                                   for k in ("h", "hu", "hv", "z", "erod", "dep"))
+        state = tuple(S[k] if S[k] is None else S[k].contiguous() for k in ("h", "hu", "hv", "z", "erod", "dep"))
+        h = state[0]
         B = h.shape[0]
         c = consts(h.dtype, h.device)
-        pm = torch.stack([P[k].reshape(-1).expand(B) for k in PM], dim=1).contiguous()
-        active, t, t_next = S["active"], S["t"], S["t_next"]
-        rem = t_next - t
-        dt_cap = torch.where(active, torch.clamp(rem, max=F.dt_max), torch.zeros_like(rem))
-        geo = None if moving else (P["geo"] if "geo" in P else static_geometry(z, F, P.get("mu_scale")))
-        first, sums1, dt, _ = stage(h, hu, hv, z, erod, dep, None, dt_cap, pm, c, P, geo)
-        hit = active & (dt >= rem)
-        t_new = torch.where(hit, t_next, t + dt)
-        rec = rec_of(P["rec"])
-        records = (S["h_max"].contiguous(), S["v_max"].contiguous(), S["arrival"].contiguous())
-        final, sums2, _, rec_out = stage(*first, dt, dt_cap, pm, c, P, geo,
-                                         start=((h, hu, hv, z, erod, dep), rec, records, t_new.contiguous()))
-        cell_area = F.dx * F.dx
-        o1, o2 = (dt * F.dx * sums[:, 0] + (sums[:, 1] * cell_area if F.domain == "outflow" else 0.0)
-                  for sums in (sums1, sums2))
-        ke = 0.5 * sums2[:, 2] * cell_area
-        mass = sums2[:, 3] * cell_area
+        pm = params_of(P, B)
+        clock = (S["t"].contiguous(), S["t_next"].contiguous(), S["active"].contiguous(), P["t_end"])
+        geo = None if moving else (P["geo"] if "geo" in P else static_geometry(state[3], F, P.get("mu_scale")))
+        dt = torch.empty_like(clock[0])
+        first, part1 = stage(state, clock, dt, pm, c, P, geo)
+        records = tuple(S[k].contiguous() for k in ("h_max", "v_max", "arrival"))
+        rec_out = tuple(torch.empty_like(h) for _ in range(3))
+        final, part2 = stage(first, clock, dt, pm, c, P, geo, start=(state, rec_of(P["rec"]), records, rec_out))
+        ends = {k: torch.empty_like(S[k]) for k in ("t", "outflow", "ke_peak", "active", "failed", "stopped", "steps")}
+        ends.update(ke=torch.empty_like(dt), mass=torch.empty_like(dt), hit=torch.empty_like(S["active"]))
+        _end_step[(B,)](part1, part2, part1.shape[1], dt, *clock, S["outflow"].contiguous(),
+                        S["ke_peak"].contiguous(), S["failed"].contiguous(), S["stopped"].contiguous(),
+                        S["steps"].contiguous(), c, ends["t"], ends["outflow"], ends["ke"], ends["mass"],
+                        ends["ke_peak"], ends["hit"], ends["active"], ends["failed"], ends["stopped"], ends["steps"],
+                        GONE_OUT=F.domain == "outflow", STOP_AT_REST=F.stop_ke_fraction > 0, W=32, num_warps=1)
         out = dict(S)
-        out.update(h=final[0], hu=final[1], hv=final[2], h_max=rec_out[0], v_max=rec_out[1], arrival=rec_out[2])
+        out.update(h=final[0], hu=final[1], hv=final[2], h_max=rec_out[0], v_max=rec_out[1], arrival=rec_out[2],
+                   dt=dt, **ends)
         if moving:
             out["z"] = final[3]
         if F.use_ent:
             out["erod"] = final[4]
         if F.use_dep:
             out["dep"] = final[5]
-        out["outflow"] = S["outflow"] + 0.5 * (o1 + o2)
-        out["t"] = t_new
-        out["dt"] = dt
-        out["hit"] = hit
-        out["steps"] = S["steps"] + active.to(S["steps"].dtype)
-        return end_of_step(S, out, P, F, ke, mass)
+        return out
 
     return step

@@ -109,14 +109,15 @@ if triton is not None:
 
     @triton.jit
     def _faces(h_ptr, hu_ptr, hv_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, zpp_ptr, gc2_ptr, hold_ptr,
-               inside_ptr, pm_ptr, c_ptr, f_ptr, hl_ptr, hr_ptr, amax_ptr, ny, nx, s_zpp, s_geo, s_hold,
+               inside_ptr, pm_ptr, c_ptr, f_ptr, hl_ptr, hr_ptr, amax_ptr, n_amax, ny, nx, s_zpp, s_geo, s_hold,
                AXIS: tl.constexpr, NO_CREEP: tl.constexpr, WALLS: tl.constexpr, USE_EP: tl.constexpr,
                USE_TAU: tl.constexpr, SLOPE: tl.constexpr, CFL: tl.constexpr, BLOCK: tl.constexpr):
         """scheme.sweep (and scheme.frozen_faces, stepping._domain_walls) at the x faces (AXIS 0: (ny, nx + 1)
         per member) or the y faces (AXIS 1: (ny + 1, nx)); face f of a line lies between cells f - 1 and f.
         zpp: the bed padded on both axes; u, v: the velocities, cu, cv: the carried velocities (SLOPE); hold: the
         no-creep rule's coefficients of the faces (scheme.hold_coefficients, in eights). Writes per
-        face (Fh, Fqn, Fqt, phi) interleaved (f) and the thickness left and right of it (hl, hr)."""
+        face (Fh, Fqn, Fqt, phi) interleaved (f) and the thickness left and right of it (hl, hr); with CFL (the
+        first stage) the largest one-sided speed of each program's faces to amax (B, n_amax, 2) at [b, pid, AXIS]."""
         b = tl.program_id(1)
         pid = tl.program_id(0)
         idx = pid * BLOCK + tl.arange(0, BLOCK)
@@ -200,7 +201,7 @@ if triton is not None:
         tl.store(hl_ptr + fo + idx, hl, mask=m)
         tl.store(hr_ptr + fo + idx, hr, mask=m)
         if CFL:     # the first stage's faces set its time step
-            tl.store(amax_ptr + b * tl.num_programs(0) + pid, tl.max(tl.where(m, speed, 0.0), axis=0))
+            tl.store(amax_ptr + (b * n_amax + pid) * 2 + AXIS, tl.max(tl.where(m, speed, 0.0), axis=0))
 
     @triton.jit
     def _cells(u_ptr, v_ptr, sg_ptr, zpp_ptr, geo_ptr, gc2_ptr, pm_ptr, c_ptr,

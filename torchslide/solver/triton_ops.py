@@ -35,7 +35,7 @@ non-finite state without a GPU (environment TORCHSLIDE_FLUSH_SUBNORMALS=1)."""
 
 CONSTANTS = ("g", "dx", "theta", "h_eps4", "h_wet", "wb_ratio", "sqrt2", "wave_speed_min", "h_eps", "entrain_h_min",
              "fr_dep", "mu_i_scale", "mu_i_i0", "tiny", "v_max_min_depth", "arrival_threshold", "inf", "inv_dx",
-             "normal", "cfl")
+             "normal", "cfl_dx", "dt_max", "stop_ke_fraction", "cell_area")
 """The entries of the kernels' constant table, in order (fused_triton.constants)."""
 
 
@@ -46,7 +46,8 @@ def interpreted() -> bool:
 
 if triton is not None:
     C_G, C_DX, C_THETA, C_HEPS4, C_HWET, C_WB, C_SQRT2, C_WSMIN, C_HEPS, C_ENTMIN, C_FRDEP, C_MUI, C_I0, C_TINY, \
-        C_VMIN, C_ARR, C_INF, C_INVDX, C_NORMAL, C_CFL = (tl.constexpr(k) for k in range(len(CONSTANTS)))
+        C_VMIN, C_ARR, C_INF, C_INVDX, C_NORMAL, C_CFL_DX, C_DT_MAX, C_STOP_KE, C_AREA = \
+        (tl.constexpr(k) for k in range(len(CONSTANTS)))
 
     @triton.jit
     def _max(a, b):

@@ -17,8 +17,9 @@ from .triton_ops import triton
 if triton is not None:
     import triton.language as tl
 
-    from .triton_ops import (C_ARR, C_ENTMIN, C_FRDEP, C_G, C_HEPS, C_HEPS4, C_I0, C_INF, C_INVDX, C_MUI, C_NORMAL,
-                             C_SQRT2, C_TINY, C_VMIN, _dfac, _div, _hform, _max, _min, _sqrt)
+    from .triton_ops import (C_AREA, C_ARR, C_CFL_DX, C_DT_MAX, C_DX, C_ENTMIN, C_FRDEP, C_G, C_HEPS, C_HEPS4, C_I0,
+                             C_INF, C_INVDX, C_MUI, C_NORMAL, C_SQRT2, C_STOP_KE, C_TINY, C_VMIN, _dfac, _div, _hform,
+                             _max, _min, _sqrt)
 
     @triton.jit
     def _drain(out, h, lam, normal):
@@ -34,21 +35,40 @@ if triton is not None:
         return tl.gather(q, index, 0)
 
     @triton.jit
+    def _largest(ptr, n, W: tl.constexpr):
+        """The largest of n values at ptr, ptr + 2, ..., ptr + 2 (n - 1) (one axis of the faces' speeds)."""
+        p = tl.arange(0, W)
+        best = tl.zeros([W], dtype=ptr.dtype.element_ty)
+        for k in range(0, n, W):
+            best = _max(best, tl.load(ptr + (k + p) * 2, mask=k + p < n, other=0.0))
+        return tl.max(best, axis=0)
+
+    @triton.jit
+    def _time_step(amax_ptr, n_amax, t, t_next, active, c_ptr, W: tl.constexpr):
+        """stepping._stage's CFL time step of a member: min(cfl dx / (ax + ay), dt_cap), 0 for an ended one, with
+        ax, ay the largest one-sided speeds at its x and y faces (amax: the faces' programs' (n_amax, 2)) and
+        dt_cap = min(t_next - t, dt_max) (stepping.make_step)."""
+        dt_cap = tl.where(active, _min(t_next - t, tl.load(c_ptr + C_DT_MAX)), 0.0)
+        speeds = _largest(amax_ptr, n_amax, W) + _largest(amax_ptr + 1, n_amax, W)
+        return tl.where(dt_cap > 0, _min(_div(1.0, speeds) * tl.load(c_ptr + C_CFL_DX), dt_cap), 0.0)
+
+    @triton.jit
     def _update(h_ptr, hu_ptr, hv_ptr, cell_ptr, z_ptr, erod_ptr, dep_ptr, fx_ptr, fy_ptr,
-                geo_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr, pm_ptr, c_ptr, dt_ptr,
-                h0_ptr, hu0_ptr, hv0_ptr, z0_ptr, e0_ptr, d0_ptr, rec_ptr, hmax_ptr, vmax_ptr,
-                arr_ptr, tnew_ptr,
+                geo_ptr, zxx_ptr, zxy_ptr, zyy_ptr, mus_ptr, inside_ptr, pm_ptr, c_ptr, dt_ptr, amax_ptr, n_amax,
+                t_ptr, tnext_ptr, active_ptr,
+                h0_ptr, hu0_ptr, hv0_ptr, z0_ptr, e0_ptr, d0_ptr, rec_ptr, hmax_ptr, vmax_ptr, arr_ptr,
                 ho_ptr, huo_ptr, hvo_ptr, zo_ptr, erodo_ptr, depo_ptr, hmaxo_ptr, vmaxo_ptr, arro_ptr, part_ptr,
                 ny, nx, s_geo,
                 SLOPE: tl.constexpr, USE_CURV: tl.constexpr, USE_MU_I: tl.constexpr, USE_ENT: tl.constexpr,
                 USE_DEP: tl.constexpr, USE_MUS: tl.constexpr, USE_TAU: tl.constexpr, GONE_OUT: tl.constexpr,
-                INFLOW: tl.constexpr, COMBINE: tl.constexpr, W: tl.constexpr, BAND: tl.constexpr,
+                INFLOW: tl.constexpr, FIRST: tl.constexpr, COMBINE: tl.constexpr, W: tl.constexpr, BAND: tl.constexpr,
                 UNROLL: tl.constexpr):
         """stepping._stage after the sweeps, for the strip program_id(0), the band of rows program_id(1) and the
         member program_id(2): drained fluxes, the new thickness and surface momentum, q = Q / sigma(Q), the mass
-        sources, friction. With COMBINE (the second stage) the result is averaged with the step's start (h0,
-        hu0, hv0, ...; h, hu, hv are the first stage's) and the records h_max, v_max and arrival are updated, as
-        stepping.make_step does.
+        sources, friction. With FIRST (the first stage) the member's time step is found here (_time_step; the
+        faces' speeds amax, its clock t, t_next, active) and written to dt; else dt is read. With COMBINE (the
+        second stage) the result is averaged with the step's start (h0, hu0, hv0, ...; h, hu, hv are the first
+        stage's) and the records h_max, v_max and arrival are updated, as stepping.make_step does.
 
         geo: fused_triton.geometry_record (in eights); rec: (z_x, z_y, cos) of the initial bed (the records') in
         fours. part: (B, programs, 4) per program the boundary outflow (m^2/s, outward), the
@@ -72,13 +92,20 @@ if triton is not None:
             ghost = 1.0
         else:
             ghost = 0.0
-        dt = tl.load(dt_ptr + b)
+        if FIRST:
+            dt = _time_step(amax_ptr + b * n_amax * 2, n_amax, tl.load(t_ptr + b), tl.load(tnext_ptr + b),
+                            tl.load(active_ptr + b), c_ptr, W)
+            if (s == 0) & (t == 0):
+                tl.store(dt_ptr + b, dt)
+        else:
+            dt = tl.load(dt_ptr + b)
         lam = dt * tl.load(c_ptr + C_INVDX)
         mu0 = tl.load(pm_ptr + b * 11)
         tau = tl.load(pm_ptr + b * 11 + 2)
         kturb = (4.0 * g) * dt * _div(1.0, tl.load(pm_ptr + b * 11 + 1))   # friction.turbulent_coefficient / sec
-        if COMBINE:
-            t_new = tl.load(tnew_ptr + b)
+        if COMBINE:     # the step's new time (stepping.make_step): the output time where the step reaches it
+            t0, t_next = tl.load(t_ptr + b), tl.load(tnext_ptr + b)
+            t_new = tl.where(tl.load(active_ptr + b) & (dt >= t_next - t0), t_next, t0 + dt)
             vmin, arr_th, inf = tl.load(c_ptr + C_VMIN), tl.load(c_ptr + C_ARR), tl.load(c_ptr + C_INF)
         i0 = t * BAND
         i1 = tl.minimum(i0 + BAND, ny)
@@ -90,7 +117,9 @@ if triton is not None:
         fac_c = _drain(tl.load(cell_ptr + (cb + i0 * nx + jc) * 4), h_c, lam, normal)
         ys = fy_ptr + (b * (ny + 1) * nx + i0 * nx + jc) * 4                # the south face of the first row
         fhs, fqns, fqts = tl.load(ys), tl.load(ys + 1), tl.load(ys + 2)
-        bnd = tl.zeros([W], dtype=h_c.dtype)
+        # the outflow through the grid's edges: the south edge's faces (the first band's first row), the x edges'
+        # in the loop, the north edge's after it
+        bnd = tl.where(i0 == 0, -fhs * tl.where(fhs > 0, fac_s, fac_c) * at_y, 0.0)
         lost = tl.zeros([W], dtype=h_c.dtype)
         ke = tl.zeros([W], dtype=h_c.dtype)
         mass = tl.zeros([W], dtype=h_c.dtype)
@@ -112,7 +141,7 @@ if triton is not None:
             fhw, fhe, fhs_, fhn_ = fhw * k_w, fhe * k_e, fhs * k_s, fhn * k_n
             dqx = (fqne * k_e - fqnw * k_w) + (fqtn * k_n - fqts * k_s)
             dqy = (fqte * k_e - fqtw * k_w) + (fqnn * k_n - fqns * k_s)
-            bnd += (fhe * at_e - fhw * at_w) + (fhn_ * tl.where(r == ny - 1, at_y, 0.0) - fhs_ * tl.where(r == 0, at_y, 0.0))
+            bnd += fhe * at_e - fhw * at_w
             h = h_c
             hn = h - lam * ((fhe - fhw) + (fhn_ - fhs_))
             c = cb + r * nx + jc
@@ -236,6 +265,7 @@ if triton is not None:
             # --- move down a row
             fac_s, fac_c, h_c = fac_c, fac_n, h_n
             fhs, fqns, fqts = fhn, fqnn, fqtn
+        bnd += tl.where(i1 == ny, fhs * tl.where(fhs > 0, fac_s, fac_c) * at_y, 0.0)   # (the last row's north faces)
         pp = part_ptr + (b * tl.num_programs(0) * tl.num_programs(1) + t * tl.num_programs(0) + s) * 4
         tl.store(pp, tl.sum(bnd, axis=0))
         if GONE_OUT:
@@ -243,3 +273,60 @@ if triton is not None:
         if COMBINE:
             tl.store(pp + 2, tl.sum(ke, axis=0))
             tl.store(pp + 3, tl.sum(mass, axis=0))
+
+    @triton.jit
+    def _end_step(part1_ptr, part2_ptr, n_part, dt_ptr, t_ptr, tnext_ptr, active_ptr, tend_ptr, outflow_ptr, kep_ptr,
+                  failed_ptr, stopped_ptr, steps_ptr, c_ptr, t_o, outflow_o, ke_o, mass_o, kep_o, hit_o, active_o,
+                  failed_o, stopped_o, steps_o, GONE_OUT: tl.constexpr, STOP_AT_REST: tl.constexpr, W: tl.constexpr):
+        """The end of a step for member program_id(0) (stepping.make_step and stepping.end_of_step): its new time,
+        outflow (both stages' boundary flux and, GONE_OUT, thickness lost outside the domain), kinetic energy and
+        mass (the sums of the second update's programs, part2), peak kinetic energy, and whether it failed (not
+        finite), stopped (calm: its kinetic energy below stop_ke_fraction of its peak, STOP_AT_REST: or no motion
+        at all) or stays active."""
+        b = tl.program_id(0)
+        p = tl.arange(0, W)
+        acc1 = tl.zeros([W], dtype=dt_ptr.dtype.element_ty)
+        acc2 = tl.zeros([W], dtype=dt_ptr.dtype.element_ty)
+        lost1 = tl.zeros([W], dtype=dt_ptr.dtype.element_ty)
+        lost2 = tl.zeros([W], dtype=dt_ptr.dtype.element_ty)
+        ke_s = tl.zeros([W], dtype=dt_ptr.dtype.element_ty)
+        mass_s = tl.zeros([W], dtype=dt_ptr.dtype.element_ty)
+        for k in range(0, n_part, W):
+            m = k + p < n_part
+            q1 = part1_ptr + (b * n_part + k + p) * 4
+            q2 = part2_ptr + (b * n_part + k + p) * 4
+            acc1 += tl.load(q1, mask=m, other=0.0)
+            acc2 += tl.load(q2, mask=m, other=0.0)
+            if GONE_OUT:
+                lost1 += tl.load(q1 + 1, mask=m, other=0.0)
+                lost2 += tl.load(q2 + 1, mask=m, other=0.0)
+            ke_s += tl.load(q2 + 2, mask=m, other=0.0)
+            mass_s += tl.load(q2 + 3, mask=m, other=0.0)
+        dt = tl.load(dt_ptr + b)
+        dx, area = tl.load(c_ptr + C_DX), tl.load(c_ptr + C_AREA)
+        o1 = dt * dx * tl.sum(acc1, axis=0)
+        o2 = dt * dx * tl.sum(acc2, axis=0)
+        if GONE_OUT:
+            o1 = o1 + tl.sum(lost1, axis=0) * area
+            o2 = o2 + tl.sum(lost2, axis=0) * area
+        tl.store(outflow_o + b, tl.load(outflow_ptr + b) + 0.5 * (o1 + o2))
+        ke = 0.5 * tl.sum(ke_s, axis=0) * area
+        mass = tl.sum(mass_s, axis=0) * area
+        tl.store(ke_o + b, ke)
+        tl.store(mass_o + b, mass)
+        peak = _max(tl.load(kep_ptr + b), ke)
+        tl.store(kep_o + b, peak)
+        t0, t_next = tl.load(t_ptr + b), tl.load(tnext_ptr + b)
+        active = tl.load(active_ptr + b)
+        hit = active & (dt >= t_next - t0)
+        tl.store(hit_o + b, hit)
+        tl.store(t_o + b, tl.where(hit, t_next, t0 + dt))
+        finite = (ke == ke) & (tl.abs(ke) < tl.load(c_ptr + C_INF)) & (mass == mass) & (tl.abs(mass) < tl.load(c_ptr + C_INF))
+        calm = (peak > 0) & (ke < tl.load(c_ptr + C_STOP_KE) * peak)
+        if STOP_AT_REST:
+            calm = calm | (peak == 0)
+        at_end = hit & (t_next >= tl.load(tend_ptr))
+        tl.store(failed_o + b, tl.load(failed_ptr + b) | (active & ~finite))
+        tl.store(stopped_o + b, tl.load(stopped_ptr + b) | (active & finite & calm & ~at_end))
+        tl.store(active_o + b, active & finite & ~calm & ~at_end)
+        tl.store(steps_o + b, tl.load(steps_ptr + b) + active.to(tl.int64))
