@@ -28,12 +28,13 @@ diagnose-demo: $(STAMP)
 	OMP_NUM_THREADS=1 $(VENV)/bin/torchslide diagnose diagnose_demo/diagnose.toml \
 		--out diagnose_demo/diagnosis
 
-# Tests run on every core (pytest-xdist), one torch thread per worker.
+# Tests run on every core (pytest-xdist, an idle worker taking queued tests from a busy one), one torch thread per
+# worker.
 test: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto --timeout=900 --durations=15
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto --dist worksteal --timeout=900 --durations=15
 
 test-all: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto -m "" --timeout=3600 --durations=15
+	OMP_NUM_THREADS=1 $(PY) -m pytest -q -n auto --dist worksteal -m "" --timeout=3600 --durations=15
 
 # the CUDA checks alone (tests/test_gpu.py; skipped where torch sees no GPU), on a GPU machine
 test-gpu: $(STAMP)
@@ -48,14 +49,15 @@ bench-solver: $(STAMP)
 		--kernels eager,fused --full-configs fused-f64-crop,eager-f64-crop,fused-f64-crop:1 --full-repeats 3 --out bench/results/solver_msh2021.json
 	OMP_NUM_THREADS=1 $(PY) -m bench.stop_rule --cellsize 40 --out bench/results/stop_rule.json
 
-# on a CUDA machine: eager and fused, float32 and float64, batch 1, 32 and 256, with and without CUDA graphs,
-# fused rows at other Triton launch settings (BLOCKxWARPS[:velocities recomputed|stored]), each row with its
-# fraction of the card's copy bandwidth (add compiled with KERNELS=eager,compiled,fused: its first call
-# compiles for minutes)
+# on a CUDA machine: eager and fused, float32 and float64, batch 1, 32 and 256, with and without CUDA graphs, the
+# line design of the faces beside the marching default (BLOCKxWARPS:lines), each row with its fraction of the card's
+# copy bandwidth; and the small batch of an active-learning call, 10 members for 300 s simulated, with and without
+# graphs (add compiled with KERNELS=eager,compiled,fused: its first call compiles for minutes)
 KERNELS ?= eager,fused
 bench-solver-gpu: $(STAMP)
 	$(PY) -m bench.bench_solver --device cuda --out bench/results/solver_gpu.json --kernels $(KERNELS) \
-		--batches 1,32,256 --graphs on,off --launch 512x4,256x4,128x4:recomputed --repeats 3 --t-short 10 --full-configs ""
+		--batches 1,32,256 --graphs on,off --launch 512x4:lines --repeats 3 --t-short 10 \
+		--full-configs fused-f32-crop:10,fused-f32-crop:10:graphs,fused-f64-crop:10 --full-repeats 3
 
 # registers, spills and SASS instructions per cell of every Triton kernel, compiled for an H100/H200 on the CPU
 bench-triton-profile: $(STAMP)

@@ -88,30 +88,25 @@ def bandwidth_fraction(row: dict, copy_bw: float | None) -> float | None:
     return row["cell_updates_per_s_median"] * BYTES_PER_CELL_UPDATE * size / copy_bw
 
 
-LAUNCH = ("BLOCK", "NUM_WARPS", "VELOCITIES", "FACES")
+LAUNCH = ("BLOCK", "NUM_WARPS", "FACES")
 """The Triton step's settings a --launch row sets (fused_triton's module constants)."""
 
 
-def parse_launch(spec: str) -> tuple[int, int, str, str]:
-    """'BLOCKxNUM_WARPS[:recomputed|stored][:lines|tiled]' (e.g. '128x4:stored:lines') -> (BLOCK, NUM_WARPS,
-    VELOCITIES, FACES) of the Triton step; VELOCITIES and FACES default to fused_triton's."""
+def parse_launch(spec: str) -> tuple[int, int, str]:
+    """'BLOCKxNUM_WARPS[:march|lines]' (e.g. '128x4:lines') -> (BLOCK, NUM_WARPS, FACES) of the Triton step: the
+    line design's kernels' cells per program and warps, and the design of the faces (default fused_triton's)."""
     from torchslide.solver import fused_triton
 
     sizes, *rest = spec.split(":")
     block, _, warps = sizes.partition("x")
-    kinds = {"recomputed": "velocities", "stored": "velocities", "lines": "faces", "tiled": "faces"}
-    if not (block.isdigit() and warps.isdigit()) or any(r not in kinds for r in rest) \
-            or len({kinds[r] for r in rest}) != len(rest):
-        raise SystemExit(f"--launch: {spec!r} is not BLOCKxNUM_WARPS[:recomputed|stored][:lines|tiled]")
-    velocities = [r for r in rest if kinds[r] == "velocities"] or [fused_triton.VELOCITIES]
-    faces = [r for r in rest if kinds[r] == "faces"] or [fused_triton.FACES]
-    return int(block), int(warps), velocities[0], faces[0]
+    if not (block.isdigit() and warps.isdigit()) or len(rest) > 1 or any(r not in ("march", "lines") for r in rest):
+        raise SystemExit(f"--launch: {spec!r} is not BLOCKxNUM_WARPS[:march|lines]")
+    return int(block), int(warps), rest[0] if rest else fused_triton.FACES
 
 
 def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
-               graphs: bool = False, launch: tuple[int, int, str, str] | None = None) -> dict:
-    """One row; ``launch``: (BLOCK, NUM_WARPS, VELOCITIES, FACES) of the Triton step (fused on CUDA; None:
-    its defaults)."""
+               graphs: bool = False, launch: tuple[int, int, str] | None = None) -> dict:
+    """One row; ``launch``: (BLOCK, NUM_WARPS, FACES) of the Triton step (fused on CUDA; None: its defaults)."""
     from torchslide.solver import fused_triton
 
     default = tuple(getattr(fused_triton, k) for k in LAUNCH)
@@ -123,7 +118,7 @@ def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float,
         for k, v in zip(LAUNCH, default):
             setattr(fused_triton, k, v)
     if launch is not None:
-        row["block"], row["num_warps"], row["velocities"], row["faces"] = launch
+        row["block"], row["num_warps"], row["faces"] = launch
     return row
 
 
@@ -150,8 +145,8 @@ def _throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float
 
 
 def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_end: float, repeats: int,
-             mu: float = 0.23, xi: float = 1000.0) -> dict:
-    cfg = SolverConfig(kernel=kernel, crop=crop)
+             mu: float = 0.23, xi: float = 1000.0, graphs: bool = False) -> dict:
+    cfg = SolverConfig(kernel=kernel, crop=crop, cuda_graphs=graphs)
     p = Params.make(B=B, mu=mu, xi=xi)
     warm = None
     if kernel != "eager":  # compile (or load) both code paths (small and large boxes) before timing
@@ -161,7 +156,8 @@ def full_run(case, B: int, kernel: str, crop: bool, dtype: str, device: str, t_e
         r, w = _timed(case, p, t_end, cfg, DTYPES[dtype], device)
         walls.append(w)
     w = statistics.median(walls)
-    return {"kernel": kernel, "crop": crop, "dtype": dtype, "B": B, "mu": mu, "xi": xi, "wall_s_median": w,
+    return {"kernel": kernel, "crop": crop, "dtype": dtype, "B": B, "cuda_graphs": graphs, "mu": mu, "xi": xi,
+            "wall_s_median": w,
             "wall_s_repeats": walls,
             "wall_s_per_member": w / B, "runs_120_min": 120 * w / B / 60.0, "first_call_s": warm,
             "t_final_s": float(r.t_final[0]), "steps": int(r.steps[0]), "stopped": bool(r.stopped[0]),
@@ -208,8 +204,8 @@ def main(argv=None) -> None:
     ap.add_argument("--full-repeats", type=int, default=1)
     ap.add_argument("--full-t-end", type=float, default=300.0, help="simulated seconds of the full run")
     ap.add_argument("--full-configs", default="eager-f64-whole,eager-f64-crop,compiled-f64-crop,compiled-f32-crop",
-                    help="comma list of {eager|compiled|fused}-{f64|f32}-{whole|crop}[:B] (B defaults to --full-batch); "
-                         "'' skips the full runs")
+                    help="comma list of {eager|compiled|fused}-{f64|f32}-{whole|crop}[:B][:graphs] (B defaults to "
+                         "--full-batch; graphs: CUDA graphs on); '' skips the full runs")
     ap.add_argument("--cellsize", type=float, default=20.0, help="Bondo-like cell size, m")
     ap.add_argument("--terrain", default="bondo_like", choices=("bondo_like", "msh2021"),
                     help="the synthetic Bondo-like case or the embedded msh2021 event (torchslide example)")
@@ -218,9 +214,8 @@ def main(argv=None) -> None:
     ap.add_argument("--skip-throughput", action="store_true")
     ap.add_argument("--graphs", default="off", help="on CUDA: 'on', 'off' or 'on,off' (SolverConfig.cuda_graphs)")
     ap.add_argument("--launch", default="", help="on CUDA: extra fused rows at these Triton launch settings, "
-                                                   "BLOCKxNUM_WARPS[:recomputed|stored][:lines|tiled] comma "
-                                                   "list (e.g. 256x4,128x4:stored:lines; fused_triton.VELOCITIES, "
-                                                   "FACES)")
+                                                   "BLOCKxNUM_WARPS[:march|lines] comma list (e.g. "
+                                                   "512x4:march,128x4:lines; fused_triton.BLOCK, NUM_WARPS, FACES)")
     args = ap.parse_args(argv)
     if args.terrain == "msh2021":
         import tempfile
@@ -273,12 +268,14 @@ def main(argv=None) -> None:
                                                                                / e[0]["cell_updates_per_s_median"])
         res["speedup_vs_eager"] = ratios
     for spec in filter(None, args.full_configs.split(",")):   # "" skips the full runs
-        spec, _, b = spec.partition(":")
+        spec, *opts = spec.split(":")
         mode, prec, dom = spec.split("-")
         if mode not in args.kernels.split(","):
             continue
-        row = full_run(case, int(b) if b else args.full_batch, mode, dom == "crop", {"f64": "float64", "f32": "float32"}[prec],
-                       args.device, args.full_t_end, args.full_repeats, args.mu, args.xi)
+        b = [o for o in opts if o.isdigit()]
+        row = full_run(case, int(b[0]) if b else args.full_batch, mode, dom == "crop",
+                       {"f64": "float64", "f32": "float32"}[prec], args.device, args.full_t_end, args.full_repeats,
+                       args.mu, args.xi, graphs="graphs" in opts)
         print(json.dumps(row), flush=True)
         res["full_run"].append(row)
         save()

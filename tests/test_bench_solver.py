@@ -2,6 +2,7 @@
 import json
 
 import pytest
+import torch
 
 from bench import bench_solver
 
@@ -38,33 +39,32 @@ def test_a_launch_setting_holds_for_its_row_only(monkeypatch):
     default = settings()
     seen = []
     monkeypatch.setattr(bench_solver, "_throughput", lambda *a: seen.append(settings()) or {"kernel": "fused"})
-    launch = (128, 8, "stored", "lines")
+    launch = (128, 8, "lines")
     row = bench_solver.throughput(None, 1, "fused", "float32", "cuda", 1.0, 1, launch=launch)
-    assert seen == [launch] and (row["block"], row["num_warps"], row["velocities"], row["faces"]) == launch
+    assert seen == [launch] and (row["block"], row["num_warps"], row["faces"]) == launch
     assert settings() == default
-    assert fused_triton._launch(None)["num_warps"] == default[1]
+    assert fused_triton._launch(torch.float32)["num_warps"] == default[1]
 
 
-def test_a_launch_spec_names_block_warps_and_velocities():
+def test_a_launch_spec_names_block_warps_and_the_faces():
     from torchslide.solver import fused_triton
 
-    assert bench_solver.parse_launch("512x4:stored") == (512, 4, "stored", fused_triton.FACES)
-    assert bench_solver.parse_launch("256x8") == (256, 8, fused_triton.VELOCITIES, fused_triton.FACES)
-    assert bench_solver.parse_launch("128x4:lines:recomputed") == (128, 4, "recomputed", "lines")
-    for bad in ("512", "512x4:cached", "ax4", "128x4:lines:tiled", "128x4:stored:stored"):
+    assert bench_solver.parse_launch("512x4:lines") == (512, 4, "lines")
+    assert bench_solver.parse_launch("256x8") == (256, 8, fused_triton.FACES)
+    assert bench_solver.parse_launch("128x4:march") == (128, 4, "march")
+    for bad in ("512", "512x4:cached", "ax4", "128x4:lines:march", "128x4:tiled"):
         with pytest.raises(SystemExit, match="--launch"):
             bench_solver.parse_launch(bad)
 
 
-def test_the_triton_profile_adds_two_stages_and_the_combine_per_cell_update():
+def test_the_triton_profile_adds_each_kernel_as_often_as_a_step_runs_it():
     from bench import triton_profile
 
-    rows = [{"kernel": k, "design": "lines", "dtype": "fp32", "terms": "voellmy", "velocities": "stored",
+    rows = [{"kernel": k, "runs_per_step": runs, "design": "march", "dtype": "fp32", "terms": "voellmy",
              "instructions_per_cell": n, "fp_per_cell": n / 2, "mufu_per_cell": m}
-            for k, n, m in (("_facesx", 100, 3), ("_facesy", 110, 3), ("_velocities", 20, 3), ("_drain", 10, 1),
-                            ("_update", 50, 10), ("_combine", 40, 4))]
+            for (k, runs), n, m in zip(triton_profile.KERNELS["march"], (500, 490, 180, 250), (14, 14, 10, 12))]
     assert triton_profile.per_cell_update(rows) == {
-        "lines-fp32-voellmy-stored": {"instructions": 620.0, "fp": 310.0, "mufu": 44.0}}
+        "march-fp32-voellmy": {"instructions": 1420.0, "fp": 710.0, "mufu": 50.0}}
 
 
 def test_the_full_runs_on_the_msh2021_event(tmp_path):

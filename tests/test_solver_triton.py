@@ -53,14 +53,15 @@ def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch)
 
 
 @pytest.mark.parametrize("dtype", ["fp64", "fp32"])
-@pytest.mark.parametrize("on", [True, False])
-def test_the_triton_kernels_compile_for_an_h100(dtype, on):
+def test_the_triton_kernels_compile_for_an_h100(dtype):
     """Every kernel of both designs of the faces compiles ahead of time for sm_90 (triton's own ptxas; no GPU
-    needed), with every switch on or off: what the interpreter does not check (types, constexpr globals, the
-    lowering), and no spills to local memory."""
-    names = {name for kernels in triton_profile.KERNELS.values() for name, _ in kernels}
+    needed) with every switch on: what the interpreter does not check (types, constexpr globals, the lowering),
+    and no spills to local memory. (A default Voellmy run's switches compile in
+    test_the_marching_step_takes_at_most_1500_instructions_per_float32_cell_update; the second stage's faces are
+    a constexpr subset of the first's.)"""
+    names = {name for kernels in triton_profile.KERNELS.values() for name, _ in kernels if "+second" not in name}
     for name in sorted(names):
-        kernel = triton_profile.compile_kernel(name, dtype, dict.fromkeys(triton_profile.switches(name), on))
+        kernel = triton_profile.compile_kernel(name, dtype, dict.fromkeys(triton_profile.switches(name), True))
         assert len(kernel.asm["cubin"]) > 0, name
         assert triton_profile.sass_profile(kernel, 1)["local_bytes"] == 0, name
 

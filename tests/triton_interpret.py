@@ -115,12 +115,23 @@ def bitwise():
     assert F.use_ep and F.use_curv and F.use_ent and F.use_dep and F.use_mu_i and F.no_creep
     plain = dataclasses.replace(F, use_ep=False, use_curv=False, use_ent=False, use_dep=False, use_mu_i=False,
                                 slope_correction=False)
-    W, band = fused_triton.INTERPRETED_MARCH
-    ny, nx = S["h"].shape[1:]
-    assert (ny, nx) == (24, 60) and nx + 1 > W - 4 and ny > band
-    for fused_triton.FACES, cases in (("march", (F, plain)), ("lines", (F,))):
-        for flags in cases:
-            assert_steps_equal(stepping.make_step(flags)(dict(S), P), fused_triton.triton_step(flags)(dict(S), P))
+    # strips and bands that split the 24 x 60 grid along both axes, for the faces and for the update
+    fused_triton.INTERPRETED_MARCH, fused_triton.INTERPRETED_UPDATE = (64, 16), (32, 16)
+    assert S["h"].shape[1:] == (24, 60)
+    two = _members(S, P, [0, 1])     # plain Voellmy compiles the terms out: two members test it
+    for fused_triton.FACES, cases in (("march", ((F, (S, P)), (plain, two))), ("lines", ((F, (S, P)),))):
+        for flags, (S_, P_) in cases:
+            assert_steps_equal(stepping.make_step(flags)(dict(S_), P_), fused_triton.triton_step(flags)(dict(S_), P_))
+
+
+def _members(S: dict, P: dict, idx: list) -> tuple[dict, dict]:
+    """The state and parameters of the members ``idx`` alone (every per-member tensor indexed along its first
+    axis; what all members share kept)."""
+    import torch
+
+    B = S["h"].shape[0]
+    pick = lambda d: {k: v[idx] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == B else v for k, v in d.items()}
+    return pick(S), pick(P)
 
 
 CASES = {f.__name__: f for f in (terms, moving_bed, nodata, plane, float32, bitwise)}

@@ -46,13 +46,15 @@ class SolverConfig:
         compile: run the step through torch.compile (first call pays compilation); the same as
             kernel = "compiled", whatever ``kernel`` says.
         kernel: the step's implementation: "fused" (default: on the CPU one compiled loop nest per
-            stage, torchslide.solver.fused_cpu (numba); on CUDA four Triton kernels per stage,
-            torchslide.solver.fused_triton; both equal to eager to round-off; eager runs where neither
-            is installed), "eager" (torch operations: the reference), "compiled" (torch.compile of eager).
+            stage, torchslide.solver.fused_cpu (numba); on CUDA two Triton kernels per stage and one
+            per step, torchslide.solver.fused_triton; both equal to eager to round-off; eager runs where
+            neither is installed), "eager" (torch operations: the reference), "compiled" (torch.compile of
+            eager).
         cuda_graphs: on CUDA, replay the steps between two host checks as one CUDA graph
             (torchslide.solver.graphs; "fused" and "eager"): the same kernels and results, without the
-            host's launch cost. Off by default: on an H200 it changed the throughput of either kernel by
-            -20 % to +29 % (bench/results/solver_gpu.json), since the card, not the host, limits these steps.
+            host's launch cost (the Triton step launches five kernels a step and waits for nothing). Off by
+            default: whether it is faster for the present step is measured on a GPU by `make bench-solver-gpu`
+            (the 10-member runs with and without graphs).
         crop: compute only on the bounding box of the cells the flow has touched (all members), grown
             as the flow spreads. Exact: a dry cell receives mass only from a wet neighbour, so the
             wetted support grows by at most one cell per stage, and the box keeps a margin of

@@ -76,11 +76,12 @@ INTERPRETED_BLOCK = 2048
 """Cells per program of the cell-wise kernels under Triton's interpreter (the tests on the CPU), whose cost is
 mostly per program; the same arithmetic per cell as any BLOCK."""
 
-INTERPRETED_MARCH = (64, 16)
-"""(W, BAND) under the interpreter: the test grids still span several strips and bands (their seams are
-tested) at a lower cost per program."""
+INTERPRETED_MARCH = (64, 32)
+"""(W, BAND) under the interpreter (the tests on the CPU), whose cost is per program and row: a test grid of up to
+60 columns and 32 rows in one program per member (tests/triton_interpret.py's bitwise case splits its grid
+into several strips and bands to test their seams)."""
 
-INTERPRETED_UPDATE = (32, 16)
+INTERPRETED_UPDATE = (64, 32)
 """The update's (W, BAND) under the interpreter."""
 
 

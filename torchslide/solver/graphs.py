@@ -1,10 +1,10 @@
 """CUDA graphs of solver steps: n steps recorded once, then replayed with one launch.
 
-A step costs the host a few dozen kernel launches and tensor allocations; where that is more than the
-card's time for the step, the card waits. A CUDA graph records the n steps between two host checks
-(the same kernels in the same order on the same memory, so the same bits) and replays them with one
-call. On an H200 with the present kernels the card's time dominates and graphs changed throughput by
--20 % to +29 % (bench/results/solver_gpu.json), so SolverConfig.cuda_graphs is off by default. A recording is only valid for the tensors it was made with: the caller
+A step costs the host kernel launches and tensor allocations (the Triton step five launches, the torch step
+some hundreds); where that is more than the card's time for the step, the card waits. A CUDA graph records
+the n steps between two host checks (the same kernels in the same order on the same memory, so the same
+bits) and replays them with one call. SolverConfig.cuda_graphs is off by default until a GPU run measures it
+(`make bench-solver-gpu`). A recording is only valid for the tensors it was made with: the caller
 starts a new ``StepGraphs`` whenever the working set changes (a new cropping box, members dropped).
 The step must not synchronise with the host (stepping.make_step, fused_triton.triton_step do not).
 """

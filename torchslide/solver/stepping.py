@@ -17,8 +17,7 @@ from typing import NamedTuple
 import torch
 
 from ..physics import FR_DEP
-from .friction import (apply_friction, curvature_gn, desingularised_factor, desingularised_velocity, mu_effective,
-                       turbulent_coefficient)
+from .friction import apply_friction, curvature_gn, desingularised_factor, mu_effective, turbulent_coefficient
 from .scheme import (bed_terms, diff, draining_factors, faces_of, frozen_faces, hold_coefficients, pad_linear,
                      pad_replicate, sweep)
 

@@ -135,7 +135,7 @@ if triton is not None:
             zbase, zst = line + 2, nx + 4
         cb = b * ny * nx
         gb = b * s_geo
-        g, theta = tl.load(c_ptr + C_G), tl.load(c_ptr + C_THETA)
+        theta = tl.load(c_ptr + C_THETA)
         h_wet, wb, wsmin = tl.load(c_ptr + C_HWET), tl.load(c_ptr + C_WB), tl.load(c_ptr + C_WSMIN)
         # thickness (clipped at 0) and bed at the four cells f - 2 .. f + 1 (padded indices f .. f + 3)
         h0 = _max(_lin(h_ptr, cb + base, f - 2, n, st, m), 0.0)
