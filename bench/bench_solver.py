@@ -104,6 +104,26 @@ def parse_launch(spec: str) -> tuple[int, int, str]:
     return int(block), int(warps), rest[0] if rest else fused_triton.FACES
 
 
+FULL_CONFIG = "{eager|compiled|fused}-{f64|f32}-{whole|crop}[:B][:graphs]"
+"""The form of a --full-configs entry: kernel, dtype, the whole grid or cropped to the flow, the members (default
+--full-batch) and CUDA graphs on."""
+
+
+def parse_full_config(spec: str, full_batch: int) -> tuple[str, str, bool, int, bool]:
+    """A --full-configs entry (FULL_CONFIG, e.g. 'fused-f32-crop:10:graphs') -> (kernel, dtype, crop, B, graphs)
+    of a full run; a malformed one stops with a line naming it."""
+    name, *opts = spec.split(":")
+    parts = name.split("-")
+    ok = (len(parts) == 3 and parts[0] in ("eager", "compiled", "fused") and parts[1] in ("f64", "f32")
+          and parts[2] in ("whole", "crop") and all(o == "graphs" or (o.isdigit() and int(o) > 0) for o in opts)
+          and sum(o.isdigit() for o in opts) <= 1 and opts.count("graphs") <= 1)
+    if not ok:
+        raise SystemExit(f"--full-configs: {spec!r} is not {FULL_CONFIG}")
+    b = [int(o) for o in opts if o.isdigit()]
+    return parts[0], {"f64": "float64", "f32": "float32"}[parts[1]], parts[2] == "crop", b[0] if b else full_batch, \
+        "graphs" in opts
+
+
 def throughput(case, B: int, kernel: str, dtype: str, device: str, t_end: float, repeats: int,
                graphs: bool = False, launch: tuple[int, int, str] | None = None) -> dict:
     """One row; ``launch``: (BLOCK, NUM_WARPS, FACES) of the Triton step (fused on CUDA; None: its defaults)."""
@@ -217,6 +237,8 @@ def main(argv=None) -> None:
                                                    "BLOCKxNUM_WARPS[:march|lines] comma list (e.g. "
                                                    "512x4:march,128x4:lines; fused_triton.BLOCK, NUM_WARPS, FACES)")
     args = ap.parse_args(argv)
+    full_configs = [parse_full_config(x, args.full_batch) for x in filter(None, args.full_configs.split(","))]
+    launches = [parse_launch(x) for x in filter(None, args.launch.split(","))]     # both checked before any run
     if args.terrain == "msh2021":
         import tempfile
 
@@ -247,10 +269,10 @@ def main(argv=None) -> None:
                                    else [False]):
                         if kernel == "compiled" and graphs:
                             continue
-                        launches = [None]
+                        row_launches = [None]
                         if kernel == "fused" and args.device.startswith("cuda") and not graphs:
-                            launches += [parse_launch(x) for x in filter(None, args.launch.split(","))]
-                        for launch in launches:
+                            row_launches += launches
+                        for launch in row_launches:
                             row = throughput(case, B, kernel, dtype, args.device, args.t_short, args.repeats, graphs,
                                              launch)
                             row["bandwidth_fraction"] = bandwidth_fraction(row, res["copy_bandwidth_bytes_per_s"])
@@ -267,15 +289,11 @@ def main(argv=None) -> None:
                     ratios[f"{row['kernel']}{tag}_{row['dtype']}_B{row['B']}"] = (row["cell_updates_per_s_median"]
                                                                                / e[0]["cell_updates_per_s_median"])
         res["speedup_vs_eager"] = ratios
-    for spec in filter(None, args.full_configs.split(",")):   # "" skips the full runs
-        spec, *opts = spec.split(":")
-        mode, prec, dom = spec.split("-")
-        if mode not in args.kernels.split(","):
+    for kernel, dtype, crop, B, graphs in full_configs:     # --full-configs "" skips the full runs
+        if kernel not in args.kernels.split(","):
             continue
-        b = [o for o in opts if o.isdigit()]
-        row = full_run(case, int(b[0]) if b else args.full_batch, mode, dom == "crop",
-                       {"f64": "float64", "f32": "float32"}[prec], args.device, args.full_t_end, args.full_repeats,
-                       args.mu, args.xi, graphs="graphs" in opts)
+        row = full_run(case, B, kernel, crop, dtype, args.device, args.full_t_end, args.full_repeats, args.mu, args.xi,
+                       graphs=graphs)
         print(json.dumps(row), flush=True)
         res["full_run"].append(row)
         save()

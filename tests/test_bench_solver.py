@@ -57,6 +57,28 @@ def test_a_launch_spec_names_block_warps_and_the_faces():
             bench_solver.parse_launch(bad)
 
 
+def test_a_full_config_names_kernel_dtype_domain_members_and_graphs():
+    assert bench_solver.parse_full_config("fused-f32-crop:10:graphs", 8) == ("fused", "float32", True, 10, True)
+    assert bench_solver.parse_full_config("eager-f64-whole", 8) == ("eager", "float64", False, 8, False)
+    assert bench_solver.parse_full_config("compiled-f64-crop:graphs:32", 8) == ("compiled", "float64", True, 32, True)
+    for bad in ("fused-f16-crop", "fused-f32", "fast-f32-crop", "fused-f32-crop:0", "fused-f32-crop:10:20",
+                "fused-f32-crop:graph", "fused-f32-tile:10"):
+        with pytest.raises(SystemExit, match="--full-configs"):
+            bench_solver.parse_full_config(bad, 8)
+
+
+def test_a_bad_spec_stops_the_bench_before_its_first_run(monkeypatch, tmp_path):
+    """Every --full-configs and --launch entry is checked before any row runs (the case is not even built)."""
+    def no_run(*a, **k):
+        raise AssertionError("a run started before the specs were checked")
+
+    for name in ("bondo_like", "_throughput", "full_run"):
+        monkeypatch.setattr(bench_solver, name, no_run)
+    for argv in (["--full-configs", "fused-f64-crop,fused-f32-tile"], ["--launch", "128x4:tiled"]):
+        with pytest.raises(SystemExit, match="--full-configs|--launch"):
+            bench_solver.main(argv + ["--out", str(tmp_path / "x.json")])
+
+
 def test_the_triton_profile_adds_each_kernel_as_often_as_a_step_runs_it():
     from bench import triton_profile
 
