@@ -79,9 +79,11 @@ bench-diagnose: $(STAMP)
 
 # coverage of the 90 % intervals on synthetic cases the calibrated model cannot reproduce exactly (a finer grid,
 # a missing term, a release error, a smoothed DEM), with and without the learnt discrepancy: 64 calibrations on
-# COVERAGE_WORKERS processes (2 by default, one torch thread each); cases already in the JSON are kept
+# COVERAGE_WORKERS processes (2 by default, one torch thread each), every case measured anew
+# (COVERAGE_RESUME=--resume keeps the cases already in the JSON: an interrupted run continues)
 bench-coverage: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) -m bench.coverage --out bench/results/coverage.json --workers $${COVERAGE_WORKERS:-2}
+	OMP_NUM_THREADS=1 $(PY) -m bench.coverage --out bench/results/coverage.json --workers $${COVERAGE_WORKERS:-2} \
+		$${COVERAGE_RESUME:-}
 
 clean:
 	rm -rf $(VENV) demo_out diagnose_demo .pytest_cache

@@ -2,7 +2,7 @@
 
     OMP_NUM_THREADS=1 python -m bench.coverage --out bench/results/coverage.json [--workers 2]
         [--seeds 0,1] [--terrains narrow,fan] [--kinds grid,release,...] [--discrepancy none,learnt]
-        [--inference auto|emulator|local]   (one setting per --out file)
+        [--inference auto|emulator|local]   (one setting per --out file) [--resume]
 
 Every case is a synthetic recording that the inversion's model cannot reproduce exactly
 (experiments.hidden_physics.scenarios.make_recording: made on cells half the inversion's 40 m, with a
@@ -31,7 +31,9 @@ the posterior is sharp), once per discrepancy model (``[calibration] discrepancy
   draws' interval without the grid's error would have.
 
 The JSON gives every interval, the share that covers its truth per discrepancy model, per kind of
-interval and per case kind, and each calibration's wall time. Cases already in --out are not run again.
+interval and per case kind, and each calibration's wall time. Every case runs anew and --out is rewritten
+after each; ``--resume`` keeps the cases already in --out (an interrupted run, on the same code) and runs the
+rest.
 """
 from __future__ import annotations
 
@@ -179,9 +181,10 @@ def main(argv=None) -> int:
     ap.add_argument("--inference", default="auto", choices=("auto", "emulator", "local"),
                     help="calibrate's inference path (torchslide.calibrate; auto: local where the posterior is sharp)")
     ap.add_argument("--workers", type=int, default=int(os.environ.get("COVERAGE_WORKERS", "2")))
+    ap.add_argument("--resume", action="store_true", help="keep the cases already in --out, run the others")
     a = ap.parse_args(argv)
     done = {}
-    if a.out.exists():
+    if a.resume and a.out.exists():
         done = {_key(c): c for c in json.loads(a.out.read_text()).get("cases", [])}
     jobs = [(t, k, int(s), d, a.inference) for t in a.terrains.split(",") for k in a.kinds.split(",")
             for s in a.seeds.split(",") for d in a.discrepancy.split(",")]
