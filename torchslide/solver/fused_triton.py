@@ -19,6 +19,7 @@ disk by Triton). A bed that evolves has its geometry recomputed per stage by ste
 """
 from __future__ import annotations
 
+import functools
 import math
 import os
 
@@ -62,7 +63,8 @@ factor's neighbours along a row are shuffles) marching through at most BAND = 64
 
 PROGRAMS_PER_SM = 8
 """The least programs (one warp each) per multiprocessor a marching launch aims at before it shortens its band
-(band): a 10-member batch on the 20 m Bondo-like grid marches through 16 rows, a 256-member one through 64."""
+(band): on a card of 132 multiprocessors (H100 SXM, H200) the 20 m Bondo-like grid's faces march through 8 rows
+at 1 and 10 members, 32 at 32 and 64 at 256."""
 
 UPDATE_UNROLL = 2
 """The update's loop over rows unrolled (1: not)."""
@@ -140,17 +142,26 @@ def update_shape() -> tuple[int, int]:
     return INTERPRETED_UPDATE if interpreted() else UPDATE
 
 
+@functools.lru_cache(maxsize=None)
+def multiprocessors(device: torch.device) -> int | None:
+    """The streaming multiprocessors of a CUDA ``device`` (read from the driver once per device: band asks at
+    every stage); None on any other device."""
+    if device.type != "cuda":
+        return None
+    return torch.cuda.get_device_properties(device).multi_processor_count
+
+
 def band(shape: tuple[int, int], B: int, ny: int, nx: int, owned: int, device) -> int:
     """The rows a marching program walks: BAND of ``shape`` (W, BAND), halved (down to 8) while the launch would
     have fewer than PROGRAMS_PER_SM programs per multiprocessor of the CUDA device (a longer band shares its
-    start-up over more rows; more bands give a small batch programs for the whole card). ``owned``: columns per
-    strip."""
+    start-up over more rows; more bands give a small batch programs for the whole card); BAND itself off CUDA.
+    ``owned``: columns per strip."""
     rows = shape[1]
-    if torch.device(device).type != "cuda":
+    sms = multiprocessors(torch.device(device))
+    if sms is None:
         return rows
-    target = PROGRAMS_PER_SM * torch.cuda.get_device_properties(device).multi_processor_count
-    strips = triton.cdiv(nx + 1, owned)
-    while rows > 8 and B * strips * triton.cdiv(ny, rows) < target:
+    strips = (nx + 1 + owned - 1) // owned
+    while rows > 8 and B * strips * ((ny + rows - 1) // rows) < PROGRAMS_PER_SM * sms:
         rows //= 2
     return rows
 
