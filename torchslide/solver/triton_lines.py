@@ -19,7 +19,7 @@ if triton is not None:
     import triton.language as tl
 
     from .triton_ops import (C_G, C_HEPS4, C_HWET, C_INVDX, C_NORMAL, C_SQRT2, C_THETA, C_WB, C_WSMIN, _central_upwind,
-                             _dfac, _frozen, _max, _min, _momentum_change, _motion, _slope)
+                             _dfac, _frozen, _k_earth_pressure, _max, _momentum_change, _motion, _slope, _wet)
 
     @triton.jit
     def _velocities(h_ptr, hu_ptr, hv_ptr, geo_ptr, c_ptr, u_ptr, v_ptr, cu_ptr, cv_ptr, sg_ptr, ny, nx, s_geo,
@@ -70,8 +70,8 @@ if triton is not None:
         reconstructed where a cell is wet, less the face bed, else h; and the face bed."""
         bf = 0.5 * (z1 + z2)
         w0, w1, w2, w3 = h0 + z0, h1 + z1, h2 + z2, h3 + z3
-        wet_l = (_min(_min(h0, h1), h2) > h_wet) & (tl.abs(z2 - 2.0 * z1 + z0) * 0.25 <= wb * h1)
-        wet_r = (_min(_min(h1, h2), h3) > h_wet) & (tl.abs(z3 - 2.0 * z2 + z1) * 0.25 <= wb * h2)
+        wet_l = _wet(h0, h1, h2, z0, z1, z2, h_wet, wb)
+        wet_r = _wet(h1, h2, h3, z1, z2, z3, h_wet, wb)
         dm_l = tl.where(wet_l, w1 - w0, h1 - h0)
         dp_l = tl.where(wet_l, w2 - w1, h2 - h1)
         ql = tl.where(wet_l, w1, h1) + 0.5 * _slope(dm_l, dp_l, theta)
@@ -87,16 +87,15 @@ if triton is not None:
         the velocities of the four neighbours replicated at the edges). cb, gb: the member's offsets of the
         state and of the geometry."""
         gc2 = tl.load(gc2_ptr + gb + i * nx + j, mask=m, other=0.0)
-        k = tl.load(pm_ptr + b * 11 + 3)
         if USE_EP:
             row, col = cb + i * nx, cb + j
             div = (tl.load(u_ptr + row + tl.minimum(j + 1, nx - 1), mask=m, other=0.0)
                    - tl.load(u_ptr + row + tl.maximum(j - 1, 0), mask=m, other=0.0)) \
                 + (tl.load(v_ptr + col + tl.minimum(i + 1, ny - 1) * nx, mask=m, other=0.0)
                    - tl.load(v_ptr + col + tl.maximum(i - 1, 0) * nx, mask=m, other=0.0))
-            s = tl.load(pm_ptr + b * 11 + 4)
-            ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
-            k = (1.0 - s) * k + s * ksh
+            k = _k_earth_pressure(div, pm_ptr, b)
+        else:
+            k = tl.load(pm_ptr + b * 11 + 3)
         return k * gc2
 
     @triton.jit

@@ -27,12 +27,8 @@ if triton is not None:
     import triton.language as tl
 
     from .triton_ops import (C_G, C_HEPS4, C_HWET, C_INVDX, C_NORMAL, C_SQRT2, C_THETA, C_WB, C_WSMIN, _central_upwind,
-                             _dfac, _frozen, _max, _min, _minmod3, _momentum_change, _motion, _slope)
-
-    @triton.jit
-    def _lane(q, index):
-        """q at the lanes ``index`` of the strip (a shuffle within the warp)."""
-        return tl.gather(q, index, 0)
+                             _dfac, _frozen, _k_earth_pressure, _lane, _max, _minmod3, _momentum_change, _motion,
+                             _slope, _wet)
 
     @triton.jit
     def _store3(ptr, a, b, c, mask):
@@ -87,9 +83,7 @@ if triton is not None:
         velocities of the (clamped) cell's neighbours spread, passive where they converge; u: the row's
         velocities (east and west neighbours at the lanes ue_i, uw_i), v_s, v_n: the rows before and after."""
         div = (_lane(u, ue_i) - _lane(u, uw_i)) + (v_n - v_s)
-        s = tl.load(pm_ptr + b * 11 + 4)
-        ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
-        return ((1.0 - s) * tl.load(pm_ptr + b * 11 + 3) + s * ksh) * gc2
+        return _k_earth_pressure(div, pm_ptr, b) * gc2
 
     @triton.jit
     def _ends(q, dm, dp, theta):
@@ -110,7 +104,7 @@ if triton is not None:
         where the layer is wet (its neighbours h_m, h_p thicker than h_wet and the bed's curvature offset
         small against it), less the face bed, else h itself; and the two face beds. d_*: the differences of
         h and w to the neighbour before (m) and after (p). Returns (h before, h after, bed before, bed after)."""
-        wet = (_min(_min(h_m, hp), h_p) > h_wet) & (tl.abs(z_p - 2.0 * z + z_m) * 0.25 <= wb * hp)
+        wet = _wet(h_m, hp, h_p, z_m, z, z_p, h_wet, wb)
         q_m, q_p = _ends(tl.where(wet, hp + z, hp), tl.where(wet, d_wm, d_hm), tl.where(wet, d_wp, d_hp), theta)
         bf_m = 0.5 * (z_m + z)
         bf_p = 0.5 * (z + z_p)

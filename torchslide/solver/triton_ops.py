@@ -150,6 +150,28 @@ if triton is not None:
             return _div(a, _sqrt(b))
 
     @triton.jit
+    def _lane(q, index):
+        """q at the lanes ``index`` of a strip (a shuffle within the warp: the marching kernels' neighbours along a
+        row)."""
+        return tl.gather(q, index, 0)
+
+    @triton.jit
+    def _wet(h_m, h, h_p, z_m, z, z_p, h_wet, wb):
+        """scheme.sweep's wet/dry choice of a cell of clipped thickness h and bed z between its neighbours m and p
+        along an axis: the surface w = h + z is reconstructed where the three are thicker than h_wet and the bed's
+        curvature offset is small against h (wb: scheme's wb_ratio), else h itself."""
+        return (_min(_min(h_m, h), h_p) > h_wet) & (tl.abs(z_p - 2.0 * z + z_m) * 0.25 <= wb * h)
+
+    @triton.jit
+    def _k_earth_pressure(div, pm_ptr, b):
+        """stepping._earth_pressure's k of member b at cells whose velocity divergence (without 1 / dx) is div:
+        (1 - s) k_ap + s k_SH, k_SH active where the flow spreads (div >= 0), passive where it converges (pm:
+        fused_triton.PM's table, s its earth_pressure switch)."""
+        s = tl.load(pm_ptr + b * 11 + 4)
+        ksh = tl.where(div >= 0, tl.load(pm_ptr + b * 11 + 5), tl.load(pm_ptr + b * 11 + 6))
+        return (1.0 - s) * tl.load(pm_ptr + b * 11 + 3) + s * ksh
+
+    @triton.jit
     def _dfac(h, sqrt2, heps4):
         """friction.desingularised_factor: r(h) = sqrt(2) h / sqrt(h^4 + max(h^4, h_eps^4)), u = r q."""
         h2 = h * h

@@ -19,7 +19,7 @@ if triton is not None:
 
     from .triton_ops import (C_AREA, C_ARR, C_CFL_DX, C_DT_MAX, C_DX, C_ENTMIN, C_FRDEP, C_G, C_HEPS, C_HEPS4, C_I0,
                              C_INF, C_INVDX, C_MUI, C_NORMAL, C_SQRT2, C_STOP_KE, C_TINY, C_VMIN, _dfac, _div, _hform,
-                             _max, _min, _sqrt)
+                             _lane, _max, _min, _sqrt)
 
     @triton.jit
     def _drain(out, h, lam, normal):
@@ -28,11 +28,6 @@ if triton is not None:
         o = out * lam
         over = (o > h) & (o >= normal)
         return tl.where(over, _div(h, o), 1.0)
-
-    @triton.jit
-    def _lane(q, index):
-        """q at the lanes ``index`` of the strip (a shuffle within the warp)."""
-        return tl.gather(q, index, 0)
 
     @triton.jit
     def _largest(ptr, n, W: tl.constexpr):
