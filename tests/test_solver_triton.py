@@ -52,7 +52,6 @@ def test_the_triton_step_is_chosen_on_cuda_or_under_the_interpreter(monkeypatch)
     assert fused_triton.supported(F, "cpu") is None
 
 
-
 def test_the_marching_band_shortens_for_small_batches_on_a_card_of_132_multiprocessors(monkeypatch):
     """band on the 20 m Bondo-like grid (100 x 325) for the marching faces (28 columns a strip) on an H100/H200
     (132 multiprocessors): a band of 64 rows only where the batch gives every multiprocessor 8 programs; off
@@ -76,6 +75,7 @@ def test_the_marching_band_shortens_for_small_batches_on_a_card_of_132_multiproc
         assert fused_triton.band((32, 64), 1, 100, 325, 28, "cpu") == 64
     finally:
         fused_triton.multiprocessors.cache_clear()
+
 
 @pytest.mark.parametrize("dtype", ["fp64", "fp32"])
 def test_the_triton_kernels_compile_for_an_h100(dtype):
